@@ -1,0 +1,39 @@
+"""`twinbench <command>`: one typed (tyro) config per command, modules imported lazily."""
+
+from __future__ import annotations
+
+import importlib
+import sys
+
+# command -> (module, config dataclass, function taking the config)
+COMMANDS: dict[str, tuple[str, str, str, str]] = {
+    "demo": ("twinbench.demo", "DemoConfig", "main", "run the demo job on the built-in twin (CPU)"),
+}
+
+
+def _usage() -> str:
+    lines = ["usage: twinbench <command> [--help] [options]", "", "commands:"]
+    lines += [f"  {name:<14} {doc}" for name, (_, _, _, doc) in COMMANDS.items()]
+    return "\n".join(lines)
+
+
+def main(argv: list[str] | None = None) -> int:
+    import tyro
+
+    argv = list(sys.argv[1:] if argv is None else argv)
+    if not argv or argv[0] in ("-h", "--help"):
+        print(_usage())
+        return 0
+    name, rest = argv[0], argv[1:]
+    if name not in COMMANDS:
+        print(f"twinbench: unknown command {name!r}\n\n{_usage()}", file=sys.stderr)
+        return 2
+    module_name, config_name, func_name, _ = COMMANDS[name]
+    module = importlib.import_module(module_name)
+    config = tyro.cli(getattr(module, config_name), args=rest, prog=f"twinbench {name}")
+    result = getattr(module, func_name)(config)
+    return int(result or 0)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

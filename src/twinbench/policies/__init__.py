@@ -1,0 +1,1 @@
+"""twinbench.policies."""
