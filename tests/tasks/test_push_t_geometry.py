@@ -1,0 +1,68 @@
+import numpy as np
+import pytest
+
+from twinbench.tasks.push_t_geometry import (
+    SuccessWindow,
+    TBlockShape,
+    grid_initial_states,
+    mean_squared_distance,
+    pose_matrix,
+    sample_block_particles,
+    sample_initial_states,
+    transform_points,
+)
+
+
+def test_t_mesh_is_closed_with_analytic_volume_and_centroid():
+    shape = TBlockShape()
+    mesh = shape.mesh()
+    assert mesh.is_watertight and mesh.is_winding_consistent
+    volume = (shape.bar_length * shape.bar_width + shape.stem_width * shape.stem_length) * shape.height
+    assert mesh.volume == pytest.approx(volume, rel=1e-9)
+    np.testing.assert_allclose(mesh.center_mass, [0, 0, shape.height / 2], atol=1e-12)
+
+
+def test_particles_fill_the_t_on_a_lattice():
+    shape = TBlockShape()
+    pts = sample_block_particles(shape, 0.005)
+    assert shape.contains(pts, tol=1e-6).all()
+    # 5 mm lattice: bar 25 x 7 columns, stem 7 x 18 more columns below the bar, 7 layers.
+    assert len(pts) == (25 * 7 + 7 * 18) * 7
+    np.testing.assert_allclose(pts[:, 2].min(), 0.0, atol=1e-7)
+    np.testing.assert_allclose(pts[:, 2].max(), shape.height, atol=1e-7)
+    with pytest.raises(ValueError, match="spacing"):
+        sample_block_particles(shape, 0.0)
+
+
+def test_grid_states_are_the_16_reference_states():
+    states = grid_initial_states()
+    assert states.shape == (16, 3)
+    assert len({tuple(np.round(s, 6)) for s in states}) == 16
+    assert set(np.round(states[:, 0], 6)) == {-0.05, 0.05}
+    assert set(np.round(np.rad2deg(states[:, 2]), 6)) == {-135.0, -45.0, 45.0, 135.0}
+    sampled = sample_initial_states(200, seed=0)
+    assert sampled.shape == (200, 3) and np.abs(sampled[:, :2]).max() <= 0.075
+    np.testing.assert_array_equal(sampled, sample_initial_states(200, seed=0))
+
+
+def test_mean_squared_distance_matches_rigid_motion_formula():
+    pts = sample_block_particles(TBlockShape(), 0.01).astype(np.float64)
+    pts[:, :2] -= pts[:, :2].mean(0)  # rotate about the particles' own centroid
+    t = np.array([0.03, -0.02])
+    assert mean_squared_distance(transform_points(pose_matrix(*t, 0.0), pts), pts) == pytest.approx(t @ t)
+    th = np.deg2rad(40.0)
+    r2 = np.mean(np.sum(pts[:, :2] ** 2, axis=1))
+    moved = transform_points(pose_matrix(0, 0, th), pts)
+    assert mean_squared_distance(moved, pts) == pytest.approx(2 * (1 - np.cos(th)) * r2, rel=1e-9)
+
+
+def test_success_needs_more_than_30_of_the_last_100_frames():
+    win = SuccessWindow()
+    for _ in range(70):
+        win.update(False)
+    for _ in range(30):
+        assert not win.update(True)
+    assert win.update(True)  # 31 hits
+    for _ in range(70):  # the old hits slide out of the window
+        win.update(False)
+    assert not win.success
