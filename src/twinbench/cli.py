@@ -8,6 +8,8 @@ import sys
 # command -> (module, config dataclass, function taking the config)
 COMMANDS: dict[str, tuple[str, str, str, str]] = {
     "demo": ("twinbench.demo", "DemoConfig", "main", "run the demo job on the built-in twin (CPU)"),
+    "import-real": ("twinbench.evaluation.real", "ImportRealConfig", "main",
+                    "import real-robot episode outcomes from a CSV into the results store"),
 }
 
 

@@ -1,0 +1,174 @@
+"""Import real-robot episode outcomes from a CSV file into the results store (domain "real").
+
+Columns: policy, checkpoint, init_state, success (required); train_step, seed, task, notes (optional).
+Row numbers in error messages count the header as row 1, as a spreadsheet shows them. The whole file is
+validated first; nothing is imported when any row is bad.
+"""
+
+from __future__ import annotations
+
+import csv
+import sys
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Annotated
+
+import tyro
+
+from twinbench.evaluation.store import DEFAULT_DB, EpisodeRecord, ResultsStore
+
+REQUIRED = ("policy", "checkpoint", "init_state", "success")
+OPTIONAL = ("train_step", "seed", "task", "notes")
+TRUE_WORDS = ("1", "true", "yes", "success")
+FALSE_WORDS = ("0", "false", "no", "failure")
+_MAX_REPORTED = 20
+
+
+def parse_success(text: str) -> bool:
+    """1/0, true/false, yes/no, success/failure (case-insensitive) -> bool; ValueError otherwise."""
+    word = text.strip().lower()
+    if word in TRUE_WORDS:
+        return True
+    if word in FALSE_WORDS:
+        return False
+    raise ValueError(f"{text!r} is not one of {', '.join(TRUE_WORDS + FALSE_WORDS)}")
+
+
+def _parse_int(text: str, *, minimum: int | None = None) -> int:
+    try:
+        value = int(text.strip())
+    except ValueError:
+        raise ValueError(f"{text!r} is not an integer") from None
+    if minimum is not None and value < minimum:
+        raise ValueError(f"{value} must be >= {minimum}")
+    return value
+
+
+def read_real_csv(path: str | Path, run_id: str = "real", task: str = "push-t") -> list[EpisodeRecord]:
+    """Validate a real-outcome CSV and return its episodes (domain "real", status "ok").
+
+    Raises ValueError listing every bad row as "FILE row N, column C: problem"."""
+    path = Path(path)
+    if not path.is_file():
+        raise ValueError(f"real-outcome CSV {path} does not exist (give the path of a .csv file)")
+    try:
+        with path.open(newline="", encoding="utf-8-sig") as fh:
+            rows = list(csv.reader(fh))
+    except UnicodeDecodeError as err:
+        raise ValueError(f"{path} is not UTF-8 text: {err}; save it as UTF-8 CSV") from err
+    except csv.Error as err:
+        raise ValueError(f"{path} is not a valid CSV file: {err}") from err
+    if not rows or not any(cell.strip() for cell in rows[0]):
+        raise ValueError(f"{path} is empty: expected a header row with columns {', '.join(REQUIRED)}")
+    header = [h.strip().lower() for h in rows[0]]
+    missing = [c for c in REQUIRED if c not in header]
+    unknown = [h for h in header if h not in REQUIRED + OPTIONAL]
+    dupes = sorted({h for h in header if header.count(h) > 1})
+    if missing or unknown or dupes:
+        parts = []
+        if missing:
+            parts.append(f"missing column(s) {', '.join(missing)}")
+        if unknown:
+            parts.append(f"unknown column(s) {', '.join(repr(u) for u in unknown)}")
+        if dupes:
+            parts.append(f"repeated column(s) {', '.join(dupes)}")
+        raise ValueError(f"{path} row 1 (header): {'; '.join(parts)}. Expected columns "
+                         f"{', '.join(REQUIRED)} and optionally {', '.join(OPTIONAL)}")
+
+    errors: list[str] = []
+    records: list[EpisodeRecord] = []
+    seen: dict[tuple, int] = {}
+    steps: dict[tuple[str, str], tuple[int | None, int]] = {}
+    for line, row in enumerate(rows[1:], start=2):
+        if not any(cell.strip() for cell in row):
+            continue  # blank line
+        if len(row) != len(header):
+            errors.append(f"{path} row {line}: {len(row)} fields, the header has {len(header)}")
+            continue
+        cells = dict(zip(header, row, strict=True))
+        bad = len(errors)
+
+        def check(column, parse, cells=cells, line=line):
+            try:
+                return parse(cells[column])
+            except ValueError as err:
+                errors.append(f"{path} row {line}, column {column}: {err}")
+                return None
+
+        policy = cells["policy"].strip()
+        if not policy:
+            errors.append(f"{path} row {line}, column policy: empty (give the policy name)")
+        checkpoint = cells["checkpoint"].strip()
+        init_state = check("init_state", lambda t: _parse_int(t, minimum=0))
+        success = check("success", parse_success)
+        train_step = None
+        if cells.get("train_step", "").strip():
+            train_step = check("train_step", lambda t: _parse_int(t, minimum=0))
+        seed = check("seed", _parse_int) if cells.get("seed", "").strip() else 0
+        row_task = cells.get("task", "").strip() or task
+        notes = cells.get("notes", "").strip()
+        if len(errors) > bad:
+            continue
+        key = (policy, checkpoint, init_state, seed)
+        if key in seen:
+            errors.append(f"{path} row {line}: repeats row {seen[key]}'s (policy, checkpoint, init_state, "
+                          f"seed) = {key}; give repeated trials distinct seeds")
+            continue
+        seen[key] = line
+        prev = steps.setdefault((policy, checkpoint), (train_step, line))
+        if prev[0] != train_step:
+            errors.append(f"{path} row {line}, column train_step: {train_step} differs from {prev[0]} on row "
+                          f"{prev[1]} for the same policy {policy!r} and checkpoint {checkpoint!r}")
+            continue
+        records.append(EpisodeRecord(
+            run_id=run_id, task=row_task, policy=policy, checkpoint=checkpoint, train_step=train_step,
+            init_state=init_state, seed=seed, domain="real", success=success, status="ok",
+            metrics={"notes": notes} if notes else {},
+        ))
+    if errors:
+        more = f"\n... and {len(errors) - _MAX_REPORTED} more" if len(errors) > _MAX_REPORTED else ""
+        raise ValueError(f"{len(errors)} problem(s) in {path}; nothing was imported:\n"
+                         + "\n".join(errors[:_MAX_REPORTED]) + more)
+    if not records:
+        raise ValueError(f"{path} has a header but no data rows")
+    return records
+
+
+def import_real_csv(path: str | Path, store: ResultsStore, run_id: str = "real",
+                    task: str = "push-t") -> list[EpisodeRecord]:
+    """Validate the CSV, then record all of its episodes in one transaction (all or nothing).
+
+    Importing the same trials again replaces them (same run id, policy, checkpoint, init_state, seed)."""
+    records = read_real_csv(path, run_id=run_id, task=task)
+    store.start_run(run_id, task, {"kind": "real-robot outcomes", "task": task})
+    store.record_episodes(records)
+    return records
+
+
+@dataclass(frozen=True)
+class ImportRealConfig:
+    """Import real-robot outcomes (CSV: policy, checkpoint, init_state, success[, train_step, seed, task,
+    notes]) into the results store."""
+
+    file: Annotated[Path, tyro.conf.Positional]
+    """CSV file of real-robot outcomes."""
+    db: Path = DEFAULT_DB
+    """results store (SQLite)."""
+    run_id: str = "real"
+    """run id the real outcomes are stored under."""
+    task: str = "push-t"
+    """task of rows whose task column is empty or absent."""
+
+
+def main(config: ImportRealConfig) -> int:
+    try:
+        records = import_real_csv(config.file, ResultsStore(config.db), run_id=config.run_id,
+                                  task=config.task)
+    except ValueError as err:
+        print(f"twinbench import-real: {err}", file=sys.stderr)
+        return 2
+    n_ok = sum(r.success for r in records)
+    policies = sorted({(r.policy, r.checkpoint) for r in records})
+    print(f"imported {len(records)} real episodes ({n_ok} successes) for {len(policies)} "
+          f"policy/checkpoint pair(s) into {config.db} run {config.run_id!r}")
+    return 0
