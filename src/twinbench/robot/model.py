@@ -1,0 +1,485 @@
+"""RobotModel: a URDF's kinematic tree, limits, mimic joints and link meshes; vectorised forward kinematics.
+
+The model is a data object (built once by `load_robot`); poses are float64 4x4 matrices in the world
+frame (= the URDF root frame). The configuration vector `q` holds the actuated joints (revolute,
+continuous, prismatic; mimic joints excluded) in URDF tree order; `model.joint_names` names them.
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import trimesh
+
+from twinbench.robot.transforms import axis_angle_to_matrix
+
+_MOVING = ("revolute", "continuous", "prismatic")
+
+
+class URDFError(ValueError):
+    """A URDF that cannot be turned into a RobotModel (message names the file and the fix)."""
+
+
+@dataclass(frozen=True)
+class JointSpec:
+    """One URDF joint. `q_index` is its slot in q (None for fixed and mimic joints)."""
+
+    name: str
+    type: str
+    parent: str
+    child: str
+    origin: np.ndarray  # (4, 4) parent link -> joint frame at zero
+    axis: np.ndarray  # (3,) unit axis in the joint frame
+    lower: float
+    upper: float
+    q_index: int | None
+    mimic: tuple[str, float, float] | None = None  # (source joint, multiplier, offset)
+
+
+@dataclass
+class RobotModel:
+    """Kinematic tree + geometry of a robot. Build with `load_robot` (or `load_builtin_arm`)."""
+
+    name: str
+    urdf_path: Path
+    link_names: list[str]  # root first, parents before children
+    joints: list[JointSpec]  # tree order; joints[i] moves link_names[i + 1]
+    joint_names: list[str]  # actuated joints, in q order
+    lower: np.ndarray  # (n_q,)
+    upper: np.ndarray  # (n_q,)
+    ee_link: str
+    ee_offset: np.ndarray  # (4, 4) fixed offset from ee_link to the end-effector frame
+    visual_meshes: dict[str, trimesh.Trimesh] = field(default_factory=dict)  # link frame
+    collision_meshes: dict[str, trimesh.Trimesh] = field(default_factory=dict)  # link frame
+    link_colors: dict[str, np.ndarray] = field(default_factory=dict)  # rgb in [0, 1] from URDF materials
+    gripper_joint: str | None = None  # actuated joint driving the fingers (mimics follow it)
+    gripper_open: float = 0.0  # gripper joint value when fully open (command 0)
+    gripper_closed: float = 0.0  # gripper joint value when fully closed (command 1)
+    contact_links: tuple[str, ...] = ()  # links whose collision meshes touch objects (fingers, pusher)
+    home_q: np.ndarray | None = None  # (n_q,) default configuration
+
+    def __post_init__(self) -> None:
+        self.ee_offset = np.asarray(self.ee_offset, dtype=np.float64).reshape(4, 4)
+        self._link_index = {name: i for i, name in enumerate(self.link_names)}
+        if self.ee_link not in self._link_index:
+            raise URDFError(
+                f"{self.urdf_path}: ee_link {self.ee_link!r} is not a link; links: {self.link_names}"
+            )
+        for link in self.contact_links:
+            if link not in self._link_index:
+                raise URDFError(
+                    f"{self.urdf_path}: contact link {link!r} is not a link; links: {self.link_names}"
+                )
+        qi = {name: i for i, name in enumerate(self.joint_names)}
+        if self.gripper_joint is not None and self.gripper_joint not in qi:
+            raise URDFError(
+                f"{self.urdf_path}: gripper_joint {self.gripper_joint!r} is not an actuated joint; "
+                f"actuated joints: {self.joint_names}"
+            )
+        if self.home_q is None:
+            self.home_q = np.clip(np.zeros(self.n_q), self.lower, self.upper)
+        self.home_q = self.check_q(self.home_q, "home_q")
+        # Precomputed per-joint arrays for FK.
+        self._parent = np.array([self._link_index[j.parent] for j in self.joints], dtype=np.int64)
+        self._child = np.array([self._link_index[j.child] for j in self.joints], dtype=np.int64)
+        self._source = []  # (q index, multiplier, offset) or None for fixed joints
+        for j in self.joints:
+            if j.type == "fixed":
+                self._source.append(None)
+            elif j.mimic is not None:
+                src, mult, off = j.mimic
+                self._source.append((qi[src], mult, off))
+            else:
+                self._source.append((j.q_index, 1.0, 0.0))
+        # Arm joints: actuated joints on the path root -> ee_link, in order (used by IK).
+        chain = []
+        link = self.ee_link
+        by_child = {j.child: j for j in self.joints}
+        while link in by_child:
+            j = by_child[link]
+            if j.q_index is not None:
+                chain.append(j)
+            link = j.parent
+        chain.reverse()
+        self.arm_joints = [j.name for j in chain]
+        self.arm_q_indices = np.array([j.q_index for j in chain], dtype=np.int64)
+        self._arm_joint_rows = np.array([self.joints.index(j) for j in chain], dtype=np.int64)
+        self._arm_prismatic = np.array([j.type == "prismatic" for j in chain])
+
+    # ----------------------------------------------------------------- basic facts
+    @property
+    def n_q(self) -> int:
+        return len(self.joint_names)
+
+    @property
+    def n_links(self) -> int:
+        return len(self.link_names)
+
+    def link_index(self, link: str) -> int:
+        if link not in self._link_index:
+            raise KeyError(f"unknown link {link!r}; links: {self.link_names}")
+        return self._link_index[link]
+
+    def joint(self, name: str) -> JointSpec:
+        for j in self.joints:
+            if j.name == name:
+                return j
+        raise KeyError(f"unknown joint {name!r}; joints: {[j.name for j in self.joints]}")
+
+    def check_q(self, q: np.ndarray, name: str = "q") -> np.ndarray:
+        """Validate a (n_q,) or (B, n_q) configuration: shape and finiteness (raises ValueError)."""
+        q = np.asarray(q, dtype=np.float64)
+        if q.ndim not in (1, 2) or q.shape[-1] != self.n_q:
+            raise ValueError(f"{name}: expected shape ({self.n_q},) or (B, {self.n_q}), got {q.shape}")
+        if not np.all(np.isfinite(q)):
+            raise ValueError(f"{name}: contains NaN or inf")
+        return q
+
+    def clip_q(self, q: np.ndarray) -> np.ndarray:
+        return np.clip(q, self.lower, self.upper)
+
+    # ----------------------------------------------------------------- gripper
+    def set_gripper(self, q: np.ndarray, closedness: float | np.ndarray) -> np.ndarray:
+        """Copy of q with the gripper joint set from a command in [0, 1] (1 = closed); no-op without one."""
+        q = np.array(q, dtype=np.float64)
+        if self.gripper_joint is None:
+            return q
+        c = np.clip(closedness, 0.0, 1.0)
+        q[..., self.joint_names.index(self.gripper_joint)] = self.gripper_open + c * (
+            self.gripper_closed - self.gripper_open
+        )
+        return q
+
+    def gripper_closedness(self, q: np.ndarray) -> np.ndarray | float:
+        """Gripper command in [0, 1] (1 = closed) encoded by q's gripper joint (0.0 without a gripper)."""
+        if self.gripper_joint is None or self.gripper_closed == self.gripper_open:
+            return 0.0
+        v = np.asarray(q)[..., self.joint_names.index(self.gripper_joint)]
+        return (v - self.gripper_open) / (self.gripper_closed - self.gripper_open)
+
+    # ----------------------------------------------------------------- kinematics
+    def _fk(self, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(B, n_q) -> link poses (B, n_links, 4, 4) and joint frames (B, n_joints, 4, 4)."""
+        b = q.shape[0]
+        links = np.empty((b, self.n_links, 4, 4))
+        links[:, 0] = np.eye(4)
+        frames = np.empty((b, len(self.joints), 4, 4))
+        for k, j in enumerate(self.joints):
+            jf = links[:, self._parent[k]] @ j.origin
+            frames[:, k] = jf
+            src = self._source[k]
+            if src is None:
+                links[:, self._child[k]] = jf
+                continue
+            value = q[:, src[0]] * src[1] + src[2]
+            child = jf.copy()
+            if j.type == "prismatic":
+                child[:, :3, 3] += (jf[:, :3, :3] @ j.axis) * value[:, None]
+            else:
+                child[:, :3, :3] = jf[:, :3, :3] @ axis_angle_to_matrix(j.axis, value)
+            links[:, self._child[k]] = child
+        return links, frames
+
+    def fk(self, q: np.ndarray) -> np.ndarray:
+        """World poses of every link: q (n_q,) -> (n_links, 4, 4); q (B, n_q) -> (B, n_links, 4, 4)."""
+        q = self.check_q(q)
+        links, _ = self._fk(np.atleast_2d(q))
+        return links[0] if q.ndim == 1 else links
+
+    def link_pose(self, q: np.ndarray, link: str) -> np.ndarray:
+        """World pose(s) of one link."""
+        return self.fk(q)[..., self.link_index(link), :, :]
+
+    def ee_pose(self, q: np.ndarray) -> np.ndarray:
+        """World pose(s) of the end-effector frame (ee_link @ ee_offset)."""
+        return self.link_pose(q, self.ee_link) @ self.ee_offset
+
+    def ee_pose_and_jacobian(self, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(B, n_q) -> EE poses (B, 4, 4) and geometric Jacobians (B, 6, n_arm) over `arm_joints`.
+
+        Rows 0-2: linear velocity of the EE origin (world); rows 3-5: angular velocity (world).
+        """
+        q = self.check_q(q)
+        links, frames = self._fk(np.atleast_2d(q))
+        ee = links[:, self._link_index[self.ee_link]] @ self.ee_offset
+        jf = frames[:, self._arm_joint_rows]  # (B, n_arm, 4, 4)
+        axes = np.einsum(
+            "bkij,kj->bki", jf[:, :, :3, :3], np.stack([self.joints[r].axis for r in self._arm_joint_rows])
+        )
+        lever = ee[:, None, :3, 3] - jf[:, :, :3, 3]
+        jv = np.where(self._arm_prismatic[None, :, None], axes, np.cross(axes, lever))
+        jw = np.where(self._arm_prismatic[None, :, None], 0.0, axes)
+        jac = np.concatenate([jv, jw], axis=2).transpose(0, 2, 1)
+        return ee, jac
+
+    # ----------------------------------------------------------------- geometry
+    def contact_faces(self, link: str) -> np.ndarray:
+        """(F, 3) int32 faces of a contact link's collision mesh (fixed over time)."""
+        return np.asarray(self._contact_mesh(link).faces, dtype=np.int32)
+
+    def _contact_mesh(self, link: str) -> trimesh.Trimesh:
+        if link not in self.collision_meshes:
+            raise KeyError(
+                f"link {link!r} has no collision mesh; links with one: {list(self.collision_meshes)}"
+            )
+        return self.collision_meshes[link]
+
+    def contact_vertices(self, q: np.ndarray, link: str) -> np.ndarray:
+        """World-frame vertices (V, 3) (or (B, V, 3) for batched q) of a link's collision mesh at q."""
+        t = self.link_pose(q, link)
+        v = np.asarray(self._contact_mesh(link).vertices, dtype=np.float64)
+        return np.einsum("...ij,vj->...vi", t[..., :3, :3], v) + t[..., None, :3, 3]
+
+    def interpolate(self, q_from: np.ndarray, q_to: np.ndarray, alpha: float | np.ndarray) -> np.ndarray:
+        """Joint-space linear interpolation (1 - alpha) q_from + alpha q_to (alpha scalar or (B,))."""
+        q_from = self.check_q(q_from, "q_from")
+        q_to = self.check_q(q_to, "q_to")
+        a = np.asarray(alpha, dtype=np.float64)
+        if a.ndim == 1:
+            a = a[:, None]
+        return (1.0 - a) * q_from + a * q_to
+
+    def contact_vertices_interpolated(
+        self, q_from: np.ndarray, q_to: np.ndarray, alpha, link: str
+    ) -> np.ndarray:
+        """World vertices of a contact link at the joint-space interpolation of q_from and q_to."""
+        return self.contact_vertices(self.interpolate(q_from, q_to, alpha), link)
+
+
+# ===================================================================== loading
+def _resolve_filename(
+    filename: str, urdf_dir: Path, package_dirs: Sequence[Path]
+) -> tuple[Path | None, list[Path]]:
+    """Resolve a mesh filename (package://, file://, relative, absolute) -> (path or None, tried)."""
+    tried: list[Path] = []
+    if filename.startswith("package://"):
+        rest = filename[len("package://") :]
+        pkg, _, rel = rest.partition("/")
+        roots = list(package_dirs)
+        roots += [Path(p) for p in os.environ.get("ROS_PACKAGE_PATH", "").split(os.pathsep) if p]
+        roots += [urdf_dir, *urdf_dir.parents]
+        for root in roots:
+            cands = [root / pkg / rel] + ([root / rel] if root.name == pkg else [])
+            for c in cands:
+                tried.append(c)
+                if c.is_file():
+                    return c, tried
+        return None, tried
+    if filename.startswith("file://"):
+        filename = filename[len("file://") :]
+    p = Path(filename)
+    p = p if p.is_absolute() else urdf_dir / p
+    tried.append(p)
+    return (p if p.is_file() else None), tried
+
+
+def _geometry_mesh(
+    geometry, link: str, urdf_path: Path, package_dirs: Sequence[Path]
+) -> trimesh.Trimesh | None:
+    if geometry is None:
+        return None
+    if geometry.mesh is not None:
+        path, tried = _resolve_filename(geometry.mesh.filename, urdf_path.parent, package_dirs)
+        if path is None:
+            shown = ", ".join(str(t) for t in tried[:6]) + (" ..." if len(tried) > 6 else "")
+            raise FileNotFoundError(
+                f"{urdf_path}: link {link!r}: mesh {geometry.mesh.filename!r} not found (tried {shown}); "
+                "fix the path or pass package_dirs=[folder containing the package]"
+            )
+        try:
+            mesh = trimesh.load(path, force="mesh", process=False)
+        except Exception as exc:  # trimesh raises many types for bad files
+            raise URDFError(f"{urdf_path}: link {link!r}: cannot read mesh {path}: {exc}") from exc
+        mesh = trimesh.Trimesh(
+            vertices=np.asarray(mesh.vertices), faces=np.asarray(mesh.faces), process=False
+        )
+        if geometry.mesh.scale is not None:
+            mesh.apply_scale(np.broadcast_to(np.asarray(geometry.mesh.scale, dtype=np.float64), (3,)))
+        return mesh
+    if geometry.box is not None:
+        return trimesh.creation.box(extents=np.asarray(geometry.box.size, dtype=np.float64))
+    if geometry.cylinder is not None:
+        return trimesh.creation.cylinder(
+            radius=geometry.cylinder.radius, height=geometry.cylinder.length, sections=24
+        )
+    if geometry.sphere is not None:
+        return trimesh.creation.icosphere(subdivisions=2, radius=geometry.sphere.radius)
+    return None
+
+
+def _link_mesh(elements, link: str, urdf_path: Path, package_dirs: Sequence[Path]) -> trimesh.Trimesh | None:
+    parts = []
+    for el in elements:
+        m = _geometry_mesh(el.geometry, link, urdf_path, package_dirs)
+        if m is None:
+            continue
+        if el.origin is not None:
+            m.apply_transform(np.asarray(el.origin, dtype=np.float64))
+        parts.append(m)
+    if not parts:
+        return None
+    return trimesh.util.concatenate(parts) if len(parts) > 1 else parts[0]
+
+
+def load_robot(
+    urdf_path: str | Path,
+    *,
+    package_dirs: Sequence[str | Path] = (),
+    ee_link: str | None = None,
+    ee_offset: np.ndarray | None = None,
+    gripper_joint: str | None = None,
+    gripper_open: float | None = None,
+    gripper_closed: float | None = None,
+    contact_links: Sequence[str] = (),
+    home_q: np.ndarray | None = None,
+    load_meshes: bool = True,
+) -> RobotModel:
+    """Load a URDF (yourdfpy parser) into a RobotModel.
+
+    `package://NAME/rel` paths are searched in `package_dirs`, `ROS_PACKAGE_PATH`, the URDF's folder and
+    its parents (both `ROOT/NAME/rel` and, when a folder is itself named NAME, `ROOT/rel`).
+    `ee_link` defaults to the deepest link of the tree. `gripper_open` / `gripper_closed` default to the
+    gripper joint's upper / lower limits.
+    """
+    import yourdfpy
+
+    urdf_path = Path(urdf_path).expanduser().resolve()
+    if not urdf_path.is_file():
+        raise FileNotFoundError(f"URDF file not found: {urdf_path}")
+    try:
+        urdf = yourdfpy.URDF.load(
+            str(urdf_path),
+            build_scene_graph=False,
+            load_meshes=False,
+            build_collision_scene_graph=False,
+            load_collision_meshes=False,
+        )
+    except Exception as exc:
+        raise URDFError(f"{urdf_path}: not a valid URDF ({type(exc).__name__}: {exc})") from exc
+    robot = urdf.robot
+    pdirs = [Path(p).expanduser().resolve() for p in package_dirs]
+
+    all_links = [link.name for link in robot.links]
+    children = {j.child for j in robot.joints}
+    roots = [name for name in all_links if name not in children]
+    if len(roots) != 1:
+        raise URDFError(f"{urdf_path}: expected exactly one root link, found {roots}")
+    for j in robot.joints:
+        for end in (j.parent, j.child):
+            if end not in all_links:
+                raise URDFError(f"{urdf_path}: joint {j.name!r} refers to unknown link {end!r}")
+
+    # Breadth-first order from the root: parents before children.
+    by_parent: dict[str, list] = {}
+    for j in robot.joints:
+        by_parent.setdefault(j.parent, []).append(j)
+    order, joints_sorted, queue = [roots[0]], [], [roots[0]]
+    depth = {roots[0]: 0}
+    while queue:
+        parent = queue.pop(0)
+        for j in by_parent.get(parent, []):
+            joints_sorted.append(j)
+            order.append(j.child)
+            depth[j.child] = depth[parent] + 1
+            queue.append(j.child)
+    if len(order) != len(all_links):
+        raise URDFError(
+            f"{urdf_path}: links not connected to the root: {sorted(set(all_links) - set(order))}"
+        )
+
+    specs: list[JointSpec] = []
+    joint_names: list[str] = []
+    lower, upper = [], []
+    for j in joints_sorted:
+        jtype = j.type
+        if jtype not in (*_MOVING, "fixed"):
+            raise URDFError(
+                f"{urdf_path}: joint {j.name!r}: unsupported type {jtype!r} (use revolute, "
+                "continuous, prismatic or fixed)"
+            )
+        axis = np.array([1.0, 0.0, 0.0]) if j.axis is None else np.asarray(j.axis, dtype=np.float64)
+        if jtype != "fixed":
+            n = np.linalg.norm(axis)
+            if n < 1e-9:
+                raise URDFError(f"{urdf_path}: joint {j.name!r}: zero axis")
+            axis = axis / n
+        lo, hi = -np.inf, np.inf
+        if jtype == "continuous":
+            lo, hi = -2 * np.pi, 2 * np.pi  # continuous joints: a bounded range keeps IK well posed
+        elif jtype in ("revolute", "prismatic"):
+            if j.limit is None or j.limit.lower is None or j.limit.upper is None:
+                raise URDFError(f"{urdf_path}: joint {j.name!r} ({jtype}) has no <limit lower upper>")
+            lo, hi = float(j.limit.lower), float(j.limit.upper)
+        mimic = None
+        q_index = None
+        if jtype != "fixed" and j.mimic is not None:
+            mimic = (
+                j.mimic.joint,
+                1.0 if j.mimic.multiplier is None else float(j.mimic.multiplier),
+                0.0 if j.mimic.offset is None else float(j.mimic.offset),
+            )
+        elif jtype != "fixed":
+            q_index = len(joint_names)
+            joint_names.append(j.name)
+            lower.append(lo)
+            upper.append(hi)
+        origin = np.eye(4) if j.origin is None else np.asarray(j.origin, dtype=np.float64)
+        specs.append(JointSpec(j.name, jtype, j.parent, j.child, origin, axis, lo, hi, q_index, mimic))
+    for s in specs:
+        if s.mimic is not None and s.mimic[0] not in joint_names:
+            raise URDFError(
+                f"{urdf_path}: mimic joint {s.name!r} follows {s.mimic[0]!r}, which is not an "
+                "actuated joint (chained mimics are not supported)"
+            )
+
+    visual, collision, colors = {}, {}, {}
+    materials = {m.name: m for m in robot.materials if m.name}
+    for link in robot.links:
+        for vis in link.visuals:
+            mat = vis.material
+            if mat is not None and mat.color is None and mat.name in materials:
+                mat = materials[mat.name]
+            if mat is not None and mat.color is not None and mat.color.rgba is not None:
+                colors[link.name] = np.asarray(mat.color.rgba, dtype=np.float64)[:3]
+                break
+        if load_meshes:
+            v = _link_mesh(link.visuals, link.name, urdf_path, pdirs)
+            c = _link_mesh(link.collisions, link.name, urdf_path, pdirs)
+            if v is not None:
+                visual[link.name] = v
+            if c is not None:
+                collision[link.name] = c
+            elif v is not None:
+                collision[link.name] = v
+
+    if ee_link is None:
+        ee_link = max(order, key=lambda n: (depth[n], -order.index(n)))
+    g_open = gripper_open
+    g_closed = gripper_closed
+    if gripper_joint is not None and gripper_joint in joint_names:
+        k = joint_names.index(gripper_joint)
+        g_open = upper[k] if g_open is None else g_open
+        g_closed = lower[k] if g_closed is None else g_closed
+    return RobotModel(
+        name=robot.name or urdf_path.stem,
+        urdf_path=urdf_path,
+        link_names=order,
+        joints=specs,
+        joint_names=joint_names,
+        lower=np.array(lower, dtype=np.float64),
+        upper=np.array(upper, dtype=np.float64),
+        ee_link=ee_link,
+        ee_offset=np.eye(4) if ee_offset is None else ee_offset,
+        visual_meshes=visual,
+        collision_meshes=collision,
+        link_colors=colors,
+        gripper_joint=gripper_joint,
+        gripper_open=0.0 if g_open is None else float(g_open),
+        gripper_closed=0.0 if g_closed is None else float(g_closed),
+        contact_links=tuple(contact_links),
+        home_q=home_q,
+    )
