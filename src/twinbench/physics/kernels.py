@@ -1,0 +1,377 @@
+"""Warp kernels of the spring-mass solver (same code on ``cpu`` and ``cuda``).
+
+The arithmetic follows PhysTwin's ``SpringMassSystemWarp`` expression by expression (see the golden
+README in ``shared/reference/phystwin``) so that float32 results match the reference trajectories.
+Spring indices ``>= n`` refer to kinematic control point ``idx - n``.
+"""
+
+from __future__ import annotations
+
+import warp as wp
+
+wp.set_module_options({"enable_backward": True})
+
+GROUND_VZ_THRESHOLD = -1e-4  # PhysTwin's approach threshold for ground and particle contacts
+
+
+@wp.func
+def end_position(
+    x: wp.array(dtype=wp.vec3),
+    ctrl_from: wp.array(dtype=wp.vec3),
+    ctrl_to: wp.array(dtype=wp.vec3),
+    t: float,
+    idx: int,
+    n: int,
+):
+    if idx < n:
+        return x[idx]
+    c = idx - n
+    a = ctrl_from[c]
+    return a + (ctrl_to[c] - a) * t
+
+
+@wp.func
+def end_velocity(v: wp.array(dtype=wp.vec3), idx: int, n: int):
+    # Control points carry zero velocity (PhysTwin never writes it).
+    if idx < n:
+        return v[idx]
+    return wp.vec3(0.0, 0.0, 0.0)
+
+
+@wp.func
+def spring_force(
+    x: wp.array(dtype=wp.vec3),
+    v: wp.array(dtype=wp.vec3),
+    springs: wp.array(dtype=wp.vec2i),
+    rest_lengths: wp.array(dtype=float),
+    log_y: wp.array(dtype=float),
+    y_min: float,
+    y_max: float,
+    dashpot: float,
+    ctrl_from: wp.array(dtype=wp.vec3),
+    ctrl_to: wp.array(dtype=wp.vec3),
+    t: float,
+    n: int,
+    s: int,
+):
+    i = springs[s][0]
+    j = springs[s][1]
+    x1 = end_position(x, ctrl_from, ctrl_to, t, i, n)
+    x2 = end_position(x, ctrl_from, ctrl_to, t, j, n)
+    v1 = end_velocity(v, i, n)
+    v2 = end_velocity(v, j, n)
+    dis = x2 - x1
+    dis_len = wp.length(dis)
+    d = dis / wp.max(dis_len, 1e-6)
+    elastic = wp.clamp(wp.exp(log_y[s]), y_min, y_max) * (dis_len / rest_lengths[s] - 1.0) * d
+    v_rel = wp.dot(v2 - v1, d)
+    damp = dashpot * v_rel * d
+    return elastic + damp
+
+
+@wp.kernel
+def eval_spring_forces(
+    x: wp.array(dtype=wp.vec3),
+    v: wp.array(dtype=wp.vec3),
+    springs: wp.array(dtype=wp.vec2i),
+    rest_lengths: wp.array(dtype=float),
+    log_y: wp.array(dtype=float),
+    y_min: float,
+    y_max: float,
+    dashpot: float,
+    ctrl_from: wp.array(dtype=wp.vec3),
+    ctrl_to: wp.array(dtype=wp.vec3),
+    t: float,
+    n: int,
+    out: wp.array(dtype=wp.vec3),
+):
+    """Per-spring force on the first end (the second end gets its negative)."""
+    s = wp.tid()
+    f = wp.vec3(0.0, 0.0, 0.0)
+    if wp.exp(log_y[s]) > y_min:
+        f = spring_force(x, v, springs, rest_lengths, log_y, y_min, y_max, dashpot,
+                         ctrl_from, ctrl_to, t, n, s)
+    out[s] = f
+
+
+@wp.kernel
+def accumulate_spring_forces(
+    x: wp.array(dtype=wp.vec3),
+    v: wp.array(dtype=wp.vec3),
+    springs: wp.array(dtype=wp.vec2i),
+    rest_lengths: wp.array(dtype=float),
+    log_y: wp.array(dtype=float),
+    y_min: float,
+    y_max: float,
+    dashpot: float,
+    ctrl_from: wp.array(dtype=wp.vec3),
+    ctrl_to: wp.array(dtype=wp.vec3),
+    t: float,
+    n: int,
+    f: wp.array(dtype=wp.vec3),
+):
+    """PhysTwin-style atomic accumulation (used on the differentiable path)."""
+    s = wp.tid()
+    if wp.exp(log_y[s]) > y_min:
+        fs = spring_force(x, v, springs, rest_lengths, log_y, y_min, y_max, dashpot,
+                          ctrl_from, ctrl_to, t, n, s)
+        i = springs[s][0]
+        j = springs[s][1]
+        if i < n:
+            wp.atomic_add(f, i, fs)
+        if j < n:
+            wp.atomic_sub(f, j, fs)
+
+
+@wp.func
+def velocity_update(v0: wp.vec3, f0: wp.vec3, m0: float, gravity: wp.vec3, dt: float, drag: float):
+    drag_factor = wp.exp(-dt * drag)
+    all_force = f0 + m0 * gravity
+    a = all_force / m0
+    v1 = v0 + a * dt
+    return v1 * drag_factor
+
+
+@wp.func
+def contact_velocity(vrel: wp.vec3, normal: wp.vec3, elas: float, fric: float):
+    """PhysTwin contact law on a relative velocity approaching along -normal."""
+    v_normal = wp.dot(vrel, normal) * normal
+    v_tao = vrel - v_normal
+    v_normal_length = wp.length(v_normal)
+    v_tao_length = wp.max(wp.length(v_tao), 1e-6)
+    e = wp.clamp(elas, 0.0, 1.0)
+    mu = wp.clamp(fric, 0.0, 2.0)
+    v_normal_new = -e * v_normal
+    a = wp.max(0.0, 1.0 - mu * (1.0 + e) * v_normal_length / v_tao_length)
+    return v_normal_new + a * v_tao
+
+
+@wp.func
+def mesh_contacts(
+    xp: wp.vec3,
+    vp: wp.vec3,
+    mp: float,
+    tid: int,
+    mesh_ids: wp.array(dtype=wp.uint64),
+    mesh_elas: wp.array(dtype=float),
+    mesh_fric: wp.array(dtype=float),
+    face_offsets: wp.array(dtype=int),
+    margin: float,
+    dt: float,
+    mesh_force: wp.array(dtype=wp.vec3),
+    face_force: wp.array(dtype=wp.vec3),
+):
+    """Velocity response against every triangle mesh, relative to the mesh point velocity."""
+    v = vp
+    for k in range(mesh_ids.shape[0]):
+        mid = mesh_ids[k]
+        q = wp.mesh_query_point_sign_normal(mid, xp, margin)
+        if q.result:
+            cp = wp.mesh_eval_position(mid, q.face, q.u, q.v)
+            delta = xp - cp
+            dist = wp.length(delta)
+            normal = wp.mesh_eval_face_normal(mid, q.face)
+            if dist > 1.0e-6:
+                normal = delta / dist * q.sign
+            vm = wp.mesh_eval_velocity(mid, q.face, q.u, q.v)
+            vrel = v - vm
+            if wp.dot(vrel, normal) < 0.0:
+                v_new = vm + contact_velocity(vrel, normal, mesh_elas[k], mesh_fric[k])
+                force = mp * (v_new - v) / dt
+                wp.atomic_add(mesh_force, k, force)
+                wp.atomic_add(face_force, face_offsets[k] + q.face, force)
+                v = v_new
+    return v
+
+
+@wp.func
+def ground_integrate(x0: wp.vec3, v0: wp.vec3, elas: float, fric: float, dt: float, ground: int):
+    """Ground plane z = 0 with time of impact, then the position update; returns (x_new, v_new)."""
+    v1 = v0
+    toi = float(0.0)  # noqa: UP018 (Warp needs a typed dynamic variable)
+    if ground != 0:
+        next_z = x0[2] + v0[2] * dt
+        if next_z < 0.0 and v0[2] < -1.0e-4:
+            v1 = contact_velocity(v0, wp.vec3(0.0, 0.0, 1.0), elas, fric)
+            toi = -x0[2] / v0[2]
+    return x0 + v0 * toi + v1 * (dt - toi), v1
+
+
+@wp.struct
+class ContactParams:
+    mesh_ids: wp.array(dtype=wp.uint64)
+    mesh_elas: wp.array(dtype=float)
+    mesh_fric: wp.array(dtype=float)
+    face_offsets: wp.array(dtype=int)
+    margin: float
+    mesh_force: wp.array(dtype=wp.vec3)
+    face_force: wp.array(dtype=wp.vec3)
+    ground: int
+    ground_elas: float
+    ground_fric: float
+
+
+@wp.func
+def finish_particle(
+    tid: int, x0: wp.vec3, v: wp.vec3, m: float, dt: float, cp: ContactParams,
+    x_out: wp.array(dtype=wp.vec3), v_out: wp.array(dtype=wp.vec3),
+):
+    v1 = v
+    if cp.mesh_ids.shape[0] > 0:
+        v1 = mesh_contacts(x0, v1, m, tid, cp.mesh_ids, cp.mesh_elas, cp.mesh_fric, cp.face_offsets,
+                           cp.margin, dt, cp.mesh_force, cp.face_force)
+    xn, vn = ground_integrate(x0, v1, cp.ground_elas, cp.ground_fric, dt, cp.ground)
+    x_out[tid] = xn
+    v_out[tid] = vn
+
+
+@wp.kernel
+def particle_update(
+    x: wp.array(dtype=wp.vec3),
+    v: wp.array(dtype=wp.vec3),
+    spring_f: wp.array(dtype=wp.vec3),
+    inc_offsets: wp.array(dtype=int),
+    inc_springs: wp.array(dtype=int),
+    f_acc: wp.array(dtype=wp.vec3),
+    use_gather: int,
+    masses: wp.array(dtype=float),
+    gravity: wp.vec3,
+    dt: float,
+    drag: float,
+    finish: int,
+    cp: ContactParams,
+    v_star: wp.array(dtype=wp.vec3),
+    x_out: wp.array(dtype=wp.vec3),
+    v_out: wp.array(dtype=wp.vec3),
+):
+    """Spring-force gather (incident springs in spring order), gravity, drag; then contacts when
+    ``finish`` (no particle-particle collision stage this substep)."""
+    tid = wp.tid()
+    f = wp.vec3(0.0, 0.0, 0.0)
+    if use_gather != 0:
+        for k in range(inc_offsets[tid], inc_offsets[tid + 1]):
+            e = inc_springs[k]
+            if e > 0:
+                f = f + spring_f[e - 1]
+            else:
+                f = f - spring_f[-e - 1]
+    else:
+        f = f_acc[tid]
+    m = masses[tid]
+    vs = velocity_update(v[tid], f, m, gravity, dt, drag)
+    if finish != 0:
+        finish_particle(tid, x[tid], vs, m, dt, cp, x_out, v_out)
+    else:
+        v_star[tid] = vs
+
+
+@wp.kernel
+def collide_and_finish(
+    x: wp.array(dtype=wp.vec3),
+    v_star: wp.array(dtype=wp.vec3),
+    masses: wp.array(dtype=float),
+    masks: wp.array(dtype=int),
+    elas: float,
+    fric: float,
+    collision_dist: float,
+    cand: wp.array2d(dtype=int),
+    cand_count: wp.array(dtype=int),
+    dt: float,
+    cp: ContactParams,
+    x_out: wp.array(dtype=wp.vec3),
+    v_out: wp.array(dtype=wp.vec3),
+):
+    """Particle-particle impulses averaged over the counted pairs (PhysTwin), then meshes, ground, x."""
+    tid = wp.tid()
+    x1 = x[tid]
+    v1 = v_star[tid]
+    m1 = masses[tid]
+    mask1 = masks[tid]
+    valid = float(0.0)  # noqa: UP018 (Warp needs a typed dynamic variable)
+    j_sum = wp.vec3(0.0, 0.0, 0.0)
+    e = wp.clamp(elas, 0.0, 1.0)
+    mu = wp.clamp(fric, 0.0, 2.0)
+    for k in range(cand_count[tid]):
+        idx = cand[tid, k]
+        x2 = x[idx]
+        v2 = v_star[idx]
+        m2 = masses[idx]
+        dis = x2 - x1
+        dis_len = wp.length(dis)
+        rel_v = v2 - v1
+        if masks[idx] != mask1 and dis_len < collision_dist and wp.dot(dis, rel_v) < -1.0e-4:
+            valid = valid + 1.0
+            n = dis / wp.max(dis_len, 1e-6)
+            v_n = wp.dot(rel_v, n) * n
+            v_t = rel_v - v_n
+            inv_m = 1.0 / m1 + 1.0 / m2
+            j_n = -(1.0 + e) * v_n / inv_m
+            a = wp.max(0.0, 1.0 - mu * (1.0 + e) * wp.length(v_n) / wp.max(wp.length(v_t), 1e-6))
+            j_t = (a - 1.0) * v_t / inv_m
+            j_sum = j_sum + j_n + j_t
+    if valid > 0.0:
+        v1 = v1 - (j_sum / valid) / m1
+    finish_particle(tid, x1, v1, m1, dt, cp, x_out, v_out)
+
+
+@wp.func
+def is_spring_neighbour(nbr_offsets: wp.array(dtype=int), nbr: wp.array(dtype=int), i: int, j: int):
+    lo = nbr_offsets[i]
+    hi = nbr_offsets[i + 1]
+    while lo < hi:
+        mid = (lo + hi) // 2
+        val = nbr[mid]
+        if val == j:
+            return True
+        if val < j:
+            lo = mid + 1
+        else:
+            hi = mid
+    return False
+
+
+@wp.kernel(enable_backward=False)
+def build_candidates(
+    grid: wp.uint64,
+    x: wp.array(dtype=wp.vec3),
+    masks: wp.array(dtype=int),
+    nbr_offsets: wp.array(dtype=int),
+    nbr: wp.array(dtype=int),
+    collision_dist: float,
+    query_radius: float,
+    cand: wp.array2d(dtype=int),
+    cand_count: wp.array(dtype=int),
+):
+    """Once per frame: other-mask particles strictly closer than ``collision_dist`` (max cand width),
+    excluding spring neighbours."""
+    tid = wp.tid()
+    p = x[tid]
+    mask = masks[tid]
+    max_c = cand.shape[1]
+    q = wp.hash_grid_query(grid, p, query_radius)
+    idx = int(0)  # noqa: UP018 (Warp needs a typed dynamic variable)
+    c = int(0)  # noqa: UP018 (Warp needs a typed dynamic variable)
+    while wp.hash_grid_query_next(q, idx):
+        if idx != tid and masks[idx] != mask and c < max_c:
+            if wp.length(x[idx] - p) < collision_dist:
+                if not is_spring_neighbour(nbr_offsets, nbr, tid, idx):
+                    cand[tid, c] = idx
+                    c += 1
+    cand_count[tid] = c
+
+
+@wp.kernel(enable_backward=False)
+def interpolate_points(
+    p_from: wp.array(dtype=wp.vec3), p_to: wp.array(dtype=wp.vec3), t: float, out: wp.array(dtype=wp.vec3)
+):
+    i = wp.tid()
+    a = p_from[i]
+    out[i] = a + (p_to[i] - a) * t
+
+
+@wp.kernel(enable_backward=False)
+def vertex_velocities(
+    p_from: wp.array(dtype=wp.vec3), p_to: wp.array(dtype=wp.vec3), inv_t: float, out: wp.array(dtype=wp.vec3)
+):
+    i = wp.tid()
+    out[i] = (p_to[i] - p_from[i]) * inv_t

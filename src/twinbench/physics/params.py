@@ -1,0 +1,60 @@
+"""Global simulation parameters (PhysTwin defaults, DESIGN section 4)."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+
+@dataclass(frozen=True)
+class SimParams:
+    """Parameters shared by every body of a spring-mass model.
+
+    Units are SI. ``substeps`` defaults to ``round(1 / (30 * dt)) = 667`` (one 30 Hz frame is
+    ``substeps * dt = 0.03335 s``, as in PhysTwin). Restitution is clamped to [0, 1] and friction to
+    [0, 2] inside the kernels. Springs whose ``exp(logY) <= spring_Y_min`` are inactive.
+    """
+
+    dt: float = 5e-5
+    substeps: int = 667
+    gravity: tuple[float, float, float] = (0.0, 0.0, -9.8)
+    dashpot_damping: float = 100.0
+    drag_damping: float = 3.0
+    ground: bool = True
+    ground_restitution: float = 0.5
+    ground_friction: float = 0.3
+    object_collision: bool = True
+    object_restitution: float = 0.7
+    object_friction: float = 0.3
+    collision_dist: float = 0.02
+    self_collision: bool = False
+    max_collision_candidates: int = 500
+    mesh_margin: float = 0.005
+    spring_Y_min: float = 0.0
+    spring_Y_max: float = 1e5
+
+    def __post_init__(self) -> None:
+        checks = {
+            "dt": self.dt > 0 and math.isfinite(self.dt),
+            "substeps": isinstance(self.substeps, int) and self.substeps >= 1,
+            "dashpot_damping": self.dashpot_damping >= 0,
+            "drag_damping": self.drag_damping >= 0,
+            "collision_dist": self.collision_dist > 0,
+            "mesh_margin": self.mesh_margin >= 0,
+            "max_collision_candidates": self.max_collision_candidates >= 1,
+            "spring_Y_max": self.spring_Y_max > self.spring_Y_min >= 0,
+            "gravity": len(self.gravity) == 3 and all(math.isfinite(g) for g in self.gravity),
+        }
+        for name, ok in checks.items():
+            if not ok:
+                raise ValueError(f"SimParams.{name}={getattr(self, name)!r} is invalid (see its docstring)")
+
+    @property
+    def frame_dt(self) -> float:
+        """Duration of one frame (all substeps), in seconds."""
+        return self.dt * self.substeps
+
+    @staticmethod
+    def substeps_for(dt: float, fps: float = 30.0) -> int:
+        """PhysTwin's rule: ``round(1 / (fps * dt))``."""
+        return int(round(1.0 / (fps * dt)))

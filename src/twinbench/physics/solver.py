@@ -1,0 +1,225 @@
+"""Semi-implicit Euler solver for :class:`SpringMassModel` (PhysTwin order of operations)."""
+
+from __future__ import annotations
+
+import numpy as np
+import warp as wp
+
+from . import kernels as K
+from .model import Control, SpringMassModel, State
+
+
+class SimulationDiverged(RuntimeError):
+    """Raised when particles become non-finite or exceed the speed limit; ``indices`` lists them."""
+
+    def __init__(self, indices: np.ndarray, reason: str = ""):
+        self.indices = np.asarray(indices, dtype=np.int64)
+        shown = self.indices[:10].tolist()
+        more = "" if self.indices.size <= 10 else f" (+{self.indices.size - 10} more)"
+        super().__init__(f"simulation diverged at {self.indices.size} particle(s) {shown}{more}{reason}")
+
+
+def check_divergence(state: State, max_speed: float = 100.0) -> np.ndarray:
+    """Indices of particles whose position/velocity is non-finite or whose speed exceeds ``max_speed``
+    (m/s). Empty when the state is healthy. Never raises."""
+    x = state.x.numpy()
+    v = state.v.numpy()
+    bad = ~np.all(np.isfinite(x), axis=1) | ~np.all(np.isfinite(v), axis=1)
+    with np.errstate(invalid="ignore", over="ignore"):
+        bad |= ~(np.linalg.norm(v.astype(np.float64), axis=1) <= max_speed)
+    return np.flatnonzero(bad)
+
+
+class SpringMassSolver:
+    """Advances a :class:`SpringMassModel`; one :meth:`step` is one substep, :meth:`simulate_frame`
+    all ``params.substeps`` of one frame (graph-captured when possible).
+
+    Per substep: spring + dashpot forces (gathered per particle in spring order, or PhysTwin's
+    atomics on the differentiable path), gravity and drag, particle-particle impulses (candidates
+    rebuilt once per frame), mesh contacts (relative to the mesh velocity), ground with time of impact.
+    """
+
+    def __init__(self, model: SpringMassModel, *, use_graph: bool = True, max_speed: float = 100.0):
+        self.model = model
+        self.max_speed = float(max_speed)
+        p = model.params
+        dev = model.device
+        self.device = dev
+        n = model.num_particles
+        self._spring_f = wp.zeros(model.num_springs, dtype=wp.vec3, device=dev)
+        self._f = wp.zeros(n, dtype=wp.vec3, device=dev)
+        self._v_star = wp.zeros(n, dtype=wp.vec3, device=dev)
+        self._gravity = wp.vec3(*[float(g) for g in p.gravity])
+        width = p.max_collision_candidates if model.particle_collisions else 1
+        self._cand = wp.zeros((n, width), dtype=int, device=dev)
+        self._cand_count = wp.zeros(n, dtype=int, device=dev)
+        self._grid = wp.HashGrid(64, 64, 64, device=dev) if model.particle_collisions else None
+        nm = len(model.meshes)
+        nfaces = sum(m.faces.shape[0] for m in model.meshes)
+        self._mesh_force = wp.zeros(max(nm, 1), dtype=wp.vec3, device=dev)
+        self._face_force = wp.zeros(max(nfaces, 1), dtype=wp.vec3, device=dev)
+        self._last_mesh_force = np.zeros((nm, 3))
+        self._last_face_force = np.zeros((nfaces, 3))
+        cp = K.ContactParams()
+        cp.mesh_ids = wp.array([m.mesh.id for m in model.meshes], dtype=wp.uint64, device=dev)
+        cp.mesh_elas = wp.array([m.restitution for m in model.meshes], dtype=float, device=dev)
+        cp.mesh_fric = wp.array([m.friction for m in model.meshes], dtype=float, device=dev)
+        cp.face_offsets = wp.array([m.face_offset for m in model.meshes], dtype=int, device=dev)
+        cp.margin = float(p.mesh_margin)
+        cp.mesh_force = self._mesh_force
+        cp.face_force = self._face_force
+        cp.ground = int(p.ground)
+        cp.ground_elas = float(p.ground_restitution)
+        cp.ground_fric = float(p.ground_friction)
+        self._cp = cp
+        self._kinematic = [i for i, m in enumerate(model.meshes) if m.kinematic]
+        self._use_graph = use_graph
+        self._graph = None
+        self._graph_key = None
+        self._buf = (model.state(requires_grad=False), model.state(requires_grad=False))
+        self._frame_t = np.float32(p.dt) * np.float32(p.substeps)
+
+    # ------------------------------------------------------------------ one substep
+    def _t(self, substep_index: int) -> float:
+        s = self.model.params.substeps
+        return float(np.float32(substep_index + 1) / np.float32(s))
+
+    def _update_kinematic_meshes(self, control: Control, substep_index: int) -> None:
+        t = self._t(substep_index)
+        for mid in self._kinematic:
+            mesh = self.model.meshes[mid].mesh
+            wp.launch(K.interpolate_points, dim=mesh.points.shape[0],
+                      inputs=[control.mesh_from[mid], control.mesh_to[mid], t], outputs=[mesh.points],
+                      device=self.device)
+            mesh.refit()
+
+    def _set_mesh_velocities(self, control: Control) -> None:
+        inv_t = float(1.0 / self._frame_t)
+        for mid in self._kinematic:
+            mesh = self.model.meshes[mid].mesh
+            wp.launch(K.vertex_velocities, dim=mesh.points.shape[0],
+                      inputs=[control.mesh_from[mid], control.mesh_to[mid], inv_t], outputs=[mesh.velocities],
+                      device=self.device)
+
+    def rebuild_collision_candidates(self, state: State) -> None:
+        """Rebuild the particle-particle candidate lists from ``state.x`` (done once per frame)."""
+        m = self.model
+        if not m.particle_collisions:
+            return
+        cd = float(m.params.collision_dist)
+        self._grid.build(state.x, cd * 5.0)
+        wp.launch(K.build_candidates, dim=m.num_particles,
+                  inputs=[self._grid.id, state.x, m.masks, m.nbr_offsets, m.nbr, cd, cd * 5.0],
+                  outputs=[self._cand, self._cand_count], device=self.device)
+
+    def _launch_substep(self, state_in: State, state_out: State, control: Control, dt: float,
+                        substep_index: int, grad: bool) -> None:
+        m = self.model
+        p = m.params
+        n = m.num_particles
+        t = self._t(substep_index)
+        spring_args = [state_in.x, state_in.v, m.springs, m.rest_lengths, m.log_y, float(p.spring_Y_min),
+                       float(p.spring_Y_max), float(p.dashpot_damping), control.ctrl_from, control.ctrl_to,
+                       t, n]
+        if grad:
+            f = wp.zeros(n, dtype=wp.vec3, device=self.device, requires_grad=True)
+            spring_f = self._spring_f
+            wp.launch(K.accumulate_spring_forces, dim=m.num_springs, inputs=spring_args, outputs=[f],
+                      device=self.device)
+            v_star = wp.zeros(n, dtype=wp.vec3, device=self.device, requires_grad=True)
+        else:
+            f = self._f
+            spring_f = self._spring_f
+            v_star = self._v_star
+            if m.num_springs:
+                wp.launch(K.eval_spring_forces, dim=m.num_springs, inputs=spring_args, outputs=[spring_f],
+                          device=self.device)
+        collide = m.particle_collisions
+        wp.launch(K.particle_update, dim=n,
+                  inputs=[state_in.x, state_in.v, spring_f, m.inc_offsets, m.inc_springs, f, int(not grad),
+                          m.masses, self._gravity, float(dt), float(p.drag_damping), int(not collide),
+                          self._cp],
+                  outputs=[v_star, state_out.x, state_out.v], device=self.device)
+        if collide:
+            wp.launch(K.collide_and_finish, dim=n,
+                      inputs=[state_in.x, v_star, m.masses, m.masks, float(p.object_restitution),
+                              float(p.object_friction), float(p.collision_dist), self._cand, self._cand_count,
+                              float(dt), self._cp],
+                      outputs=[state_out.x, state_out.v], device=self.device)
+
+    def step(self, state_in: State, state_out: State, control: Control, dt: float | None = None,
+             substep_index: int = 0) -> None:
+        """Advance one substep from ``state_in`` into ``state_out`` (distinct states).
+
+        ``substep_index`` places the control points and kinematic meshes at ``(s+1)/substeps`` of the
+        frame's motion. Collision candidates are not rebuilt here (see
+        :meth:`rebuild_collision_candidates`). Recorded by an active ``wp.Tape`` when the model was
+        finalized with ``requires_grad=True``.
+        """
+        if state_in is state_out:
+            raise ValueError("state_in and state_out must be different State objects")
+        dt = self.model.params.dt if dt is None else float(dt)
+        if self._kinematic:
+            if substep_index == 0:
+                self._set_mesh_velocities(control)
+            self._update_kinematic_meshes(control, substep_index)
+        self._launch_substep(state_in, state_out, control, dt, substep_index, grad=self.model.requires_grad)
+
+    # ------------------------------------------------------------------ one frame
+    def _frame_launches(self, control: Control) -> State:
+        a, b = self._buf
+        p = self.model.params
+        for s in range(p.substeps):
+            src, dst = (a, b) if s % 2 == 0 else (b, a)
+            if self._kinematic:
+                self._update_kinematic_meshes(control, s)
+            self._launch_substep(src, dst, control, p.dt, s, grad=False)
+        return b if p.substeps % 2 == 1 else a
+
+    def simulate_frame(self, state: State, control: Control, *, check: bool = True) -> State:
+        """Run all substeps of one frame in place on ``state`` and return it.
+
+        Rebuilds the collision candidates from the frame-start positions, replays a captured graph
+        when possible (no kinematic meshes), records the mean contact force per mesh, and raises
+        :class:`SimulationDiverged` when ``check`` and a particle became non-finite or too fast.
+        """
+        if self.model.requires_grad:
+            raise ValueError("simulate_frame is the fast path; use step() under wp.Tape for gradients")
+        a, _ = self._buf
+        a.assign(state)
+        self.rebuild_collision_candidates(a)
+        self._mesh_force.zero_()
+        self._face_force.zero_()
+        if self._kinematic:
+            self._set_mesh_velocities(control)
+        if self._use_graph and not self._kinematic:
+            key = id(control)
+            if self._graph is None or self._graph_key != key:
+                with wp.ScopedCapture(device=self.device, force_module_load=True) as cap:
+                    out = self._frame_launches(control)
+                self._graph, self._graph_key, self._graph_out = cap.graph, key, out
+            wp.capture_launch(self._graph)
+            out = self._graph_out
+        else:
+            out = self._frame_launches(control)
+        state.assign(out)
+        scale = 1.0 / self.model.params.substeps
+        nm = len(self.model.meshes)
+        self._last_mesh_force = self._mesh_force.numpy()[:nm].astype(np.float64) * scale
+        nf = self._last_face_force.shape[0]
+        self._last_face_force = self._face_force.numpy()[:nf].astype(np.float64) * scale
+        if check:
+            bad = check_divergence(state, self.max_speed)
+            if bad.size:
+                raise SimulationDiverged(bad)
+        return state
+
+    def mesh_contact_force(self, mesh_id: int, per_face: bool = False) -> np.ndarray:
+        """Mean force (N) the mesh exerted on the particles over the last frame: (3,) or per face (F, 3)."""
+        if not 0 <= mesh_id < len(self.model.meshes):
+            raise ValueError(f"mesh_id={mesh_id} is not a mesh of this model "
+                             f"({len(self.model.meshes)} meshes)")
+        if not per_face:
+            return self._last_mesh_force[mesh_id].copy()
+        info = self.model.meshes[mesh_id]
+        return self._last_face_force[info.face_offset: info.face_offset + info.faces.shape[0]].copy()
