@@ -8,6 +8,10 @@ import sys
 # command -> (module, config dataclass, function taking the config)
 COMMANDS: dict[str, tuple[str, str, str, str]] = {
     "demo": ("twinbench.demo", "DemoConfig", "main", "run the demo job on the built-in twin (CPU)"),
+    "eval": ("twinbench.evaluation.runner", "EvalConfig", "main",
+             "evaluate policies on a task (parallel, resumable)"),
+    "replay": ("twinbench.evaluation.replay", "ReplayConfig", "main",
+               "replay recorded real rollouts open-loop in the twin"),
     "import-real": ("twinbench.evaluation.real", "ImportRealConfig", "main",
                     "import real-robot episode outcomes from a CSV into the results store"),
 }

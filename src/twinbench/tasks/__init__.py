@@ -1,1 +1,82 @@
-"""twinbench.tasks."""
+"""Task registry: every task names its Gymnasium env id, scripted expert and initial-state grid.
+
+Importing `twinbench.tasks` registers the built-in tasks (their modules call `register_task` and
+`gymnasium.register`). Env conventions every task follows:
+
+- `reset(seed=s, options={"init_state": i})` starts from grid state i (0 <= i < n_grid_states); a
+  state sampled from the task's sampler (seeded by `seed`) for i >= n_grid_states or
+  `options={"sampled": True}`.
+- observation `{"pixels": {"front": HxWx3 uint8, "wrist": HxWx3 uint8}, "agent_pos": float32}`.
+- `step` returns `(obs, reward, terminated, truncated, info)` with `info["is_success"]` (bool) and
+  `info["status"]` in {"ok", "sim_error"} on every step; an env may instead raise `SimulationError`.
+- `render()` returns the front frame; attributes `task_description`, `_max_episode_steps` and
+  `metadata["render_fps"]`.
+"""
+
+from __future__ import annotations
+
+import importlib
+import importlib.util
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
+
+
+class SimulationError(RuntimeError):
+    """Raised by an env whose simulation diverged (NaN, exploding energy): the episode is a sim_error."""
+
+
+@dataclass(frozen=True)
+class TaskSpec:
+    """A registered task: its env id, how to build its scripted expert, and its grid size."""
+
+    name: str
+    env_id: str
+    make_expert: Callable[[Any], Any]  # make_expert(env) -> policy with reset() / select_action(obs)
+    n_grid_states: int
+    description: str
+
+    def make_env(self, **kwargs):
+        """`gymnasium.make(env_id, **kwargs)` (env-checker wrapper off: the runner validates outputs)."""
+        import gymnasium
+
+        return gymnasium.make(self.env_id, disable_env_checker=True, **kwargs)
+
+
+_TASKS: dict[str, TaskSpec] = {}
+
+
+def register_task(name: str, *, env_id: str, make_expert: Callable[[Any], Any], n_grid_states: int,
+                  description: str) -> TaskSpec:
+    """Register a task under `name` (re-registering the same name replaces it)."""
+    if not name or not isinstance(name, str):
+        raise ValueError(f"task name must be a non-empty string, got {name!r}")
+    if int(n_grid_states) < 1:
+        raise ValueError(f"task {name!r}: n_grid_states must be >= 1, got {n_grid_states}")
+    if not callable(make_expert):
+        raise ValueError(f"task {name!r}: make_expert must be callable (make_expert(env) -> policy)")
+    spec = TaskSpec(name, env_id, make_expert, int(n_grid_states), description)
+    _TASKS[name] = spec
+    return spec
+
+
+def get_task(name: str) -> TaskSpec:
+    """The registered task `name`; ValueError listing the known tasks otherwise."""
+    try:
+        return _TASKS[name]
+    except KeyError:
+        raise ValueError(f"unknown task {name!r}; known tasks: {sorted(_TASKS)}") from None
+
+
+def task_names() -> list[str]:
+    """Names of the registered tasks, sorted."""
+    return sorted(_TASKS)
+
+
+# Built-in task modules, imported (hence registered) here; a module not yet present in this checkout
+# is skipped, but an import error inside a present module propagates.
+_BUILTIN_TASK_MODULES = ("twinbench.tasks.point_reach", "twinbench.tasks.push_t")
+
+for _mod in _BUILTIN_TASK_MODULES:
+    if importlib.util.find_spec(_mod) is not None:
+        importlib.import_module(_mod)

@@ -1,0 +1,414 @@
+"""Parallel evaluation runner: every (policy, initial state) pair of a task, one committed episode each.
+
+Episodes run in worker processes (spawn context; `workers=0` runs them in the calling process) or on
+Ray (`backend="ray"`). The parent commits each finished episode to the results store at once, so a
+re-run of the same run id skips finished episodes and an interrupted run (SIGINT) loses at most the
+episodes in flight. Status: "sim_error" when the env reports or raises a simulation failure (or emits
+a non-finite state), "policy_error" when the policy raises or returns a malformed action.
+
+Seeds: grid episodes use init_state i with seed `seed + i`; `episodes=N` samples N states, init_state
+`n_grid_states + k` with seed `seed + k` (the env draws the state from that seed).
+"""
+
+from __future__ import annotations
+
+import json
+import signal
+import time
+import traceback
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Annotated, Literal
+
+import numpy as np
+from tyro.conf import UseAppendAction
+
+from twinbench.evaluation.export import policy_folder, write_eval_infos
+from twinbench.evaluation.store import DEFAULT_DB, EpisodeRecord, ResultsStore
+from twinbench.policies.base import PolicyError
+from twinbench.policies.spec import make_policy, parse_policy_spec
+
+RAY_HINT = "pip install 'twinbench[ray]'"
+
+
+class EvaluationInterrupted(KeyboardInterrupt):
+    """Raised by `evaluate` after SIGINT, once every finished episode is committed."""
+
+    def __init__(self, message: str, done: int, total: int):
+        super().__init__(message)
+        self.message, self.done, self.total = message, done, total
+
+
+@dataclass
+class EpisodeOutcome:
+    """What one rollout produced (before labelling it as an EpisodeRecord)."""
+
+    success: bool
+    status: str
+    steps: int
+    wall_time_s: float
+    sum_reward: float = 0.0
+    max_reward: float = 0.0
+    error: str | None = None
+    video_path: str | None = None
+    started_at: float = 0.0
+
+
+@dataclass(frozen=True)
+class EpisodeJob:
+    """One episode to run: picklable, so it can travel to a worker process or a Ray task."""
+
+    task: str
+    policy: str  # spec string
+    init_state: int
+    seed: int
+    run_id: str
+    env_kwargs: dict = field(default_factory=dict)
+    video_path: str | None = None
+
+
+def _error_text(err: BaseException) -> str:
+    return "".join(traceback.format_exception_only(type(err), err)).strip()
+
+
+def run_episode(env, policy, *, init_state: int, seed: int, max_steps: int | None = None,
+                video_path: str | Path | None = None) -> EpisodeOutcome:
+    """Roll `policy` out in `env` from `init_state`; never raises for env or policy failures."""
+    t0, started = time.perf_counter(), time.time()
+    rewards: list[float] = []
+    frames: list[np.ndarray] = []
+    success, status, error, steps = False, "ok", None, 0
+    limit = int(max_steps or getattr(env.unwrapped, "_max_episode_steps", 0) or 0)
+    if limit <= 0:
+        raise ValueError("run_episode: env has no _max_episode_steps; pass max_steps")
+    try:
+        obs, _ = env.reset(seed=int(seed), options={"init_state": int(init_state)})
+        if video_path is not None:
+            frames.append(np.asarray(env.render()))
+    except Exception as err:  # noqa: BLE001 - any env failure is a sim_error, reported with its text
+        status, error = "sim_error", f"reset: {_error_text(err)}"
+    if status == "ok":
+        try:
+            if hasattr(policy, "reseed"):
+                policy.reseed(int(seed))
+            else:
+                policy.reset()
+        except Exception as err:  # noqa: BLE001
+            status, error = "policy_error", f"reset: {_error_text(err)}"
+    shape = env.action_space.shape
+    while status == "ok" and steps < limit:
+        try:
+            action = np.asarray(policy.select_action(obs), dtype=np.float64)
+            if action.shape != shape or not np.all(np.isfinite(action)):
+                raise PolicyError(f"action of shape {action.shape} (expected {shape}) "
+                                  f"or non-finite: {action}")
+        except Exception as err:  # noqa: BLE001
+            status, error = "policy_error", _error_text(err)
+            break
+        try:
+            obs, reward, terminated, truncated, info = env.step(action.astype(env.action_space.dtype))
+        except Exception as err:  # noqa: BLE001
+            status, error = "sim_error", _error_text(err)
+            break
+        steps += 1
+        rewards.append(float(reward))
+        env_status = info.get("status", "ok")
+        if env_status != "ok":
+            status, error = "sim_error", f"env status {env_status!r} at step {steps}"
+            break
+        if not np.all(np.isfinite(np.asarray(obs["agent_pos"], dtype=np.float64))):
+            status, error = "sim_error", f"non-finite agent_pos at step {steps}"
+            break
+        success = success or bool(info.get("is_success", False))
+        if video_path is not None:
+            frames.append(np.asarray(env.render()))
+        if terminated or truncated:
+            break
+    if video_path is not None and frames:
+        import imageio.v2 as imageio
+
+        Path(video_path).parent.mkdir(parents=True, exist_ok=True)
+        imageio.mimwrite(str(video_path), frames, fps=env.unwrapped.metadata.get("render_fps", 30))
+    return EpisodeOutcome(
+        success=success and status == "ok", status=status, steps=steps,
+        wall_time_s=time.perf_counter() - t0, sum_reward=float(np.sum(rewards)) if rewards else 0.0,
+        max_reward=float(np.max(rewards)) if rewards else 0.0, error=error,
+        video_path=None if video_path is None or not frames else str(video_path), started_at=started,
+    )
+
+
+# ---- worker side -----------------------------------------------------------------------------------
+_CACHE: dict = {}  # per process: envs by (task, env_kwargs), policies by (task, spec)
+
+
+def _worker_init() -> None:
+    """Workers ignore SIGINT: the parent decides what to do (commit finished episodes, stop the rest)."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+
+
+def run_job(job: EpisodeJob) -> EpisodeRecord:
+    """Run one episode job (in a worker or in-process), reusing this process's env and policy."""
+    from twinbench.tasks import get_task
+
+    task = get_task(job.task)
+    spec = parse_policy_spec(job.policy)
+    env_key = (job.task, json.dumps(job.env_kwargs, sort_keys=True))
+    if env_key not in _CACHE:
+        _CACHE[env_key] = task.make_env(**job.env_kwargs)
+    env = _CACHE[env_key]
+    pol_key = (job.task, job.policy)
+    policy, build_error = _CACHE.get(pol_key), None
+    if policy is None:
+        try:
+            policy = make_policy(spec, task, env, seed=job.seed)
+            _CACHE[pol_key] = policy
+        except Exception as err:  # noqa: BLE001 - a policy that cannot be built is a policy_error
+            build_error = f"building policy {job.policy!r}: {_error_text(err)}"
+    if policy is None:
+        out = EpisodeOutcome(False, "policy_error", 0, 0.0, error=build_error, started_at=time.time())
+    else:
+        out = run_episode(env, policy, init_state=job.init_state, seed=job.seed, video_path=job.video_path)
+    metrics = {"sum_reward": out.sum_reward, "max_reward": out.max_reward, "started_at": out.started_at}
+    if out.error:
+        metrics["error"] = out.error
+    return EpisodeRecord(
+        run_id=job.run_id, task=job.task, policy=spec.name, checkpoint=spec.checkpoint,
+        train_step=spec.train_step, init_state=job.init_state, seed=job.seed, domain="sim",
+        success=out.success, status=out.status, steps=out.steps, wall_time_s=out.wall_time_s,
+        video_path=out.video_path, metrics=metrics,
+    )
+
+
+# ---- parent side -----------------------------------------------------------------------------------
+def episode_set(n_grid_states: int, episodes: str | int, seed: int) -> list[tuple[int, int]]:
+    """[(init_state, seed)] for `episodes` = "grid" or a number N of sampled states."""
+    if episodes == "grid":
+        return [(i, seed + i) for i in range(n_grid_states)]
+    try:
+        n = int(episodes)
+    except (TypeError, ValueError):
+        raise ValueError(f"episodes must be 'grid' or a positive integer, got {episodes!r}") from None
+    if n < 1:
+        raise ValueError(f"episodes must be 'grid' or a positive integer, got {episodes!r}")
+    return [(n_grid_states + k, seed + k) for k in range(n)]
+
+
+def _versions() -> dict:
+    import gymnasium
+
+    import twinbench
+
+    return {"twinbench": twinbench.__version__, "gymnasium": gymnasium.__version__, "numpy": np.__version__}
+
+
+def _progress(total: int, enabled: bool):
+    from rich.progress import (
+        BarColumn,
+        MofNCompleteColumn,
+        Progress,
+        TextColumn,
+        TimeElapsedColumn,
+        TimeRemainingColumn,
+    )
+
+    return Progress(TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(),
+                    TimeElapsedColumn(), TextColumn("ETA"), TimeRemainingColumn(), disable=not enabled)
+
+
+def _run_local(jobs: list[EpisodeJob], workers: int, on_done) -> None:
+    if workers == 0:
+        for job in jobs:
+            on_done(run_job(job))
+        return
+    import multiprocessing as mp
+    from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
+
+    ex = ProcessPoolExecutor(max_workers=workers, mp_context=mp.get_context("spawn"),
+                             initializer=_worker_init)
+    futures = set()
+    try:
+        futures = {ex.submit(run_job, job) for job in jobs}
+        while futures:
+            done, futures = wait(futures, return_when=FIRST_COMPLETED)
+            for fut in done:
+                on_done(fut.result())
+    except BaseException:
+        for fut in futures:
+            fut.cancel()
+        # Stop in-flight episodes now instead of waiting for them (their results are given up).
+        for proc in list(getattr(ex, "_processes", {}).values()):
+            proc.terminate()
+        ex.shutdown(wait=False, cancel_futures=True)
+        raise
+    ex.shutdown(wait=True)
+
+
+def _import_ray():
+    try:
+        import ray
+    except ImportError as err:
+        raise ImportError(f"--backend ray needs the 'ray' extra ({RAY_HINT})") from err
+    return ray
+
+
+def _run_ray(jobs: list[EpisodeJob], workers: int, on_done) -> None:
+    ray = _import_ray()
+    if not ray.is_initialized():
+        ray.init(num_cpus=workers if workers > 0 else None, include_dashboard=False)
+    remote_job = ray.remote(num_cpus=1)(run_job)
+    pending = [remote_job.remote(job) for job in jobs]
+    try:
+        while pending:
+            done, pending = ray.wait(pending, num_returns=1)
+            on_done(ray.get(done[0]))
+    except BaseException:
+        for ref in pending:
+            ray.cancel(ref, force=True)
+        raise
+
+
+def evaluate(task: str, policies: Sequence[str], episodes: str | int = "grid", workers: int = 1,
+             run_id: str = "eval", store: ResultsStore | str | Path = DEFAULT_DB, *, seed: int = 0,
+             video: bool = False, backend: str = "local", output_dir: str | Path = "outputs",
+             env_kwargs: dict | None = None, retry_errors: bool = False, progress: bool = False,
+             write_eval_info: bool = True, log=None) -> list[EpisodeRecord]:
+    """Evaluate `policies` (spec strings) on `task`; returns the run's records (old and new) in job order.
+
+    Finished episodes of `run_id` already in `store` are skipped (episodes that ended in an error
+    too, unless `retry_errors`). On SIGINT raises `EvaluationInterrupted` after committing every
+    finished episode. Writes `<output_dir>/eval/<run_id>/<policy>/eval_info.json` per policy.
+    """
+    from twinbench.tasks import get_task
+
+    spec_task = get_task(task)
+    if backend not in ("local", "ray"):
+        raise ValueError(f"backend must be 'local' or 'ray', got {backend!r}")
+    if int(workers) < 0:
+        raise ValueError(f"workers must be >= 0 (0 = run in this process), got {workers}")
+    if not policies:
+        raise ValueError("give at least one policy spec (e.g. 'expert')")
+    if not run_id:
+        raise ValueError("run_id must be a non-empty string")
+    specs = [parse_policy_spec(p) for p in policies]
+    keys = [(s.name, s.checkpoint) for s in specs]
+    if len(set(keys)) != len(keys):
+        raise ValueError(f"policies {list(policies)} map to duplicate (policy, checkpoint) labels {keys}; "
+                         "give distinct specs or names (NAME=SPEC)")
+    env_kwargs = dict(env_kwargs or {})
+    states = episode_set(spec_task.n_grid_states, episodes, int(seed))
+    store = store if isinstance(store, ResultsStore) else ResultsStore(store)
+    protocol = {"task": task, "episodes": episodes if episodes == "grid" else int(episodes),
+                "init_states": [i for i, _ in states], "seeds": [s for _, s in states],
+                "policies": list(policies), "base_seed": int(seed), "env_kwargs": env_kwargs,
+                "env_id": spec_task.env_id, "versions": _versions()}
+    store.start_run(run_id, task, protocol)
+    out_dir = Path(output_dir)
+    jobs = []
+    for spec in specs:
+        for init_state, s in states:
+            video_path = None
+            if video:
+                folder = out_dir / "videos" / run_id / policy_folder(spec.name, spec.checkpoint)
+                video_path = str(folder / f"init{init_state}_seed{s}.mp4")
+            jobs.append(EpisodeJob(task, spec.spec, init_state, s, run_id, env_kwargs, video_path))
+    existing = {(r.policy, r.checkpoint, r.init_state, r.seed): r
+                for r in store.episodes(run_id, domain="sim")}
+    skip = {k for k, r in existing.items() if r.status == "ok" or not retry_errors}
+
+    def key(job: EpisodeJob):
+        sp = parse_policy_spec(job.policy)
+        return (sp.name, sp.checkpoint, job.init_state, job.seed)
+
+    todo = [j for j in jobs if key(j) not in skip]
+    log = log or (lambda msg: None)
+    log(f"run {run_id!r}: {len(jobs)} episodes, {len(jobs) - len(todo)} already finished, {len(todo)} to run "
+        f"({backend}, {workers} worker{'s' if workers != 1 else ''})")
+    results = {k: existing[k] for k in skip}
+    done_count = [len(jobs) - len(todo)]
+
+    with _progress(len(jobs), progress) as bar:
+        bar_task = bar.add_task(f"eval {run_id}", total=len(jobs), completed=done_count[0])
+
+        def on_done(rec: EpisodeRecord) -> None:
+            store.record_episode(rec)
+            results[(rec.policy, rec.checkpoint, rec.init_state, rec.seed)] = rec
+            done_count[0] += 1
+            bar.advance(bar_task)
+
+        try:
+            if backend == "ray":
+                _run_ray(todo, int(workers), on_done)
+            else:
+                _run_local(todo, int(workers), on_done)
+        except KeyboardInterrupt:
+            left = len(jobs) - done_count[0]
+            msg = (f"interrupted: {done_count[0]} of {len(jobs)} episodes of run {run_id!r} are in "
+                   f"{store.path}; re-run the same command (same --run-id) to resume the remaining {left}")
+            raise EvaluationInterrupted(msg, done_count[0], len(jobs)) from None
+    records = [results[key(j)] for j in jobs]
+    if write_eval_info:
+        write_eval_infos(records, out_dir / "eval" / run_id)
+    return records
+
+
+# ---- CLI -------------------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class EvalConfig:
+    """Evaluate policies on a task over its initial-state grid (or N sampled states)."""
+
+    run_id: str
+    """evaluation run id; re-running the same id resumes it"""
+    task: str = "point-reach"
+    policy: Annotated[tuple[str, ...], UseAppendAction] = ()  # repeatable: --policy a --policy b
+    """policy spec, repeatable: expert, expert@LEVEL, remote:ws://HOST:PORT, lerobot:PATH, NAME=SPEC"""
+    episodes: str = "grid"
+    """'grid' (the task's initial-state grid) or N (N sampled states with fixed seeds)"""
+    workers: int = 1
+    """worker processes (0 = run in this process)"""
+    db: Path = DEFAULT_DB
+    video: bool = False
+    """write an MP4 per episode under OUTPUT_DIR/videos/RUN_ID/"""
+    backend: Literal["local", "ray"] = "local"
+    seed: int = 0
+    output_dir: Path = Path("outputs")
+    env_kwargs: str = ""
+    """JSON dict of extra gymnasium.make keyword arguments for the task's env"""
+    retry_errors: bool = False
+    """re-run episodes that ended in sim_error/policy_error"""
+    progress: bool = True
+
+
+def main(cfg: EvalConfig) -> int:
+    from rich.console import Console
+
+    console = Console(stderr=True)
+    if not cfg.policy:
+        console.print("twinbench eval: give at least one --policy (e.g. --policy expert)")
+        return 2
+    try:
+        env_kwargs = json.loads(cfg.env_kwargs) if cfg.env_kwargs else {}
+    except json.JSONDecodeError as err:
+        raise ValueError(f"--env-kwargs must be a JSON object, e.g. '{{\"step_delay_s\": 0.01}}': "
+                         f"{err}") from err
+    if not isinstance(env_kwargs, dict):
+        raise ValueError("--env-kwargs must be a JSON object (dict)")
+    try:
+        records = evaluate(cfg.task, list(cfg.policy), cfg.episodes, cfg.workers, cfg.run_id, cfg.db,
+                           seed=cfg.seed, video=cfg.video, backend=cfg.backend, output_dir=cfg.output_dir,
+                           env_kwargs=env_kwargs, retry_errors=cfg.retry_errors, progress=cfg.progress,
+                           log=lambda msg: console.print(msg, markup=False))
+    except EvaluationInterrupted as err:
+        console.print(err.message, markup=False)
+        return 130
+    by_policy: dict[tuple[str, str], list[EpisodeRecord]] = {}
+    for r in records:
+        by_policy.setdefault((r.policy, r.checkpoint), []).append(r)
+    for (name, ckpt), recs in by_policy.items():
+        ok = sum(r.success for r in recs)
+        errs = sum(r.status != "ok" for r in recs)
+        label = name + (f" [{ckpt}]" if ckpt else "")
+        console.print(f"{label}: {ok}/{len(recs)} successes ({100 * ok / len(recs):.1f}%), {errs} errors",
+                      markup=False)
+    console.print(f"eval_info.json files under {cfg.output_dir / 'eval' / cfg.run_id}", markup=False)
+    return 0

@@ -1,0 +1,59 @@
+"""Policy protocol and the action-queue base class for chunked policies (ACT / DP / VLA style)."""
+
+from __future__ import annotations
+
+from collections import deque
+from typing import Protocol, runtime_checkable
+
+import numpy as np
+
+
+class PolicyError(RuntimeError):
+    """A policy failed to produce an action (crash, unreachable server, bad output): policy_error."""
+
+
+@runtime_checkable
+class Policy(Protocol):
+    """What the runner drives: `reset()` at the start of an episode, then one `select_action` per step."""
+
+    def reset(self) -> None: ...
+
+    def select_action(self, obs: dict) -> np.ndarray: ...
+
+
+class ChunkedPolicy:
+    """Base class for policies that predict a chunk of actions at once.
+
+    Subclasses implement `predict_chunk(obs) -> (T, A)`; `select_action` executes the first
+    `n_action_steps` actions of each chunk (all of it when None) before predicting again.
+    """
+
+    chunk_size: int | None = None
+    n_action_steps: int | None = None
+
+    def __init__(self, n_action_steps: int | None = None):
+        if n_action_steps is not None and int(n_action_steps) < 1:
+            raise ValueError(f"n_action_steps must be >= 1 or None, got {n_action_steps}")
+        self.n_action_steps = None if n_action_steps is None else int(n_action_steps)
+        self._queue: deque[np.ndarray] = deque()
+        self.n_predictions = 0  # chunks predicted since construction (tests, diagnostics)
+
+    def predict_chunk(self, obs: dict) -> np.ndarray:
+        raise NotImplementedError
+
+    def reset(self) -> None:
+        self._queue.clear()
+
+    def select_action(self, obs: dict) -> np.ndarray:
+        if not self._queue:
+            chunk = np.asarray(self.predict_chunk(obs))
+            if chunk.ndim == 1:
+                chunk = chunk[None]
+            if chunk.ndim != 2 or len(chunk) == 0:
+                raise PolicyError(f"{type(self).__name__}.predict_chunk returned shape {chunk.shape}; "
+                                  "expected (T, action_dim) with T >= 1")
+            self.chunk_size = len(chunk)
+            self.n_predictions += 1
+            n = len(chunk) if self.n_action_steps is None else min(self.n_action_steps, len(chunk))
+            self._queue.extend(chunk[:n])
+        return self._queue.popleft()
