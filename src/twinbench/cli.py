@@ -8,6 +8,8 @@ import sys
 # command -> (module, config dataclass, function taking the config)
 COMMANDS: dict[str, tuple[str, str, str, str]] = {
     "demo": ("twinbench.demo", "DemoConfig", "main", "run the demo job on the built-in twin (CPU)"),
+    "robot-info": ("twinbench.robot.info", "RobotInfoConfig", "robot_info",
+                   "links, joints and home end-effector pose of a robot (built-in arm or URDF)"),
     "eval": ("twinbench.evaluation.runner", "EvalConfig", "main",
              "evaluate policies on a task (parallel, resumable)"),
     "replay": ("twinbench.evaluation.replay", "ReplayConfig", "main",

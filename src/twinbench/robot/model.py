@@ -161,6 +161,13 @@ class RobotModel:
         v = np.asarray(q)[..., self.joint_names.index(self.gripper_joint)]
         return (v - self.gripper_open) / (self.gripper_closed - self.gripper_open)
 
+    def gripper_opening(self, q: np.ndarray) -> np.ndarray | float:
+        """Distance between two symmetric prismatic fingers, 2 |q_g - closed| (0 without a gripper)."""
+        if self.gripper_joint is None:
+            return 0.0
+        v = np.asarray(q)[..., self.joint_names.index(self.gripper_joint)]
+        return 2.0 * np.abs(v - self.gripper_closed)
+
     # ----------------------------------------------------------------- kinematics
     def _fk(self, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(B, n_q) -> link poses (B, n_links, 4, 4) and joint frames (B, n_joints, 4, 4)."""

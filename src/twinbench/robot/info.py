@@ -1,0 +1,66 @@
+"""`twinbench robot-info [URDF]`: links, joints and the home end-effector pose of a robot."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Annotated
+
+import tyro
+
+from twinbench.robot.builtin import TOOLS, load_builtin_arm
+from twinbench.robot.model import RobotModel, load_robot
+from twinbench.robot.transforms import matrix_to_quat
+
+
+@dataclass(frozen=True)
+class RobotInfoConfig:
+    """Describe a robot: the built-in arm (no URDF given) or a URDF file."""
+
+    urdf: Annotated[str | None, tyro.conf.Positional] = None  # URDF file; omit for the built-in arm
+    tool: str = "gripper"  # built-in arm tool: gripper | pusher (ignored with a URDF)
+    ee_link: str | None = None  # end-effector link of a URDF (default: the deepest link)
+    package_dirs: tuple[str, ...] = ()  # extra folders searched for package:// meshes
+
+
+def describe(model: RobotModel) -> str:
+    """Human-readable summary: links, joints (type, axis, limits, mimic) and the home EE pose."""
+    lines = [f"robot {model.name}  ({model.urdf_path})", f"links ({model.n_links}):"]
+    for name in model.link_names:
+        mesh = model.visual_meshes.get(name)
+        extra = f"  mesh: {len(mesh.vertices)} vertices" if mesh is not None else ""
+        lines.append(f"  {name}{extra}")
+    lines.append(f"joints ({len(model.joints)}, {model.n_q} actuated):")
+    for j in model.joints:
+        s = f"  {j.name:<22} {j.type:<10} {j.parent} -> {j.child}"
+        if j.type != "fixed":
+            s += f"  axis [{' '.join(f'{a:+.3f}' for a in j.axis)}]  limits [{j.lower:+.4f}, {j.upper:+.4f}]"
+        if j.mimic is not None:
+            s += f"  mimic {j.mimic[0]} x{j.mimic[1]:g} {j.mimic[2]:+g}"
+        lines.append(s)
+    home = model.home_q
+    ee = model.ee_pose(home)
+    quat = matrix_to_quat(ee[:3, :3])
+    lines.append(f"home q: [{', '.join(f'{v:.4f}' for v in home)}]")
+    lines.append(
+        f"end effector {model.ee_link} at home: position [{', '.join(f'{v:.4f}' for v in ee[:3, 3])}] m, "
+        f"quaternion wxyz [{', '.join(f'{v:.4f}' for v in quat)}]"
+    )
+    if model.gripper_joint is not None:
+        lines.append(
+            f"gripper joint {model.gripper_joint}: open {model.gripper_open:g}, "
+            f"closed {model.gripper_closed:g}"
+        )
+    if model.contact_links:
+        lines.append(f"contact links: {', '.join(model.contact_links)}")
+    return "\n".join(lines)
+
+
+def robot_info(config: RobotInfoConfig) -> int:
+    if config.urdf is None:
+        if config.tool not in TOOLS:
+            raise ValueError(f"--tool: expected one of {TOOLS}, got {config.tool!r}")
+        model = load_builtin_arm(config.tool)
+    else:
+        model = load_robot(config.urdf, ee_link=config.ee_link, package_dirs=config.package_dirs)
+    print(describe(model))
+    return 0
