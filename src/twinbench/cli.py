@@ -16,6 +16,8 @@ COMMANDS: dict[str, tuple[str, str, str, str]] = {
                "replay recorded real rollouts open-loop in the twin"),
     "import-real": ("twinbench.evaluation.real", "ImportRealConfig", "main",
                     "import real-robot episode outcomes from a CSV into the results store"),
+    "report": ("twinbench.evaluation.report", "ReportConfig", "main",
+               "write a self-contained HTML report of an evaluation run"),
 }
 
 
