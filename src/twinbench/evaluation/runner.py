@@ -383,8 +383,12 @@ def main(cfg: EvalConfig) -> int:
     from rich.console import Console
 
     console = Console(stderr=True)
+
+    def say(msg: str) -> None:
+        console.print(msg, markup=False, soft_wrap=True, highlight=False)
+
     if not cfg.policy:
-        console.print("twinbench eval: give at least one --policy (e.g. --policy expert)")
+        say("twinbench eval: give at least one --policy (e.g. --policy expert)")
         return 2
     try:
         env_kwargs = json.loads(cfg.env_kwargs) if cfg.env_kwargs else {}
@@ -397,9 +401,9 @@ def main(cfg: EvalConfig) -> int:
         records = evaluate(cfg.task, list(cfg.policy), cfg.episodes, cfg.workers, cfg.run_id, cfg.db,
                            seed=cfg.seed, video=cfg.video, backend=cfg.backend, output_dir=cfg.output_dir,
                            env_kwargs=env_kwargs, retry_errors=cfg.retry_errors, progress=cfg.progress,
-                           log=lambda msg: console.print(msg, markup=False))
+                           log=say)
     except EvaluationInterrupted as err:
-        console.print(err.message, markup=False)
+        say(err.message)
         return 130
     by_policy: dict[tuple[str, str], list[EpisodeRecord]] = {}
     for r in records:
@@ -408,7 +412,6 @@ def main(cfg: EvalConfig) -> int:
         ok = sum(r.success for r in recs)
         errs = sum(r.status != "ok" for r in recs)
         label = name + (f" [{ckpt}]" if ckpt else "")
-        console.print(f"{label}: {ok}/{len(recs)} successes ({100 * ok / len(recs):.1f}%), {errs} errors",
-                      markup=False)
-    console.print(f"eval_info.json files under {cfg.output_dir / 'eval' / cfg.run_id}", markup=False)
+        say(f"{label}: {ok}/{len(recs)} successes ({100 * ok / len(recs):.1f}%), {errs} errors")
+    say(f"eval_info.json files under {cfg.output_dir / 'eval' / cfg.run_id}")
     return 0

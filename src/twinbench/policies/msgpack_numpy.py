@@ -16,7 +16,7 @@ def _pack_hook(obj):
     if isinstance(obj, np.ndarray | np.generic) and obj.dtype.kind in ("V", "O", "c"):
         raise ValueError(f"cannot send numpy dtype {obj.dtype} over msgpack (object/void/complex)")
     if isinstance(obj, np.ndarray):
-        arr = np.ascontiguousarray(obj)
+        arr = obj if obj.flags.c_contiguous else obj.copy(order="C")  # (ascontiguousarray makes 0-d 1-d)
         return {b"__ndarray__": True, b"data": arr.tobytes(), b"dtype": arr.dtype.str, b"shape": arr.shape}
     if isinstance(obj, np.generic):
         return {b"__npgeneric__": True, b"data": obj.item(), b"dtype": obj.dtype.str}
@@ -28,7 +28,7 @@ def _unpack_hook(obj: dict):
         dtype = np.dtype(obj[b"dtype"])
         if dtype.kind in ("V", "O", "c"):
             raise ValueError(f"refusing to unpack numpy dtype {dtype} (object/void/complex)")
-        return np.frombuffer(obj[b"data"], dtype=dtype).reshape(obj[b"shape"]).copy()
+        return np.frombuffer(obj[b"data"], dtype=dtype).reshape(tuple(obj[b"shape"])).copy()
     if b"__npgeneric__" in obj:
         return np.dtype(obj[b"dtype"]).type(obj[b"data"])
     return obj

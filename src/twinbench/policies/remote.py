@@ -38,7 +38,7 @@ class RemotePolicy(ChunkedPolicy):
         from websockets.sync.client import connect
 
         self._conn = connect(self.url, open_timeout=self.open_timeout_s, close_timeout=1.0,
-                             compression=None, max_size=None, proxy=None)
+                             compression=None, max_size=None, proxy=None, legacy=True)
         self.n_connects += 1
         meta = self._conn.recv(timeout=self.timeout_s)
         if isinstance(meta, str):

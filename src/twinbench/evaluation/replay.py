@@ -1,0 +1,302 @@
+"""Open-loop replay of recorded real rollouts in the twin, and replay-vs-real confusion matrices.
+
+Each recorded episode's commanded actions are replayed from its initial state; the replay outcome is
+stored with domain "replay" next to the recorded real outcome (domain "real"), both under the same
+run id and key (policy, checkpoint, init_state, seed), where seed = the recorded episode's `seed`
+field if given, else its episode index (so episodes from the same initial state stay distinct).
+A replay stops when the actions run out or the twin's episode ends (termination / time limit).
+
+Sources (`load_recorded`):
+- a LeRobotDataset v3 folder: `meta/info.json` (codebase_version "v3.x", feature "action"),
+  `data/chunk-XXX/file-XXX.parquet` (columns `action`, `episode_index`, `frame_index`) and
+  `meta/episodes/chunk-XXX/file-XXX.parquet` with per-episode columns `episode_index` plus the
+  twinbench outcome columns `init_state`, `success`, `policy`, `checkpoint` (optional `train_step`,
+  `seed`); the outcome columns may instead come from an `outcomes` JSON file (schema as below,
+  without `actions`, keyed by `episode_index`);
+- a JSON log: `{"episodes": [{"init_state": int, "actions": [[...], ...] (T x A), "success": bool,
+  "policy": str, "checkpoint": str, optional "seed", "train_step", "episode_index"}]}`;
+- an NPZ log (read with allow_pickle=False): `init_state (E,)`, `success (E,)`, `policy (E,) str`,
+  `checkpoint (E,) str`, `lengths (E,)`, `actions (sum T, A)` (episodes concatenated in order),
+  optional `seed (E,)`, `train_step (E,)` (-1 = none).
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Iterable
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from twinbench.evaluation.store import DEFAULT_DB, EpisodeRecord, ResultsStore
+from twinbench.policies.base import PolicyError
+
+_OUTCOME_FIELDS = ("init_state", "success", "policy", "checkpoint")
+
+
+@dataclass(frozen=True)
+class RecordedEpisode:
+    """One real rollout: where it started, what was commanded, how it ended."""
+
+    episode_index: int
+    init_state: int
+    actions: np.ndarray  # (T, A)
+    success: bool
+    policy: str
+    checkpoint: str = ""
+    train_step: int | None = None
+    seed: int | None = None
+
+    @property
+    def key_seed(self) -> int:
+        return self.episode_index if self.seed is None else int(self.seed)
+
+
+def _episode_from_dict(d: dict, where: str, index: int, actions=None) -> RecordedEpisode:
+    missing = [f for f in _OUTCOME_FIELDS + (() if actions is not None else ("actions",)) if f not in d]
+    if missing:
+        raise ValueError(f"{where}: episode {index} lacks field(s) {missing}; each episode needs "
+                         f"init_state, actions (T x A), success, policy, checkpoint")
+    acts = np.asarray(d["actions"] if actions is None else actions, dtype=np.float64)
+    if acts.ndim != 2 or len(acts) == 0 or not np.all(np.isfinite(acts)):
+        raise ValueError(f"{where}: episode {index} field 'actions' must be a finite (T, A) array with "
+                         f"T >= 1, got shape {acts.shape}")
+    step = d.get("train_step")
+    step = None if step is None or (isinstance(step, int | np.integer) and step < 0) else int(step)
+    seed = d.get("seed")
+    return RecordedEpisode(
+        episode_index=int(d.get("episode_index", index)), init_state=int(d["init_state"]), actions=acts,
+        success=bool(d["success"]), policy=str(d["policy"]), checkpoint=str(d["checkpoint"] or ""),
+        train_step=step, seed=None if seed is None else int(seed),
+    )
+
+
+def load_json_log(path: str | Path) -> list[RecordedEpisode]:
+    path = Path(path)
+    try:
+        data = json.loads(path.read_text())
+    except json.JSONDecodeError as err:
+        raise ValueError(f"{path}: not valid JSON ({err})") from err
+    eps = data.get("episodes") if isinstance(data, dict) else data
+    if not isinstance(eps, list) or not eps:
+        raise ValueError(f"{path}: expected {{'episodes': [...]}} with at least one episode")
+    return [_episode_from_dict(d, str(path), i) for i, d in enumerate(eps)]
+
+
+def load_npz_log(path: str | Path) -> list[RecordedEpisode]:
+    path = Path(path)
+    with np.load(path, allow_pickle=False) as z:
+        missing = [k for k in ("init_state", "success", "policy", "checkpoint", "lengths", "actions")
+                   if k not in z.files]
+        if missing:
+            raise ValueError(f"{path}: missing array(s) {missing} (see twinbench.evaluation.replay)")
+        arrays = {k: z[k] for k in z.files}
+    lengths = arrays["lengths"].astype(int)
+    if lengths.sum() != len(arrays["actions"]):
+        raise ValueError(f"{path}: sum(lengths) = {lengths.sum()} != len(actions) = {len(arrays['actions'])}")
+    starts = np.concatenate([[0], np.cumsum(lengths)])
+    out = []
+    for i in range(len(lengths)):
+        d = {k: arrays[k][i] for k in ("init_state", "success", "policy", "checkpoint", "seed", "train_step")
+             if k in arrays}
+        out.append(_episode_from_dict(d, str(path), i, arrays["actions"][starts[i]:starts[i + 1]]))
+    return out
+
+
+def load_lerobot_dataset(folder: str | Path, outcomes: str | Path | None = None) -> list[RecordedEpisode]:
+    """Recorded episodes of a LeRobotDataset v3 folder (actions from data/, outcomes from meta/episodes/)."""
+    import pyarrow.parquet as pq
+
+    folder = Path(folder)
+    info_path = folder / "meta" / "info.json"
+    if not info_path.is_file():
+        raise ValueError(f"{folder}: no meta/info.json; not a LeRobotDataset folder")
+    info = json.loads(info_path.read_text())
+    version = str(info.get("codebase_version", ""))
+    if not version.startswith("v3"):
+        raise ValueError(f"{info_path}: codebase_version {version!r} is not v3.x; convert the dataset to v3 "
+                         "(lerobot's convert_dataset_v21_to_v30) first")
+    if "action" not in info.get("features", {}):
+        raise ValueError(f"{info_path}: features has no 'action'")
+    data_files = sorted((folder / "data").glob("chunk-*/file-*.parquet"))
+    if not data_files:
+        raise ValueError(f"{folder}: no data/chunk-XXX/file-XXX.parquet files")
+    actions: dict[int, list[tuple[int, np.ndarray]]] = {}
+    for f in data_files:
+        table = pq.read_table(f, columns=["episode_index", "frame_index", "action"])
+        for ep, fr, act in zip(table["episode_index"].to_pylist(), table["frame_index"].to_pylist(),
+                               table["action"].to_pylist(), strict=True):
+            actions.setdefault(int(ep), []).append((int(fr), np.asarray(act, dtype=np.float64)))
+    meta_rows: dict[int, dict] = {}
+    for f in sorted((folder / "meta" / "episodes").glob("chunk-*/file-*.parquet")):
+        for row in pq.read_table(f).to_pylist():
+            meta_rows[int(row["episode_index"])] = row
+    if outcomes is not None:
+        extra = json.loads(Path(outcomes).read_text())
+        for i, d in enumerate(extra.get("episodes", extra) if isinstance(extra, dict) else extra):
+            if "episode_index" not in d:
+                raise ValueError(f"{outcomes}: entry {i} lacks 'episode_index'")
+            meta_rows.setdefault(int(d["episode_index"]), {}).update(d)
+    out = []
+    for ep in sorted(actions):
+        frames = sorted(actions[ep], key=lambda x: x[0])
+        if [f for f, _ in frames] != list(range(len(frames))):
+            raise ValueError(f"{folder}: episode {ep} has non-contiguous frame_index values")
+        row = dict(meta_rows.get(ep, {}))
+        row["episode_index"] = ep
+        where = f"{folder} (meta/episodes or outcomes file)"
+        out.append(_episode_from_dict(row, where, ep, np.stack([a for _, a in frames])))
+    return out
+
+
+def load_recorded(source: str | Path, outcomes: str | Path | None = None) -> list[RecordedEpisode]:
+    """Dispatch on the source: LeRobotDataset v3 folder, .json log or .npz log."""
+    source = Path(source)
+    if source.is_dir():
+        return load_lerobot_dataset(source, outcomes)
+    if not source.is_file():
+        raise ValueError(f"replay source {source} does not exist")
+    if source.suffix == ".json":
+        return load_json_log(source)
+    if source.suffix == ".npz":
+        return load_npz_log(source)
+    raise ValueError(f"replay source {source}: expected a LeRobotDataset folder, a .json or an .npz log")
+
+
+class OpenLoopPolicy:
+    """Plays back a fixed action sequence."""
+
+    def __init__(self, actions: np.ndarray):
+        self.actions, self._t = np.asarray(actions), 0
+
+    def reset(self) -> None:
+        self._t = 0
+
+    def select_action(self, obs: dict) -> np.ndarray:
+        if self._t >= len(self.actions):
+            raise PolicyError(f"open-loop actions exhausted after {len(self.actions)} steps")
+        self._t += 1
+        return self.actions[self._t - 1]
+
+
+def replay_episodes(task: str, episodes: list[RecordedEpisode], store: ResultsStore | str | Path = DEFAULT_DB,
+                    run_id: str = "replay", *, env_kwargs: dict | None = None,
+                    ) -> list[tuple[EpisodeRecord, EpisodeRecord]]:
+    """Replay each recorded episode in `task`'s twin; store and return (real, replay) record pairs."""
+    from twinbench.evaluation.runner import run_episode
+    from twinbench.tasks import get_task
+
+    spec = get_task(task)
+    store = store if isinstance(store, ResultsStore) else ResultsStore(store)
+    env = spec.make_env(**(env_kwargs or {}))
+    a_shape = env.action_space.shape
+    for ep in episodes:
+        if ep.actions.shape[1:] != a_shape:
+            raise ValueError(f"episode {ep.episode_index}: actions of shape {ep.actions.shape[1:]} per step, "
+                             f"task {task!r} expects {a_shape}")
+    store.start_run(run_id, task, {"task": task, "kind": "replay", "n_episodes": len(episodes),
+                                   "env_kwargs": dict(env_kwargs or {})})
+    pairs = []
+    for ep in episodes:
+        out = run_episode(env, OpenLoopPolicy(ep.actions), init_state=ep.init_state, seed=ep.key_seed,
+                          max_steps=len(ep.actions))
+        common = dict(run_id=run_id, task=task, policy=ep.policy, checkpoint=ep.checkpoint,
+                      train_step=ep.train_step, init_state=ep.init_state, seed=ep.key_seed)
+        real = EpisodeRecord(**common, domain="real", success=ep.success, status="ok",
+                             steps=len(ep.actions), metrics={"episode_index": ep.episode_index})
+        metrics = {"episode_index": ep.episode_index, "sum_reward": out.sum_reward,
+                   "max_reward": out.max_reward}
+        if out.error:
+            metrics["error"] = out.error
+        rep = EpisodeRecord(**common, domain="replay", success=out.success, status=out.status,
+                            steps=out.steps, wall_time_s=out.wall_time_s, metrics=metrics)
+        store.record_episodes([real, rep])
+        pairs.append((real, rep))
+    return pairs
+
+
+@dataclass(frozen=True)
+class Confusion:
+    """Replay outcome (prediction) vs real outcome (truth); positive = success."""
+
+    tp: int = 0  # replay success, real success
+    fp: int = 0  # replay success, real failure
+    fn: int = 0  # replay failure, real success
+    tn: int = 0  # replay failure, real failure
+    excluded: int = 0  # pairs whose replay ended in an error (not counted above)
+
+    @property
+    def n(self) -> int:
+        return self.tp + self.fp + self.fn + self.tn
+
+    @property
+    def accuracy(self) -> float:
+        return (self.tp + self.tn) / self.n if self.n else float("nan")
+
+
+def confusion_counts(pairs: Iterable[tuple[bool, bool]]) -> Confusion:
+    """Counts over (replay_success, real_success) pairs."""
+    c = {"tp": 0, "fp": 0, "fn": 0, "tn": 0}
+    for rep, real in pairs:
+        c[("t" if rep == real else "f") + ("p" if rep else "n")] += 1
+    return Confusion(**c)
+
+
+def replay_confusion(store: ResultsStore | str | Path, run_id: str | None = None, *,
+                     by: str = "checkpoint") -> dict[tuple, Confusion]:
+    """Confusion matrices from stored (replay, real) pairs: by="checkpoint" keys (task, policy,
+    checkpoint), by="task" keys (task,). Replays that ended in an error are counted in `excluded`."""
+    if by not in ("checkpoint", "task"):
+        raise ValueError(f"by must be 'checkpoint' or 'task', got {by!r}")
+    store = store if isinstance(store, ResultsStore) else ResultsStore(store)
+
+    def ekey(r: EpisodeRecord):
+        return (r.run_id, r.task, r.policy, r.checkpoint, r.init_state, r.seed)
+
+    real = {ekey(r): r for r in store.episodes(run_id, domain="real")}
+    groups: dict[tuple, list[tuple[bool, bool]]] = {}
+    excluded: dict[tuple, int] = {}
+    for rep in store.episodes(run_id, domain="replay"):
+        k = ekey(rep)
+        if k not in real:
+            continue
+        g = (rep.task, rep.policy, rep.checkpoint) if by == "checkpoint" else (rep.task,)
+        groups.setdefault(g, [])
+        if rep.status != "ok":
+            excluded[g] = excluded.get(g, 0) + 1
+            continue
+        groups[g].append((rep.success, real[k].success))
+    out = {}
+    for g, pairs in sorted(groups.items()):
+        c = confusion_counts(pairs)
+        out[g] = Confusion(c.tp, c.fp, c.fn, c.tn, excluded.get(g, 0))
+    return out
+
+
+# ---- CLI -------------------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class ReplayConfig:
+    """Replay recorded real rollouts open-loop in the twin; print replay-vs-real confusion matrices."""
+
+    source: Path
+    """LeRobotDataset v3 folder, or a .json / .npz log (schemas: twinbench.evaluation.replay)"""
+    task: str = "point-reach"
+    run_id: str = "replay"
+    db: Path = DEFAULT_DB
+    outcomes: Path | None = None
+    """JSON with per-episode init_state/success/policy/checkpoint for a LeRobotDataset lacking them"""
+    env_kwargs: str = ""
+    """JSON dict of extra gymnasium.make keyword arguments"""
+
+
+def main(cfg: ReplayConfig) -> int:
+    env_kwargs = json.loads(cfg.env_kwargs) if cfg.env_kwargs else {}
+    episodes = load_recorded(cfg.source, cfg.outcomes)
+    pairs = replay_episodes(cfg.task, episodes, cfg.db, cfg.run_id, env_kwargs=env_kwargs)
+    print(f"replayed {len(pairs)} episodes of {cfg.source} in {cfg.task} (run {cfg.run_id!r}, {cfg.db})")
+    for by in ("checkpoint", "task"):
+        for key, c in replay_confusion(cfg.db, cfg.run_id, by=by).items():
+            print(f"{' / '.join(str(k) for k in key if k != '') or '-'}: TP={c.tp} FP={c.fp} FN={c.fn} "
+                  f"TN={c.tn} accuracy={c.accuracy:.3f} excluded={c.excluded}")
+    return 0
