@@ -1,0 +1,199 @@
+"""URDF loading, forward kinematics (hand-computed poses), Jacobian, mimic fingers and loader errors."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import trimesh
+
+from twinbench.robot.model import URDFError, load_robot
+from twinbench.robot.transforms import axis_angle_to_matrix, invert_pose
+
+DOWN = np.diag([1.0, -1.0, -1.0])  # flange orientation at q = 0: x forward, z pointing down
+
+
+def _rot_y(a):
+    return axis_angle_to_matrix(np.array([0.0, 1.0, 0.0]), np.array(a))
+
+
+def test_fk_at_zero_matches_hand_computed_chain(arm):
+    # Chain by hand: joint1 at z=0.267; joint3 0.293 higher (z=0.560, link3 aligned with the world);
+    # joint4 0.0525 forward; joint5 0.0775 forward, 0.3425 down (x=0.130, z=0.2175); joint7 0.076
+    # forward and 0.097 down -> flange (0.206, 0, 0.1205) with z pointing down.
+    q = np.zeros(arm.n_q)
+    t = arm.fk(q)
+    pos = {name: t[arm.link_index(name), :3, 3] for name in arm.link_names}
+    np.testing.assert_allclose(pos["link1"], [0, 0, 0.267], atol=1e-12)
+    np.testing.assert_allclose(pos["link3"], [0, 0, 0.560], atol=1e-12)
+    np.testing.assert_allclose(pos["link4"], [0.0525, 0, 0.560], atol=1e-12)
+    np.testing.assert_allclose(pos["link5"], [0.130, 0, 0.2175], atol=1e-12)
+    np.testing.assert_allclose(pos["link7"], [0.206, 0, 0.1205], atol=1e-12)
+    np.testing.assert_allclose(t[arm.link_index("link7"), :3, :3], DOWN, atol=1e-12)
+    # gripper tcp 0.13 m along the flange z (down); fingers closed (q_g = 0) -> opening 0.
+    np.testing.assert_allclose(arm.ee_pose(q)[:3, 3], [0.206, 0, 0.1205 - 0.13], atol=1e-12)
+    assert arm.gripper_opening(q) == 0.0
+
+
+def test_fk_at_known_joint_angles(arm):
+    q = np.zeros(arm.n_q)
+    # joint1 = +90 deg: the whole arm turns about world z; flange (0.206, 0, .1205) -> (0, 0.206, .1205).
+    q1 = q.copy()
+    q1[0] = np.pi / 2
+    np.testing.assert_allclose(arm.link_pose(q1, "link7")[:3, 3], [0, 0.206, 0.1205], atol=1e-12)
+    # joint2 = +90 deg: rotation about world +y through (0, 0, 0.267). Flange offset from the pivot
+    # (0.206, 0, -0.1465) -> (-0.1465, 0, -0.206): flange at (-0.1465, 0, 0.061).
+    q2 = q.copy()
+    q2[1] = np.pi / 2
+    t2 = arm.link_pose(q2, "link7")
+    np.testing.assert_allclose(t2[:3, 3], [-0.1465, 0, 0.061], atol=1e-12)
+    np.testing.assert_allclose(t2[:3, :3], _rot_y(np.pi / 2) @ DOWN, atol=1e-12)
+    # joint4 = +90 deg: its axis is world -y through (0.0525, 0, 0.560). Flange offset
+    # (0.1535, 0, -0.4395) rotated by -90 deg about +y -> (0.4395, 0, 0.1535): flange (0.492, 0, 0.7135).
+    q4 = q.copy()
+    q4[3] = np.pi / 2
+    t4 = arm.link_pose(q4, "link7")
+    np.testing.assert_allclose(t4[:3, 3], [0.492, 0, 0.7135], atol=1e-12)
+    np.testing.assert_allclose(t4[:3, :3], _rot_y(-np.pi / 2) @ DOWN, atol=1e-12)
+
+
+def test_batched_fk_equals_single(arm):
+    rng = np.random.default_rng(0)
+    qs = rng.uniform(arm.lower.clip(-3, 3), arm.upper.clip(-3, 3), size=(16, arm.n_q))
+    batch = arm.fk(qs)
+    assert batch.shape == (16, arm.n_links, 4, 4)
+    for i in (0, 7, 15):
+        np.testing.assert_allclose(batch[i], arm.fk(qs[i]), atol=1e-14)
+
+
+def test_jacobian_matches_finite_differences(arm):
+    rng = np.random.default_rng(1)
+    q = rng.uniform(-1.0, 1.0, size=arm.n_q)
+    q[7] = 0.02
+    ee, jac = arm.ee_pose_and_jacobian(q[None])
+    eps = 1e-6
+    for k, qi in enumerate(arm.arm_q_indices):
+        dq = np.zeros(arm.n_q)
+        dq[qi] = eps
+        tp, tm = arm.ee_pose(q + dq), arm.ee_pose(q - dq)
+        lin = (tp[:3, 3] - tm[:3, 3]) / (2 * eps)
+        dr = (tp[:3, :3] - tm[:3, :3]) / (2 * eps) @ ee[0, :3, :3].T  # skew(omega)
+        ang = np.array([dr[2, 1], dr[0, 2], dr[1, 0]])
+        np.testing.assert_allclose(jac[0, :3, k], lin, atol=1e-7)
+        np.testing.assert_allclose(jac[0, 3:, k], ang, atol=1e-7)
+
+
+def test_mimic_fingers_open_symmetrically_to_85mm(arm):
+    assert arm.joint("right_finger_joint").mimic == ("left_finger_joint", 1.0, 0.0)
+    for closedness, gap in ((0.0, 0.085), (0.5, 0.0425), (1.0, 0.0)):
+        q = arm.set_gripper(arm.home_q, closedness)
+        base_inv = invert_pose(arm.link_pose(q, "gripper_base"))
+        left = trimesh.transform_points(arm.contact_vertices(q, "left_finger"), base_inv)
+        right = trimesh.transform_points(arm.contact_vertices(q, "right_finger"), base_inv)
+        # inner faces: left finger's smallest y, right finger's largest y (gripper_base frame)
+        assert left[:, 1].min() - right[:, 1].max() == pytest.approx(gap, abs=1e-12)
+        assert arm.gripper_opening(q) == pytest.approx(gap, abs=1e-12)
+        assert left[:, 1].min() == pytest.approx(-right[:, 1].max(), abs=1e-12)
+
+
+def test_contact_mesh_interpolation_matches_fk_of_interpolated_q(arm):
+    q0 = arm.set_gripper(arm.home_q, 0.0)
+    q1 = arm.set_gripper(arm.home_q + np.r_[0.2, -0.1, 0.1, 0.3, -0.2, 0.1, 0.5, 0.0], 1.0)
+    mid = arm.interpolate(q0, q1, 0.25)
+    np.testing.assert_allclose(mid, 0.75 * q0 + 0.25 * q1)
+    v = arm.contact_vertices_interpolated(q0, q1, 0.25, "left_finger")
+    t = arm.link_pose(mid, "left_finger")
+    local = np.asarray(arm.collision_meshes["left_finger"].vertices)
+    np.testing.assert_allclose(v, local @ t[:3, :3].T + t[:3, 3], atol=1e-14)
+    np.testing.assert_array_equal(arm.contact_faces("left_finger"), arm.collision_meshes["left_finger"].faces)
+    # batched alphas give one vertex set per alpha; alpha 0 and 1 reproduce the end configurations
+    vb = arm.contact_vertices_interpolated(q0, q1, np.array([0.0, 1.0]), "right_finger")
+    np.testing.assert_allclose(vb[0], arm.contact_vertices(q0, "right_finger"), atol=1e-14)
+    np.testing.assert_allclose(vb[1], arm.contact_vertices(q1, "right_finger"), atol=1e-14)
+
+
+def test_pusher_tool(pusher_arm):
+    assert pusher_arm.contact_links == ("pusher",)
+    assert pusher_arm.gripper_joint is None and pusher_arm.n_q == 7
+    # tcp = rod tip, 0.15 m below the flange at q = 0
+    np.testing.assert_allclose(pusher_arm.ee_pose(np.zeros(7))[:3, 3], [0.206, 0, 0.1205 - 0.15], atol=1e-12)
+    v = pusher_arm.contact_vertices(pusher_arm.home_q, "pusher")
+    np.testing.assert_allclose(v[:, 2].min(), pusher_arm.ee_pose(pusher_arm.home_q)[2, 3], atol=1e-9)
+
+
+# --------------------------------------------------------------------------- loading and errors
+URDF_TEMPLATE = """<?xml version="1.0"?>
+<robot name="tiny">
+  <link name="base"/>
+  <link name="finger_x">
+    <visual><geometry><mesh filename="{mesh}"/></geometry></visual>
+  </link>
+  <joint name="slide" type="prismatic">
+    <parent link="base"/><child link="finger_x"/>
+    <origin xyz="0 0 0.1" rpy="0 0 0"/><axis xyz="1 0 0"/>
+    <limit lower="0" upper="0.05" effort="1" velocity="1"/>
+  </joint>
+</robot>
+"""
+
+
+def _box_stl(path):
+    path.parent.mkdir(parents=True, exist_ok=True)
+    trimesh.creation.box(extents=(0.01, 0.02, 0.03)).export(path)
+
+
+def test_package_paths_resolved_from_urdf_parents_and_package_dirs(tmp_path):
+    _box_stl(tmp_path / "my_pkg" / "meshes" / "box.stl")
+    urdf = tmp_path / "my_pkg" / "urdf" / "tiny.urdf"
+    urdf.parent.mkdir()
+    urdf.write_text(URDF_TEMPLATE.format(mesh="package://my_pkg/meshes/box.stl"))
+    m = load_robot(urdf)
+    assert m.joint_names == ["slide"] and m.ee_link == "finger_x"
+    np.testing.assert_allclose(m.visual_meshes["finger_x"].extents, [0.01, 0.02, 0.03])
+    np.testing.assert_allclose(m.ee_pose(np.array([0.03]))[:3, 3], [0.03, 0, 0.1])
+    # URDF outside the package tree: only an explicit package dir finds the mesh
+    _box_stl(tmp_path / "pkgs" / "other_pkg" / "meshes" / "box.stl")
+    other = tmp_path / "elsewhere" / "tiny.urdf"
+    other.parent.mkdir()
+    other.write_text(URDF_TEMPLATE.format(mesh="package://other_pkg/meshes/box.stl"))
+    with pytest.raises(FileNotFoundError, match="finger_x"):
+        load_robot(other)
+    m2 = load_robot(other, package_dirs=[tmp_path / "pkgs"])
+    np.testing.assert_allclose(m2.visual_meshes["finger_x"].extents, [0.01, 0.02, 0.03])
+
+
+def test_missing_mesh_error_names_link_and_path(tmp_path):
+    urdf = tmp_path / "tiny.urdf"
+    urdf.write_text(URDF_TEMPLATE.format(mesh="meshes/nothing_here.stl"))
+    with pytest.raises(FileNotFoundError) as err:
+        load_robot(urdf)
+    msg = str(err.value)
+    assert "finger_x" in msg and "meshes/nothing_here.stl" in msg and str(urdf) in msg
+    # without meshes the kinematics still load
+    assert load_robot(urdf, load_meshes=False).joint_names == ["slide"]
+
+
+def test_bad_urdf_path_and_content_errors(tmp_path):
+    missing = tmp_path / "no_such_robot.urdf"
+    with pytest.raises(FileNotFoundError, match="no_such_robot.urdf"):
+        load_robot(missing)
+    broken = tmp_path / "broken.urdf"
+    broken.write_text("<robot name='x'><link name='a'></robot")
+    with pytest.raises(URDFError, match="broken.urdf"):
+        load_robot(broken)
+    no_limit = tmp_path / "nolimit.urdf"
+    no_limit.write_text(
+        URDF_TEMPLATE.format(mesh="x.stl").replace(
+            '<limit lower="0" upper="0.05" effort="1" velocity="1"/>', ""
+        )
+    )
+    with pytest.raises(URDFError, match="slide"):
+        load_robot(no_limit, load_meshes=False)
+
+
+def test_bad_configuration_input(arm):
+    with pytest.raises(ValueError, match="expected shape"):
+        arm.fk(np.zeros(3))
+    bad = arm.home_q.copy()
+    bad[2] = np.nan
+    with pytest.raises(ValueError, match="NaN"):
+        arm.fk(bad)
