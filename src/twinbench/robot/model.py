@@ -11,6 +11,7 @@ import os
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
+from xml.etree import ElementTree
 
 import numpy as np
 import trimesh
@@ -357,6 +358,12 @@ def load_robot(
     urdf_path = Path(urdf_path).expanduser().resolve()
     if not urdf_path.is_file():
         raise FileNotFoundError(f"URDF file not found: {urdf_path}")
+    try:  # strict XML check first: yourdfpy silently recovers from malformed XML
+        root = ElementTree.parse(urdf_path).getroot()
+    except ElementTree.ParseError as exc:
+        raise URDFError(f"{urdf_path}: malformed XML ({exc}); fix the file") from exc
+    if root.tag != "robot":
+        raise URDFError(f"{urdf_path}: root element is <{root.tag}>, expected <robot>")
     try:
         urdf = yourdfpy.URDF.load(
             str(urdf_path),
