@@ -137,7 +137,7 @@ def test_report_notes_without_real(tmp_path, report):
     page = write_report(store, "eval1", tmp_path / "r.html", real_run_id=None,
                         videos=VideoLimits(max_videos=1)).read_text()
     assert "No real outcomes found" in page
-    assert "Replay episodes exist but there are no real outcomes" in page
+    assert "10 replay episodes but no real outcomes to pair with" in page
     assert "more videos not embedded (cap: 1 videos)" in page
     page = write_report(store, "eval1", tmp_path / "r2.html", real_run_id="nope").read_text()
     assert "run &#x27;nope&#x27; is not in the store" in page
@@ -157,6 +157,30 @@ def test_report_pearson_undefined_is_explained(tmp_path):
     # both sim rates are 1.0 (a tie), real 0.25 vs 0.75: MMRV = (0 + 0.5) / 2
     assert "0.250 [" in text
     assert "No episode has a train_step" in text and "registered protocol" in text
+
+
+def test_replay_run_pairs_with_its_own_real_records(tmp_path):
+    # layout written by `twinbench replay`: run "replay" holds (real, replay) records with the recorded
+    # episodes' seeds; run "real" holds CSV outcomes of the same init states with other seeds
+    store = ResultsStore(tmp_path / "s.sqlite")
+    recs = [EpisodeRecord("ev", "push-t", "act", "", None, i, 0, "sim", i < 3, "ok") for i in range(4)]
+    recs += [EpisodeRecord("real", "push-t", "act", "", None, i, 0, "real", True, "ok") for i in range(4)]
+    real_ok = [True, True, False, False]
+    replay_ok = [True, False, True, False]
+    for i in range(4):
+        recs.append(EpisodeRecord("replay", "push-t", "act", "", None, i, 100 + i, "real", real_ok[i], "ok"))
+        recs.append(EpisodeRecord("replay", "push-t", "act", "", None, i, 100 + i, "replay", replay_ok[i],
+                                  "ok"))
+    store.record_episodes(recs)
+    out = write_report(store, "ev", tmp_path / "r.html", real_run_id="real", replay_run_id="replay")
+    page = out.read_text()
+    cm = re.search(r"<h3>act</h3>(.*?)</table>", page, re.S).group(1)
+    # paired with the replay run's own real records (1 S/S, 1 S/F, 1 F/S, 1 F/F), not the CSV ones
+    assert re.findall(r">(\d+)</td>", cm) == ["1", "1", "1", "1"]
+    assert "found no partner" not in page
+    # without the replay run: no replay section content
+    page = write_report(store, "ev", tmp_path / "r2.html", real_run_id="real").read_text()
+    assert "No replay episodes" in page
 
 
 def test_pair_replay_by_key_then_seed():

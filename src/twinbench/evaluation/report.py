@@ -371,29 +371,39 @@ def _confusion_html(pairs) -> str:
             f'<p class="small">{n} paired episodes, agreement {_pct(agree) if n else "–"}</p>')
 
 
-def _replay_section(replay: list[EpisodeRecord], real: list[EpisodeRecord]) -> str:
+def _replay_section(sources: list[tuple[str, list[EpisodeRecord], list[EpisodeRecord], str]]) -> str:
+    """sources: (run id, its replay episodes, the real episodes they pair with, where those come from)."""
     head = "<h2>Replay vs real</h2>"
-    if not replay:
-        return head + _note("No replay episodes (domain \"replay\") in this run.")
-    if not real:
-        return head + _note("Replay episodes exist but there are no real outcomes to pair them with.")
-    pairs, n_rp, n_rl = pair_replay(replay, real)
+    if not sources:
+        return head + _note("No replay episodes (domain \"replay\") in the runs of this report.")
+    pairs, notes = [], []
+    for src, replay, real, real_from in sources:
+        if not real:
+            notes.append(f"Run {src!r}: {len(replay)} replay episodes but no real outcomes to pair with.")
+            continue
+        got, n_rp, n_rl = pair_replay(replay, real)
+        pairs += got
+        if n_rp or n_rl:
+            notes.append(f"Run {src!r}: {n_rp} replay and {n_rl} real ok episodes ({real_from}) found no "
+                         "partner.")
+        n_err = sum(e.status != "ok" for e in replay)
+        if n_err:
+            notes.append(f"Run {src!r}: {n_err} replay episodes ended in sim_error/policy_error and are "
+                         "not paired.")
     if not pairs:
-        return head + _note("No replay episode shares (policy, checkpoint, init_state) with a real one.")
+        return head + "".join(_note(t) for t in notes) + _note(
+            "No replay episode shares (policy, checkpoint, init_state) with a real one.")
     groups = defaultdict(list)
     for p in pairs:
         groups[(p[0].policy, p[0].checkpoint)].append(p)
     blocks = [f'<div class="cm"><h3>all policies</h3>{_confusion_html(pairs)}</div>']
     blocks += [f'<div class="cm"><h3>{_e(label(*k))}</h3>{_confusion_html(v)}</div>'
                for k, v in sorted(groups.items())]
-    n_err = sum(e.status != "ok" for e in replay)
-    notes = []
-    if n_rp or n_rl:
-        notes.append(f"{n_rp} replay and {n_rl} real ok episodes found no partner.")
-    if n_err:
-        notes.append(f"{n_err} replay episodes ended in sim_error/policy_error and are not paired.")
+    where = "; ".join(f"replay episodes of run {s!r} paired with real outcomes from {f}"
+                      for s, _, r, f in sources if r)
     return (head + "<p>Real rollouts' commanded actions replayed open-loop in the twin from the same initial "
-            "states; episodes paired by policy, checkpoint and initial state (and seed when several).</p>"
+            "states; episodes paired by policy, checkpoint and initial state (and seed when several). "
+            f"{_e(where)}.</p>"
             + '<div class="cms">' + "".join(blocks) + "</div>" + "".join(_note(t) for t in notes))
 
 
@@ -418,7 +428,7 @@ def _transcode_h264(path: Path, out: Path) -> None:
         raise RuntimeError(res.stderr.strip()[-300:])
 
 
-def _video_section(episodes: list[EpisodeRecord], limits: VideoLimits) -> str:
+def _video_section(episodes: list[EpisodeRecord], limits: VideoLimits, video_root: Path) -> str:
     head = "<h2>Rollout videos</h2>"
     with_video = [e for e in episodes if e.video_path]
     if not with_video:
@@ -433,6 +443,8 @@ def _video_section(episodes: list[EpisodeRecord], limits: VideoLimits) -> str:
                              f"(cap: {limits.max_videos} videos).")
                 break
             path = Path(e.video_path)
+            if not path.is_absolute() and not path.is_file() and (video_root / path).is_file():
+                path = video_root / path  # relative to the store's folder rather than the cwd
             if not path.is_file():
                 notes.append(f"missing video file {path}")
                 continue
@@ -551,45 +563,48 @@ code { font-size: 12px; white-space: pre-wrap; word-break: break-word; }
 
 
 def write_report(store: ResultsStore, run_id: str, out: str | Path, real_run_id: str | None = None,
-                 videos: VideoLimits | None = None) -> Path:
-    """Write the HTML report of `run_id` (sim and replay episodes; real outcomes of `real_run_id` and
-    any real episodes recorded in `run_id` itself) to `out`; returns the path."""
+                 videos: VideoLimits | None = None, replay_run_id: str | None = None) -> Path:
+    """Write the HTML report of `run_id` to `out`; returns the path.
+
+    Real outcomes: episodes with domain "real" in `run_id` and `real_run_id`. Replay episodes: domain
+    "replay" in `run_id`, `replay_run_id` and `real_run_id`, each paired with the real episodes of its
+    own run when it has some (as `twinbench replay` records them), else with the real outcomes above."""
     import matplotlib
 
     matplotlib.use("Agg")
-    if run_id not in store.runs():
-        raise ValueError(f"run {run_id!r} not found in {store.path}; known runs: {store.runs() or 'none'}")
+    runs = store.runs()
+    if run_id not in runs:
+        raise ValueError(f"run {run_id!r} not found in {store.path}; known runs: {runs or 'none'}")
     videos = videos or VideoLimits()
     episodes = store.episodes(run_id)
-    try:
-        protocol = store.run_protocol(run_id)
-    except KeyError:
-        protocol = None
+    protocol = _protocol_or_none(store, run_id)
     sim_eps = [e for e in episodes if e.domain == "sim"]
-    replay_eps = [e for e in episodes if e.domain == "replay"]
     real_eps = [e for e in episodes if e.domain == "real"]
     sources = [f"run {run_id!r}"] if real_eps else []
     real_protocol = None
     if real_run_id and real_run_id != run_id:
-        if real_run_id in store.runs():
+        if real_run_id in runs:
             own = {(e.policy, e.checkpoint, e.init_state, e.seed) for e in real_eps}
-            more = [e for e in store.episodes(real_run_id, domain="real")
-                    if (e.policy, e.checkpoint, e.init_state, e.seed) not in own]
-            real_eps += more
-            replay_eps += store.episodes(real_run_id, domain="replay")
+            real_eps += [e for e in store.episodes(real_run_id, domain="real")
+                         if (e.policy, e.checkpoint, e.init_state, e.seed) not in own]
             sources.append(f"run {real_run_id!r}")
-            try:
-                real_protocol = store.run_protocol(real_run_id)
-            except KeyError:
-                real_protocol = None
+            real_protocol = _protocol_or_none(store, real_run_id)
         else:
             sources.append(f"run {real_run_id!r} is not in the store")
     real_source = ", ".join(sources) if sources else "no real run given"
+    replay_sources, replay_eps = [], []
+    for src in dict.fromkeys(r for r in (run_id, replay_run_id, real_run_id) if r and r in runs):
+        rp = store.episodes(src, domain="replay")
+        if rp:
+            own_real = store.episodes(src, domain="real")
+            replay_sources.append((src, rp, own_real or real_eps,
+                                   f"run {src!r}" if own_real else real_source))
+            replay_eps += rp
     sim, real = summarize(sim_eps), summarize(real_eps)
     task = protocol.get("task") if isinstance(protocol, dict) and "task" in protocol else (
         ", ".join(sorted({e.task for e in episodes})) or "?")
     now = datetime.now(UTC).strftime("%Y-%m-%d %H:%M UTC")
-    status_groups = [(f"{run_id} / sim", sim_eps), (f"{run_id} / replay", replay_eps), ("real", real_eps)]
+    status_groups = [(f"{run_id} / sim", sim_eps), ("replay", replay_eps), ("real", real_eps)]
     body = [
         f"<h1>twinbench report — {_e(run_id)}</h1>",
         f'<p class="meta">task {_e(task)} · {len(sim_eps)} sim, {len(replay_eps)} replay, '
@@ -599,8 +614,8 @@ def write_report(store: ResultsStore, run_id: str, out: str | Path, real_run_id:
         _sim_real_section(sim, real, real_source),
         _curves_section(sim, real),
         _posterior_section(sim, real),
-        _replay_section(replay_eps, real_eps),
-        _video_section(sim_eps + replay_eps + real_eps, videos),
+        _replay_section(replay_sources),
+        _video_section(sim_eps + replay_eps + real_eps, videos, store.path.parent),
         _status_section([g for g in status_groups if g[1]]),
         _protocol_section(run_id, protocol, episodes, real_run_id, real_protocol),
     ]
@@ -613,6 +628,13 @@ def write_report(store: ResultsStore, run_id: str, out: str | Path, real_run_id:
     return out
 
 
+def _protocol_or_none(store: ResultsStore, run_id: str) -> dict | None:
+    try:
+        return store.run_protocol(run_id)
+    except KeyError:
+        return None
+
+
 @dataclass(frozen=True)
 class ReportConfig:
     """Write a self-contained HTML report of an evaluation run."""
@@ -623,6 +645,8 @@ class ReportConfig:
     """results store (SQLite)."""
     real_run_id: str | None = "real"
     """run id of imported real outcomes (None: no sim-vs-real comparison)."""
+    replay_run_id: str | None = "replay"
+    """run id of `twinbench replay` results (replay vs real confusion matrices)."""
     out: Path = Path("report.html")
     """output HTML file."""
     max_videos: int = 12
@@ -632,7 +656,8 @@ class ReportConfig:
 def main(config: ReportConfig) -> int:
     try:
         path = write_report(ResultsStore(config.db), config.run_id, config.out,
-                            real_run_id=config.real_run_id, videos=VideoLimits(max_videos=config.max_videos))
+                            real_run_id=config.real_run_id, replay_run_id=config.replay_run_id,
+                            videos=VideoLimits(max_videos=config.max_videos))
     except ValueError as err:
         print(f"twinbench report: {err}", file=sys.stderr)
         return 2
