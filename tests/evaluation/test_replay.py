@@ -1,0 +1,131 @@
+"""Open-loop replay from LeRobotDataset-v3-shaped folders, JSON and NPZ logs; confusion matrices."""
+
+import json
+
+import numpy as np
+import pyarrow as pa
+import pyarrow.parquet as pq
+import pytest
+
+from twinbench.evaluation.replay import (
+    confusion_counts,
+    load_recorded,
+    replay_confusion,
+    replay_episodes,
+)
+from twinbench.evaluation.store import ResultsStore
+
+GOOD = np.zeros((14, 2), np.float32)  # go to the goal: the twin succeeds (12 steps)
+BAD = np.full((14, 2), 0.2, np.float32)  # go to a corner: the twin fails
+
+# (init_state, actions, real success, checkpoint) -> replay/real: TP, FN, FP, TN, TP
+EPISODES = [(0, GOOD, True, "step_1"), (1, BAD, True, "step_1"), (2, GOOD, False, "step_1"),
+            (3, BAD, False, "step_2"), (4, GOOD, True, "step_2")]
+
+
+def write_lerobot_v3(root, with_outcomes=True):
+    (root / "meta" / "episodes" / "chunk-000").mkdir(parents=True)
+    (root / "data" / "chunk-000").mkdir(parents=True)
+    info = {"codebase_version": "v3.0", "fps": 10, "total_episodes": len(EPISODES),
+            "data_path": "data/chunk-{chunk_index:03d}/file-{file_index:03d}.parquet",
+            "features": {"action": {"dtype": "float32", "shape": [2], "names": None},
+                         "observation.state": {"dtype": "float32", "shape": [2], "names": None}}}
+    (root / "meta" / "info.json").write_text(json.dumps(info))
+    rows = {"action": [], "observation.state": [], "episode_index": [], "frame_index": [], "index": []}
+    for ep, (_, acts, _, _) in enumerate(EPISODES):
+        for t in reversed(range(len(acts))):  # stored out of order: the reader must sort by frame_index
+            rows["action"].append(acts[t].tolist())
+            rows["observation.state"].append([0.0, 0.0])
+            rows["episode_index"].append(ep)
+            rows["frame_index"].append(t)
+            rows["index"].append(len(rows["index"]))
+    # split the frames over two data files, as large datasets are
+    table = pa.table(rows)
+    pq.write_table(table.slice(0, 30), root / "data" / "chunk-000" / "file-000.parquet")
+    pq.write_table(table.slice(30), root / "data" / "chunk-000" / "file-001.parquet")
+    meta = {"episode_index": list(range(len(EPISODES))), "length": [len(e[1]) for e in EPISODES],
+            "tasks": [["reach"]] * len(EPISODES)}
+    if with_outcomes:
+        meta |= {"init_state": [e[0] for e in EPISODES], "success": [e[2] for e in EPISODES],
+                 "policy": ["act"] * len(EPISODES), "checkpoint": [e[3] for e in EPISODES]}
+    pq.write_table(pa.table(meta), root / "meta" / "episodes" / "chunk-000" / "file-000.parquet")
+
+
+def check(store, run_id):
+    by_ckpt = replay_confusion(store, run_id)
+    c1, c2 = by_ckpt[("point-reach", "act", "step_1")], by_ckpt[("point-reach", "act", "step_2")]
+    assert (c1.tp, c1.fp, c1.fn, c1.tn) == (1, 1, 1, 0) and (c2.tp, c2.fp, c2.fn, c2.tn) == (1, 0, 0, 1)
+    total = replay_confusion(store, run_id, by="task")[("point-reach",)]
+    assert (total.tp, total.fp, total.fn, total.tn, total.n) == (2, 1, 1, 1, 5)
+    assert total.accuracy == pytest.approx(0.6)
+    real = store.episodes(run_id, domain="real")
+    expected = [(e[0], i, e[2]) for i, e in enumerate(EPISODES)]  # seed = recorded episode index
+    assert [(r.init_state, r.seed, r.success) for r in real] == expected
+
+
+def test_replay_lerobot_v3_folder(tmp_path):
+    write_lerobot_v3(tmp_path / "ds")
+    eps = load_recorded(tmp_path / "ds")
+    assert [e.init_state for e in eps] == [0, 1, 2, 3, 4]
+    np.testing.assert_array_equal(eps[1].actions, BAD)
+    store = ResultsStore(tmp_path / "r.sqlite")
+    pairs = replay_episodes("point-reach", eps, store, "rp")
+    assert [(real.success, rep.success) for real, rep in pairs] == [
+        (True, True), (True, False), (False, True), (False, False), (True, True)]
+    assert pairs[0][1].steps == 12 and pairs[1][1].steps == 14  # success terminates; else actions run out
+    check(store, "rp")
+
+
+def test_outcomes_file_and_validation(tmp_path):
+    write_lerobot_v3(tmp_path / "ds", with_outcomes=False)
+    with pytest.raises(ValueError, match="init_state"):
+        load_recorded(tmp_path / "ds")
+    outcomes = [{"episode_index": i, "init_state": e[0], "success": e[2], "policy": "act", "checkpoint": e[3]}
+                for i, e in enumerate(EPISODES)]
+    (tmp_path / "out.json").write_text(json.dumps({"episodes": outcomes}))
+    eps = load_recorded(tmp_path / "ds", tmp_path / "out.json")
+    assert [e.success for e in eps] == [e[2] for e in EPISODES]
+    info = tmp_path / "ds" / "meta" / "info.json"
+    info.write_text(json.dumps({"codebase_version": "v2.1", "features": {"action": {}}}))
+    with pytest.raises(ValueError, match="v3"):
+        load_recorded(tmp_path / "ds")
+    with pytest.raises(ValueError, match="does not exist"):
+        load_recorded(tmp_path / "nope.json")
+
+
+def test_replay_json_and_npz_logs(tmp_path):
+    log = {"episodes": [{"init_state": e[0], "actions": e[1].tolist(), "success": e[2], "policy": "act",
+                         "checkpoint": e[3]} for e in EPISODES]}
+    (tmp_path / "log.json").write_text(json.dumps(log))
+    store = ResultsStore(tmp_path / "r.sqlite")
+    replay_episodes("point-reach", load_recorded(tmp_path / "log.json"), store, "rj")
+    check(store, "rj")
+    np.savez(tmp_path / "log.npz", init_state=[e[0] for e in EPISODES], success=[e[2] for e in EPISODES],
+             policy=["act"] * 5, checkpoint=[e[3] for e in EPISODES], lengths=[len(e[1]) for e in EPISODES],
+             actions=np.concatenate([e[1] for e in EPISODES]))
+    replay_episodes("point-reach", load_recorded(tmp_path / "log.npz"), store, "rn")
+    check(store, "rn")
+    bad = {"episodes": [{"init_state": 0, "actions": [[0, 0, 0]], "success": True, "policy": "a",
+                         "checkpoint": ""}]}
+    (tmp_path / "bad.json").write_text(json.dumps(bad))
+    with pytest.raises(ValueError, match="expects"):
+        replay_episodes("point-reach", load_recorded(tmp_path / "bad.json"), store, "rb")
+    (tmp_path / "bad2.json").write_text(json.dumps({"episodes": [{"init_state": 0, "actions": [[0, 0]]}]}))
+    with pytest.raises(ValueError, match="success"):
+        load_recorded(tmp_path / "bad2.json")
+
+
+def test_confusion_counts():
+    c = confusion_counts([(True, True), (True, False), (False, True), (False, False), (False, False)])
+    assert (c.tp, c.fp, c.fn, c.tn, c.n) == (1, 1, 1, 2, 5)
+
+
+def test_replay_cli(tmp_path, capsys):
+    from twinbench.cli import main
+
+    write_lerobot_v3(tmp_path / "ds")
+    db = tmp_path / "r.sqlite"
+    assert main(["replay", "--source", str(tmp_path / "ds"), "--db", str(db), "--run-id", "cli"]) == 0
+    out = capsys.readouterr().out
+    assert "act / step_1: TP=1 FP=1 FN=1 TN=0" in out and "point-reach: TP=2 FP=1 FN=1 TN=1" in out
+    check(ResultsStore(db), "cli")
