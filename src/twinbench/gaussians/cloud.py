@@ -2,9 +2,19 @@
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
+
+from twinbench.gaussians.sh import rotate_sh
+
+if TYPE_CHECKING:
+    import warp as wp
+
+
+SH_C0 = 0.28209479177387814
 
 
 def sh_coeffs_for_degree(degree: int) -> int:
@@ -45,7 +55,9 @@ class GaussianCloud:
         if self.sh.ndim != 3 or self.sh.shape[0] != n or self.sh.shape[2] != 3:
             raise ValueError(f"GaussianCloud.sh: expected shape ({n}, K, 3), got {self.sh.shape}")
         if self.sh.shape[1] not in (1, 4, 9, 16):
-            raise ValueError(f"GaussianCloud.sh: K must be 1, 4, 9 or 16 (SH degree 0..3), got {self.sh.shape[1]}")
+            raise ValueError(
+                f"GaussianCloud.sh: K must be 1, 4, 9 or 16 (SH degree 0..3), got {self.sh.shape[1]}"
+            )
 
     def __len__(self) -> int:
         return self.means.shape[0]
@@ -53,3 +65,212 @@ class GaussianCloud:
     @property
     def sh_degree(self) -> int:
         return int(round(np.sqrt(self.sh.shape[1]))) - 1
+
+    # ----- derived quantities -------------------------------------------------------------------
+    @property
+    def scales(self) -> np.ndarray:
+        """Linear scales (N, 3)."""
+        return np.exp(self.log_scales)
+
+    @property
+    def opacities(self) -> np.ndarray:
+        """Opacities in (0, 1) (N,)."""
+        return (1.0 / (1.0 + np.exp(-self.logit_opacities.astype(np.float64)))).astype(np.float32)
+
+    @property
+    def base_colours(self) -> np.ndarray:
+        """View-independent colour 0.5 + C0 * DC (N, 3), not clamped."""
+        return 0.5 + SH_C0 * self.sh[:, 0]
+
+    def copy(self) -> GaussianCloud:
+        return GaussianCloud(
+            self.means.copy(),
+            self.quats.copy(),
+            self.log_scales.copy(),
+            self.logit_opacities.copy(),
+            self.sh.copy(),
+        )
+
+    # ----- selection ----------------------------------------------------------------------------
+    @staticmethod
+    def concatenate(clouds: Sequence[GaussianCloud]) -> GaussianCloud:
+        """One cloud holding all Gaussians of `clouds` in order; lower SH degrees are zero-padded."""
+        clouds = list(clouds)
+        if not clouds:
+            raise ValueError("GaussianCloud.concatenate: `clouds` is empty; pass at least one cloud")
+        k = max(c.sh.shape[1] for c in clouds)
+        sh = [np.pad(c.sh, ((0, 0), (0, k - c.sh.shape[1]), (0, 0))) for c in clouds]
+        return GaussianCloud(
+            np.concatenate([c.means for c in clouds]),
+            np.concatenate([c.quats for c in clouds]),
+            np.concatenate([c.log_scales for c in clouds]),
+            np.concatenate([c.logit_opacities for c in clouds]),
+            np.concatenate(sh),
+        )
+
+    def subset(self, index: np.ndarray | slice | Sequence[int]) -> GaussianCloud:
+        """Gaussians selected by an integer index array, a slice or a boolean mask of length N."""
+        if isinstance(index, slice):
+            idx = index
+        else:
+            idx = np.asarray(index)
+            if idx.dtype == bool and idx.shape != (len(self),):
+                raise ValueError(
+                    f"GaussianCloud.subset: boolean mask has shape {idx.shape}, expected ({len(self)},)"
+                )
+            if idx.dtype != bool and idx.size and not np.issubdtype(idx.dtype, np.integer):
+                raise ValueError(
+                    f"GaussianCloud.subset: index must be integers or a boolean mask, got {idx.dtype}"
+                )
+        return GaussianCloud(
+            self.means[idx], self.quats[idx], self.log_scales[idx], self.logit_opacities[idx], self.sh[idx]
+        )
+
+    def box_mask(self, center, rotation, half_extents) -> np.ndarray:
+        """Boolean (N,) mask of means inside the oriented box (centre (3,), box-to-world rotation (3,3),
+        half extents (3,))."""
+        center = np.asarray(center, dtype=np.float64).reshape(3)
+        rot = np.asarray(rotation, dtype=np.float64).reshape(3, 3)
+        half = np.asarray(half_extents, dtype=np.float64).reshape(3)
+        if np.any(half < 0):
+            raise ValueError(f"crop box: half_extents must be >= 0, got {half}")
+        local = (self.means - center) @ rot  # rows: R^T (p - c)
+        return np.all(np.abs(local) <= half, axis=1)
+
+    def crop(self, center, rotation, half_extents, *, invert: bool = False) -> GaussianCloud:
+        """Gaussians whose mean lies inside (or, with invert=True, outside) an oriented box."""
+        mask = self.box_mask(center, rotation, half_extents)
+        return self.subset(~mask if invert else mask)
+
+    def downsample(self, max_gaussians: int) -> GaussianCloud:
+        """Keep at most `max_gaussians`: the ones with the largest opacity * ellipsoid volume
+        (sigmoid(logit) * sx*sy*sz), which drops the faint and tiny ones first; order is preserved."""
+        if max_gaussians < 0:
+            raise ValueError(f"downsample: max_gaussians must be >= 0, got {max_gaussians}")
+        if len(self) <= max_gaussians:
+            return self.copy()
+        score = self.logit_opacities.astype(np.float64)
+        # log(sigmoid(o)) + sum(log s): monotone in opacity * volume, no overflow
+        score = -np.logaddexp(0.0, -score) + self.log_scales.astype(np.float64).sum(axis=1)
+        keep = np.sort(np.argpartition(-score, max_gaussians - 1)[:max_gaussians]) if max_gaussians else []
+        return self.subset(np.asarray(keep, dtype=np.int64))
+
+    # ----- transforms ---------------------------------------------------------------------------
+    def transform(self, matrix, *, sh_mode: str = "rotate") -> GaussianCloud:
+        """Apply a 4x4 similarity transform (rotation, translation, optional uniform scale).
+
+        Means are mapped, quaternions pre-multiplied by the rotation, log scales shifted by log(scale).
+        sh_mode "rotate" rotates the view-dependent SH bands (exact, per-band matrices); "dc_only"
+        leaves them unchanged (correct only for degree 0 or view-independent clouds).
+        """
+        if sh_mode not in ("rotate", "dc_only"):
+            raise ValueError(f"transform: sh_mode must be 'rotate' or 'dc_only', got {sh_mode!r}")
+        m = np.asarray(matrix, dtype=np.float64)
+        if m.shape != (4, 4) or not np.all(np.isfinite(m)):
+            raise ValueError(f"transform: matrix must be a finite 4x4 array, got shape {m.shape}")
+        a = m[:3, :3]
+        scale = np.cbrt(np.linalg.det(a))
+        if scale <= 0:
+            raise ValueError("transform: matrix has a reflection or is singular (det <= 0)")
+        rot = a / scale
+        if not np.allclose(rot @ rot.T, np.eye(3), atol=1e-5):
+            raise ValueError("transform: the 3x3 block must be a rotation times a uniform scale")
+        means = self.means @ a.T + m[:3, 3]
+        quats = quat_multiply(matrix_to_quat(rot)[None, :], self.quats)
+        sh = rotate_sh(self.sh, rot) if (sh_mode == "rotate" and self.sh_degree > 0) else self.sh.copy()
+        return GaussianCloud(
+            means, quats, self.log_scales + np.float32(np.log(scale)), self.logit_opacities.copy(), sh
+        )
+
+    # ----- device arrays ------------------------------------------------------------------------
+    def to_device(self, device: str = "cpu") -> DeviceGaussians:
+        """Warp arrays on `device` for rendering / skinning (normalised quats, linear scales, opacities)."""
+        return DeviceGaussians.from_cloud(self, device)
+
+
+@dataclass
+class DeviceGaussians:
+    """Render-ready Warp arrays: means vec3, quats vec4 (wxyz, normalised), scales vec3 (linear),
+    opacities float32 (0..1), sh array2d(vec3) (N, K)."""
+
+    means: wp.array
+    quats: wp.array
+    scales: wp.array
+    opacities: wp.array
+    sh: wp.array
+
+    @property
+    def device(self):
+        return self.means.device
+
+    def __len__(self) -> int:
+        return self.means.shape[0]
+
+    @staticmethod
+    def from_cloud(cloud: GaussianCloud, device: str = "cpu") -> DeviceGaussians:
+        import warp as wp
+
+        q = cloud.quats.astype(np.float64)
+        norm = np.linalg.norm(q, axis=1, keepdims=True)
+        q = np.where(norm > 0, q / np.maximum(norm, 1e-30), np.array([1.0, 0, 0, 0]))
+        return DeviceGaussians(
+            means=wp.array(cloud.means, dtype=wp.vec3, device=device),
+            quats=wp.array(q.astype(np.float32), dtype=wp.vec4, device=device),
+            scales=wp.array(cloud.scales, dtype=wp.vec3, device=device),
+            opacities=wp.array(cloud.opacities, dtype=wp.float32, device=device),
+            sh=wp.array(cloud.sh, dtype=wp.vec3, device=device),
+        )
+
+
+# ----- quaternion helpers (wxyz) ------------------------------------------------------------------
+def quat_multiply(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Hamilton product a * b of wxyz quaternions (broadcasting over leading axes)."""
+    a = np.asarray(a)
+    b = np.asarray(b)
+    aw, ax, ay, az = np.moveaxis(a, -1, 0)
+    bw, bx, by, bz = np.moveaxis(b, -1, 0)
+    return np.stack(
+        [
+            aw * bw - ax * bx - ay * by - az * bz,
+            aw * bx + ax * bw + ay * bz - az * by,
+            aw * by - ax * bz + ay * bw + az * bx,
+            aw * bz + ax * by - ay * bx + az * bw,
+        ],
+        axis=-1,
+    )
+
+
+def quat_to_matrix(q: np.ndarray) -> np.ndarray:
+    """Rotation matrices (..., 3, 3) of wxyz quaternions (normalised first)."""
+    q = np.asarray(q, dtype=np.float64)
+    q = q / np.linalg.norm(q, axis=-1, keepdims=True)
+    w, x, y, z = np.moveaxis(q, -1, 0)
+    return np.stack(
+        [
+            np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)], -1),
+            np.stack([2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)], -1),
+            np.stack([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], -1),
+        ],
+        -2,
+    )
+
+
+def matrix_to_quat(m: np.ndarray) -> np.ndarray:
+    """wxyz quaternion (w >= 0) of a 3x3 rotation matrix."""
+    m = np.asarray(m, dtype=np.float64)
+    t = np.trace(m)
+    if t > 0:
+        s = np.sqrt(t + 1.0) * 2
+        q = [0.25 * s, (m[2, 1] - m[1, 2]) / s, (m[0, 2] - m[2, 0]) / s, (m[1, 0] - m[0, 1]) / s]
+    elif m[0, 0] > m[1, 1] and m[0, 0] > m[2, 2]:
+        s = np.sqrt(1.0 + m[0, 0] - m[1, 1] - m[2, 2]) * 2
+        q = [(m[2, 1] - m[1, 2]) / s, 0.25 * s, (m[0, 1] + m[1, 0]) / s, (m[0, 2] + m[2, 0]) / s]
+    elif m[1, 1] > m[2, 2]:
+        s = np.sqrt(1.0 + m[1, 1] - m[0, 0] - m[2, 2]) * 2
+        q = [(m[0, 2] - m[2, 0]) / s, (m[0, 1] + m[1, 0]) / s, 0.25 * s, (m[1, 2] + m[2, 1]) / s]
+    else:
+        s = np.sqrt(1.0 + m[2, 2] - m[0, 0] - m[1, 1]) * 2
+        q = [(m[1, 0] - m[0, 1]) / s, (m[0, 2] + m[2, 0]) / s, (m[1, 2] + m[2, 1]) / s, 0.25 * s]
+    q = np.asarray(q)
+    q /= np.linalg.norm(q)
+    return q if q[0] >= 0 else -q

@@ -1,0 +1,111 @@
+"""Render and skinning speed: 200k surface-like Gaussians seen from ~1 m; LBS of 100k Gaussians.
+
+Prints `name value unit` lines (median of repeated runs, after a warm-up).
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+
+import numpy as np
+import warp as wp
+
+from twinbench.gaussians.camera import Camera
+from twinbench.gaussians.cloud import GaussianCloud, matrix_to_quat
+from twinbench.gaussians.render import gsplat_available, render
+from twinbench.gaussians.skinning import LBSSkinner, bind
+
+
+def surface_scene(n: int = 200_000, seed: int = 0) -> GaussianCloud:
+    """Thin discs (3-10 mm, 0.5 mm thick) tangent to a table plane, a back wall and three spheres."""
+    rng = np.random.default_rng(seed)
+    parts = []
+    normals = []
+    n_plane = n // 4
+    table = np.c_[rng.uniform(-0.6, 0.6, n_plane), rng.uniform(-0.4, 0.6, n_plane), np.zeros(n_plane)]
+    parts.append(table)
+    normals.append(np.tile([0, 0, 1.0], (n_plane, 1)))
+    wall = np.c_[rng.uniform(-0.6, 0.6, n_plane), np.full(n_plane, 0.6), rng.uniform(0, 0.6, n_plane)]
+    parts.append(wall)
+    normals.append(np.tile([0, -1.0, 0], (n_plane, 1)))
+    rest = n - 2 * n_plane
+    for i, (c, r) in enumerate(
+        [((-0.2, 0.1, 0.1), 0.1), ((0.15, 0.2, 0.08), 0.08), ((0.0, -0.1, 0.05), 0.05)]
+    ):
+        m = rest // 3 if i < 2 else rest - 2 * (rest // 3)
+        d = rng.normal(size=(m, 3))
+        d /= np.linalg.norm(d, axis=1, keepdims=True)
+        parts.append(np.asarray(c) + r * d)
+        normals.append(d)
+    means = np.concatenate(parts)
+    nrm = np.concatenate(normals)
+    quats = np.empty((n, 4))
+    for i in range(n):  # disc normal (local z) -> surface normal
+        z = nrm[i]
+        x = np.cross(z, [1.0, 0, 0] if abs(z[0]) < 0.9 else [0, 1.0, 0])
+        x /= np.linalg.norm(x)
+        quats[i] = matrix_to_quat(np.stack([x, np.cross(z, x), z], axis=1))
+    log_scales = np.c_[np.log(rng.uniform(0.003, 0.01, (n, 2))), np.full(n, np.log(0.0005))]
+    sh = rng.normal(scale=0.5, size=(n, 1, 3))
+    return GaussianCloud(means, quats, log_scales, np.full(n, 3.0), sh)
+
+
+def median_ms(fn, repeats: int) -> float:
+    fn()
+    times = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        fn()
+        times.append(time.perf_counter() - t0)
+    return 1000.0 * float(np.median(times))
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__)
+    ap.add_argument("--repeats", type=int, default=5)
+    args = ap.parse_args()
+    wp.init()
+    cloud = surface_scene()
+    eye, target = (0.0, -0.85, 0.55), (0.0, 0.15, 0.1)
+    cams = {
+        "848x480": Camera.look_at(
+            eye, target, fx=427.29, fy=426.79, cx=430.0, cy=242.81, width=848, height=480
+        ),
+        "240x240": Camera.look_at(eye, target, fx=220.0, width=240, height=240),
+    }
+    devices = ["cpu"] + [f"cuda:{i}" for i in range(wp.get_cuda_device_count())]
+    for device in devices:
+        g = cloud.to_device(device)
+        backends = ["warp"] + (["gsplat"] if device != "cpu" and gsplat_available() else [])
+        for backend in backends:
+            src = g if backend == "warp" else cloud
+            for name, cam in cams.items():
+                ms = median_ms(
+                    lambda src=src, cam=cam, b=backend, d=device: render(src, cam, backend=b, device=d),
+                    args.repeats,
+                )
+                print(f"render_{backend}_{device.replace(':', '')}_{name}_200k {ms:.1f} ms")
+    # LBS: 100k Gaussians bound to 3,000 particles (a wavy sheet), one frame of motion
+    rng = np.random.default_rng(1)
+    particles = np.c_[rng.uniform(-0.2, 0.2, (3000, 2)), rng.uniform(0, 0.02, 3000)]
+    gauss = particles[rng.integers(0, 3000, 100_000)] + rng.normal(scale=0.005, size=(100_000, 3))
+    quats = np.tile([1.0, 0, 0, 0], (100_000, 1))
+    moved = particles + np.c_[np.zeros((3000, 2)), 0.05 * np.sin(10 * particles[:, :1])]
+    for device in devices:
+        t0 = time.perf_counter()
+        binding = bind(gauss, particles, device=device)
+        bind_ms = 1000 * (time.perf_counter() - t0)
+        skinner = LBSSkinner(binding, gauss, quats, device=device)
+        p_dev = wp.array(moved, dtype=wp.vec3, device=device)
+
+        def step(skinner=skinner, p_dev=p_dev, device=device):
+            skinner.update(p_dev)
+            wp.synchronize_device(device)
+
+        print(f"lbs_bind_{device.replace(':', '')}_100k_3k {bind_ms:.1f} ms")
+        print(f"lbs_update_{device.replace(':', '')}_100k_3k {median_ms(step, args.repeats):.2f} ms")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,644 @@
+"""3DGS rendering: a tile-based Warp rasteriser (CPU and CUDA) and an optional gsplat backend.
+
+Math (DESIGN §6): EWA projection with a 0.3 px low-pass added to the 2D covariance, 16x16 tiles,
+front-to-back compositing by camera depth, alpha = min(0.99, o exp(-d^2/2)), skip alpha < 1/255, stop
+a pixel before the Gaussian that would bring its transmittance below 1e-4. Gaussians with z < near are
+culled. A Gaussian's footprint is the bounding box of the ellipse where alpha >= 1/255
+(d^2 <= 2 ln(255 o), at most 3.33 sigma), so tile culling drops nothing the compositing would keep.
+"""
+
+from __future__ import annotations
+
+import threading
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+import warp as wp
+
+from twinbench.gaussians.camera import Camera
+from twinbench.gaussians.cloud import DeviceGaussians, GaussianCloud
+
+TILE = 16
+NEAR = 0.01
+LOW_PASS = 0.3
+ALPHA_MAX = 0.99
+ALPHA_MIN = 1.0 / 255.0
+T_MIN = 1e-4
+_CPU_THREADS = 2
+
+
+@dataclass
+class RenderOutput:
+    """Float32 images: rgb (H, W, 3) in [0, 1], depth (H, W) (alpha-normalised expected camera z,
+    0 where nothing is drawn), alpha (H, W) = 1 - final transmittance. Lists of cameras give lists."""
+
+    rgb: np.ndarray
+    depth: np.ndarray
+    alpha: np.ndarray
+
+    def rgb_uint8(self) -> np.ndarray:
+        """rgb as H x W x 3 uint8 (rounded)."""
+        return np.clip(np.rint(self.rgb * 255.0), 0, 255).astype(np.uint8)
+
+
+# ----- Warp kernels ---------------------------------------------------------------------------------
+@wp.func
+def _quat_wxyz_to_mat(q: wp.vec4):
+    w = q[0]
+    x = q[1]
+    y = q[2]
+    z = q[3]
+    return wp.mat33(
+        1.0 - 2.0 * (y * y + z * z),
+        2.0 * (x * y - w * z),
+        2.0 * (x * z + w * y),
+        2.0 * (x * y + w * z),
+        1.0 - 2.0 * (x * x + z * z),
+        2.0 * (y * z - w * x),
+        2.0 * (x * z - w * y),
+        2.0 * (y * z + w * x),
+        1.0 - 2.0 * (x * x + y * y),
+    )
+
+
+@wp.func
+def _sh_colour(sh: wp.array2d(dtype=wp.vec3), i: int, k: int, d: wp.vec3):
+    c = 0.28209479177387814 * sh[i, 0]
+    if k > 1:
+        x = d[0]
+        y = d[1]
+        z = d[2]
+        c = c - 0.4886025119029199 * y * sh[i, 1] + 0.4886025119029199 * z * sh[i, 2]
+        c = c - 0.4886025119029199 * x * sh[i, 3]
+        if k > 4:
+            xx = x * x
+            yy = y * y
+            zz = z * z
+            c = c + 1.0925484305920792 * x * y * sh[i, 4] - 1.0925484305920792 * y * z * sh[i, 5]
+            c = c + 0.31539156525252005 * (2.0 * zz - xx - yy) * sh[i, 6]
+            c = c - 1.0925484305920792 * x * z * sh[i, 7] + 0.5462742152960396 * (xx - yy) * sh[i, 8]
+            if k > 9:
+                c = c - 0.5900435899266435 * y * (3.0 * xx - yy) * sh[i, 9]
+                c = c + 2.890611442640554 * x * y * z * sh[i, 10]
+                c = c - 0.4570457994644658 * y * (4.0 * zz - xx - yy) * sh[i, 11]
+                c = c + 0.3731763325901154 * z * (2.0 * zz - 3.0 * xx - 3.0 * yy) * sh[i, 12]
+                c = c - 0.4570457994644658 * x * (4.0 * zz - xx - yy) * sh[i, 13]
+                c = c + 1.445305721320277 * z * (xx - yy) * sh[i, 14]
+                c = c - 0.5900435899266435 * x * (xx - 3.0 * yy) * sh[i, 15]
+    c = c + wp.vec3(0.5, 0.5, 0.5)
+    return wp.vec3(wp.max(c[0], 0.0), wp.max(c[1], 0.0), wp.max(c[2], 0.0))
+
+
+@wp.kernel
+def _preprocess(
+    means: wp.array(dtype=wp.vec3),
+    quats: wp.array(dtype=wp.vec4),
+    scales: wp.array(dtype=wp.vec3),
+    opacities: wp.array(dtype=wp.float32),
+    sh: wp.array2d(dtype=wp.vec3),
+    sh_k: int,
+    rot_wc: wp.mat33,
+    t_wc: wp.vec3,
+    cam_pos: wp.vec3,
+    fx: float,
+    fy: float,
+    cx: float,
+    cy: float,
+    width: int,
+    height: int,
+    tiles_x: int,
+    near: float,
+    lim_x_neg: float,
+    lim_x_pos: float,
+    lim_y_neg: float,
+    lim_y_pos: float,
+    offset: int,
+    # outputs
+    mean2d: wp.array(dtype=wp.vec2),
+    conic: wp.array(dtype=wp.vec3),
+    extent: wp.array(dtype=wp.vec2),
+    depth: wp.array(dtype=wp.float32),
+    colour: wp.array(dtype=wp.vec3),
+    rect: wp.array(dtype=wp.vec4i),
+    n_tiles: wp.array(dtype=wp.int32),
+):
+    i = wp.tid() + offset
+    n_tiles[i] = 0
+    depth[i] = 3.0e38
+    p = rot_wc * means[i] + t_wc
+    z = p[2]
+    o = opacities[i]
+    if z < near or o < 1.0 / 255.0:
+        return
+    r = _quat_wxyz_to_mat(quats[i])
+    s = scales[i]
+    m = r * wp.diag(s)
+    cov_w = m * wp.transpose(m)
+    cov_c = rot_wc * cov_w * wp.transpose(rot_wc)
+    tx = wp.clamp(p[0] / z, -lim_x_neg, lim_x_pos) * z
+    ty = wp.clamp(p[1] / z, -lim_y_neg, lim_y_pos) * z
+    j = wp.mat33(fx / z, 0.0, -fx * tx / (z * z), 0.0, fy / z, -fy * ty / (z * z), 0.0, 0.0, 0.0)
+    c2 = j * cov_c * wp.transpose(j)
+    a = c2[0, 0] + 0.3
+    b = c2[0, 1]
+    c = c2[1, 1] + 0.3
+    det = a * c - b * b
+    if det <= 0.0:
+        return
+    u = fx * p[0] / z + cx
+    v = fy * p[1] / z + cy
+    d2max = 2.0 * wp.log(255.0 * o)
+    ex = wp.sqrt(d2max * a)
+    ey = wp.sqrt(d2max * c)
+    # pixel centres i + 0.5 inside [u - ex, u + ex]
+    px0 = wp.max(int(wp.ceil(u - ex - 0.5)), 0)
+    px1 = wp.min(int(wp.floor(u + ex - 0.5)), width - 1)
+    py0 = wp.max(int(wp.ceil(v - ey - 0.5)), 0)
+    py1 = wp.min(int(wp.floor(v + ey - 0.5)), height - 1)
+    if px0 > px1 or py0 > py1:
+        return
+    tx0 = px0 / 16
+    tx1 = px1 / 16
+    ty0 = py0 / 16
+    ty1 = py1 / 16
+    mean2d[i] = wp.vec2(u, v)
+    conic[i] = wp.vec3(c / det, -b / det, a / det)
+    extent[i] = wp.vec2(ex, ey)
+    depth[i] = z
+    colour[i] = _sh_colour(sh, i, sh_k, wp.normalize(means[i] - cam_pos))
+    rect[i] = wp.vec4i(tx0, ty0, tx1, ty1)
+    n_tiles[i] = (tx1 - tx0 + 1) * (ty1 - ty0 + 1)
+
+
+@wp.kernel
+def _emit_pairs(
+    order: wp.array(dtype=wp.int32),
+    offsets: wp.array(dtype=wp.int32),
+    rect: wp.array(dtype=wp.vec4i),
+    n_tiles: wp.array(dtype=wp.int32),
+    tiles_x: int,
+    start: int,
+    keys: wp.array(dtype=wp.int32),
+    values: wp.array(dtype=wp.int32),
+):
+    """Pair r of the depth-ordered list writes (tile id, Gaussian id) for each tile its box touches."""
+    r = wp.tid() + start
+    g = order[r]
+    if n_tiles[g] == 0:
+        return
+    n = offsets[r] - n_tiles[g]
+    rc = rect[g]
+    for ty in range(rc[1], rc[3] + 1):
+        for tx in range(rc[0], rc[2] + 1):
+            keys[n] = ty * tiles_x + tx
+            values[n] = g
+            n += 1
+
+
+@wp.kernel
+def _gather_counts(
+    order: wp.array(dtype=wp.int32), n_tiles: wp.array(dtype=wp.int32), out: wp.array(dtype=wp.int32)
+):
+    r = wp.tid()
+    out[r] = n_tiles[order[r]]
+
+
+@wp.kernel
+def _tile_ranges(keys: wp.array(dtype=wp.int32), count: int, ranges: wp.array(dtype=wp.vec2i)):
+    n = wp.tid()
+    tile = keys[n]
+    if n == 0 or keys[n - 1] != tile:
+        ranges[tile] = wp.vec2i(n, ranges[tile][1])
+    if n == count - 1 or keys[n + 1] != tile:
+        ranges[tile] = wp.vec2i(ranges[tile][0], n + 1)
+
+
+@wp.kernel
+def _rasterise(
+    tile_list: wp.array(dtype=wp.int32),
+    ranges: wp.array(dtype=wp.vec2i),
+    values: wp.array(dtype=wp.int32),
+    mean2d: wp.array(dtype=wp.vec2),
+    conic: wp.array(dtype=wp.vec3),
+    extent: wp.array(dtype=wp.vec2),
+    depth: wp.array(dtype=wp.float32),
+    colour: wp.array(dtype=wp.vec3),
+    opacities: wp.array(dtype=wp.float32),
+    width: int,
+    height: int,
+    tiles_x: int,
+    background: wp.vec3,
+    out_rgb: wp.array(dtype=wp.vec3),
+    out_depth: wp.array(dtype=wp.float32),
+    out_t: wp.array(dtype=wp.float32),
+):
+    """One thread per tile, Gaussian-major: each Gaussian updates the pixels of its box in the tile."""
+    tile = tile_list[wp.tid()]
+    x0 = (tile % tiles_x) * 16
+    y0 = (tile / tiles_x) * 16
+    x1 = wp.min(x0 + 16, width)
+    y1 = wp.min(y0 + 16, height)
+    for y in range(y0, y1):
+        for x in range(x0, x1):
+            out_rgb[y * width + x] = wp.vec3(0.0, 0.0, 0.0)
+            out_depth[y * width + x] = 0.0
+            out_t[y * width + x] = 1.0
+    npix = (x1 - x0) * (y1 - y0)
+    ndone = int(0)  # noqa: UP018 (a Warp dynamic variable)
+    rg = ranges[tile]
+    for n in range(rg[0], rg[1]):
+        g = values[n]
+        m = mean2d[g]
+        e = extent[g]
+        cn = conic[g]
+        col = colour[g]
+        z = depth[g]
+        o = opacities[g]
+        gx0 = wp.max(int(wp.ceil(m[0] - e[0] - 0.5)), x0)
+        gx1 = wp.min(int(wp.floor(m[0] + e[0] - 0.5)), x1 - 1)
+        gy0 = wp.max(int(wp.ceil(m[1] - e[1] - 0.5)), y0)
+        gy1 = wp.min(int(wp.floor(m[1] + e[1] - 0.5)), y1 - 1)
+        # per row, only the span of the ellipse d^2 <= d2max (alpha >= 1/255), widened by 1e-3 px so
+        # that rounding never drops a pixel the alpha test would keep
+        d2max = 2.0 * wp.log(255.0 * o)
+        ia = 1.0 / cn[0]
+        for y in range(gy0, gy1 + 1):
+            dy = float(y) + 0.5 - m[1]
+            disc = cn[1] * cn[1] * dy * dy - cn[0] * (cn[2] * dy * dy - d2max)
+            if disc < 0.0:
+                continue
+            half = wp.sqrt(disc) * ia + 1.0e-3
+            ctr = m[0] - cn[1] * dy * ia
+            sx0 = wp.max(int(wp.ceil(ctr - half - 0.5)), gx0)
+            sx1 = wp.min(int(wp.floor(ctr + half - 0.5)), gx1)
+            row = y * width
+            for x in range(sx0, sx1 + 1):
+                t = out_t[row + x]
+                if t < 0.0:
+                    continue
+                dx = float(x) + 0.5 - m[0]
+                d2 = cn[0] * dx * dx + 2.0 * cn[1] * dx * dy + cn[2] * dy * dy
+                alpha = wp.min(0.99, o * wp.exp(-0.5 * d2))
+                if alpha < 1.0 / 255.0:
+                    continue
+                test_t = t * (1.0 - alpha)
+                if test_t < 1e-4:
+                    out_t[row + x] = -t
+                    ndone += 1
+                    continue
+                w = alpha * t
+                out_rgb[row + x] = out_rgb[row + x] + w * col
+                out_depth[row + x] = out_depth[row + x] + w * z
+                out_t[row + x] = test_t
+        if ndone == npix:
+            break
+    for y in range(y0, y1):
+        for x in range(x0, x1):
+            p = y * width + x
+            t = wp.abs(out_t[p])
+            a = 1.0 - t
+            c = out_rgb[p] + t * background
+            out_rgb[p] = wp.vec3(wp.clamp(c[0], 0.0, 1.0), wp.clamp(c[1], 0.0, 1.0), wp.clamp(c[2], 0.0, 1.0))
+            if a > 0.0:
+                out_depth[p] = out_depth[p] / a
+            out_t[p] = a
+
+
+# ----- Warp backend ---------------------------------------------------------------------------------
+class _Workspace:
+    """Per-Gaussian buffers reused between calls of the same size and device."""
+
+    def __init__(self, n: int, device) -> None:
+        self.n = n
+        self.mean2d = wp.zeros(n, dtype=wp.vec2, device=device)
+        self.conic = wp.zeros(n, dtype=wp.vec3, device=device)
+        self.extent = wp.zeros(n, dtype=wp.vec2, device=device)
+        self.depth = wp.zeros(n, dtype=wp.float32, device=device)
+        self.colour = wp.zeros(n, dtype=wp.vec3, device=device)
+        self.rect = wp.zeros(n, dtype=wp.vec4i, device=device)
+        self.n_tiles = wp.zeros(n, dtype=wp.int32, device=device)
+
+
+_workspaces: dict[tuple[int, str], _Workspace] = {}
+_ws_lock = threading.Lock()
+
+
+def _workspace(n: int, device) -> _Workspace:
+    key = (n, str(device))
+    with _ws_lock:
+        ws = _workspaces.get(key)
+        if ws is None:
+            _workspaces.clear()
+            ws = _workspaces[key] = _Workspace(n, device)
+        return ws
+
+
+def _run_threads(fns) -> None:
+    if len(fns) == 1:
+        fns[0]()
+        return
+    errors: list[BaseException] = []
+
+    def wrap(fn):
+        try:
+            fn()
+        except BaseException as exc:  # re-raised below in the caller's thread
+            errors.append(exc)
+
+    threads = [threading.Thread(target=wrap, args=(fn,)) for fn in fns[1:]]
+    for th in threads:
+        th.start()
+    wrap(fns[0])
+    for th in threads:
+        th.join()
+    if errors:
+        raise errors[0]
+
+
+def _render_warp_one(g: DeviceGaussians, cam: Camera, background: np.ndarray, threads: int) -> RenderOutput:
+    device = g.device
+    n = len(g)
+    w, h = cam.width, cam.height
+    tiles_x, tiles_y = (w + TILE - 1) // TILE, (h + TILE - 1) // TILE
+    n_tile_total = tiles_x * tiles_y
+    w2c = cam.world_to_cam
+    tan_x, tan_y = 0.5 * w / cam.fx, 0.5 * h / cam.fy
+    ws = _workspace(n, device)
+    out_rgb = wp.empty(h * w, dtype=wp.vec3, device=device)
+    out_depth = wp.empty(h * w, dtype=wp.float32, device=device)
+    out_t = wp.empty(h * w, dtype=wp.float32, device=device)
+    sh_k = g.sh.shape[1]
+    pre_args = [
+        g.means,
+        g.quats,
+        g.scales,
+        g.opacities,
+        g.sh,
+        sh_k,
+        wp.mat33(w2c[:3, :3].astype(np.float32)),
+        wp.vec3(w2c[:3, 3].astype(np.float32)),
+        wp.vec3(cam.position.astype(np.float32)),
+        float(cam.fx),
+        float(cam.fy),
+        float(cam.cx),
+        float(cam.cy),
+        w,
+        h,
+        tiles_x,
+        NEAR,
+        float(cam.cx / cam.fx + 0.3 * tan_x),
+        float((w - cam.cx) / cam.fx + 0.3 * tan_x),
+        float(cam.cy / cam.fy + 0.3 * tan_y),
+        float((h - cam.cy) / cam.fy + 0.3 * tan_y),
+    ]
+    pre_out = [ws.mean2d, ws.conic, ws.extent, ws.depth, ws.colour, ws.rect, ws.n_tiles]
+    cpu = device.is_cpu
+    if cpu and threads > 1:
+        wp.load_module(device=device)  # compile once, not concurrently in the worker threads
+    if n > 0:
+        if cpu and threads > 1:
+            bounds = np.linspace(0, n, threads + 1).astype(int)
+            _run_threads(
+                [
+                    (
+                        lambda lo=lo, hi=hi: wp.launch(
+                            _preprocess, dim=hi - lo, inputs=pre_args + [lo], outputs=pre_out, device=device
+                        )
+                    )
+                    for lo, hi in zip(bounds[:-1], bounds[1:], strict=True)
+                    if hi > lo
+                ]
+            )
+        else:
+            wp.launch(_preprocess, dim=n, inputs=pre_args + [0], outputs=pre_out, device=device)
+
+    if cpu:
+        counts = ws.n_tiles.numpy()
+        visible = np.flatnonzero(counts).astype(np.int32)
+        depth = ws.depth.numpy()
+        order = visible[np.argsort(depth[visible])].astype(np.int32)
+        offsets = np.cumsum(counts[order], dtype=np.int64)
+        total = int(offsets[-1]) if len(offsets) else 0
+        if total >= 2**31:
+            raise ValueError(f"render: {total} Gaussian-tile pairs exceed int32; downsample the cloud")
+        keys = wp.empty(max(total, 1), dtype=wp.int32, device=device)
+        values = wp.empty(max(total, 1), dtype=wp.int32, device=device)
+        if total:
+            emit_in = [
+                wp.array(order, dtype=wp.int32, device=device),
+                wp.array(offsets.astype(np.int32), dtype=wp.int32, device=device),
+                ws.rect,
+                ws.n_tiles,
+                tiles_x,
+            ]
+            cut = np.linspace(0, len(order), max(threads, 1) + 1).astype(int)
+            _run_threads(
+                [
+                    (
+                        lambda lo=lo, hi=hi: wp.launch(
+                            _emit_pairs,
+                            dim=hi - lo,
+                            inputs=emit_in + [lo],
+                            outputs=[keys, values],
+                            device=device,
+                        )
+                    )
+                    for lo, hi in zip(cut[:-1], cut[1:], strict=True)
+                    if hi > lo
+                ]
+            )
+        # pairs are in depth order: a stable sort by tile keeps depth order within each tile
+        tile_of_pair = keys.numpy()[:total].astype(np.uint16 if n_tile_total < 65536 else np.int32)
+        perm = np.argsort(tile_of_pair, kind="stable")
+        sorted_values = wp.array(values.numpy()[:total][perm], dtype=wp.int32, device=device)
+        bounds = np.searchsorted(tile_of_pair[perm], np.arange(n_tile_total + 1))
+        ranges = wp.array(
+            np.stack([bounds[:-1], bounds[1:]], axis=1).astype(np.int32), dtype=wp.vec2i, device=device
+        )
+    else:
+        # depth sort (culled Gaussians carry depth 3e38 and 0 tiles), then a stable radix sort by tile
+        dkeys = wp.empty(2 * n, dtype=wp.float32, device=device)
+        order = wp.empty(2 * n, dtype=wp.int32, device=device)
+        wp.copy(dkeys, ws.depth, count=n)
+        wp.copy(order, wp.array(np.arange(n, dtype=np.int32), device=device), count=n)
+        wp.utils.radix_sort_pairs(dkeys, order, n)
+        counts = wp.empty(n, dtype=wp.int32, device=device)
+        wp.launch(_gather_counts, dim=n, inputs=[order, ws.n_tiles], outputs=[counts], device=device)
+        offsets = wp.empty(n, dtype=wp.int32, device=device)
+        wp.utils.array_scan(counts, offsets, inclusive=True)
+        total = int(offsets.numpy()[-1]) if n else 0
+        keys = wp.empty(max(2 * total, 2), dtype=wp.int32, device=device)
+        values = wp.empty(max(2 * total, 2), dtype=wp.int32, device=device)
+        ranges = wp.zeros(n_tile_total, dtype=wp.vec2i, device=device)
+        if total:
+            wp.launch(
+                _emit_pairs,
+                dim=n,
+                inputs=[order, offsets, ws.rect, ws.n_tiles, tiles_x, 0],
+                outputs=[keys, values],
+                device=device,
+            )
+            wp.utils.radix_sort_pairs(keys, values, total)
+            wp.launch(_tile_ranges, dim=total, inputs=[keys, total], outputs=[ranges], device=device)
+        sorted_values = values
+
+    bg = wp.vec3(*[float(c) for c in background])
+    raster_in = [
+        ranges,
+        sorted_values,
+        ws.mean2d,
+        ws.conic,
+        ws.extent,
+        ws.depth,
+        ws.colour,
+        g.opacities,
+        w,
+        h,
+        tiles_x,
+        bg,
+    ]
+    raster_out = [out_rgb, out_depth, out_t]
+    if cpu and threads > 1:
+        # interleave tile rows between threads for load balance
+        rows = np.arange(tiles_y)
+        lists = []
+        for k in range(threads):
+            sel = rows[rows % threads == k]
+            tl = (sel[:, None] * tiles_x + np.arange(tiles_x)[None, :]).reshape(-1).astype(np.int32)
+            if len(tl):
+                lists.append(wp.array(tl, dtype=wp.int32, device=device))
+        _run_threads(
+            [
+                (
+                    lambda tl=tl: wp.launch(
+                        _rasterise, dim=len(tl), inputs=[tl] + raster_in, outputs=raster_out, device=device
+                    )
+                )
+                for tl in lists
+            ]
+        )
+    else:
+        tl = wp.array(np.arange(n_tile_total, dtype=np.int32), dtype=wp.int32, device=device)
+        wp.launch(_rasterise, dim=n_tile_total, inputs=[tl] + raster_in, outputs=raster_out, device=device)
+    return RenderOutput(
+        rgb=out_rgb.numpy().reshape(h, w, 3),
+        depth=out_depth.numpy().reshape(h, w),
+        alpha=out_t.numpy().reshape(h, w),
+    )
+
+
+# ----- gsplat backend -------------------------------------------------------------------------------
+def gsplat_available() -> bool:
+    try:
+        import gsplat  # noqa: F401
+        import torch  # noqa: F401
+    except ImportError:
+        return False
+    return True
+
+
+def _render_gsplat(cloud: GaussianCloud, cams: list[Camera], background, device: str) -> list[RenderOutput]:
+    try:
+        import gsplat
+        import torch
+    except ImportError as exc:
+        raise ImportError(
+            "render(backend='gsplat') needs the optional extra: pip install twinbench[gsplat]"
+        ) from exc
+    if not device.startswith("cuda"):
+        raise ValueError(
+            f"render(backend='gsplat') runs on CUDA only, got device={device!r}; use backend='warp'"
+        )
+    dev = torch.device(device)
+    t = {
+        k: torch.as_tensor(v, device=dev)
+        for k, v in dict(
+            means=cloud.means, quats=cloud.quats, scales=cloud.scales, opacities=cloud.opacities, sh=cloud.sh
+        ).items()
+    }
+    outputs: list[RenderOutput | None] = [None] * len(cams)
+    groups: dict[tuple[int, int], list[int]] = {}
+    for i, cam in enumerate(cams):
+        groups.setdefault((cam.width, cam.height), []).append(i)
+    for (w, h), idx in groups.items():
+        viewmats = torch.as_tensor(
+            np.stack([cams[i].world_to_cam for i in idx]), dtype=torch.float32, device=dev
+        )
+        ks = torch.as_tensor(np.stack([cams[i].K for i in idx]), dtype=torch.float32, device=dev)
+        bgs = torch.as_tensor(np.tile(np.asarray(background, dtype=np.float32), (len(idx), 1)), device=dev)
+        colors, alphas, _ = gsplat.rasterization(
+            t["means"],
+            t["quats"],
+            t["scales"],
+            t["opacities"],
+            t["sh"],
+            viewmats,
+            ks,
+            w,
+            h,
+            near_plane=NEAR,
+            eps2d=LOW_PASS,
+            sh_degree=cloud.sh_degree,
+            tile_size=TILE,
+            backgrounds=bgs,
+            render_mode="RGB+ED",
+        )
+        colors = colors.detach().cpu().numpy()
+        alphas = alphas.detach().cpu().numpy()
+        for j, i in enumerate(idx):
+            a = alphas[j, :, :, 0]
+            outputs[i] = RenderOutput(
+                rgb=np.clip(colors[j, :, :, :3], 0, 1).astype(np.float32),
+                depth=np.where(a > 0, colors[j, :, :, 3], 0).astype(np.float32),
+                alpha=a.astype(np.float32),
+            )
+    return outputs  # type: ignore[return-value]
+
+
+# ----- public entry -------------------------------------------------------------------------------------
+def render(
+    cloud: GaussianCloud | DeviceGaussians,
+    cameras: Camera | Sequence[Camera],
+    *,
+    background=(0.0, 0.0, 0.0),
+    backend: str = "auto",
+    device: str | None = None,
+    threads: int = _CPU_THREADS,
+) -> RenderOutput | list[RenderOutput]:
+    """Render `cloud` from one camera (returns a RenderOutput) or a list (returns a list).
+
+    backend: "warp" (CPU or CUDA), "gsplat" (CUDA, extra `gsplat`), or "auto" (gsplat on CUDA when
+    installed, else warp). device defaults to the DeviceGaussians' device, else "cpu". On CPU the
+    rasteriser splits Gaussians and tile rows over `threads` Python threads (Warp releases the GIL).
+    """
+    single = isinstance(cameras, Camera)
+    cams = [cameras] if single else list(cameras)
+    if not cams:
+        raise ValueError("render: `cameras` is empty")
+    for c in cams:
+        if not isinstance(c, Camera):
+            raise ValueError(f"render: cameras must be Camera objects, got {type(c).__name__}")
+    bg = np.asarray(background, dtype=np.float32).reshape(-1)
+    if bg.shape != (3,):
+        raise ValueError(f"render: background must be 3 floats, got {background!r}")
+    if backend not in ("auto", "warp", "gsplat"):
+        raise ValueError(f"render: backend must be 'auto', 'warp' or 'gsplat', got {backend!r}")
+    if device is None:
+        device = str(cloud.device) if isinstance(cloud, DeviceGaussians) else "cpu"
+    if backend == "auto":
+        backend = (
+            "gsplat"
+            if (device.startswith("cuda") and isinstance(cloud, GaussianCloud) and gsplat_available())
+            else "warp"
+        )
+    if backend == "gsplat":
+        if not isinstance(cloud, GaussianCloud):
+            raise ValueError("render(backend='gsplat') takes a GaussianCloud, not DeviceGaussians")
+        outs = _render_gsplat(cloud, cams, bg, device)
+    else:
+        g = cloud if isinstance(cloud, DeviceGaussians) else cloud.to_device(device)
+        if str(g.device) != str(wp.get_device(device)):
+            raise ValueError(f"render: DeviceGaussians live on {g.device}, but device={device!r}")
+        outs = [_render_warp_one(g, c, bg, threads) for c in cams]
+    return outs[0] if single else outs

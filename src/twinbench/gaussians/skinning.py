@@ -1,0 +1,247 @@
+"""Linear blend skinning of Gaussians on spring-mass particles (bones = particles), plus a rigid variant.
+
+Binding (once): each Gaussian takes its k = 16 nearest rest particles with normalised inverse-distance
+weights; each particle (bone) takes its k_bone = 8 nearest other particles as its fitting neighbourhood.
+Per frame: bone rotation R_b = polar(sum_j (p_j - p_b)(p0_j - p0_b)^T + eps tr() I) (Procrustes by SVD,
+reflection fixed; the tiny eps picks the least rotation when a neighbourhood is degenerate, e.g. a
+straight rope), x' = sum_k w_k (R_k (x - b_k) + b_k + t_k) with t_k = p_k - b_k, and the Gaussian
+rotation is pre-multiplied by the polar rotation of sum_k w_k R_k.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import warp as wp
+
+from twinbench.gaussians.cloud import GaussianCloud
+
+_EPS_REL = 1e-5
+
+
+@dataclass
+class SkinBinding:
+    """Host arrays fixed at bind time."""
+
+    indices: np.ndarray  # (N, k) int32 bone ids per Gaussian
+    weights: np.ndarray  # (N, k) float32, rows sum to 1
+    bone_neighbors: np.ndarray  # (P, k_bone) int32
+    rest_particles: np.ndarray  # (P, 3) float32
+
+
+def bind(gaussian_means, particles, k: int = 16, k_bone: int = 8, device: str | None = None) -> SkinBinding:
+    """Bind Gaussians (N, 3) to rest particles (P, 3). `device` is accepted for symmetry (binding is host)."""
+    from scipy.spatial import cKDTree
+
+    means = np.asarray(gaussian_means, dtype=np.float64)
+    parts = np.asarray(particles, dtype=np.float64)
+    if means.ndim != 2 or means.shape[1] != 3:
+        raise ValueError(f"bind: gaussian_means must be (N, 3), got {means.shape}")
+    if parts.ndim != 2 or parts.shape[1] != 3:
+        raise ValueError(f"bind: particles must be (P, 3), got {parts.shape}")
+    if not (np.all(np.isfinite(means)) and np.all(np.isfinite(parts))):
+        raise ValueError("bind: gaussian_means and particles must be finite (found NaN/inf)")
+    p = len(parts)
+    if p < 2:
+        raise ValueError(f"bind: need at least 2 particles, got {p}")
+    k = min(k, p)
+    k_bone = min(k_bone, p - 1)
+    tree = cKDTree(parts)
+    dist, idx = tree.query(means, k=k)
+    dist, idx = dist.reshape(len(means), k), idx.reshape(len(means), k)
+    inv = 1.0 / np.maximum(dist, 1e-9)
+    weights = inv / inv.sum(axis=1, keepdims=True)
+    _, nbr = tree.query(parts, k=k_bone + 1)
+    nbr = nbr.reshape(p, k_bone + 1)
+    # drop each particle itself (normally column 0; duplicates may reorder)
+    self_col = np.argmax(nbr == np.arange(p)[:, None], axis=1)
+    has_self = np.any(nbr == np.arange(p)[:, None], axis=1)
+    self_col = np.where(has_self, self_col, k_bone)
+    mask = np.ones_like(nbr, dtype=bool)
+    mask[np.arange(p), self_col] = False
+    bone_nbr = nbr[mask].reshape(p, k_bone)
+    return SkinBinding(
+        idx.astype(np.int32), weights.astype(np.float32), bone_nbr.astype(np.int32), parts.astype(np.float32)
+    )
+
+
+@wp.func
+def _polar_rotation(a: wp.mat33):
+    u = wp.mat33()
+    s = wp.vec3()
+    v = wp.mat33()
+    wp.svd3(a, u, s, v)
+    r = u * wp.transpose(v)
+    if wp.determinant(r) < 0.0:
+        u = wp.mat33(u[0, 0], u[0, 1], -u[0, 2], u[1, 0], u[1, 1], -u[1, 2], u[2, 0], u[2, 1], -u[2, 2])
+        r = u * wp.transpose(v)
+    return r
+
+
+@wp.kernel
+def _bone_rotations(
+    rest: wp.array(dtype=wp.vec3),
+    cur: wp.array(dtype=wp.vec3),
+    nbrs: wp.array2d(dtype=wp.int32),
+    eps_rel: float,
+    rots: wp.array(dtype=wp.mat33),
+):
+    b = wp.tid()
+    a = wp.mat33()
+    p0 = rest[b]
+    p1 = cur[b]
+    tr = 0.0
+    for j in range(nbrs.shape[1]):
+        n = nbrs[b, j]
+        d0 = rest[n] - p0
+        d1 = cur[n] - p1
+        a += wp.outer(d1, d0)
+        tr += wp.length(d1) * wp.length(d0)
+    rots[b] = _polar_rotation(a + wp.identity(3, dtype=float) * (eps_rel * tr))
+
+
+@wp.kernel
+def _skin(
+    rest_means: wp.array(dtype=wp.vec3),
+    rest_quats: wp.array(dtype=wp.vec4),
+    indices: wp.array2d(dtype=wp.int32),
+    weights: wp.array2d(dtype=wp.float32),
+    rest: wp.array(dtype=wp.vec3),
+    cur: wp.array(dtype=wp.vec3),
+    rots: wp.array(dtype=wp.mat33),
+    out_means: wp.array(dtype=wp.vec3),
+    out_quats: wp.array(dtype=wp.vec4),
+):
+    i = wp.tid()
+    x = rest_means[i]
+    xn = wp.vec3()
+    m = wp.mat33()
+    for j in range(indices.shape[1]):
+        b = indices[i, j]
+        w = weights[i, j]
+        xn += w * (rots[b] * (x - rest[b]) + cur[b])
+        m += w * rots[b]
+    out_means[i] = xn
+    qr = wp.quat_from_matrix(_polar_rotation(m))  # xyzw
+    q = rest_quats[i]
+    qn = qr * wp.quat(q[1], q[2], q[3], q[0])
+    out_quats[i] = wp.vec4(qn[3], qn[0], qn[1], qn[2])
+
+
+@wp.kernel
+def _rigid(
+    rest_means: wp.array(dtype=wp.vec3),
+    rest_quats: wp.array(dtype=wp.vec4),
+    rot: wp.mat33,
+    trans: wp.vec3,
+    out_means: wp.array(dtype=wp.vec3),
+    out_quats: wp.array(dtype=wp.vec4),
+):
+    i = wp.tid()
+    out_means[i] = rot * rest_means[i] + trans
+    qr = wp.quat_from_matrix(rot)
+    q = rest_quats[i]
+    qn = qr * wp.quat(q[1], q[2], q[3], q[0])
+    out_quats[i] = wp.vec4(qn[3], qn[0], qn[1], qn[2])
+
+
+class LBSSkinner:
+    """Device-resident LBS: holds the binding and rest Gaussians; `update(particles)` fills `means`
+    (vec3) and `quats` (vec4 wxyz) on the device and returns them."""
+
+    def __init__(self, binding: SkinBinding, rest_means, rest_quats, device: str = "cpu") -> None:
+        rest_means = np.asarray(rest_means, dtype=np.float32)
+        rest_quats = np.asarray(rest_quats, dtype=np.float32)
+        n = binding.indices.shape[0]
+        if rest_means.shape != (n, 3) or rest_quats.shape != (n, 4):
+            raise ValueError(
+                f"LBSSkinner: rest_means/rest_quats must be ({n}, 3)/({n}, 4) to match the binding, "
+                f"got {rest_means.shape}/{rest_quats.shape}"
+            )
+        self.device = wp.get_device(device)
+        self.num_particles = binding.rest_particles.shape[0]
+        self._indices = wp.array(binding.indices, dtype=wp.int32, device=device)
+        self._weights = wp.array(binding.weights, dtype=wp.float32, device=device)
+        self._nbrs = wp.array(binding.bone_neighbors, dtype=wp.int32, device=device)
+        self._rest = wp.array(binding.rest_particles, dtype=wp.vec3, device=device)
+        self._rest_means = wp.array(rest_means, dtype=wp.vec3, device=device)
+        self._rest_quats = wp.array(rest_quats, dtype=wp.vec4, device=device)
+        self.bone_rotations = wp.zeros(self.num_particles, dtype=wp.mat33, device=device)
+        self.means = wp.zeros(n, dtype=wp.vec3, device=device)
+        self.quats = wp.zeros(n, dtype=wp.vec4, device=device)
+
+    def update(self, particles) -> tuple[wp.array, wp.array]:
+        """Skin to current particle positions ((P, 3) numpy or a vec3 wp.array on this device)."""
+        if not isinstance(particles, wp.array):
+            arr = np.asarray(particles, dtype=np.float32)
+            if arr.shape != (self.num_particles, 3):
+                raise ValueError(
+                    f"LBSSkinner.update: particles must be ({self.num_particles}, 3), got {arr.shape}"
+                )
+            if not np.all(np.isfinite(arr)):
+                raise ValueError("LBSSkinner.update: particles contain NaN/inf")
+            particles = wp.array(arr, dtype=wp.vec3, device=self.device)
+        elif particles.shape[0] != self.num_particles:
+            raise ValueError(
+                f"LBSSkinner.update: expected {self.num_particles} particles, got {particles.shape[0]}"
+            )
+        wp.launch(
+            _bone_rotations,
+            dim=self.num_particles,
+            inputs=[self._rest, particles, self._nbrs, _EPS_REL],
+            outputs=[self.bone_rotations],
+            device=self.device,
+        )
+        wp.launch(
+            _skin,
+            dim=self.means.shape[0],
+            inputs=[
+                self._rest_means,
+                self._rest_quats,
+                self._indices,
+                self._weights,
+                self._rest,
+                particles,
+                self.bone_rotations,
+            ],
+            outputs=[self.means, self.quats],
+            device=self.device,
+        )
+        return self.means, self.quats
+
+
+def skin(binding: SkinBinding, rest_cloud: GaussianCloud, particles, device: str = "cpu") -> GaussianCloud:
+    """Host convenience: a new GaussianCloud with LBS-deformed means and quats (SH, scales, opacity kept;
+    view-dependent SH bands are not rotated)."""
+    sk = LBSSkinner(binding, rest_cloud.means, rest_cloud.quats, device=device)
+    means, quats = sk.update(particles)
+    return GaussianCloud(
+        means.numpy(),
+        quats.numpy(),
+        rest_cloud.log_scales.copy(),
+        rest_cloud.logit_opacities.copy(),
+        rest_cloud.sh.copy(),
+    )
+
+
+def rigid_transform_device(
+    rest_means: wp.array, rest_quats: wp.array, transform, out_means: wp.array, out_quats: wp.array
+) -> None:
+    """Rigid variant on device arrays: one 4x4 rigid transform for all Gaussians (SH bands not rotated;
+    use GaussianCloud.transform for an exact host-side transform with SH rotation)."""
+    t = np.asarray(transform, dtype=np.float64)
+    if t.shape != (4, 4) or not np.allclose(t[:3, :3] @ t[:3, :3].T, np.eye(3), atol=1e-5):
+        raise ValueError("rigid_transform_device: transform must be a 4x4 rigid transform (rotation block)")
+    wp.launch(
+        _rigid,
+        dim=rest_means.shape[0],
+        inputs=[
+            rest_means,
+            rest_quats,
+            wp.mat33(t[:3, :3].astype(np.float32)),
+            wp.vec3(t[:3, 3].astype(np.float32)),
+        ],
+        outputs=[out_means, out_quats],
+        device=rest_means.device,
+    )
