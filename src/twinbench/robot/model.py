@@ -16,8 +16,6 @@ from xml.etree import ElementTree
 import numpy as np
 import trimesh
 
-from twinbench.robot.transforms import axis_angle_to_matrix
-
 _MOVING = ("revolute", "continuous", "prismatic")
 
 
@@ -87,6 +85,11 @@ class RobotModel:
         # Precomputed per-joint arrays for FK.
         self._parent = np.array([self._link_index[j.parent] for j in self.joints], dtype=np.int64)
         self._child = np.array([self._link_index[j.child] for j in self.joints], dtype=np.int64)
+        self._skew = []
+        for j in self.joints:
+            x, y, z = j.axis
+            k1 = np.array([[0.0, -z, y], [z, 0.0, -x], [-y, x, 0.0]])
+            self._skew.append((k1, k1 @ k1))
         self._source = []  # (q index, multiplier, offset) or None for fixed joints
         for j in self.joints:
             if j.type == "fixed":
@@ -187,8 +190,11 @@ class RobotModel:
             child = jf.copy()
             if j.type == "prismatic":
                 child[:, :3, 3] += (jf[:, :3, :3] @ j.axis) * value[:, None]
-            else:
-                child[:, :3, :3] = jf[:, :3, :3] @ axis_angle_to_matrix(j.axis, value)
+            else:  # Rodrigues with the joint's precomputed skew matrix K: R = I + sin K + (1 - cos) K^2
+                k1, k2 = self._skew[k]
+                s, c = np.sin(value)[:, None, None], (1.0 - np.cos(value))[:, None, None]
+                rot = np.eye(3) + s * k1 + c * k2
+                child[:, :3, :3] = jf[:, :3, :3] @ rot
             links[:, self._child[k]] = child
         return links, frames
 
