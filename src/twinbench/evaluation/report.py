@@ -449,12 +449,13 @@ def _video_section(episodes: list[EpisodeRecord], limits: VideoLimits, video_roo
                 notes.append(f"missing video file {path}")
                 continue
             mime = VIDEO_MIME.get(path.suffix.lower())
-            codec, _ = _probe_codec(path)
+            codec, pix_fmt = _probe_codec(path)
             src = path
             if codec is None:
                 notes.append(f"{path}: no video stream found")
                 continue
-            if mime is None or (mime, codec) not in _PLAYABLE:
+            # Chromium decodes H.264 only in 4:2:0 (yuv420p); other codecs/containers are transcoded
+            if (mime, codec) not in _PLAYABLE or (codec == "h264" and pix_fmt != "yuv420p"):
                 src, mime = Path(tmp) / f"v{len(items)}.mp4", "video/mp4"
                 try:
                     _transcode_h264(path, src)
