@@ -82,3 +82,24 @@ def test_degraded_expert_quality_decreases_with_level():
         pol = make_policy(f"expert@{level}", task, env)
         rates.append(np.mean([run_episode(env, pol, init_state=8 + k, seed=k).success for k in range(40)]))
     assert rates[0] == 1.0 and rates[0] > rates[1] > rates[2] and rates[2] < 0.5
+
+
+def test_missing_extras_name_the_install_command(tmp_path):
+    import importlib.util
+
+    from twinbench.evaluation.runner import evaluate
+    from twinbench.evaluation.store import ResultsStore
+
+    if importlib.util.find_spec("lerobot") is None:
+        with pytest.raises(ImportError, match=r"twinbench\[lerobot\]"):
+            from twinbench.policies.lerobot_adapter import LeRobotPolicy
+
+            LeRobotPolicy(tmp_path)
+        # inside a run, a policy that cannot be built is a policy_error naming the extra
+        store = ResultsStore(tmp_path / "r.sqlite")
+        recs = evaluate("point-reach", [f"lerobot:{tmp_path}"], 1, 0, "lr", store, output_dir=tmp_path)
+        assert recs[0].status == "policy_error" and "twinbench[lerobot]" in recs[0].metrics["error"]
+    if importlib.util.find_spec("ray") is None:
+        with pytest.raises(ImportError, match=r"twinbench\[ray\]"):
+            evaluate("point-reach", ["expert"], 1, 1, "ray", ResultsStore(tmp_path / "r2.sqlite"),
+                     backend="ray", output_dir=tmp_path)

@@ -1,7 +1,7 @@
 """Task registry: every task names its Gymnasium env id, scripted expert and initial-state grid.
 
-Importing `twinbench.tasks` registers the built-in tasks (their modules call `register_task` and
-`gymnasium.register`). Env conventions every task follows:
+A task module registers itself on import (`register_task` + `gymnasium.register`); `get_task` imports
+the package's task modules when asked for a name not registered yet. Env conventions every task follows:
 
 - `reset(seed=s, options={"init_state": i})` starts from grid state i (0 <= i < n_grid_states); a
   state sampled from the task's sampler (seeded by `seed`) for i >= n_grid_states or
@@ -16,7 +16,7 @@ Importing `twinbench.tasks` registers the built-in tasks (their modules call `re
 from __future__ import annotations
 
 import importlib
-import importlib.util
+import pkgutil
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
@@ -60,8 +60,21 @@ def register_task(name: str, *, env_id: str, make_expert: Callable[[Any], Any], 
     return spec
 
 
+def _discover() -> None:
+    """Import every module of this package once, so tasks that register themselves on import (e.g.
+    push-T) are found; an import error inside a task module propagates."""
+    global _DISCOVERED
+    if _DISCOVERED:
+        return
+    _DISCOVERED = True
+    for info in pkgutil.iter_modules(__path__):
+        importlib.import_module(f"{__name__}.{info.name}")
+
+
 def get_task(name: str) -> TaskSpec:
     """The registered task `name`; ValueError listing the known tasks otherwise."""
+    if name not in _TASKS:
+        _discover()
     try:
         return _TASKS[name]
     except KeyError:
@@ -69,14 +82,12 @@ def get_task(name: str) -> TaskSpec:
 
 
 def task_names() -> list[str]:
-    """Names of the registered tasks, sorted."""
+    """Names of all registered tasks (every task module imported), sorted."""
+    _discover()
     return sorted(_TASKS)
 
 
-# Built-in task modules, imported (hence registered) here; a module not yet present in this checkout
-# is skipped, but an import error inside a present module propagates.
-_BUILTIN_TASK_MODULES = ("twinbench.tasks.point_reach", "twinbench.tasks.push_t")
-
-for _mod in _BUILTIN_TASK_MODULES:
-    if importlib.util.find_spec(_mod) is not None:
-        importlib.import_module(_mod)
+# The cheap debug task is registered on import; other task modules register when first asked for
+# (`get_task` of an unknown name or `task_names`), so importing this package stays light.
+_DISCOVERED = False
+importlib.import_module(f"{__name__}.point_reach")
