@@ -5,11 +5,10 @@ from __future__ import annotations
 import numpy as np
 import trimesh
 
-from twinbench.gaussians.cloud import GaussianCloud
+from twinbench.gaussians.cloud import SH_C0, GaussianCloud
 from twinbench.robot.model import RobotModel
 from twinbench.robot.transforms import matrix_to_quat, quat_multiply
 
-SH_C0 = 0.28209479177387814
 # Colours for links whose URDF has no material (cycled).
 _PALETTE = np.array(
     [

@@ -4,27 +4,24 @@ from __future__ import annotations
 
 import numpy as np
 
+# Quaternion product and quaternion -> matrix are shared with the gaussians package (re-exported here).
+from twinbench.gaussians.cloud import quat_multiply, quat_to_matrix
 
-def quat_to_matrix(q: np.ndarray) -> np.ndarray:
-    """(..., 4) wxyz quaternions (normalised here) -> (..., 3, 3) rotation matrices."""
-    q = np.asarray(q, dtype=np.float64)
-    q = q / np.linalg.norm(q, axis=-1, keepdims=True)
-    w, x, y, z = np.moveaxis(q, -1, 0)
-    r = np.empty(q.shape[:-1] + (3, 3))
-    r[..., 0, 0] = 1 - 2 * (y * y + z * z)
-    r[..., 0, 1] = 2 * (x * y - w * z)
-    r[..., 0, 2] = 2 * (x * z + w * y)
-    r[..., 1, 0] = 2 * (x * y + w * z)
-    r[..., 1, 1] = 1 - 2 * (x * x + z * z)
-    r[..., 1, 2] = 2 * (y * z - w * x)
-    r[..., 2, 0] = 2 * (x * z - w * y)
-    r[..., 2, 1] = 2 * (y * z + w * x)
-    r[..., 2, 2] = 1 - 2 * (x * x + y * y)
-    return r
+__all__ = [
+    "axis_angle_to_matrix",
+    "invert_pose",
+    "matrix_to_quat",
+    "matrix_to_rotvec",
+    "pose_matrix",
+    "quat_multiply",
+    "quat_to_matrix",
+    "rotation_angle",
+    "rotvec_to_matrix",
+]
 
 
 def matrix_to_quat(r: np.ndarray) -> np.ndarray:
-    """(..., 3, 3) rotation matrices -> (..., 4) wxyz unit quaternions with w >= 0 (Shepperd's method)."""
+    """Batched (..., 3, 3) rotations -> (..., 4) wxyz unit quaternions, w >= 0 (Shepperd's method)."""
     r = np.asarray(r, dtype=np.float64)
     m = r.reshape(-1, 3, 3)
     tr = m[:, 0, 0] + m[:, 1, 1] + m[:, 2, 2]
@@ -84,21 +81,6 @@ def matrix_to_quat(r: np.ndarray) -> np.ndarray:
     q *= np.where(q[:, :1] < 0, -1.0, 1.0)
     q /= np.linalg.norm(q, axis=1, keepdims=True)
     return q.reshape(r.shape[:-2] + (4,))
-
-
-def quat_multiply(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Hamilton product a * b of (..., 4) wxyz quaternions (broadcasting)."""
-    aw, ax, ay, az = np.moveaxis(np.asarray(a), -1, 0)
-    bw, bx, by, bz = np.moveaxis(np.asarray(b), -1, 0)
-    return np.stack(
-        [
-            aw * bw - ax * bx - ay * by - az * bz,
-            aw * bx + ax * bw + ay * bz - az * by,
-            aw * by - ax * bz + ay * bw + az * bx,
-            aw * bz + ax * by - ay * bx + az * bw,
-        ],
-        axis=-1,
-    )
 
 
 def axis_angle_to_matrix(axis: np.ndarray, angle: np.ndarray) -> np.ndarray:
