@@ -4,15 +4,11 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from physics_helpers import lattice
 
 from twinbench.physics import ModelBuilder, SimParams, SpringMassSolver
 
 G = 9.8
-
-
-def _lattice(nx: int, ny: int, nz: int, spacing: float = 0.01, origin=(0.0, 0.0, 0.0)) -> np.ndarray:
-    g = np.stack(np.meshgrid(np.arange(nx), np.arange(ny), np.arange(nz), indexing="ij"), -1).reshape(-1, 3)
-    return g * spacing + np.asarray(origin)
 
 
 def _single(params: SimParams, x0, v0=(0.0, 0.0, 0.0)):
@@ -102,7 +98,7 @@ def test_particle_resting_on_ground_does_not_sink_or_jitter(restitution):
 def test_sliding_block_stops_at_coulomb_distance(mu):
     v0 = 0.5
     p = SimParams(drag_damping=0.0, ground_restitution=0.0, ground_friction=mu)
-    pts = _lattice(4, 3, 2)
+    pts = lattice(4, 3, 2)
     b = ModelBuilder(p)
     b.add_body(pts, velocities=np.tile([v0, 0.0, 0.0], (len(pts), 1)))
     model = b.finalize()

@@ -337,12 +337,12 @@ def build_candidates(
     masks: wp.array(dtype=int),
     nbr_offsets: wp.array(dtype=int),
     nbr: wp.array(dtype=int),
-    collision_dist: float,
+    cand_radius: float,
     query_radius: float,
     cand: wp.array2d(dtype=int),
     cand_count: wp.array(dtype=int),
 ):
-    """Once per frame: other-mask particles strictly closer than ``collision_dist`` (max cand width),
+    """Once per frame: other-mask particles strictly closer than ``cand_radius`` (max cand width),
     excluding spring neighbours."""
     tid = wp.tid()
     p = x[tid]
@@ -353,7 +353,7 @@ def build_candidates(
     c = int(0)  # noqa: UP018 (Warp needs a typed dynamic variable)
     while wp.hash_grid_query_next(q, idx):
         if idx != tid and masks[idx] != mask and c < max_c:
-            if wp.length(x[idx] - p) < collision_dist:
+            if wp.length(x[idx] - p) < cand_radius:
                 if not is_spring_neighbour(nbr_offsets, nbr, tid, idx):
                     cand[tid, c] = idx
                     c += 1

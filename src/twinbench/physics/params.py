@@ -10,7 +10,10 @@ from dataclasses import dataclass
 class SimParams:
     """Parameters shared by every body of a spring-mass model.
 
-    Units are SI. ``substeps`` defaults to ``round(1 / (30 * dt)) = 667`` (one 30 Hz frame is
+    Particle-particle candidates are listed once per frame for pairs closer than
+    ``candidate_radius_scale * collision_dist`` (1.0 is PhysTwin's rule; raise it when bodies move more
+    than ``collision_dist`` per frame, otherwise fast pairs pass through each other). The per-substep
+    contact test always uses ``collision_dist``. Units are SI. ``substeps`` defaults to ``round(1 / (30 * dt)) = 667`` (one 30 Hz frame is
     ``substeps * dt = 0.03335 s``, as in PhysTwin). Restitution is clamped to [0, 1] and friction to
     [0, 2] inside the kernels. Springs whose ``exp(logY) <= spring_Y_min`` are inactive.
     """
@@ -29,6 +32,7 @@ class SimParams:
     collision_dist: float = 0.02
     self_collision: bool = False
     max_collision_candidates: int = 500
+    candidate_radius_scale: float = 1.0
     mesh_margin: float = 0.005
     spring_Y_min: float = 0.0
     spring_Y_max: float = 1e5
@@ -42,6 +46,7 @@ class SimParams:
             "collision_dist": self.collision_dist > 0,
             "mesh_margin": self.mesh_margin >= 0,
             "max_collision_candidates": self.max_collision_candidates >= 1,
+            "candidate_radius_scale": self.candidate_radius_scale >= 1.0,
             "spring_Y_max": self.spring_Y_max > self.spring_Y_min >= 0,
             "gravity": len(self.gravity) == 3 and all(math.isfinite(g) for g in self.gravity),
         }

@@ -107,9 +107,11 @@ class SpringMassSolver:
         if not m.particle_collisions:
             return
         cd = float(m.params.collision_dist)
-        self._grid.build(state.x, cd * 5.0)
+        cand_r = cd * float(m.params.candidate_radius_scale)
+        query_r = max(cd * 5.0, cand_r)  # PhysTwin: hash cell and query radius 5 * collision_dist
+        self._grid.build(state.x, query_r)
         wp.launch(K.build_candidates, dim=m.num_particles,
-                  inputs=[self._grid.id, state.x, m.masks, m.nbr_offsets, m.nbr, cd, cd * 5.0],
+                  inputs=[self._grid.id, state.x, m.masks, m.nbr_offsets, m.nbr, cand_r, query_r],
                   outputs=[self._cand, self._cand_count], device=self.device)
 
     def _launch_substep(self, state_in: State, state_out: State, control: Control, dt: float,
