@@ -17,6 +17,7 @@ import signal
 import time
 import traceback
 from collections.abc import Sequence
+from concurrent.futures import BrokenExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Annotated, Literal
@@ -341,6 +342,10 @@ def evaluate(task: str, policies: Sequence[str], episodes: str | int = "grid", w
                 _run_ray(todo, int(workers), on_done)
             else:
                 _run_local(todo, int(workers), on_done)
+        except BrokenExecutor as err:
+            raise RuntimeError(
+                f"a worker process died ({err}); {done_count[0]} of {len(jobs)} episodes of run {run_id!r} "
+                f"are in {store.path}; re-run the same command to resume (or --workers 0 to debug)") from err
         except KeyboardInterrupt:
             left = len(jobs) - done_count[0]
             msg = (f"interrupted: {done_count[0]} of {len(jobs)} episodes of run {run_id!r} are in "

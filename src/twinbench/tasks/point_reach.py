@@ -4,12 +4,13 @@ A point in the square workspace [-0.25, 0.25]^2 m must reach the goal disk (cent
 and stay in it for `HOLD_STEPS` consecutive steps (success, the episode terminates). Action = absolute
 target [x, y]; the point moves towards it by at most `MAX_STEP` m per step. 8 grid initial states on a
 circle of radius 0.18 m; 60 steps per episode; 64x64 "pixels" drawn with numpy.
-`fail_mode="nan"` (or `"raise"`) makes the simulation diverge at step `fail_step`, and `step_delay_s`
-emulates a costly simulator (both for tests).
+`fail_mode="nan"` (or `"raise"`) makes the simulation diverge at step `fail_step`, `"exit"` kills the
+process there (as a crash in native code would), and `step_delay_s` emulates a costly simulator (tests).
 """
 
 from __future__ import annotations
 
+import os
 import time
 
 import gymnasium
@@ -41,8 +42,8 @@ class PointReachEnv(gymnasium.Env):
 
     def __init__(self, render_mode: str | None = "rgb_array", fail_mode: str | None = None,
                  fail_step: int = 5, step_delay_s: float = 0.0):
-        if fail_mode not in (None, "nan", "raise"):
-            raise ValueError(f"fail_mode must be None, 'nan' or 'raise', got {fail_mode!r}")
+        if fail_mode not in (None, "nan", "raise", "exit"):
+            raise ValueError(f"fail_mode must be None, 'nan', 'raise' or 'exit', got {fail_mode!r}")
         self.render_mode, self.fail_mode, self.fail_step = render_mode, fail_mode, int(fail_step)
         self.step_delay_s = float(step_delay_s)
         self._max_episode_steps = EPISODE_STEPS
@@ -85,6 +86,8 @@ class PointReachEnv(gymnasium.Env):
         if self.fail_mode and self._t >= self.fail_step:
             if self.fail_mode == "raise":
                 raise SimulationError(f"point_reach: forced divergence at step {self._t}")
+            if self.fail_mode == "exit":
+                os._exit(70)
             self._pos = np.full(2, np.nan)
         if not np.all(np.isfinite(self._pos)):
             return self._obs(), 0.0, True, False, {"is_success": False, "status": "sim_error"}
