@@ -164,7 +164,8 @@ def _success_section(sim: dict[Key, Cell]) -> str:
         ests = [c.rate() for c in cells]
         vals = np.array([e.value for e in ests])
         err = np.array([[e.value - e.low for e in ests], [e.high - e.value for e in ests]])
-        ax.barh(y, vals, color=[colors[c.policy] for c in cells], alpha=0.8)
+        ax.barh(y, vals, height=0.6, color=[colors[c.policy] for c in cells], alpha=0.8)
+        ax.set_ylim(-0.7, len(cells) - 0.3)
         ax.errorbar(vals, y, xerr=err, fmt="none", ecolor="black", capsize=4, lw=1.2)
         ax.set_yticks(y, [f"{c.label} (n={c.ok})" for c in cells])
         ax.set_xlim(0, 1)
@@ -281,7 +282,7 @@ def _posterior_section(sim: dict[Key, Cell], real: dict[Key, Cell], max_pairs: i
     if not keys:
         return head + _note("No sim episodes with status ok: no posteriors to show.")
     grid = np.linspace(0, 1, 401)
-    fig, ax = plt.subplots(figsize=(max(5.0, 0.9 * len(keys) + 2), 4.2))
+    fig, ax = plt.subplots(figsize=(min(14.0, max(4.0, 1.0 * len(keys) + 2)), 4.2))
     has_real = False
     for i, k in enumerate(keys):
         halves = [("sim", sim[k], -1, "tab:blue")]
@@ -299,6 +300,7 @@ def _posterior_section(sim: dict[Key, Cell], real: dict[Key, Cell], max_pairs: i
             ax.plot([i - 0.15, i + 0.15] if len(halves) == 1 else sorted([i, i + side * 0.15]),
                     [post.mean()] * 2, color="black", lw=1.5)
     ax.set_xticks(range(len(keys)), [label(*k) for k in keys], rotation=30, ha="right", fontsize=8)
+    ax.set_xlim(-0.8, len(keys) - 0.2)
     ax.set_ylim(0, 1)
     ax.set_ylabel("success probability")
     ax.grid(axis="y", alpha=0.3)
