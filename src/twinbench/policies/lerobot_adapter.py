@@ -24,7 +24,10 @@ def _import_lerobot():
     try:
         import torch
         from lerobot.configs.policies import PreTrainedConfig
-        from lerobot.policies.factory import get_policy_class, make_pre_post_processors
+        try:  # lerobot 0.4-0.6 keep the factory module; newer ones also export from lerobot.policies
+            from lerobot.policies.factory import get_policy_class, make_pre_post_processors
+        except ImportError:
+            from lerobot.policies import get_policy_class, make_pre_post_processors
     except ImportError as err:
         raise ImportError(f"lerobot: policies need the 'lerobot' extra ({EXTRA_HINT}); "
                           f"import failed: {err}") from err
