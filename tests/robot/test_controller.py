@@ -162,3 +162,17 @@ def test_ee_state_observation(arm):
     np.testing.assert_allclose(s[:3], [0.35, 0.0, 0.25], atol=1e-6)
     assert abs(abs(s[4]) - 1.0) < 1e-6  # pointing down: quaternion +-(0, 1, 0, 0)
     assert s[7] == pytest.approx(0.0)  # home gripper is open
+
+
+def test_unreachable_target_moves_toward_it_without_nan(arm):
+    ctrl = RobotController(arm)
+    start = ctrl.ee_pose()[:3, 3].copy()
+    action = np.array([1.5, 0.0, 0.2, 0.0, 1.0, 0.0, 0.0, 0.0])
+    for _ in range(60):
+        q_before = ctrl.q.copy()
+        cmd = ctrl.step(action)
+        assert np.all(np.isfinite(cmd.q)) and not cmd.ik_converged
+        assert np.linalg.norm((cmd.q - q_before)[arm.arm_q_indices]) <= MAX_STEP + 1e-12
+    end = ctrl.ee_pose()[:3, 3]
+    assert end[0] > start[0] + 0.15  # stretched toward x = 1.5 m
+    assert np.all(ctrl.q >= arm.lower) and np.all(ctrl.q <= arm.upper)

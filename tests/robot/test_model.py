@@ -197,3 +197,13 @@ def test_bad_configuration_input(arm):
     bad[2] = np.nan
     with pytest.raises(ValueError, match="NaN"):
         arm.fk(bad)
+
+
+def test_contact_mesh_frames_for_the_physics_engine(arm):
+    q0 = arm.set_gripper(arm.home_q, 0.0)
+    q1 = arm.set_gripper(arm.home_q + 0.1, 0.7)
+    frames = arm.contact_mesh_frames(q0, q1)
+    assert set(frames) == {"left_finger", "right_finger"}
+    for link, (v0, v1) in frames.items():
+        np.testing.assert_allclose(v0, arm.contact_vertices(q0, link), atol=1e-14)
+        np.testing.assert_allclose(v1, arm.contact_vertices(q1, link), atol=1e-14)

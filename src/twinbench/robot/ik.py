@@ -16,6 +16,8 @@ import numpy as np
 from twinbench.robot.model import RobotModel
 from twinbench.robot.transforms import matrix_to_rotvec
 
+DEFAULT_ROT_WEIGHT = 0.25  # metres of position error equivalent to one radian of rotation error
+
 
 @dataclass
 class IKResult:
@@ -114,7 +116,7 @@ def solve_ik(
     max_iters: int = 150,
     pos_tol: float = 1e-5,
     rot_tol: float = 1e-4,
-    rot_weight: float = 0.25,
+    rot_weight: float = DEFAULT_ROT_WEIGHT,
     restarts: int = 16,
     seed: int = 0,
 ) -> IKResult:

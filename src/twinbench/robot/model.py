@@ -248,6 +248,24 @@ class RobotModel:
         v = np.asarray(self._contact_mesh(link).vertices, dtype=np.float64)
         return np.einsum("...ij,vj->...vi", t[..., :3, :3], v) + t[..., None, :3, 3]
 
+    def contact_mesh_frames(
+        self, q_from: np.ndarray, q_to: np.ndarray
+    ) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+        """Frame-start and frame-end world vertices of every contact link: {link: (verts_from, verts_to)}.
+
+        This is what a physics engine that interpolates kinematic mesh vertices linearly across substeps
+        needs (faces: `contact_faces(link)`). Both ends come from one batched FK.
+        """
+        q = np.stack([self.check_q(q_from, "q_from"), self.check_q(q_to, "q_to")])
+        t = self.fk(q)
+        out = {}
+        for link in self.contact_links:
+            k = self.link_index(link)
+            v = np.asarray(self._contact_mesh(link).vertices, dtype=np.float64)
+            w = np.einsum("bij,vj->bvi", t[:, k, :3, :3], v) + t[:, k, None, :3, 3]
+            out[link] = (w[0], w[1])
+        return out
+
     def interpolate(self, q_from: np.ndarray, q_to: np.ndarray, alpha: float | np.ndarray) -> np.ndarray:
         """Joint-space linear interpolation (1 - alpha) q_from + alpha q_to (alpha scalar or (B,))."""
         q_from = self.check_q(q_from, "q_from")
