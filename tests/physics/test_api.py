@@ -1,0 +1,144 @@
+"""Differentiability, divergence reporting and input validation."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import warp as wp
+from physics_helpers import lattice
+
+from twinbench.physics import (
+    ModelBuilder,
+    SimParams,
+    SimulationDiverged,
+    SpringMassSolver,
+    check_divergence,
+)
+
+
+@wp.kernel
+def _weighted_displacement(x: wp.array(dtype=wp.vec3), x0: wp.array(dtype=wp.vec3),
+                           w: wp.array(dtype=wp.vec3), out: wp.array(dtype=float)):
+    i = wp.tid()
+    wp.atomic_add(out, 0, wp.dot(w[i], x[i] - x0[i]))
+
+
+def test_tape_gradient_wrt_log_stiffness_matches_finite_differences():
+    """300 substeps of a soft 3x3x2 block with random velocities, two moving control points and
+    ground contact; loss = w . (x - x0). Central differences in float64 log Y steps of 1e-2 / 3e-2
+    (large enough to dominate the float32 round-off of the loss, small enough for O(h^2) < 0.1 %)."""
+    rng = np.random.default_rng(0)
+    pts = lattice(3, 3, 2)
+    b = ModelBuilder(SimParams(ground_restitution=0.0))
+    b.add_body(pts, velocities=rng.normal(0.0, 0.5, (len(pts), 3)), spring_Y=3e3)
+    b.add_control_points([[-0.005, 0.0, 0.0], [-0.005, 0.02, 0.01]], radius=0.02, max_neighbors=5)
+    model = b.finalize(requires_grad=True)
+    solver = SpringMassSolver(model)
+    ctl = model.control()
+    c0 = model.control_x0_np
+    ctl.set_control_points(c0, c0 + [0.0, 0.0, 0.01])
+    w = wp.array(rng.normal(size=(len(pts), 3)), dtype=wp.vec3)
+    x0 = wp.array(pts, dtype=wp.vec3)
+
+    def loss(log_y):
+        model.set_spring_log_y(log_y)
+        states = [model.state() for _ in range(301)]
+        out = wp.zeros(1, dtype=float, requires_grad=True)
+        for s in range(300):
+            solver.step(states[s], states[s + 1], ctl, substep_index=s)
+        wp.launch(_weighted_displacement, dim=len(pts), inputs=[states[-1].x, x0, w], outputs=[out])
+        return out
+
+    base = model.log_y_np.copy()
+    tape = wp.Tape()
+    with tape:
+        out = loss(base)
+    tape.backward(out)
+    grad = model.log_y.grad.numpy().astype(np.float64)
+    assert np.all(np.isfinite(grad)) and np.abs(grad).max() > 0
+
+    def central(direction, h):
+        lp = float(loss((base + h * direction).astype(np.float32)).numpy()[0])
+        lm = float(loss((base - h * direction).astype(np.float32)).numpy()[0])
+        return (lp - lm) / (2 * h)
+
+    d = rng.normal(size=base.shape)
+    assert grad @ d == pytest.approx(central(d, 1e-2), rel=1e-2)
+    for s in np.argsort(-np.abs(grad))[:3]:  # the three most influential springs
+        e = np.zeros_like(base, dtype=np.float64)
+        e[s] = 1.0
+        assert grad[s] == pytest.approx(central(e, 3e-2), rel=1e-2)
+
+
+def test_divergence_is_reported_with_particle_indices():
+    p = SimParams(ground=False, gravity=(0.0, 0.0, 0.0), dashpot_damping=0.0, drag_damping=0.0,
+                  dt=1e-3, substeps=10)
+    b = ModelBuilder(p)
+    # a very stiff spring stretched 50 %, explicit Euler at dt = 1e-3 blows up
+    b.add_body([[0, 0, 0], [0.015, 0, 0], [1.0, 1.0, 1.0]], springs=[[0, 1]], rest_lengths=[0.01],
+               spring_Y=1e5)
+    model = b.finalize()
+    solver = SpringMassSolver(model)
+    state, ctl = model.state(), model.control()
+    assert check_divergence(state).size == 0
+    with pytest.raises(SimulationDiverged) as err:
+        for _ in range(50):
+            solver.simulate_frame(state, ctl)
+    assert set(err.value.indices.tolist()) == {0, 1}  # particle 2 has no spring and stays put
+    assert set(check_divergence(state).tolist()) == {0, 1}
+
+
+def test_state_and_control_are_separate_objects():
+    b = ModelBuilder(SimParams())
+    b.add_body(lattice(2, 2, 2, origin=(0, 0, 0.1)))
+    model = b.finalize()
+    solver = SpringMassSolver(model)
+    s1, s2, ctl = model.state(), model.state(), model.control()
+    solver.simulate_frame(s1, ctl)
+    np.testing.assert_array_equal(s2.x.numpy(), model.x0_np)  # untouched
+    assert s1.x.numpy()[:, 2].max() < 0.11
+
+
+@pytest.mark.parametrize(
+    ("call", "name"),
+    [
+        (lambda b: b.add_body(np.zeros((0, 3))), "points"),
+        (lambda b: b.add_body(np.zeros((4, 2))), "points"),
+        (lambda b: b.add_body([[0, 0, np.nan], [0, 0, 0.01]]), "points"),
+        (lambda b: b.add_body(lattice(2, 2, 2), radius=-0.1), "radius"),
+        (lambda b: b.add_body(lattice(2, 2, 2), max_neighbors=0), "max_neighbors"),
+        (lambda b: b.add_body(lattice(2, 2, 2), mass=np.ones(3)), "mass"),
+        (lambda b: b.add_body(lattice(2, 2, 2), spring_Y=-1.0), "spring_Y"),
+        (lambda b: b.add_body(lattice(2, 2, 2), springs=[[0, 9]]), "springs"),
+        (lambda b: b.add_body(lattice(2, 2, 2), velocities=np.zeros((3, 3))), "velocities"),
+        (lambda b: b.add_control_points([[0, 0, 0]]), "add bodies"),
+        (lambda b: b.add_static_mesh(np.zeros((3, 3)), [[0, 1, 5]]), "faces"),
+        (lambda b: b.add_static_mesh(np.zeros((3, 3)), [[0, 1, 2]], restitution=2.0), "restitution"),
+        (lambda b: b.finalize(), "add_body"),
+    ],
+)
+def test_bad_builder_input_names_the_argument(call, name):
+    with pytest.raises(ValueError, match=name):
+        call(ModelBuilder(SimParams()))
+
+
+def test_bad_control_input_names_the_argument():
+    b = ModelBuilder(SimParams())
+    b.add_body(lattice(2, 2, 2))
+    b.add_control_points([[-0.005, 0.0, 0.0]], radius=0.02)
+    mesh = b.add_kinematic_mesh([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]],
+                                [[0, 2, 1], [0, 1, 3], [0, 3, 2], [1, 2, 3]])
+    model = b.finalize()
+    ctl = model.control()
+    with pytest.raises(ValueError, match="frm"):
+        ctl.set_control_points(np.zeros((2, 3)), np.zeros((1, 3)))
+    with pytest.raises(ValueError, match="to"):
+        ctl.set_control_points(np.zeros((1, 3)), np.full((1, 3), np.nan))
+    with pytest.raises(ValueError, match="vertices_to"):
+        ctl.set_kinematic_mesh(mesh, np.zeros((4, 3)), np.zeros((5, 3)))
+    with pytest.raises(ValueError, match="mesh_id"):
+        ctl.set_kinematic_mesh(mesh + 1, np.zeros((4, 3)), np.zeros((4, 3)))
+    with pytest.raises(ValueError, match="dt"):
+        SimParams(dt=-1.0)
+    with pytest.raises(ValueError, match="log_y"):
+        model.set_spring_log_y(np.zeros(3))
