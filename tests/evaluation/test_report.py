@@ -139,6 +139,9 @@ def test_report_notes_without_real(tmp_path, report):
     assert "No real outcomes found" in page
     assert "10 replay episodes but no real outcomes to pair with" in page
     assert "more videos not embedded (cap: 1 videos)" in page
+    small = VideoLimits(max_bytes_each=1000)
+    page = write_report(store, "eval1", tmp_path / "r1.html", videos=small).read_text()
+    assert page.count("<video") == 0 and page.count("not embedded: size cap 1 KiB each") == 2
     page = write_report(store, "eval1", tmp_path / "r2.html", real_run_id="nope").read_text()
     assert "run &#x27;nope&#x27; is not in the store" in page
     with pytest.raises(ValueError, match="run 'missing' not found"):
