@@ -17,7 +17,7 @@ from pathlib import Path
 CHROMIUM = "/usr/bin/chromium"
 CHROMIUM_FLAGS = ("--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
                   "--disable-background-networking", "--disable-component-update", "--disable-sync",
-                  "--mute-audio", "--hide-scrollbars", "--remote-debugging-port=0")
+                  "--disable-dev-shm-usage", "--mute-audio", "--hide-scrollbars", "--remote-debugging-port=0")
 
 # Waits for every <video> to load its first frame (or fail, or time out); reports every <img> and <video>.
 _MEDIA_JS = """
