@@ -207,3 +207,15 @@ def test_contact_mesh_frames_for_the_physics_engine(arm):
     for link, (v0, v1) in frames.items():
         np.testing.assert_allclose(v0, arm.contact_vertices(q0, link), atol=1e-14)
         np.testing.assert_allclose(v1, arm.contact_vertices(q1, link), atol=1e-14)
+
+
+def test_contact_meshes_are_closed_for_signed_distance(arm, pusher_arm):
+    # The physics engine queries signed distance to these meshes: they must be watertight and
+    # consistently wound with outward normals (positive volume).
+    for model in (arm, pusher_arm):
+        for link in model.contact_links:
+            mesh = model.collision_meshes[link]
+            assert mesh.is_watertight and mesh.is_winding_consistent, link
+            assert mesh.volume > 0, link
+    fx, fy, fz = 0.02, 0.01, 0.06
+    assert arm.collision_meshes["left_finger"].volume == pytest.approx(fx * fy * fz, rel=1e-6)

@@ -326,9 +326,9 @@ def _geometry_mesh(
             mesh = trimesh.load(path, force="mesh", process=False)
         except Exception as exc:  # trimesh raises many types for bad files
             raise URDFError(f"{urdf_path}: link {link!r}: cannot read mesh {path}: {exc}") from exc
-        mesh = trimesh.Trimesh(
-            vertices=np.asarray(mesh.vertices), faces=np.asarray(mesh.faces), process=False
-        )
+        # process=True merges duplicate vertices (STL stores each triangle separately), so closed meshes
+        # are watertight: the physics engine's signed-distance queries rely on it.
+        mesh = trimesh.Trimesh(vertices=np.asarray(mesh.vertices), faces=np.asarray(mesh.faces), process=True)
         if geometry.mesh.scale is not None:
             mesh.apply_scale(np.broadcast_to(np.asarray(geometry.mesh.scale, dtype=np.float64), (3,)))
         return mesh
