@@ -8,6 +8,8 @@ import sys
 # command -> (module, config dataclass, function taking the config)
 COMMANDS: dict[str, tuple[str, str, str, str]] = {
     "demo": ("twinbench.demo", "DemoConfig", "main", "run the demo job on the built-in twin (CPU)"),
+    "render-ply": ("twinbench.gaussians.cli", "RenderPlyConfig", "main",
+                   "render a 3DGS .ply/.splat/.spz to a PNG from an automatic viewpoint"),
     "robot-info": ("twinbench.robot.info", "RobotInfoConfig", "robot_info",
                    "links, joints and home end-effector pose of a robot (built-in arm or URDF)"),
     "eval": ("twinbench.evaluation.runner", "EvalConfig", "main",

@@ -114,6 +114,8 @@ class GaussianCloud:
             idx = index
         else:
             idx = np.asarray(index)
+            if idx.size == 0 and idx.dtype != bool:
+                idx = idx.astype(np.int64)
             if idx.dtype == bool and idx.shape != (len(self),):
                 raise ValueError(
                     f"GaussianCloud.subset: boolean mask has shape {idx.shape}, expected ({len(self)},)"

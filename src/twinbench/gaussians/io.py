@@ -81,7 +81,9 @@ def _check_finite(path, name: str, arr: np.ndarray) -> None:
 def _parse_ply_header(path, data: bytes):
     end = data.find(b"end_header")
     if not data.startswith(b"ply") or end < 0:
-        raise GaussianFileError(path, "not a PLY file (missing 'ply' magic or 'end_header')")
+        raise GaussianFileError(
+            path, "not a PLY file, or its header is truncated (missing 'ply' magic or 'end_header')"
+        )
     nl = data.find(b"\n", end)
     if nl < 0:
         raise GaussianFileError(path, "truncated PLY header (no newline after 'end_header')")

@@ -67,7 +67,27 @@ def bind(gaussian_means, particles, k: int = 16, k_bone: int = 8, device: str | 
 
 
 @wp.func
+def _frob2(m: wp.mat33):
+    return wp.ddot(m, m)
+
+
+@wp.func
 def _polar_rotation(a: wp.mat33):
+    """Rotation factor of the polar decomposition (nearest rotation to `a`).
+
+    det(a) > 0: scaled Newton iteration X <- (g X + X^-T / g) / 2 (accurate to float32 round-off, also for
+    nearly symmetric inputs where a float32 SVD is not); otherwise SVD with the reflection fixed."""
+    if wp.determinant(a) > 0.0:
+        x = a
+        for _it in range(30):
+            xi = wp.inverse(x)
+            g = wp.sqrt(wp.sqrt(_frob2(xi) / _frob2(x)))
+            xn = 0.5 * (g * x + wp.transpose(xi) / g)
+            diff = _frob2(xn - x)
+            x = xn
+            if diff < 1.0e-12:
+                break
+        return x
     u = wp.mat33()
     s = wp.vec3()
     v = wp.mat33()
@@ -91,7 +111,7 @@ def _bone_rotations(
     a = wp.mat33()
     p0 = rest[b]
     p1 = cur[b]
-    tr = 0.0
+    tr = float(0.0)  # noqa: UP018 (a Warp dynamic variable)
     for j in range(nbrs.shape[1]):
         n = nbrs[b, j]
         d0 = rest[n] - p0

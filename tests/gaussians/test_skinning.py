@@ -1,0 +1,116 @@
+"""Linear blend skinning: identity, rigid motion, and a bent rope."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import warp as wp
+from scipy.spatial.transform import Rotation
+
+from twinbench.gaussians.cloud import quat_to_matrix
+from twinbench.gaussians.skinning import LBSSkinner, bind, rigid_transform_device, skin
+
+
+def _blob(seed=0, n_particles=300, n_gauss=500):
+    rng = np.random.default_rng(seed)
+    particles = rng.uniform(-0.1, 0.1, size=(n_particles, 3))
+    gauss = rng.uniform(-0.1, 0.1, size=(n_gauss, 3))
+    quats = Rotation.random(n_gauss, random_state=seed).as_quat()[:, [3, 0, 1, 2]]
+    return particles, gauss, quats
+
+
+def test_binding_weights_and_neighbourhoods():
+    particles, gauss, _ = _blob()
+    b = bind(gauss, particles)
+    assert b.indices.shape == (500, 16) and b.bone_neighbors.shape == (300, 8)
+    np.testing.assert_allclose(b.weights.sum(axis=1), 1.0, atol=1e-6)
+    # weights decrease with distance and the first index is the nearest particle
+    d = np.linalg.norm(particles[b.indices] - gauss[:, None], axis=2)
+    assert np.all(np.diff(d, axis=1) >= -1e-12) and np.all(np.diff(b.weights, axis=1) <= 1e-6)
+    assert not np.any(b.bone_neighbors == np.arange(300)[:, None]), "a bone is not its own neighbour"
+    with pytest.raises(ValueError, match="particles"):
+        bind(gauss, particles[:, :2])
+
+
+def test_unchanged_particles_leave_gaussians_unchanged():
+    particles, gauss, quats = _blob(1)
+    sk = LBSSkinner(bind(gauss, particles), gauss, quats)
+    means, q = sk.update(particles)
+    np.testing.assert_allclose(means.numpy(), gauss, atol=1e-6)
+    np.testing.assert_allclose(q.numpy(), quats, atol=1e-5)
+
+
+def test_rigid_motion_moves_gaussians_rigidly():
+    particles, gauss, quats = _blob(2)
+    rot = Rotation.from_rotvec([0.4, -0.7, 1.1]).as_matrix()
+    t = np.array([0.3, -0.2, 0.5])
+    sk = LBSSkinner(bind(gauss, particles), gauss, quats)
+    means, q = sk.update(particles @ rot.T + t)
+    np.testing.assert_allclose(means.numpy(), gauss @ rot.T + t, atol=1e-5)
+    np.testing.assert_allclose(quat_to_matrix(q.numpy()), rot @ quat_to_matrix(quats), atol=1e-4)
+    np.testing.assert_allclose(sk.bone_rotations.numpy(), np.broadcast_to(rot, (300, 3, 3)), atol=1e-4)
+
+
+def test_bent_rope_bends_gaussians_smoothly():
+    # a straight rope of 101 particles along x (1 cm spacing), Gaussians on and around it
+    s = np.linspace(0.0, 1.0, 101)
+    rope = np.c_[s, np.zeros_like(s), np.zeros_like(s)]
+    rng = np.random.default_rng(3)
+    u = rng.uniform(0.05, 0.95, 400)  # arclength parameter of each Gaussian
+    offset = rng.uniform(-0.004, 0.004, size=(400, 2))  # within 4 mm of the axis
+    gauss = np.c_[u, offset]
+    quats = np.tile([1.0, 0, 0, 0], (400, 1))
+    # bend it into a circular arc of radius R in the x-y plane (arclength preserved)
+    radius = 1.0 / np.pi * 2  # quarter... 1 m of rope over pi/2 rad
+    angle = s / radius
+    bent = np.c_[radius * np.sin(angle), radius * (1 - np.cos(angle)), np.zeros_like(s)]
+    binding = bind(gauss, rope)
+    sk = LBSSkinner(binding, gauss, quats)
+    means, q = sk.update(bent)
+    moved = means.numpy()
+    # Gaussians on the axis land on the arc: the bent centreline at their arclength, within 2 mm
+    th = u / radius
+    on_arc = np.c_[radius * np.sin(th), radius * (1 - np.cos(th)), np.zeros_like(u)]
+    expected = (
+        on_arc
+        + offset[:, :1] * np.c_[-np.sin(th), np.cos(th), np.zeros_like(u)]
+        + np.c_[0 * u, 0 * u, offset[:, 1]]
+    )
+    assert np.linalg.norm(moved - expected, axis=1).max() < 2e-3
+    # no Gaussian moves more than its nearest bone plus what a rotation of the local 1-2 cm lever can add
+    disp = np.linalg.norm(moved - gauss, axis=1)
+    bone_disp = np.linalg.norm(bent - rope, axis=1)[binding.indices[:, 0]]
+    lever = np.linalg.norm(gauss[:, None] - rope[binding.indices], axis=2).max(axis=1)
+    bend_per_lever = lever / radius  # angle change across the binding neighbourhood
+    assert np.all(disp <= bone_disp + lever * bend_per_lever * 2 + 1e-4)
+    # smooth: Gaussians close at rest stay close (local stretch bounded)
+    order = np.argsort(u)
+    du_rest = np.linalg.norm(np.diff(gauss[order], axis=0), axis=1)
+    du_now = np.linalg.norm(np.diff(moved[order], axis=0), axis=1)
+    assert np.all(du_now <= 1.2 * du_rest + 1e-3)
+    # Gaussian rotations follow the local tangent direction (about z by the arc angle)
+    yaw = Rotation.from_quat(q.numpy()[:, [1, 2, 3, 0]]).as_rotvec()
+    np.testing.assert_allclose(yaw[:, 2], th, atol=0.03)
+    np.testing.assert_allclose(yaw[:, :2], 0, atol=1e-3)
+
+
+def test_host_skin_and_rigid_device_variant(make_cloud):
+    particles, gauss, quats = _blob(4, n_gauss=50)
+    cloud = make_cloud(50, degree=1, seed=4)
+    cloud.means[:] = gauss
+    cloud.quats[:] = quats
+    rot = Rotation.from_rotvec([0.0, 0.3, 0.2]).as_matrix()
+    out = skin(bind(cloud.means, particles), cloud, particles @ rot.T)
+    np.testing.assert_allclose(out.means, cloud.means @ rot.T, atol=1e-5)
+    np.testing.assert_array_equal(out.sh, cloud.sh)
+    transform = np.eye(4)
+    transform[:3, :3] = rot
+    transform[:3, 3] = [1, 2, 3]
+    m_out = wp.zeros(50, dtype=wp.vec3)
+    q_out = wp.zeros(50, dtype=wp.vec4)
+    rigid_transform_device(
+        wp.array(gauss, dtype=wp.vec3), wp.array(quats, dtype=wp.vec4), transform, m_out, q_out
+    )
+    ref = cloud.transform(transform)
+    np.testing.assert_allclose(m_out.numpy(), ref.means, atol=1e-5)
+    np.testing.assert_allclose(quat_to_matrix(q_out.numpy()), quat_to_matrix(ref.quats), atol=1e-5)
