@@ -44,9 +44,7 @@ def spring_force(
     v: wp.array(dtype=wp.vec3),
     springs: wp.array(dtype=wp.vec2i),
     rest_lengths: wp.array(dtype=float),
-    log_y: wp.array(dtype=float),
-    y_min: float,
-    y_max: float,
+    y: float,
     dashpot: float,
     ctrl_from: wp.array(dtype=wp.vec3),
     ctrl_to: wp.array(dtype=wp.vec3),
@@ -63,10 +61,23 @@ def spring_force(
     dis = x2 - x1
     dis_len = wp.length(dis)
     d = dis / wp.max(dis_len, 1e-6)
-    elastic = wp.clamp(wp.exp(log_y[s]), y_min, y_max) * (dis_len / rest_lengths[s] - 1.0) * d
+    elastic = y * (dis_len / rest_lengths[s] - 1.0) * d
     v_rel = wp.dot(v2 - v1, d)
     damp = dashpot * v_rel * d
     return elastic + damp
+
+
+@wp.kernel
+def effective_stiffness(
+    log_y: wp.array(dtype=float), y_min: float, y_max: float, y_eff: wp.array(dtype=float)
+):
+    """clamp(exp(log Y)) per spring, or -1 for an inactive spring (exp(log Y) <= y_min)."""
+    s = wp.tid()
+    e = wp.exp(log_y[s])
+    y = -1.0
+    if e > y_min:
+        y = wp.clamp(e, y_min, y_max)
+    y_eff[s] = y
 
 
 @wp.kernel
@@ -75,9 +86,7 @@ def eval_spring_forces(
     v: wp.array(dtype=wp.vec3),
     springs: wp.array(dtype=wp.vec2i),
     rest_lengths: wp.array(dtype=float),
-    log_y: wp.array(dtype=float),
-    y_min: float,
-    y_max: float,
+    y_eff: wp.array(dtype=float),
     dashpot: float,
     ctrl_from: wp.array(dtype=wp.vec3),
     ctrl_to: wp.array(dtype=wp.vec3),
@@ -88,9 +97,9 @@ def eval_spring_forces(
     """Per-spring force on the first end (the second end gets its negative)."""
     s = wp.tid()
     f = wp.vec3(0.0, 0.0, 0.0)
-    if wp.exp(log_y[s]) > y_min:
-        f = spring_force(x, v, springs, rest_lengths, log_y, y_min, y_max, dashpot,
-                         ctrl_from, ctrl_to, t, n, s)
+    y = y_eff[s]
+    if y >= 0.0:
+        f = spring_force(x, v, springs, rest_lengths, y, dashpot, ctrl_from, ctrl_to, t, n, s)
     out[s] = f
 
 
@@ -112,8 +121,9 @@ def accumulate_spring_forces(
 ):
     """PhysTwin-style atomic accumulation (used on the differentiable path)."""
     s = wp.tid()
-    if wp.exp(log_y[s]) > y_min:
-        fs = spring_force(x, v, springs, rest_lengths, log_y, y_min, y_max, dashpot,
+    e = wp.exp(log_y[s])
+    if e > y_min:
+        fs = spring_force(x, v, springs, rest_lengths, wp.clamp(e, y_min, y_max), dashpot,
                           ctrl_from, ctrl_to, t, n, s)
         i = springs[s][0]
         j = springs[s][1]

@@ -13,9 +13,11 @@ class SimParams:
     Particle-particle candidates are listed once per frame for pairs closer than
     ``candidate_radius_scale * collision_dist`` (1.0 is PhysTwin's rule; raise it when bodies move more
     than ``collision_dist`` per frame, otherwise fast pairs pass through each other). The per-substep
-    contact test always uses ``collision_dist``. Units are SI. ``substeps`` defaults to ``round(1 / (30 * dt)) = 667`` (one 30 Hz frame is
-    ``substeps * dt = 0.03335 s``, as in PhysTwin). Restitution is clamped to [0, 1] and friction to
-    [0, 2] inside the kernels. Springs whose ``exp(logY) <= spring_Y_min`` are inactive.
+    contact test always uses ``collision_dist``. Units are SI. ``substeps`` defaults to
+    ``round(1 / (30 * dt)) = 667`` (one 30 Hz frame is ``substeps * dt = 0.03335 s``, as in PhysTwin).
+    Restitution is clamped to [0, 1] and friction to [0, 2] inside the kernels. Springs whose
+    ``exp(logY) <= spring_Y_min`` are inactive. ``mesh_margin`` is the contact distance of triangle
+    meshes; ``ground`` switches the z = 0 plane.
     """
 
     dt: float = 5e-5

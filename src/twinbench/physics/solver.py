@@ -47,6 +47,7 @@ class SpringMassSolver:
         self.device = dev
         n = model.num_particles
         self._spring_f = wp.zeros(model.num_springs, dtype=wp.vec3, device=dev)
+        self._y_eff = wp.zeros(model.num_springs, dtype=float, device=dev)
         self._f = wp.zeros(n, dtype=wp.vec3, device=dev)
         self._v_star = wp.zeros(n, dtype=wp.vec3, device=dev)
         self._gravity = wp.vec3(*[float(g) for g in p.gravity])
@@ -84,14 +85,24 @@ class SpringMassSolver:
         s = self.model.params.substeps
         return float(np.float32(substep_index + 1) / np.float32(s))
 
-    def _update_kinematic_meshes(self, control: Control, substep_index: int) -> None:
+    def _go(self, kernel, dim: int, inputs: list, outputs: list, ops: list | None) -> None:
+        """Launch now, or record the launch into ``ops`` (replayed with ~7 us overhead each)."""
+        if ops is None:
+            wp.launch(kernel, dim=dim, inputs=inputs, outputs=outputs, device=self.device)
+        else:
+            ops.append(wp.launch(kernel, dim=dim, inputs=inputs, outputs=outputs, device=self.device,
+                                 record_cmd=True).launch)
+
+    def _update_kinematic_meshes(self, control: Control, substep_index: int, ops: list | None = None) -> None:
         t = self._t(substep_index)
         for mid in self._kinematic:
             mesh = self.model.meshes[mid].mesh
-            wp.launch(K.interpolate_points, dim=mesh.points.shape[0],
-                      inputs=[control.mesh_from[mid], control.mesh_to[mid], t], outputs=[mesh.points],
-                      device=self.device)
-            mesh.refit()
+            self._go(K.interpolate_points, mesh.points.shape[0],
+                     [control.mesh_from[mid], control.mesh_to[mid], t], [mesh.points], ops)
+            if ops is None:
+                mesh.refit()
+            else:
+                ops.append(mesh.refit)
 
     def _set_mesh_velocities(self, control: Control) -> None:
         inv_t = float(1.0 / self._frame_t)
@@ -114,40 +125,47 @@ class SpringMassSolver:
                   inputs=[self._grid.id, state.x, m.masks, m.nbr_offsets, m.nbr, cand_r, query_r],
                   outputs=[self._cand, self._cand_count], device=self.device)
 
+    def _update_stiffness(self) -> None:
+        m = self.model
+        if m.num_springs:
+            wp.launch(K.effective_stiffness, dim=m.num_springs,
+                      inputs=[m.log_y, float(m.params.spring_Y_min), float(m.params.spring_Y_max)],
+                      outputs=[self._y_eff], device=self.device)
+
     def _launch_substep(self, state_in: State, state_out: State, control: Control, dt: float,
-                        substep_index: int, grad: bool) -> None:
+                        substep_index: int, grad: bool, ops: list | None = None) -> None:
         m = self.model
         p = m.params
         n = m.num_particles
         t = self._t(substep_index)
-        spring_args = [state_in.x, state_in.v, m.springs, m.rest_lengths, m.log_y, float(p.spring_Y_min),
-                       float(p.spring_Y_max), float(p.dashpot_damping), control.ctrl_from, control.ctrl_to,
-                       t, n]
+        tail = [float(p.dashpot_damping), control.ctrl_from, control.ctrl_to, t, n]
         if grad:
             f = wp.zeros(n, dtype=wp.vec3, device=self.device, requires_grad=True)
             spring_f = self._spring_f
-            wp.launch(K.accumulate_spring_forces, dim=m.num_springs, inputs=spring_args, outputs=[f],
-                      device=self.device)
+            wp.launch(K.accumulate_spring_forces, dim=m.num_springs,
+                      inputs=[state_in.x, state_in.v, m.springs, m.rest_lengths, m.log_y,
+                              float(p.spring_Y_min), float(p.spring_Y_max), *tail],
+                      outputs=[f], device=self.device)
             v_star = wp.zeros(n, dtype=wp.vec3, device=self.device, requires_grad=True)
         else:
             f = self._f
             spring_f = self._spring_f
             v_star = self._v_star
             if m.num_springs:
-                wp.launch(K.eval_spring_forces, dim=m.num_springs, inputs=spring_args, outputs=[spring_f],
-                          device=self.device)
+                self._go(K.eval_spring_forces, m.num_springs,
+                         [state_in.x, state_in.v, m.springs, m.rest_lengths, self._y_eff, *tail],
+                         [spring_f], ops)
         collide = m.particle_collisions
-        wp.launch(K.particle_update, dim=n,
-                  inputs=[state_in.x, state_in.v, spring_f, m.inc_offsets, m.inc_springs, f, int(not grad),
-                          m.masses, self._gravity, float(dt), float(p.drag_damping), int(not collide),
-                          self._cp],
-                  outputs=[v_star, state_out.x, state_out.v], device=self.device)
+        self._go(K.particle_update, n,
+                 [state_in.x, state_in.v, spring_f, m.inc_offsets, m.inc_springs, f, int(not grad),
+                  m.masses, self._gravity, float(dt), float(p.drag_damping), int(not collide), self._cp],
+                 [v_star, state_out.x, state_out.v], ops)
         if collide:
-            wp.launch(K.collide_and_finish, dim=n,
-                      inputs=[state_in.x, v_star, m.masses, m.masks, float(p.object_restitution),
-                              float(p.object_friction), float(p.collision_dist), self._cand, self._cand_count,
-                              float(dt), self._cp],
-                      outputs=[state_out.x, state_out.v], device=self.device)
+            self._go(K.collide_and_finish, n,
+                     [state_in.x, v_star, m.masses, m.masks, float(p.object_restitution),
+                      float(p.object_friction), float(p.collision_dist), self._cand, self._cand_count,
+                      float(dt), self._cp],
+                     [state_out.x, state_out.v], ops)
 
     def step(self, state_in: State, state_out: State, control: Control, dt: float | None = None,
              substep_index: int = 0) -> None:
@@ -165,17 +183,20 @@ class SpringMassSolver:
             if substep_index == 0:
                 self._set_mesh_velocities(control)
             self._update_kinematic_meshes(control, substep_index)
+        if not self.model.requires_grad:
+            self._update_stiffness()
         self._launch_substep(state_in, state_out, control, dt, substep_index, grad=self.model.requires_grad)
 
     # ------------------------------------------------------------------ one frame
-    def _frame_launches(self, control: Control) -> State:
+    def _frame_launches(self, control: Control, ops: list | None = None) -> State:
         a, b = self._buf
         p = self.model.params
+        self._update_stiffness()  # once per frame, outside recorded ops (log Y may change between frames)
         for s in range(p.substeps):
             src, dst = (a, b) if s % 2 == 0 else (b, a)
             if self._kinematic:
-                self._update_kinematic_meshes(control, s)
-            self._launch_substep(src, dst, control, p.dt, s, grad=False)
+                self._update_kinematic_meshes(control, s, ops)
+            self._launch_substep(src, dst, control, p.dt, s, grad=False, ops=ops)
         return b if p.substeps % 2 == 1 else a
 
     def simulate_frame(self, state: State, control: Control, *, check: bool = True) -> State:
@@ -194,8 +215,10 @@ class SpringMassSolver:
         self._face_force.zero_()
         if self._kinematic:
             self._set_mesh_velocities(control)
-        if self._use_graph and not self._kinematic:
-            key = id(control)
+        key = id(control)
+        if not self._use_graph:
+            out = self._frame_launches(control)
+        elif not self._kinematic:
             if self._graph is None or self._graph_key != key:
                 with wp.ScopedCapture(device=self.device, force_module_load=True) as cap:
                     out = self._frame_launches(control)
@@ -203,7 +226,14 @@ class SpringMassSolver:
             wp.capture_launch(self._graph)
             out = self._graph_out
         else:
-            out = self._frame_launches(control)
+            # BVH refits of moving meshes are host calls that a graph cannot hold: replay recorded launches
+            if self._graph is None or self._graph_key != key:
+                ops: list = []
+                out = self._frame_launches(control, ops)
+                self._graph, self._graph_key, self._graph_out = ops, key, out
+            for op in self._graph:
+                op()
+            out = self._graph_out
         state.assign(out)
         scale = 1.0 / self.model.params.substeps
         nm = len(self.model.meshes)
