@@ -140,3 +140,21 @@ def test_sigint_then_resume_via_cli(tmp_path):
         k = (r.policy, r.checkpoint, r.init_state, r.seed)
         if k in first:
             assert r.metrics["started_at"] == first[k]
+
+
+@pytest.mark.slow
+def test_ray_backend_matches_local(tmp_path):
+    """Needs the 'ray' extra (skipped without it); slow: starts a local Ray instance."""
+    ray = pytest.importorskip("ray")
+    store = ResultsStore(tmp_path / "r.sqlite")
+    try:
+        on_ray = evaluate("point-reach", ["expert", "expert@0.5"], "grid", 2, "ray", store, backend="ray",
+                          output_dir=tmp_path)
+    finally:
+        ray.shutdown()
+    local = evaluate("point-reach", ["expert", "expert@0.5"], "grid", 0, "local", store, output_dir=tmp_path)
+    assert len(on_ray) == 16 and len(store.episodes("ray")) == 16
+    def key(recs):
+        return [(r.policy, r.checkpoint, r.init_state, r.seed, r.success, r.steps, r.status) for r in recs]
+
+    assert key(on_ray) == key(local)
