@@ -1,5 +1,6 @@
-"""Adapter running a LeRobot (0.6) pretrained policy in a twinbench env. UNTESTED here: lerobot is an
-optional extra (`pip install 'twinbench[lerobot]'`) that this project's CI does not install.
+"""Adapter running a LeRobot (0.6) pretrained policy in a twinbench env. Only the observation mapping
+(`lerobot_arrays`) is tested here; loading and running a policy is UNTESTED: lerobot is an optional
+extra (`pip install 'twinbench[lerobot]'`) that this project's CI does not install.
 
 Observation mapping (what LeRobot's `preprocess_observation` produces for gym envs):
 `pixels[cam]` HxWx3 uint8 -> `observation.images.<cam>` float32 (1, 3, H, W) in [0, 1];
@@ -34,21 +35,26 @@ def _import_lerobot():
     return torch, PreTrainedConfig, get_policy_class, make_pre_post_processors
 
 
-def observation_to_lerobot(obs: dict, task_description: str, device: str = "cpu") -> dict:
-    """Our observation dict -> LeRobot's batched torch observation (keys documented above)."""
-    import torch
-
-    out = {}
+def lerobot_arrays(obs: dict, task_description: str) -> dict:
+    """Our observation -> LeRobot's batched keys as numpy: images float32 (1, 3, H, W) in [0, 1],
+    state float32 (1, D), task [description]."""
+    out: dict = {}
     for cam, img in obs["pixels"].items():
         img = np.asarray(img)
         if img.ndim != 3 or img.shape[2] != 3 or img.dtype != np.uint8:
             raise ValueError(f"pixels[{cam!r}] must be HxWx3 uint8, got {img.shape} {img.dtype}")
-        t = torch.from_numpy(np.ascontiguousarray(img)).permute(2, 0, 1).float().div(255.0)
-        out[f"observation.images.{cam}"] = t.unsqueeze(0).to(device)
-    state = np.asarray(obs["agent_pos"], np.float32).reshape(1, -1)
-    out["observation.state"] = torch.from_numpy(state).to(device)
+        out[f"observation.images.{cam}"] = (img.transpose(2, 0, 1)[None] / np.float32(255)).astype(np.float32)
+    out["observation.state"] = np.asarray(obs["agent_pos"], np.float32).reshape(1, -1)
     out["task"] = [task_description]
     return out
+
+
+def observation_to_lerobot(obs: dict, task_description: str, device: str = "cpu") -> dict:
+    """`lerobot_arrays` as torch tensors on `device` (what a LeRobot preprocessor takes)."""
+    import torch
+
+    return {k: v if k == "task" else torch.from_numpy(np.ascontiguousarray(v)).to(device)
+            for k, v in lerobot_arrays(obs, task_description).items()}
 
 
 class LeRobotPolicy:
