@@ -131,3 +131,22 @@ def test_server_killed_mid_episode_ends_with_policy_error():
         if proc.poll() is None:
             proc.kill()
         proc.wait(timeout=10)
+
+
+class Hanging:
+    def reset(self):
+        pass
+
+    def select_action(self, obs):
+        time.sleep(1.5)  # longer than the client's time-out
+        return np.zeros(2, np.float32)
+
+
+def test_silent_server_times_out():
+    with PolicyServer(Hanging) as server:
+        pol = RemotePolicy(server.url, timeout_s=0.3, retries=1, backoff_s=0.05)
+        t0 = time.monotonic()
+        with pytest.raises(PolicyError, match=r"2 attempts \(time-out 0.3 s\): TimeoutError"):
+            pol.select_action({"agent_pos": np.zeros(2, np.float32)})
+        elapsed = time.monotonic() - t0
+        assert 0.6 <= elapsed < 1.4  # two time-outs and one backoff, not the server's 1.5 s
