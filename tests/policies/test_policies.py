@@ -72,6 +72,8 @@ def test_degraded_noise_scale_and_determinism():
     assert 0.17 < std < 0.21
     with pytest.raises(ValueError):
         DegradedPolicy(Zero(), 1.2, 0, low, high)
+    with pytest.raises(ValueError, match="finite"):
+        DegradedPolicy(Zero(), 0.5, 0, -np.inf * low, high)
 
 
 def test_degraded_expert_quality_decreases_with_level():

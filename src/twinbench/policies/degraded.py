@@ -34,8 +34,10 @@ class DegradedPolicy:
         level_to_train_step(level)  # validates the level
         self.base, self.level, self.seed = base, float(level), int(seed)
         self.low, self.high = np.asarray(low, np.float64), np.asarray(high, np.float64)
-        if self.low.shape != self.high.shape or np.any(self.low > self.high):
-            raise ValueError(f"DegradedPolicy: bad action bounds low={self.low}, high={self.high}")
+        if (self.low.shape != self.high.shape or np.any(self.low > self.high)
+                or not np.all(np.isfinite(self.low)) or not np.all(np.isfinite(self.high))):
+            raise ValueError(f"DegradedPolicy: action bounds must be finite with low <= high (the noise "
+                             f"scales with the range), got low={self.low}, high={self.high}")
         self.reset()
 
     def reset(self) -> None:
