@@ -10,9 +10,10 @@ import time
 
 import numpy as np
 import warp as wp
+from scipy.spatial.transform import Rotation
 
 from twinbench.gaussians.camera import Camera
-from twinbench.gaussians.cloud import GaussianCloud, matrix_to_quat
+from twinbench.gaussians.cloud import GaussianCloud
 from twinbench.gaussians.render import gsplat_available, render
 from twinbench.gaussians.skinning import LBSSkinner, bind
 
@@ -40,12 +41,12 @@ def surface_scene(n: int = 200_000, seed: int = 0) -> GaussianCloud:
         normals.append(d)
     means = np.concatenate(parts)
     nrm = np.concatenate(normals)
-    quats = np.empty((n, 4))
-    for i in range(n):  # disc normal (local z) -> surface normal
-        z = nrm[i]
-        x = np.cross(z, [1.0, 0, 0] if abs(z[0]) < 0.9 else [0, 1.0, 0])
-        x /= np.linalg.norm(x)
-        quats[i] = matrix_to_quat(np.stack([x, np.cross(z, x), z], axis=1))
+    # disc normal (local z) -> surface normal
+    helper = np.where(np.abs(nrm[:, :1]) < 0.9, [[1.0, 0, 0]], [[0, 1.0, 0]])
+    x = np.cross(nrm, helper)
+    x /= np.linalg.norm(x, axis=1, keepdims=True)
+    mats = np.stack([x, np.cross(nrm, x), nrm], axis=2)
+    quats = Rotation.from_matrix(mats).as_quat()[:, [3, 0, 1, 2]]
     log_scales = np.c_[np.log(rng.uniform(0.003, 0.01, (n, 2))), np.full(n, np.log(0.0005))]
     sh = rng.normal(scale=0.5, size=(n, 1, 3))
     return GaussianCloud(means, quats, log_scales, np.full(n, 3.0), sh)

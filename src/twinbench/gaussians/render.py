@@ -27,6 +27,8 @@ ALPHA_MIN = 1.0 / 255.0
 T_MIN = 1e-4
 _CPU_THREADS = 2
 
+wp.set_module_options({"enable_backward": False})
+
 
 @dataclass
 class RenderOutput:
@@ -43,6 +45,11 @@ class RenderOutput:
 
 
 # ----- Warp kernels ---------------------------------------------------------------------------------
+# One 64-byte record per projected Gaussian (a single cache line per Gaussian-tile pair):
+# u, v, conic a, b, c, extent x, y, r, g, b, depth, opacity, d2max = 2 ln(255 o), 1 / a, -, -
+vec16 = wp.types.vector(length=16, dtype=wp.float32)
+
+
 @wp.func
 def _quat_wxyz_to_mat(q: wp.vec4):
     w = q[0]
@@ -115,11 +122,8 @@ def _preprocess(
     lim_y_pos: float,
     offset: int,
     # outputs
-    mean2d: wp.array(dtype=wp.vec2),
-    conic: wp.array(dtype=wp.vec3),
-    extent: wp.array(dtype=wp.vec2),
+    record: wp.array(dtype=vec16),
     depth: wp.array(dtype=wp.float32),
-    colour: wp.array(dtype=wp.vec3),
     rect: wp.array(dtype=wp.vec4i),
     n_tiles: wp.array(dtype=wp.int32),
 ):
@@ -162,11 +166,24 @@ def _preprocess(
     tx1 = px1 / 16
     ty0 = py0 / 16
     ty1 = py1 / 16
-    mean2d[i] = wp.vec2(u, v)
-    conic[i] = wp.vec3(c / det, -b / det, a / det)
-    extent[i] = wp.vec2(ex, ey)
+    col = _sh_colour(sh, i, sh_k, wp.normalize(means[i] - cam_pos))
+    rec = vec16()
+    rec[0] = u
+    rec[1] = v
+    rec[2] = c / det
+    rec[3] = -b / det
+    rec[4] = a / det
+    rec[5] = ex
+    rec[6] = ey
+    rec[7] = col[0]
+    rec[8] = col[1]
+    rec[9] = col[2]
+    rec[10] = z
+    rec[11] = o
+    rec[12] = d2max
+    rec[13] = det / c
+    record[i] = rec
     depth[i] = z
-    colour[i] = _sh_colour(sh, i, sh_k, wp.normalize(means[i] - cam_pos))
     rect[i] = wp.vec4i(tx0, ty0, tx1, ty1)
     n_tiles[i] = (tx1 - tx0 + 1) * (ty1 - ty0 + 1)
 
@@ -206,11 +223,18 @@ def _gather_counts(
 
 @wp.kernel
 def _tile_ranges(keys: wp.array(dtype=wp.int32), count: int, ranges: wp.array(dtype=wp.vec2i)):
+    """Start/end of each tile's run in the tile-sorted pair list (Warp does not short-circuit `or`)."""
     n = wp.tid()
     tile = keys[n]
-    if n == 0 or keys[n - 1] != tile:
+    first = n == 0
+    if not first:
+        first = keys[n - 1] != tile
+    last = n == count - 1
+    if not last:
+        last = keys[n + 1] != tile
+    if first:
         ranges[tile] = wp.vec2i(n, ranges[tile][1])
-    if n == count - 1 or keys[n + 1] != tile:
+    if last:
         ranges[tile] = wp.vec2i(ranges[tile][0], n + 1)
 
 
@@ -219,12 +243,7 @@ def _rasterise(
     tile_list: wp.array(dtype=wp.int32),
     ranges: wp.array(dtype=wp.vec2i),
     values: wp.array(dtype=wp.int32),
-    mean2d: wp.array(dtype=wp.vec2),
-    conic: wp.array(dtype=wp.vec3),
-    extent: wp.array(dtype=wp.vec2),
-    depth: wp.array(dtype=wp.float32),
-    colour: wp.array(dtype=wp.vec3),
-    opacities: wp.array(dtype=wp.float32),
+    record: wp.array(dtype=vec16),
     width: int,
     height: int,
     tiles_x: int,
@@ -249,20 +268,20 @@ def _rasterise(
     rg = ranges[tile]
     for n in range(rg[0], rg[1]):
         g = values[n]
-        m = mean2d[g]
-        e = extent[g]
-        cn = conic[g]
-        col = colour[g]
-        z = depth[g]
-        o = opacities[g]
-        gx0 = wp.max(int(wp.ceil(m[0] - e[0] - 0.5)), x0)
-        gx1 = wp.min(int(wp.floor(m[0] + e[0] - 0.5)), x1 - 1)
-        gy0 = wp.max(int(wp.ceil(m[1] - e[1] - 0.5)), y0)
-        gy1 = wp.min(int(wp.floor(m[1] + e[1] - 0.5)), y1 - 1)
+        rec = record[g]
+        m = wp.vec2(rec[0], rec[1])
+        cn = wp.vec3(rec[2], rec[3], rec[4])
+        col = wp.vec3(rec[7], rec[8], rec[9])
+        z = rec[10]
+        o = rec[11]
+        gx0 = wp.max(int(wp.ceil(m[0] - rec[5] - 0.5)), x0)
+        gx1 = wp.min(int(wp.floor(m[0] + rec[5] - 0.5)), x1 - 1)
+        gy0 = wp.max(int(wp.ceil(m[1] - rec[6] - 0.5)), y0)
+        gy1 = wp.min(int(wp.floor(m[1] + rec[6] - 0.5)), y1 - 1)
         # per row, only the span of the ellipse d^2 <= d2max (alpha >= 1/255), widened by 1e-3 px so
         # that rounding never drops a pixel the alpha test would keep
-        d2max = 2.0 * wp.log(255.0 * o)
-        ia = 1.0 / cn[0]
+        d2max = rec[12]
+        ia = rec[13]
         for y in range(gy0, gy1 + 1):
             dy = float(y) + 0.5 - m[1]
             disc = cn[1] * cn[1] * dy * dy - cn[0] * (cn[2] * dy * dy - d2max)
@@ -273,13 +292,18 @@ def _rasterise(
             sx0 = wp.max(int(wp.ceil(ctr - half - 0.5)), gx0)
             sx1 = wp.min(int(wp.floor(ctr + half - 0.5)), gx1)
             row = y * width
+            # d^2 along the row, updated incrementally: d2(x + 1) = d2(x) + step, step += 2 a
+            dx = float(sx0) + 0.5 - m[0]
+            d2 = cn[0] * dx * dx + 2.0 * cn[1] * dx * dy + cn[2] * dy * dy
+            step = cn[0] * (2.0 * dx + 1.0) + 2.0 * cn[1] * dy
             for x in range(sx0, sx1 + 1):
+                d2_here = d2
+                d2 += step
+                step += 2.0 * cn[0]
                 t = out_t[row + x]
                 if t < 0.0:
                     continue
-                dx = float(x) + 0.5 - m[0]
-                d2 = cn[0] * dx * dx + 2.0 * cn[1] * dx * dy + cn[2] * dy * dy
-                alpha = wp.min(0.99, o * wp.exp(-0.5 * d2))
+                alpha = wp.min(0.99, o * wp.exp(-0.5 * d2_here))
                 if alpha < 1.0 / 255.0:
                     continue
                 test_t = t * (1.0 - alpha)
@@ -307,31 +331,13 @@ def _rasterise(
 
 # ----- Warp backend ---------------------------------------------------------------------------------
 class _Workspace:
-    """Per-Gaussian buffers reused between calls of the same size and device."""
+    """Per-call, per-Gaussian buffers (allocated per call, so concurrent renders never share them)."""
 
     def __init__(self, n: int, device) -> None:
-        self.n = n
-        self.mean2d = wp.zeros(n, dtype=wp.vec2, device=device)
-        self.conic = wp.zeros(n, dtype=wp.vec3, device=device)
-        self.extent = wp.zeros(n, dtype=wp.vec2, device=device)
-        self.depth = wp.zeros(n, dtype=wp.float32, device=device)
-        self.colour = wp.zeros(n, dtype=wp.vec3, device=device)
-        self.rect = wp.zeros(n, dtype=wp.vec4i, device=device)
-        self.n_tiles = wp.zeros(n, dtype=wp.int32, device=device)
-
-
-_workspaces: dict[tuple[int, str], _Workspace] = {}
-_ws_lock = threading.Lock()
-
-
-def _workspace(n: int, device) -> _Workspace:
-    key = (n, str(device))
-    with _ws_lock:
-        ws = _workspaces.get(key)
-        if ws is None:
-            _workspaces.clear()
-            ws = _workspaces[key] = _Workspace(n, device)
-        return ws
+        self.record = wp.empty(n, dtype=vec16, device=device)
+        self.depth = wp.empty(n, dtype=wp.float32, device=device)
+        self.rect = wp.empty(n, dtype=wp.vec4i, device=device)
+        self.n_tiles = wp.empty(n, dtype=wp.int32, device=device)
 
 
 def _run_threads(fns) -> None:
@@ -364,7 +370,7 @@ def _render_warp_one(g: DeviceGaussians, cam: Camera, background: np.ndarray, th
     n_tile_total = tiles_x * tiles_y
     w2c = cam.world_to_cam
     tan_x, tan_y = 0.5 * w / cam.fx, 0.5 * h / cam.fy
-    ws = _workspace(n, device)
+    ws = _Workspace(n, device)
     out_rgb = wp.empty(h * w, dtype=wp.vec3, device=device)
     out_depth = wp.empty(h * w, dtype=wp.float32, device=device)
     out_t = wp.empty(h * w, dtype=wp.float32, device=device)
@@ -392,7 +398,7 @@ def _render_warp_one(g: DeviceGaussians, cam: Camera, background: np.ndarray, th
         float(cam.cy / cam.fy + 0.3 * tan_y),
         float((h - cam.cy) / cam.fy + 0.3 * tan_y),
     ]
-    pre_out = [ws.mean2d, ws.conic, ws.extent, ws.depth, ws.colour, ws.rect, ws.n_tiles]
+    pre_out = [ws.record, ws.depth, ws.rect, ws.n_tiles]
     cpu = device.is_cpu
     if cpu and threads > 1:
         wp.load_module(device=device)  # compile once, not concurrently in the worker threads
@@ -487,12 +493,7 @@ def _render_warp_one(g: DeviceGaussians, cam: Camera, background: np.ndarray, th
     raster_in = [
         ranges,
         sorted_values,
-        ws.mean2d,
-        ws.conic,
-        ws.extent,
-        ws.depth,
-        ws.colour,
-        g.opacities,
+        ws.record,
         w,
         h,
         tiles_x,
