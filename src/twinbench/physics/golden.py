@@ -48,7 +48,8 @@ def golden_params(g: dict[str, np.ndarray]) -> SimParams:
     )
 
 
-def golden_model(g: dict[str, np.ndarray], device: str = "cpu") -> SpringMassModel:
+def golden_model(g: dict[str, np.ndarray], device: str = "cpu",
+                 requires_grad: bool = False) -> SpringMassModel:
     """The model of a golden file: its explicit springs, rest lengths, float32 log Y and masks."""
     n = int(g["num_object_points"])
     n_obj = int(g["num_object_springs"])
@@ -66,7 +67,7 @@ def golden_model(g: dict[str, np.ndarray], device: str = "cpu") -> SpringMassMod
         cs = springs[n_obj:]
         b.add_control_points(g["control_x0"], springs=np.stack([cs[:, 0] - n, cs[:, 1]], axis=1),
                              rest_lengths=g["rest_lengths"][n_obj:])
-    model = b.finalize(device)
+    model = b.finalize(device, requires_grad=requires_grad)
     if not np.array_equal(model.springs_np, g["springs"]):
         raise ValueError("golden spring order could not be reproduced (bodies must be listed in order)")
     model.set_spring_log_y(g["spring_logY_float32"])

@@ -199,15 +199,30 @@ class SpringMassSolver:
             self._launch_substep(src, dst, control, p.dt, s, grad=False, ops=ops)
         return b if p.substeps % 2 == 1 else a
 
+    def simulate_frame_tape(self, state: State, control: Control) -> list[State]:
+        """Differentiable frame: every substep writes a new State (nothing overwritten), so an active
+        ``wp.Tape`` can run backward to ``model.log_y`` and the initial state. Needs a model finalized
+        with ``requires_grad=True``. Returns the substep states ``[state, s1, ..., s_substeps]``.
+
+        Known limit: moving meshes are refitted in place, so their contacts replay at the last pose in
+        the backward pass (gradients through kinematic-mesh contacts are approximate).
+        """
+        if not self.model.requires_grad:
+            raise ValueError("simulate_frame_tape needs ModelBuilder.finalize(requires_grad=True)")
+        self.rebuild_collision_candidates(state)
+        states = [state]
+        for s in range(self.model.params.substeps):
+            states.append(self.model.state())
+            self.step(states[-2], states[-1], control, substep_index=s)
+        return states
+
     def simulate_frame(self, state: State, control: Control, *, check: bool = True) -> State:
-        """Run all substeps of one frame in place on ``state`` and return it.
+        """Run all substeps of one frame in place on ``state`` and return it (fast path, not taped).
 
         Rebuilds the collision candidates from the frame-start positions, replays a captured graph
         when possible (no kinematic meshes), records the mean contact force per mesh, and raises
         :class:`SimulationDiverged` when ``check`` and a particle became non-finite or too fast.
         """
-        if self.model.requires_grad:
-            raise ValueError("simulate_frame is the fast path; use step() under wp.Tape for gradients")
         a, _ = self._buf
         a.assign(state)
         self.rebuild_collision_candidates(a)
@@ -215,11 +230,11 @@ class SpringMassSolver:
         self._face_force.zero_()
         if self._kinematic:
             self._set_mesh_velocities(control)
-        key = id(control)
+        key = control  # compared by identity; holding it keeps its arrays (baked into the graph) alive
         if not self._use_graph:
             out = self._frame_launches(control)
         elif not self._kinematic:
-            if self._graph is None or self._graph_key != key:
+            if self._graph is None or self._graph_key is not key:
                 with wp.ScopedCapture(device=self.device, force_module_load=True) as cap:
                     out = self._frame_launches(control)
                 self._graph, self._graph_key, self._graph_out = cap.graph, key, out
@@ -227,10 +242,11 @@ class SpringMassSolver:
             out = self._graph_out
         else:
             # BVH refits of moving meshes are host calls that a graph cannot hold: replay recorded launches
-            if self._graph is None or self._graph_key != key:
+            if self._graph is None or self._graph_key is not key:
                 ops: list = []
                 out = self._frame_launches(control, ops)
                 self._graph, self._graph_key, self._graph_out = ops, key, out
+            self._update_stiffness()
             for op in self._graph:
                 op()
             out = self._graph_out
