@@ -239,10 +239,17 @@ def _tile_ranges(keys: wp.array(dtype=wp.int32), count: int, ranges: wp.array(dt
 
 
 @wp.kernel
+def _gather_records(
+    values: wp.array(dtype=wp.int32), record: wp.array(dtype=vec16), start: int, out: wp.array(dtype=vec16)
+):
+    n = wp.tid() + start
+    out[n] = record[values[n]]
+
+
+@wp.kernel
 def _rasterise(
     tile_list: wp.array(dtype=wp.int32),
     ranges: wp.array(dtype=wp.vec2i),
-    values: wp.array(dtype=wp.int32),
     record: wp.array(dtype=vec16),
     width: int,
     height: int,
@@ -252,7 +259,8 @@ def _rasterise(
     out_depth: wp.array(dtype=wp.float32),
     out_t: wp.array(dtype=wp.float32),
 ):
-    """One thread per tile, Gaussian-major: each Gaussian updates the pixels of its box in the tile."""
+    """One thread per tile, Gaussian-major: each Gaussian (records in pair order, by depth within the
+    tile) updates the pixels of its ellipse in the tile."""
     tile = tile_list[wp.tid()]
     x0 = (tile % tiles_x) * 16
     y0 = (tile / tiles_x) * 16
@@ -267,8 +275,7 @@ def _rasterise(
     ndone = int(0)  # noqa: UP018 (a Warp dynamic variable)
     rg = ranges[tile]
     for n in range(rg[0], rg[1]):
-        g = values[n]
-        rec = record[g]
+        rec = record[n]
         m = wp.vec2(rec[0], rec[1])
         cn = wp.vec3(rec[2], rec[3], rec[4])
         col = wp.vec3(rec[7], rec[8], rec[9])
@@ -341,6 +348,9 @@ class _Workspace:
 
 
 def _run_threads(fns) -> None:
+    """Call each function, the first in this thread and the others in worker threads; re-raise errors."""
+    if not fns:
+        return
     if len(fns) == 1:
         fns[0]()
         return
@@ -362,8 +372,27 @@ def _run_threads(fns) -> None:
         raise errors[0]
 
 
+def _launch_split(kernel, dim: int, inputs: list, outputs: list, device, threads: int) -> None:
+    """Launch `kernel` over [0, dim) in `threads` contiguous chunks (its last input is the chunk start);
+    on CPU each chunk runs in its own Python thread (Warp releases the GIL)."""
+    parts = threads if (device.is_cpu and threads > 1) else 1
+    cut = np.linspace(0, dim, parts + 1).astype(int)
+    _run_threads(
+        [
+            (
+                lambda lo=lo, hi=hi: wp.launch(
+                    kernel, dim=hi - lo, inputs=inputs + [int(lo)], outputs=outputs, device=device
+                )
+            )
+            for lo, hi in zip(cut[:-1], cut[1:], strict=True)
+            if hi > lo
+        ]
+    )
+
+
 def _render_warp_one(g: DeviceGaussians, cam: Camera, background: np.ndarray, threads: int) -> RenderOutput:
     device = g.device
+    cpu = device.is_cpu
     n = len(g)
     w, h = cam.width, cam.height
     tiles_x, tiles_y = (w + TILE - 1) // TILE, (h + TILE - 1) // TILE
@@ -371,99 +400,46 @@ def _render_warp_one(g: DeviceGaussians, cam: Camera, background: np.ndarray, th
     w2c = cam.world_to_cam
     tan_x, tan_y = 0.5 * w / cam.fx, 0.5 * h / cam.fy
     ws = _Workspace(n, device)
-    out_rgb = wp.empty(h * w, dtype=wp.vec3, device=device)
-    out_depth = wp.empty(h * w, dtype=wp.float32, device=device)
-    out_t = wp.empty(h * w, dtype=wp.float32, device=device)
-    sh_k = g.sh.shape[1]
-    pre_args = [
-        g.means,
-        g.quats,
-        g.scales,
-        g.opacities,
-        g.sh,
-        sh_k,
-        wp.mat33(w2c[:3, :3].astype(np.float32)),
-        wp.vec3(w2c[:3, 3].astype(np.float32)),
-        wp.vec3(cam.position.astype(np.float32)),
-        float(cam.fx),
-        float(cam.fy),
-        float(cam.cx),
-        float(cam.cy),
-        w,
-        h,
-        tiles_x,
-        NEAR,
-        float(cam.cx / cam.fx + 0.3 * tan_x),
-        float((w - cam.cx) / cam.fx + 0.3 * tan_x),
-        float(cam.cy / cam.fy + 0.3 * tan_y),
-        float((h - cam.cy) / cam.fy + 0.3 * tan_y),
-    ]
-    pre_out = [ws.record, ws.depth, ws.rect, ws.n_tiles]
-    cpu = device.is_cpu
     if cpu and threads > 1:
         wp.load_module(device=device)  # compile once, not concurrently in the worker threads
-    if n > 0:
-        if cpu and threads > 1:
-            bounds = np.linspace(0, n, threads + 1).astype(int)
-            _run_threads(
-                [
-                    (
-                        lambda lo=lo, hi=hi: wp.launch(
-                            _preprocess, dim=hi - lo, inputs=pre_args + [lo], outputs=pre_out, device=device
-                        )
-                    )
-                    for lo, hi in zip(bounds[:-1], bounds[1:], strict=True)
-                    if hi > lo
-                ]
-            )
-        else:
-            wp.launch(_preprocess, dim=n, inputs=pre_args + [0], outputs=pre_out, device=device)
 
+    # 1. project every Gaussian: packed record, depth, tile rectangle, tile count
+    pre_in = [
+        g.means, g.quats, g.scales, g.opacities, g.sh, g.sh.shape[1],
+        wp.mat33(w2c[:3, :3].astype(np.float32)), wp.vec3(w2c[:3, 3].astype(np.float32)),
+        wp.vec3(cam.position.astype(np.float32)),
+        float(cam.fx), float(cam.fy), float(cam.cx), float(cam.cy), w, h, tiles_x, NEAR,
+        float(cam.cx / cam.fx + 0.3 * tan_x), float((w - cam.cx) / cam.fx + 0.3 * tan_x),
+        float(cam.cy / cam.fy + 0.3 * tan_y), float((h - cam.cy) / cam.fy + 0.3 * tan_y),
+    ]  # fmt: skip
+    _launch_split(_preprocess, n, pre_in, [ws.record, ws.depth, ws.rect, ws.n_tiles], device, threads)
+
+    # 2. (tile, Gaussian) pairs sorted by tile, then depth: a depth sort, pairs emitted in depth order,
+    #    then a stable sort by tile id (NumPy on CPU, Warp radix sort on CUDA)
     if cpu:
         counts = ws.n_tiles.numpy()
         visible = np.flatnonzero(counts).astype(np.int32)
-        depth = ws.depth.numpy()
-        order = visible[np.argsort(depth[visible])].astype(np.int32)
+        order = visible[np.argsort(ws.depth.numpy()[visible])].astype(np.int32)
         offsets = np.cumsum(counts[order], dtype=np.int64)
         total = int(offsets[-1]) if len(offsets) else 0
         if total >= 2**31:
             raise ValueError(f"render: {total} Gaussian-tile pairs exceed int32; downsample the cloud")
         keys = wp.empty(max(total, 1), dtype=wp.int32, device=device)
         values = wp.empty(max(total, 1), dtype=wp.int32, device=device)
-        if total:
-            emit_in = [
-                wp.array(order, dtype=wp.int32, device=device),
-                wp.array(offsets.astype(np.int32), dtype=wp.int32, device=device),
-                ws.rect,
-                ws.n_tiles,
-                tiles_x,
-            ]
-            cut = np.linspace(0, len(order), max(threads, 1) + 1).astype(int)
-            _run_threads(
-                [
-                    (
-                        lambda lo=lo, hi=hi: wp.launch(
-                            _emit_pairs,
-                            dim=hi - lo,
-                            inputs=emit_in + [lo],
-                            outputs=[keys, values],
-                            device=device,
-                        )
-                    )
-                    for lo, hi in zip(cut[:-1], cut[1:], strict=True)
-                    if hi > lo
-                ]
-            )
-        # pairs are in depth order: a stable sort by tile keeps depth order within each tile
+        emit_in = [
+            wp.array(order, dtype=wp.int32, device=device),
+            wp.array(offsets.astype(np.int32), dtype=wp.int32, device=device),
+            ws.rect, ws.n_tiles, tiles_x,
+        ]  # fmt: skip
+        _launch_split(_emit_pairs, len(order), emit_in, [keys, values], device, threads)
         tile_of_pair = keys.numpy()[:total].astype(np.uint16 if n_tile_total < 65536 else np.int32)
         perm = np.argsort(tile_of_pair, kind="stable")
         sorted_values = wp.array(values.numpy()[:total][perm], dtype=wp.int32, device=device)
         bounds = np.searchsorted(tile_of_pair[perm], np.arange(n_tile_total + 1))
-        ranges = wp.array(
-            np.stack([bounds[:-1], bounds[1:]], axis=1).astype(np.int32), dtype=wp.vec2i, device=device
-        )
+        ranges_np = np.stack([bounds[:-1], bounds[1:]], axis=1).astype(np.int32)
+        ranges = wp.array(ranges_np, dtype=wp.vec2i, device=device)
     else:
-        # depth sort (culled Gaussians carry depth 3e38 and 0 tiles), then a stable radix sort by tile
+        # culled Gaussians carry depth 3e38 and 0 tiles
         dkeys = wp.empty(2 * n, dtype=wp.float32, device=device)
         order = wp.empty(2 * n, dtype=wp.int32, device=device)
         wp.copy(dkeys, ws.depth, count=n)
@@ -475,53 +451,42 @@ def _render_warp_one(g: DeviceGaussians, cam: Camera, background: np.ndarray, th
         wp.utils.array_scan(counts, offsets, inclusive=True)
         total = int(offsets.numpy()[-1]) if n else 0
         keys = wp.empty(max(2 * total, 2), dtype=wp.int32, device=device)
-        values = wp.empty(max(2 * total, 2), dtype=wp.int32, device=device)
+        sorted_values = wp.empty(max(2 * total, 2), dtype=wp.int32, device=device)
         ranges = wp.zeros(n_tile_total, dtype=wp.vec2i, device=device)
         if total:
-            wp.launch(
-                _emit_pairs,
-                dim=n,
-                inputs=[order, offsets, ws.rect, ws.n_tiles, tiles_x, 0],
-                outputs=[keys, values],
-                device=device,
-            )
-            wp.utils.radix_sort_pairs(keys, values, total)
+            emit_in = [order, offsets, ws.rect, ws.n_tiles, tiles_x, 0]
+            wp.launch(_emit_pairs, dim=n, inputs=emit_in, outputs=[keys, sorted_values], device=device)
+            wp.utils.radix_sort_pairs(keys, sorted_values, total)
             wp.launch(_tile_ranges, dim=total, inputs=[keys, total], outputs=[ranges], device=device)
-        sorted_values = values
 
-    bg = wp.vec3(*[float(c) for c in background])
-    raster_in = [
-        ranges,
-        sorted_values,
-        ws.record,
-        w,
-        h,
-        tiles_x,
-        bg,
-    ]
+    # 3. records copied into pair order, so the rasteriser streams them instead of chasing random ids
+    pair_records = wp.empty(max(total, 1), dtype=vec16, device=device)
+    _launch_split(_gather_records, total, [sorted_values, ws.record], [pair_records], device, threads)
+
+    # 4. rasterise tiles (CPU: tile rows interleaved between threads for load balance)
+    out_rgb = wp.empty(h * w, dtype=wp.vec3, device=device)
+    out_depth = wp.empty(h * w, dtype=wp.float32, device=device)
+    out_t = wp.empty(h * w, dtype=wp.float32, device=device)
+    raster_in = [ranges, pair_records, w, h, tiles_x, wp.vec3(*[float(c) for c in background])]
     raster_out = [out_rgb, out_depth, out_t]
-    if cpu and threads > 1:
-        # interleave tile rows between threads for load balance
-        rows = np.arange(tiles_y)
-        lists = []
-        for k in range(threads):
-            sel = rows[rows % threads == k]
-            tl = (sel[:, None] * tiles_x + np.arange(tiles_x)[None, :]).reshape(-1).astype(np.int32)
-            if len(tl):
-                lists.append(wp.array(tl, dtype=wp.int32, device=device))
-        _run_threads(
-            [
-                (
-                    lambda tl=tl: wp.launch(
-                        _rasterise, dim=len(tl), inputs=[tl] + raster_in, outputs=raster_out, device=device
-                    )
+    parts = threads if (cpu and threads > 1) else 1
+    rows = np.arange(tiles_y)
+    lists = []
+    for k in range(parts):
+        sel = rows[rows % parts == k]
+        tl = (sel[:, None] * tiles_x + np.arange(tiles_x)[None, :]).reshape(-1).astype(np.int32)
+        if len(tl):
+            lists.append(wp.array(tl, dtype=wp.int32, device=device))
+    _run_threads(
+        [
+            (
+                lambda tl=tl: wp.launch(
+                    _rasterise, dim=len(tl), inputs=[tl] + raster_in, outputs=raster_out, device=device
                 )
-                for tl in lists
-            ]
-        )
-    else:
-        tl = wp.array(np.arange(n_tile_total, dtype=np.int32), dtype=wp.int32, device=device)
-        wp.launch(_rasterise, dim=n_tile_total, inputs=[tl] + raster_in, outputs=raster_out, device=device)
+            )
+            for tl in lists
+        ]
+    )
     return RenderOutput(
         rgb=out_rgb.numpy().reshape(h, w, 3),
         depth=out_depth.numpy().reshape(h, w),
