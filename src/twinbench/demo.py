@@ -23,19 +23,28 @@ class DemoConfig:
     cube_size: int = 6
     """particles per cube edge (1 cm spacing)"""
     drop_height: float = 0.08
+    """height of the cube's lowest particles at release, m"""
     settle_frames: int = 30
+    """frames (30 Hz) to fall and settle before the fingers close"""
     close_speed: float = 0.06
     """finger closing speed, m/s"""
     latch_force: float = 2000.0
     """per-finger inward contact force that latches the gripper (N, unit particle masses)"""
     lift_speed: float = 0.1
+    """m/s"""
     lift_height: float = 0.08
+    """m"""
     hold_frames: int = 30
+    """frames held in the air after the lift (30 = 1 s)"""
     max_close_frames: int = 30
+    """error out if the latch force is not reached within this many frames"""
     video: bool = True
+    """also write physics_demo.mp4"""
     fps: int = 30
     spring_Y: float = 3e4
+    """spring stiffness (per unit strain)"""
     friction: float = 1.0
+    """finger friction coefficient (grasping is friction only)"""
 
 
 def _cube(n: int, z0: float) -> np.ndarray:
