@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 import trimesh
 from physics_helpers import lattice
 
@@ -85,9 +86,10 @@ def test_fingers_latch_and_lift_cube_by_friction():
     assert abs(fz - len(cube) * G) < 0.02 * len(cube) * G
 
 
-def _two_cubes(candidate_radius_scale: float = 2.0):
+def _two_cubes(candidate_radius_scale: float = 2.0, self_collision: bool = False):
     p = SimParams(ground_restitution=0.0, ground_friction=0.5, collision_dist=0.02, object_restitution=0.0,
-                  object_friction=0.5, candidate_radius_scale=candidate_radius_scale)
+                  object_friction=0.5, candidate_radius_scale=candidate_radius_scale,
+                  self_collision=self_collision)
     b = ModelBuilder(p)
     b.add_body(lattice(4, 4, 4))  # resting on the ground, top at z = 0.03
     b.add_body(lattice(4, 4, 4, origin=(0.0, 0.0, 0.08)))  # 5 cm gap above it
@@ -95,8 +97,11 @@ def _two_cubes(candidate_radius_scale: float = 2.0):
     return model, SpringMassSolver(model)
 
 
-def test_dropped_cubes_do_not_interpenetrate():
-    model, solver = _two_cubes()
+@pytest.mark.parametrize("self_collision", [False, True])
+def test_dropped_cubes_do_not_interpenetrate(self_collision):
+    """Body-body contact (masks = body ids) and self-collision (every particle its own mask, spring
+    neighbours excluded) both keep the upper cube above the lower one."""
+    model, solver = _two_cubes(self_collision=self_collision)
     state, ctl = model.state(), model.control()
     cd = model.params.collision_dist
     for _ in range(45):
