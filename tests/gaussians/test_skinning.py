@@ -114,3 +114,30 @@ def test_host_skin_and_rigid_device_variant(make_cloud):
     ref = cloud.transform(transform)
     np.testing.assert_allclose(m_out.numpy(), ref.means, atol=1e-5)
     np.testing.assert_allclose(quat_to_matrix(q_out.numpy()), quat_to_matrix(ref.quats), atol=1e-5)
+
+
+def test_skinned_device_gaussians_render_like_the_moved_cloud(make_cloud):
+    """Device pipeline: LBS output -> DeviceGaussians.with_pose -> render, with no host round trip."""
+    from twinbench.gaussians.camera import Camera
+    from twinbench.gaussians.cloud import DeviceGaussians, GaussianCloud
+    from twinbench.gaussians.render import render
+
+    cloud = make_cloud(200, degree=0, seed=9, spread=0.1, anisotropic=True)
+    particles = np.random.default_rng(9).uniform(-0.12, 0.12, size=(150, 3))
+    motion = np.eye(4)
+    motion[:3, :3] = Rotation.from_rotvec([0.1, 0.5, -0.2]).as_matrix()
+    motion[:3, 3] = [0.05, 0.0, 0.02]
+    dev = cloud.to_device("cpu")
+    sk = LBSSkinner(bind(cloud.means, particles), cloud.means, cloud.quats)
+    moved = dev.with_pose(*sk.update(particles @ motion[:3, :3].T + motion[:3, 3]))
+    cam = Camera.look_at((0.5, 0.2, 0.3), (0, 0, 0), fx=50, width=48, height=40)
+    expected = render(cloud.transform(motion), cam)
+    assert np.abs(render(moved, cam).rgb - expected.rgb).max() < 2e-3
+    # a scene-wide device cloud: static part + skinned part written in place into a slice
+    static = make_cloud(50, degree=1, seed=10, spread=0.1)
+    both = DeviceGaussians.concatenate([static.to_device("cpu"), dev])
+    sk.update(
+        particles @ motion[:3, :3].T + motion[:3, 3], out_means=both.means[50:], out_quats=both.quats[50:]
+    )
+    expected_both = render(GaussianCloud.concatenate([static, cloud.transform(motion)]), cam)
+    assert np.abs(render(both, cam).rgb - expected_both.rgb).max() < 2e-3

@@ -208,6 +208,51 @@ class DeviceGaussians:
     def __len__(self) -> int:
         return self.means.shape[0]
 
+    def with_pose(self, means: wp.array, quats: wp.array) -> DeviceGaussians:
+        """Same Gaussians with new means (vec3) and unit quats (vec4 wxyz), e.g. an LBSSkinner's output."""
+        if means.shape[0] != len(self) or quats.shape[0] != len(self):
+            raise ValueError(
+                f"with_pose: expected {len(self)} means and quats, got {means.shape[0]} and {quats.shape[0]}"
+            )
+        return DeviceGaussians(means, quats, self.scales, self.opacities, self.sh)
+
+    @staticmethod
+    def concatenate(items: Sequence[DeviceGaussians]) -> DeviceGaussians:
+        """One device cloud holding `items` in order (device-to-device copies; the SH of lower degree
+        are zero-padded through the host)."""
+        import warp as wp
+
+        items = list(items)
+        if not items:
+            raise ValueError("DeviceGaussians.concatenate: `items` is empty")
+        device = items[0].device
+        if any(it.device != device for it in items):
+            raise ValueError("DeviceGaussians.concatenate: all items must live on the same device")
+        n = sum(len(it) for it in items)
+        k = max(it.sh.shape[1] for it in items)
+        out = DeviceGaussians(
+            means=wp.empty(n, dtype=wp.vec3, device=device),
+            quats=wp.empty(n, dtype=wp.vec4, device=device),
+            scales=wp.empty(n, dtype=wp.vec3, device=device),
+            opacities=wp.empty(n, dtype=wp.float32, device=device),
+            sh=wp.zeros((n, k), dtype=wp.vec3, device=device),
+        )
+        start = 0
+        for it in items:
+            m = len(it)
+            for name in ("means", "quats", "scales", "opacities"):
+                wp.copy(getattr(out, name), getattr(it, name), dest_offset=start, count=m)
+            if it.sh.shape[1] == k:
+                wp.copy(out.sh, it.sh, dest_offset=start * k, count=m * k)
+            else:
+                sh = np.zeros((m, k, 3), np.float32)
+                sh[:, : it.sh.shape[1]] = it.sh.numpy()
+                wp.copy(
+                    out.sh, wp.array(sh, dtype=wp.vec3, device=device), dest_offset=start * k, count=m * k
+                )
+            start += m
+        return out
+
     @staticmethod
     def from_cloud(cloud: GaussianCloud, device: str = "cpu") -> DeviceGaussians:
         import warp as wp

@@ -135,7 +135,11 @@ def _preprocess(
     o = opacities[i]
     if z < near or o < 1.0 / 255.0:
         return
-    r = _quat_wxyz_to_mat(quats[i])
+    q = quats[i]
+    qn = wp.length(q)
+    if qn > 0.0:
+        q = q / qn
+    r = _quat_wxyz_to_mat(q)
     s = scales[i]
     m = r * wp.diag(s)
     cov_w = m * wp.transpose(m)

@@ -19,6 +19,8 @@ from twinbench.gaussians.cloud import GaussianCloud
 
 _EPS_REL = 1e-5
 
+wp.set_module_options({"enable_backward": False})
+
 
 @dataclass
 class SkinBinding:
@@ -191,8 +193,13 @@ class LBSSkinner:
         self.means = wp.zeros(n, dtype=wp.vec3, device=device)
         self.quats = wp.zeros(n, dtype=wp.vec4, device=device)
 
-    def update(self, particles) -> tuple[wp.array, wp.array]:
-        """Skin to current particle positions ((P, 3) numpy or a vec3 wp.array on this device)."""
+    def update(
+        self, particles, out_means: wp.array | None = None, out_quats: wp.array | None = None
+    ) -> tuple[wp.array, wp.array]:
+        """Skin to current particle positions ((P, 3) numpy or a vec3 wp.array on this device).
+
+        Results go to `out_means` / `out_quats` when given (e.g. slices of a scene-wide DeviceGaussians),
+        else to this skinner's own `means` / `quats`; returns the arrays written."""
         if not isinstance(particles, wp.array):
             arr = np.asarray(particles, dtype=np.float32)
             if arr.shape != (self.num_particles, 3):
@@ -206,6 +213,11 @@ class LBSSkinner:
             raise ValueError(
                 f"LBSSkinner.update: expected {self.num_particles} particles, got {particles.shape[0]}"
             )
+        means = self.means if out_means is None else out_means
+        quats = self.quats if out_quats is None else out_quats
+        n = self.means.shape[0]
+        if means.shape[0] != n or quats.shape[0] != n:
+            raise ValueError(f"LBSSkinner.update: out_means/out_quats must hold {n} entries")
         wp.launch(
             _bone_rotations,
             dim=self.num_particles,
@@ -215,7 +227,7 @@ class LBSSkinner:
         )
         wp.launch(
             _skin,
-            dim=self.means.shape[0],
+            dim=n,
             inputs=[
                 self._rest_means,
                 self._rest_quats,
@@ -225,10 +237,10 @@ class LBSSkinner:
                 particles,
                 self.bone_rotations,
             ],
-            outputs=[self.means, self.quats],
+            outputs=[means, quats],
             device=self.device,
         )
-        return self.means, self.quats
+        return means, quats
 
 
 def skin(binding: SkinBinding, rest_cloud: GaussianCloud, particles, device: str = "cpu") -> GaussianCloud:
