@@ -1,0 +1,248 @@
+"""Scene: one twin = robot + spring-mass objects + static appearance + cameras.
+
+`Scene.step(action)` advances one control step (30 Hz): controller -> robot tool meshes interpolated
+over the physics substeps -> spring-mass frame -> Gaussians follow (FK for robot links, rigid fit or
+LBS for objects). `Scene.render()` renders every camera at the policy resolution.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+import warp as wp
+
+from twinbench.gaussians.cloud import DeviceGaussians, GaussianCloud
+from twinbench.gaussians.render import RenderOutput, render
+from twinbench.gaussians.skinning import LBSSkinner, bind
+from twinbench.physics import ModelBuilder, SimParams, SpringMassSolver
+from twinbench.robot.controller import ControllerConfig, RobotController
+from twinbench.robot.gaussians import RobotGaussians
+from twinbench.robot.model import RobotModel
+from twinbench.robot.transforms import matrix_to_quat, quat_multiply
+from twinbench.scene.cameras import CameraSpec
+
+
+@dataclass(frozen=True)
+class ObjectSpec:
+    """A spring-mass object: particles and Gaussians in the object frame, and its spring network.
+
+    `rigid` objects (uniform high stiffness) carry their Gaussians by the best-fit rigid transform of
+    their particles; deformable ones by linear blend skinning.
+    """
+
+    name: str
+    particles: np.ndarray  # (P, 3) object frame
+    gaussians: GaussianCloud  # object frame
+    rigid: bool = True
+    spring_radius: float = 0.02
+    max_neighbors: int = 50
+    spring_Y: float = 3e4
+    mass: float = 1.0
+
+
+@dataclass(frozen=True)
+class ToolContact:
+    """Contact parameters of the robot's tool meshes (pusher, fingers) against object particles."""
+
+    restitution: float = 0.0
+    friction: float = 0.5
+
+
+@dataclass
+class _Object:
+    spec: ObjectSpec
+    start: int
+    count: int
+    gauss_start: int
+    skinner: LBSSkinner | None = None
+    pose: np.ndarray = field(default_factory=lambda: np.eye(4))
+
+
+def fit_rigid_transform(src: np.ndarray, dst: np.ndarray) -> np.ndarray:
+    """Least-squares rigid transform (4x4) mapping points src -> dst (Kabsch, reflection fixed)."""
+    src = np.asarray(src, dtype=np.float64)
+    dst = np.asarray(dst, dtype=np.float64)
+    cs, cd = src.mean(0), dst.mean(0)
+    u, _, vt = np.linalg.svd((src - cs).T @ (dst - cd))
+    d = np.sign(np.linalg.det(vt.T @ u.T))
+    rot = vt.T @ np.diag([1.0, 1.0, d]) @ u.T
+    out = np.eye(4)
+    out[:3, :3] = rot
+    out[:3, 3] = cd - rot @ cs
+    return out
+
+
+class Scene:
+    """A twin: build once, then `reset(...)`, `step(action)`, `render()`."""
+
+    def __init__(
+        self,
+        robot: RobotModel,
+        robot_gaussians: RobotGaussians,
+        static_gaussians: GaussianCloud,
+        objects: list[ObjectSpec],
+        cameras: list[CameraSpec],
+        *,
+        sim: SimParams | None = None,
+        controller: ControllerConfig | None = None,
+        tool_contact: ToolContact | None = None,
+        image_hw: tuple[int, int] = (240, 240),
+        background=(0.45, 0.45, 0.47),
+        device: str = "cpu",
+    ):
+        if not objects:
+            raise ValueError("objects: a scene needs at least one spring-mass object")
+        names = [o.name for o in objects]
+        if len(set(names)) != len(names):
+            raise ValueError(f"objects: names must be unique, got {names}")
+        self.robot = robot
+        self.controller = RobotController(robot, controller)
+        self.cameras = list(cameras)
+        self.image_hw = tuple(image_hw)
+        self.background = background
+        self.device = device
+        self.sim = sim or SimParams()
+        contact = tool_contact or ToolContact()
+
+        builder = ModelBuilder(self.sim)
+        self._objects: dict[str, _Object] = {}
+        start = 0
+        for spec in objects:
+            builder.add_body(spec.particles, radius=spec.spring_radius, max_neighbors=spec.max_neighbors,
+                             spring_Y=spec.spring_Y, mass=spec.mass)
+            self._objects[spec.name] = _Object(spec, start, len(spec.particles), 0)
+            start += len(spec.particles)
+        q0 = robot.home_q
+        self._tool_mesh: dict[str, int] = {}
+        for link in robot.contact_links:
+            self._tool_mesh[link] = builder.add_kinematic_mesh(
+                robot.contact_vertices(q0, link), robot.contact_faces(link),
+                restitution=contact.restitution, friction=contact.friction,
+            )
+        self.model = builder.finalize(device)
+        self.solver = SpringMassSolver(self.model)
+        self.state = self.model.state()
+        self.control = self.model.control()
+
+        # Gaussians: [static | robot | objects...] in one device buffer; only means/quats change.
+        self._robot_g = robot_gaussians
+        parts = [static_gaussians, robot_gaussians.posed(q0)]
+        offset = len(static_gaussians) + len(robot_gaussians)
+        for obj in self._objects.values():
+            obj.gauss_start = offset
+            offset += len(obj.spec.gaussians)
+            parts.append(obj.spec.gaussians)
+            if not obj.spec.rigid:
+                binding = bind(obj.spec.gaussians.means, obj.spec.particles, device=device)
+                obj.skinner = LBSSkinner(binding, obj.spec.gaussians.means, obj.spec.gaussians.quats, device)
+        self._gaussians: DeviceGaussians = GaussianCloud.concatenate(parts).to_device(device)
+        self._robot_start = len(static_gaussians)
+        self.frame = 0
+        self.finger_forces: tuple[float, float] | None = None
+
+    # ------------------------------------------------------------------ state
+    @property
+    def object_names(self) -> list[str]:
+        return list(self._objects)
+
+    def reset(self, q0: np.ndarray | None = None, object_poses: dict[str, np.ndarray] | None = None) -> None:
+        """Robot at q0 (default home), each object at rest at its pose (default identity), zero velocity."""
+        self.controller.reset(q0)
+        x = self.model.x0_np.copy()
+        poses = dict(object_poses or {})
+        unknown = set(poses) - set(self._objects)
+        if unknown:
+            raise ValueError(f"object_poses: unknown objects {sorted(unknown)}; known: {self.object_names}")
+        for name, obj in self._objects.items():
+            pose = np.asarray(poses.get(name, np.eye(4)), dtype=np.float64)
+            if pose.shape != (4, 4) or not np.all(np.isfinite(pose)):
+                raise ValueError(
+                    f"object_poses[{name!r}]: expected a finite 4x4 pose, got shape {pose.shape}"
+                )
+            local = obj.spec.particles.astype(np.float64)
+            x[obj.start: obj.start + obj.count] = local @ pose[:3, :3].T + pose[:3, 3]
+            obj.pose = pose
+        self.state.x.assign(x.astype(np.float32))
+        self.state.v.zero_()
+        q = self.controller.q
+        for link, mid in self._tool_mesh.items():
+            verts = self.robot.contact_vertices(q, link)
+            self.control.set_kinematic_mesh(mid, verts, verts)
+        self.frame = 0
+        self.finger_forces = None
+        self._update_gaussians()
+
+    def particles(self, name: str) -> np.ndarray:
+        """Current world positions (P, 3) of an object's particles."""
+        obj = self._objects[name]
+        return self.state.x.numpy()[obj.start: obj.start + obj.count].copy()
+
+    def object_pose(self, name: str) -> np.ndarray:
+        """Best-fit rigid pose (4x4) of an object's particles relative to its object frame."""
+        return self._objects[name].pose.copy()
+
+    # ------------------------------------------------------------------ dynamics
+    def step(self, action) -> None:
+        """One control step: controller, then one physics frame with the tool meshes swept along.
+
+        Raises `SimulationDiverged` (from the solver) when the simulation blows up; `ValueError` for a
+        malformed action.
+        """
+        cmd = self.controller.step(action, self.finger_forces)
+        frames = self.robot.contact_mesh_frames(cmd.q_prev, cmd.q)
+        for link, mid in self._tool_mesh.items():
+            self.control.set_kinematic_mesh(mid, *frames[link])
+        self.solver.simulate_frame(self.state, self.control)
+        if len(self._tool_mesh) == 2:  # a gripper: both fingers' contact force magnitudes
+            f = [float(np.linalg.norm(self.solver.mesh_contact_force(m))) for m in self._tool_mesh.values()]
+            self.finger_forces = (f[0], f[1])
+        self.frame += 1
+        self._update_gaussians()
+
+    # ------------------------------------------------------------------ appearance
+    def _write(self, arr: wp.array, start: int, values: np.ndarray) -> None:
+        values = np.ascontiguousarray(values, dtype=np.float32)
+        if arr.device.is_cpu:
+            arr.numpy()[start: start + len(values)] = values
+        else:
+            src = wp.array(values, dtype=arr.dtype, device=arr.device)
+            wp.copy(arr, src, dest_offset=start, count=len(values))
+
+    def _update_gaussians(self) -> None:
+        g = self._gaussians
+        posed = self._robot_g.posed(self.controller.q)
+        self._write(g.means, self._robot_start, posed.means)
+        self._write(g.quats, self._robot_start, _normalised(posed.quats))
+        x = self.state.x.numpy()
+        for obj in self._objects.values():
+            p = x[obj.start: obj.start + obj.count]
+            obj.pose = fit_rigid_transform(obj.spec.particles, p)
+            rest = obj.spec.gaussians
+            if obj.skinner is None:
+                rot = obj.pose[:3, :3]
+                means = rest.means @ rot.T.astype(np.float32) + obj.pose[:3, 3].astype(np.float32)
+                quats = quat_multiply(matrix_to_quat(rot)[None], rest.quats.astype(np.float64))
+            else:
+                m, q = obj.skinner.update(p)
+                means, quats = m.numpy(), q.numpy()
+            self._write(g.means, obj.gauss_start, means)
+            self._write(g.quats, obj.gauss_start, _normalised(quats))
+
+    def camera(self, spec: CameraSpec):
+        """The Camera of a CameraSpec at the current robot configuration and policy resolution."""
+        link_pose = None
+        if spec.mount_link is not None:
+            link_pose = self.robot.link_pose(self.controller.q, spec.mount_link)
+        return spec.camera(self.image_hw, link_pose)
+
+    def render(self) -> dict[str, RenderOutput]:
+        """Render every camera: {name: RenderOutput (rgb float32 HxWx3, depth, alpha)}."""
+        cams = [self.camera(spec) for spec in self.cameras]
+        outs = render(self._gaussians, cams, background=self.background, device=self.device)
+        return {spec.name: out for spec, out in zip(self.cameras, outs, strict=True)}
+
+
+def _normalised(q: np.ndarray) -> np.ndarray:
+    q = np.asarray(q, dtype=np.float64)
+    return q / np.maximum(np.linalg.norm(q, axis=1, keepdims=True), 1e-12)
