@@ -9,6 +9,7 @@ culled. A Gaussian's footprint is the bounding box of the ellipse where alpha >=
 
 from __future__ import annotations
 
+import os
 import threading
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -25,7 +26,6 @@ LOW_PASS = 0.3
 ALPHA_MAX = 0.99
 ALPHA_MIN = 1.0 / 255.0
 T_MIN = 1e-4
-_CPU_THREADS = 2
 
 wp.set_module_options({"enable_backward": False})
 
@@ -508,7 +508,7 @@ def gsplat_available() -> bool:
     return True
 
 
-def _render_gsplat(cloud: GaussianCloud, cams: list[Camera], background, device: str) -> list[RenderOutput]:
+def _render_gsplat(cloud: GaussianCloud | DeviceGaussians, cams: list[Camera], background, device: str):
     try:
         import gsplat
         import torch
@@ -521,12 +521,21 @@ def _render_gsplat(cloud: GaussianCloud, cams: list[Camera], background, device:
             f"render(backend='gsplat') runs on CUDA only, got device={device!r}; use backend='warp'"
         )
     dev = torch.device(device)
-    t = {
-        k: torch.as_tensor(v, device=dev)
-        for k, v in dict(
+    if isinstance(cloud, DeviceGaussians):  # zero-copy views of the Warp arrays
+        t = {
+            "means": wp.to_torch(cloud.means),
+            "quats": wp.to_torch(cloud.quats),
+            "scales": wp.to_torch(cloud.scales),
+            "opacities": wp.to_torch(cloud.opacities),
+            "sh": wp.to_torch(cloud.sh),
+        }
+        sh_degree = int(round(np.sqrt(cloud.sh.shape[1]))) - 1
+    else:
+        arrays = dict(
             means=cloud.means, quats=cloud.quats, scales=cloud.scales, opacities=cloud.opacities, sh=cloud.sh
-        ).items()
-    }
+        )
+        t = {k: torch.as_tensor(v, device=dev) for k, v in arrays.items()}
+        sh_degree = cloud.sh_degree
     outputs: list[RenderOutput | None] = [None] * len(cams)
     groups: dict[tuple[int, int], list[int]] = {}
     for i, cam in enumerate(cams):
@@ -549,7 +558,7 @@ def _render_gsplat(cloud: GaussianCloud, cams: list[Camera], background, device:
             h,
             near_plane=NEAR,
             eps2d=LOW_PASS,
-            sh_degree=cloud.sh_degree,
+            sh_degree=sh_degree,
             tile_size=TILE,
             backgrounds=bgs,
             render_mode="RGB+ED",
@@ -574,13 +583,14 @@ def render(
     background=(0.0, 0.0, 0.0),
     backend: str = "auto",
     device: str | None = None,
-    threads: int = _CPU_THREADS,
+    threads: int | None = None,
 ) -> RenderOutput | list[RenderOutput]:
     """Render `cloud` from one camera (returns a RenderOutput) or a list (returns a list).
 
     backend: "warp" (CPU or CUDA), "gsplat" (CUDA, extra `gsplat`), or "auto" (gsplat on CUDA when
-    installed, else warp). device defaults to the DeviceGaussians' device, else "cpu". On CPU the
-    rasteriser splits Gaussians and tile rows over `threads` Python threads (Warp releases the GIL).
+    installed, else warp). device defaults to the DeviceGaussians' device, else "cpu". On CPU, work is
+    split over `threads` Python threads (default: the core count, at most 8; Warp kernels release the
+    GIL): cameras across threads when there are several, else Gaussians and tile rows.
     """
     single = isinstance(cameras, Camera)
     cams = [cameras] if single else list(cameras)
@@ -597,18 +607,27 @@ def render(
     if device is None:
         device = str(cloud.device) if isinstance(cloud, DeviceGaussians) else "cpu"
     if backend == "auto":
-        backend = (
-            "gsplat"
-            if (device.startswith("cuda") and isinstance(cloud, GaussianCloud) and gsplat_available())
-            else "warp"
-        )
+        backend = "gsplat" if (device.startswith("cuda") and gsplat_available()) else "warp"
     if backend == "gsplat":
-        if not isinstance(cloud, GaussianCloud):
-            raise ValueError("render(backend='gsplat') takes a GaussianCloud, not DeviceGaussians")
+        if isinstance(cloud, DeviceGaussians) and str(cloud.device) != str(device):
+            raise ValueError(f"render: DeviceGaussians live on {cloud.device}, but device={device!r}")
         outs = _render_gsplat(cloud, cams, bg, device)
+        return outs[0] if single else outs
+    g = cloud if isinstance(cloud, DeviceGaussians) else cloud.to_device(device)
+    if str(g.device) != str(wp.get_device(device)):
+        raise ValueError(f"render: DeviceGaussians live on {g.device}, but device={device!r}")
+    threads = max(1, min(8, os.cpu_count() or 1) if threads is None else int(threads))
+    if g.device.is_cpu and threads > 1 and len(cams) > 1:
+        # several cameras on CPU: one camera per thread (every stage runs in parallel, not only kernels)
+        wp.load_module(device=g.device)
+        outs: list = [None] * len(cams)
+        groups = [list(range(len(cams)))[k::threads] for k in range(min(threads, len(cams)))]
+
+        def work(idx):
+            for i in idx:
+                outs[i] = _render_warp_one(g, cams[i], bg, 1)
+
+        _run_threads([(lambda idx=idx: work(idx)) for idx in groups])
     else:
-        g = cloud if isinstance(cloud, DeviceGaussians) else cloud.to_device(device)
-        if str(g.device) != str(wp.get_device(device)):
-            raise ValueError(f"render: DeviceGaussians live on {g.device}, but device={device!r}")
         outs = [_render_warp_one(g, c, bg, threads) for c in cams]
     return outs[0] if single else outs
