@@ -2,7 +2,7 @@
 
 Prints `name value unit` lines, per device (`cpu`, and `cuda:0` when present) and model:
 - substeps per second and ms per 30 Hz frame (667 substeps), median of timed frames after warm-up,
-  with particle-particle collisions on (two bodies, candidates rebuilt every frame);
+  with self-collision on (two bodies, candidates rebuilt every frame);
 - the same with one kinematic mesh (a finger pushing into the body: per-substep vertex
   interpolation and BVH refit, no graph capture);
 - peak resident memory of the process (MiB) after the model's runs.
@@ -30,7 +30,7 @@ def _lattice(nx: int, ny: int, nz: int, spacing: float, origin) -> np.ndarray:
 
 
 MODELS = {
-    # name: two bodies (main body + a small cube resting on it, so collisions are live)
+    # name: two bodies (main body + a small cube resting on it), self-collision on
     "rope": dict(shape=(250, 3, 2), spacing=0.004, radius=0.008),  # 1,500 particles, 1 m long
     "plush": dict(shape=(15, 15, 14), spacing=0.01, radius=0.02),  # 3,150 particles, ~40k springs
 }
@@ -41,7 +41,7 @@ def _build(name: str, device: str, with_mesh: bool):
     s = spec["spacing"]
     body = _lattice(*spec["shape"], s, (0.0, 0.0, 0.0))
     top = body[:, 2].max()
-    p = SimParams(collision_dist=1.5 * s, self_collision=False, object_collision=True)
+    p = SimParams(collision_dist=1.5 * s, self_collision=True)
     b = ModelBuilder(p)
     b.add_body(body, radius=spec["radius"], max_neighbors=30)
     b.add_body(_lattice(3, 3, 3, s, (0.0, 0.0, top + 1.2 * s)), radius=spec["radius"])
