@@ -81,6 +81,24 @@ def main() -> None:
         backends = ["warp"] + (["gsplat"] if device != "cpu" and gsplat_available() else [])
         for backend in backends:
             src = g if backend == "warp" else cloud
+            if backend == "warp":
+                pair = [
+                    cams["848x480"],
+                    Camera.look_at(
+                        (0.3, -0.5, 0.35),
+                        (0.0, 0.1, 0.05),
+                        fx=433.26,
+                        cx=425.70,
+                        cy=244.70,
+                        width=848,
+                        height=480,
+                    ),
+                ]
+                ms = median_ms(
+                    lambda src=src, d=device, pair=pair: render(src, pair, backend="warp", device=d),
+                    args.repeats,
+                )
+                print(f"render_{backend}_{device.replace(':', '')}_2cams_848x480_200k {ms:.1f} ms")
             for name, cam in cams.items():
                 ms = median_ms(
                     lambda src=src, cam=cam, b=backend, d=device: render(src, cam, backend=b, device=d),
