@@ -22,16 +22,21 @@ class RenderPlyConfig:
     out: Path = Path("render.png")
     """Output PNG path."""
     width: int = 848
+    """Image width in pixels."""
     height: int = 480
+    """Image height in pixels."""
     fov_deg: float = 60.0
     """Horizontal field of view in degrees."""
     view_dir: tuple[float, float, float] = (0.0, -1.0, 0.6)
     """Direction from the cloud's centre towards the camera."""
     up: tuple[float, float, float] = (0.0, 0.0, 1.0)
+    """World direction shown as 'up' in the image (COLMAP/INRIA scans are often y-down: try 0 -1 0)."""
     percentile: float = 95.0
     """Frame the sphere holding this percentile of Gaussians (robust to stray floaters)."""
     background: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    """Background RGB in [0, 1]."""
     device: str = "cpu"
+    """Warp device: "cpu" or "cuda:N"."""
 
 
 def framing_camera(

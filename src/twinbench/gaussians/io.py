@@ -2,7 +2,9 @@
 
 `load_gaussians(path)` / `save_gaussians(cloud, path)` dispatch on the extension. Every reader validates
 its input and raises `GaussianFileError` (a ValueError) naming the file and the problem.
-Axes are stored as-is (no coordinate-system conversion for any format).
+Axes are stored as-is (no coordinate-system conversion for any format); a file in another frame, e.g. a
+y-up RUB .spz, maps to INRIA's RDF by the proper rotation `cloud.transform(np.diag([1, -1, -1, 1]))`,
+which also rotates the SH. SuperSplat's compressed .ply layout is rejected with a clear error.
 """
 
 from __future__ import annotations
