@@ -43,6 +43,10 @@ def test_two_workers_grid_and_resume(tmp_path):
 
 def test_sampled_episodes_determinism_and_partial_resume(tmp_path):
     assert episode_set(8, 3, 10) == [(8, 10), (9, 11), (10, 12)]
+    assert episode_set(8, "grid:0,5,7", 10) == [(0, 10), (5, 15), (7, 17)]
+    for bad in ("grid:0,8", "grid:1,1", "grid:a"):
+        with pytest.raises(ValueError, match="grid"):
+            episode_set(8, bad, 0)
     with pytest.raises(ValueError, match="episodes"):
         episode_set(8, "all", 0)
     store = ResultsStore(tmp_path / "r.sqlite")

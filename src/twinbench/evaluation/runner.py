@@ -73,20 +73,44 @@ def _error_text(err: BaseException) -> str:
     return "".join(traceback.format_exception_only(type(err), err)).strip()
 
 
+class _VideoWriter:
+    """Streams frames to an MP4 as they come (an episode's frames never sit in memory at once)."""
+
+    def __init__(self, path: str | Path, env):
+        self.path = Path(path)
+        self.fps = env.unwrapped.metadata.get("render_fps", 30)
+        self._writer = None
+
+    def add(self, frame) -> None:
+        if self._writer is None:
+            import imageio.v2 as imageio
+
+            self.path.parent.mkdir(parents=True, exist_ok=True)
+            self._writer = imageio.get_writer(str(self.path), fps=self.fps)
+        self._writer.append_data(np.asarray(frame))
+
+    def close(self) -> bool:
+        """Finish the file; whether any frame was written."""
+        if self._writer is None:
+            return False
+        self._writer.close()
+        return True
+
+
 def run_episode(env, policy, *, init_state: int, seed: int, max_steps: int | None = None,
                 video_path: str | Path | None = None) -> EpisodeOutcome:
     """Roll `policy` out in `env` from `init_state`; never raises for env or policy failures."""
     t0, started = time.perf_counter(), time.time()
     rewards: list[float] = []
-    frames: list[np.ndarray] = []
+    video = _VideoWriter(video_path, env) if video_path is not None else None
     success, status, error, steps = False, "ok", None, 0
     limit = int(max_steps or getattr(env.unwrapped, "_max_episode_steps", 0) or 0)
     if limit <= 0:
         raise ValueError("run_episode: env has no _max_episode_steps; pass max_steps")
     try:
         obs, _ = env.reset(seed=int(seed), options={"init_state": int(init_state)})
-        if video_path is not None:
-            frames.append(np.asarray(env.render()))
+        if video is not None:
+            video.add(env.render())
     except Exception as err:  # noqa: BLE001 - any env failure is a sim_error, reported with its text
         status, error = "sim_error", f"reset: {_error_text(err)}"
     if status == "ok":
@@ -122,20 +146,16 @@ def run_episode(env, policy, *, init_state: int, seed: int, max_steps: int | Non
             status, error = "sim_error", f"non-finite agent_pos at step {steps}"
             break
         success = success or bool(info.get("is_success", False))
-        if video_path is not None:
-            frames.append(np.asarray(env.render()))
+        if video is not None:
+            video.add(env.render())
         if terminated or truncated:
             break
-    if video_path is not None and frames:
-        import imageio.v2 as imageio
-
-        Path(video_path).parent.mkdir(parents=True, exist_ok=True)
-        imageio.mimwrite(str(video_path), frames, fps=env.unwrapped.metadata.get("render_fps", 30))
+    written = video.close() if video is not None else False
     return EpisodeOutcome(
         success=success and status == "ok", status=status, steps=steps,
         wall_time_s=time.perf_counter() - t0, sum_reward=float(np.sum(rewards)) if rewards else 0.0,
         max_reward=float(np.max(rewards)) if rewards else 0.0, error=error,
-        video_path=None if video_path is None or not frames else str(video_path), started_at=started,
+        video_path=str(video_path) if written else None, started_at=started,
     )
 
 
@@ -183,15 +203,28 @@ def run_job(job: EpisodeJob) -> EpisodeRecord:
 
 # ---- parent side -----------------------------------------------------------------------------------
 def episode_set(n_grid_states: int, episodes: str | int, seed: int) -> list[tuple[int, int]]:
-    """[(init_state, seed)] for `episodes` = "grid" or a number N of sampled states."""
+    """[(init_state, seed)] for `episodes` = "grid", "grid:I,J,..." (a subset of the grid) or a number N
+    of sampled states."""
     if episodes == "grid":
         return [(i, seed + i) for i in range(n_grid_states)]
+    if isinstance(episodes, str) and episodes.startswith("grid:"):
+        try:
+            chosen = [int(v) for v in episodes[5:].split(",")]
+        except ValueError:
+            raise ValueError(f"episodes 'grid:I,J,...' needs integer grid indices, "
+                             f"got {episodes!r}") from None
+        bad = [i for i in chosen if not 0 <= i < n_grid_states]
+        if bad or len(set(chosen)) != len(chosen):
+            raise ValueError(f"episodes {episodes!r}: indices must be distinct and in [0, {n_grid_states}), "
+                             f"got {chosen}")
+        return [(i, seed + i) for i in chosen]
     try:
         n = int(episodes)
     except (TypeError, ValueError):
-        raise ValueError(f"episodes must be 'grid' or a positive integer, got {episodes!r}") from None
+        raise ValueError(f"episodes must be 'grid', 'grid:I,J,...' or a positive integer, "
+                         f"got {episodes!r}") from None
     if n < 1:
-        raise ValueError(f"episodes must be 'grid' or a positive integer, got {episodes!r}")
+        raise ValueError(f"episodes must be 'grid', 'grid:I,J,...' or a positive integer, got {episodes!r}")
     return [(n_grid_states + k, seed + k) for k in range(n)]
 
 
@@ -299,7 +332,7 @@ def evaluate(task: str, policies: Sequence[str], episodes: str | int = "grid", w
     env_kwargs = dict(env_kwargs or {})
     states = episode_set(spec_task.n_grid_states, episodes, int(seed))
     store = store if isinstance(store, ResultsStore) else ResultsStore(store)
-    protocol = {"task": task, "episodes": episodes if episodes == "grid" else int(episodes),
+    protocol = {"task": task, "episodes": episodes if str(episodes).startswith("grid") else int(episodes),
                 "init_states": [i for i, _ in states], "seeds": [s for _, s in states],
                 "policies": list(policies), "base_seed": int(seed), "env_kwargs": env_kwargs,
                 "env_id": spec_task.env_id, "versions": _versions()}
@@ -368,7 +401,7 @@ class EvalConfig:
     policy: Annotated[tuple[str, ...], UseAppendAction] = ()  # repeatable: --policy a --policy b
     """policy spec, repeatable: expert, expert@LEVEL, remote:ws://HOST:PORT, lerobot:PATH, NAME=SPEC"""
     episodes: str = "grid"
-    """'grid' (the task's initial-state grid) or N (N sampled states with fixed seeds)"""
+    """'grid' (the task's initial-state grid), 'grid:I,J,...' (some grid states) or N (N sampled states)"""
     workers: int = 1
     """worker processes (0 = run in this process)"""
     db: Path = DEFAULT_DB
