@@ -15,7 +15,8 @@ from dataclasses import dataclass
 import numpy as np
 import warp as wp
 
-from twinbench.gaussians.cloud import GaussianCloud
+from twinbench.gaussians.cloud import DeviceGaussians, GaussianCloud
+from twinbench.gaussians.sh import sh_rotation_matrices
 
 _EPS_REL = 1e-5
 
@@ -166,6 +167,112 @@ def _rigid(
     q = rest_quats[i]
     qn = qr * wp.quat(q[1], q[2], q[3], q[0])
     out_quats[i] = wp.vec4(qn[3], qn[0], qn[1], qn[2])
+
+
+@wp.kernel
+def _rigid_by_label(
+    rest_means: wp.array(dtype=wp.vec3),
+    rest_quats: wp.array(dtype=wp.vec4),
+    rest_sh: wp.array2d(dtype=wp.vec3),
+    labels: wp.array(dtype=wp.int32),
+    rots: wp.array(dtype=wp.mat33),
+    trans: wp.array(dtype=wp.vec3),
+    sh_mats: wp.array2d(dtype=wp.float32),
+    out_means: wp.array(dtype=wp.vec3),
+    out_quats: wp.array(dtype=wp.vec4),
+    out_sh: wp.array2d(dtype=wp.vec3),
+):
+    i = wp.tid()
+    lab = labels[i]
+    r = rots[lab]
+    out_means[i] = r * rest_means[i] + trans[lab]
+    qr = wp.quat_from_matrix(r)
+    q = rest_quats[i]
+    qn = qr * wp.quat(q[1], q[2], q[3], q[0])
+    out_quats[i] = wp.vec4(qn[3], qn[0], qn[1], qn[2])
+    out_sh[i, 0] = rest_sh[i, 0]
+    # band l occupies coefficients l^2 .. (l+1)^2 - 1; its (2l+1)^2 matrix entries follow the previous bands'
+    k = rest_sh.shape[1]
+    moff = int(0)  # noqa: UP018 (a Warp dynamic variable)
+    band = int(1)  # noqa: UP018
+    while band * band < k:
+        size = 2 * band + 1
+        first = band * band
+        for a in range(size):
+            acc = wp.vec3()
+            for b in range(size):
+                acc += sh_mats[lab, moff + a * size + b] * rest_sh[i, first + b]
+            out_sh[i, first + a] = acc
+        moff += size * size
+        band += 1
+
+
+class LabelRigidPoser:
+    """Per-label rigid motion on the device (e.g. robot links): Gaussian i follows transforms[labels[i]],
+    a 4x4 pose relative to the rest pose; means, quats and the SH bands (exact per-label rotation
+    matrices, computed on the host) are updated in one launch. `update` returns a DeviceGaussians that
+    shares scales and opacities with the rest cloud."""
+
+    def __init__(
+        self,
+        rest: GaussianCloud | DeviceGaussians,
+        labels,
+        num_labels: int | None = None,
+        device: str = "cpu",
+    ) -> None:
+        rest_dev = rest if isinstance(rest, DeviceGaussians) else rest.to_device(device)
+        self.device = rest_dev.device
+        lab = np.asarray(labels)
+        n = len(rest_dev)
+        if lab.shape != (n,) or (lab.size and not np.issubdtype(lab.dtype, np.integer)):
+            raise ValueError(f"LabelRigidPoser: labels must be ({n},) integers, got {lab.shape} {lab.dtype}")
+        self.num_labels = int(lab.max()) + 1 if num_labels is None and lab.size else int(num_labels or 0)
+        if lab.size and (lab.min() < 0 or lab.max() >= self.num_labels):
+            raise ValueError(f"LabelRigidPoser: labels must lie in [0, {self.num_labels})")
+        self.rest = rest_dev
+        self.degree = int(round(np.sqrt(rest_dev.sh.shape[1]))) - 1
+        self._labels = wp.array(lab.astype(np.int32), dtype=wp.int32, device=self.device)
+        self.posed = DeviceGaussians(
+            means=wp.empty(n, dtype=wp.vec3, device=self.device),
+            quats=wp.empty(n, dtype=wp.vec4, device=self.device),
+            scales=rest_dev.scales,
+            opacities=rest_dev.opacities,
+            sh=wp.empty(rest_dev.sh.shape, dtype=wp.vec3, device=self.device),
+        )
+
+    def update(self, transforms) -> DeviceGaussians:
+        """Pose with `transforms` (num_labels, 4, 4), each a rigid transform from the rest pose."""
+        t = np.asarray(transforms, dtype=np.float64)
+        if t.shape != (self.num_labels, 4, 4) or not np.all(np.isfinite(t)):
+            raise ValueError(
+                f"LabelRigidPoser.update: transforms must be finite ({self.num_labels}, 4, 4), got {t.shape}"
+            )
+        rots = t[:, :3, :3]
+        if not np.allclose(rots @ rots.transpose(0, 2, 1), np.eye(3), atol=1e-5) or np.any(
+            np.linalg.det(rots) < 0
+        ):
+            raise ValueError("LabelRigidPoser.update: every transform's 3x3 block must be a rotation")
+        width = max(1, sum((2 * b + 1) ** 2 for b in range(1, self.degree + 1)))
+        mats = np.zeros((self.num_labels, width), np.float32)
+        if self.degree > 0:
+            for i in range(self.num_labels):
+                mats[i] = np.concatenate([m.ravel() for m in sh_rotation_matrices(rots[i], self.degree)[1:]])
+        wp.launch(
+            _rigid_by_label,
+            dim=len(self.rest),
+            inputs=[
+                self.rest.means,
+                self.rest.quats,
+                self.rest.sh,
+                self._labels,
+                wp.array(rots.astype(np.float32), dtype=wp.mat33, device=self.device),
+                wp.array(t[:, :3, 3].astype(np.float32), dtype=wp.vec3, device=self.device),
+                wp.array(mats, dtype=wp.float32, device=self.device),
+            ],
+            outputs=[self.posed.means, self.posed.quats, self.posed.sh],
+            device=self.device,
+        )
+        return self.posed
 
 
 class LBSSkinner:
