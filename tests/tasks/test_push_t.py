@@ -97,6 +97,16 @@ def test_bad_actions_raise_and_divergence_is_a_sim_error(env):
         env.step(np.array([0.3, 0.0], np.float32))
 
 
+def test_render_views_side_by_side():
+    env = PushTEnv(preset="fast", render_views="front+wrist")
+    obs, _ = env.reset(seed=0)
+    frame = env.render()
+    assert frame.shape == (240, 480, 3)
+    np.testing.assert_array_equal(frame[:, 240:], obs["pixels"]["wrist"])
+    with pytest.raises(ValueError, match="render_views"):
+        PushTEnv(preset="fast", render_views="top")
+
+
 def test_presets_are_named_and_validated():
     assert PushTConfig.preset("fast").particle_spacing == 0.015
     assert PushTConfig.preset("reference").substeps == 667

@@ -91,9 +91,15 @@ class PushTEnv(gymnasium.Env):
     metadata = {"render_modes": ["rgb_array"], "render_fps": 30}
     task_description = "push the T-shaped block onto the yellow target"
 
-    def __init__(self, preset: str = "reference", render_mode: str | None = "rgb_array", **overrides):
+    def __init__(self, preset: str = "reference", render_mode: str | None = "rgb_array",
+                 render_views: str = "front", **overrides):
+        """`preset` names the twin's settings (`PushTConfig.preset`), `overrides` replace single fields;
+        `render_views` is what `render()` returns: "front" (the default) or "front+wrist" side by side."""
+        if render_views not in ("front", "front+wrist"):
+            raise ValueError(f"render_views must be 'front' or 'front+wrist', got {render_views!r}")
         self.config = cfg = PushTConfig.preset(preset, **overrides)
         self.render_mode = render_mode
+        self.render_views = render_views
         self.metadata = {**self.metadata, "render_fps": cfg.fps}
         self._max_episode_steps = cfg.max_episode_steps
         self.shape = TBlockShape()
@@ -239,6 +245,8 @@ class PushTEnv(gymnasium.Env):
         return obs, info["coverage"], success, truncated, info
 
     def render(self):
+        if self.render_views == "front+wrist":
+            return np.concatenate([self._frames["front"], self._frames["wrist"]], axis=1)
         return self._frames["front"]
 
     def _observe(self) -> dict:
