@@ -262,6 +262,7 @@ def _rasterise(
     out_rgb: wp.array(dtype=wp.vec3),
     out_depth: wp.array(dtype=wp.float32),
     out_t: wp.array(dtype=wp.float32),
+    row_done: wp.array(dtype=wp.int32),
 ):
     """One thread per tile, Gaussian-major: each Gaussian (records in pair order, by depth within the
     tile) updates the pixels of its ellipse in the tile."""
@@ -275,6 +276,10 @@ def _rasterise(
             out_rgb[y * width + x] = wp.vec3(0.0, 0.0, 0.0)
             out_depth[y * width + x] = 0.0
             out_t[y * width + x] = 1.0
+    # row_done[16 tile + r]: bit j set once pixel (x0 + j, y0 + r) stopped (transmittance < 1e-4);
+    # spans whose pixels have all stopped are skipped without visiting them
+    for r in range(16):
+        row_done[tile * 16 + r] = 0
     npix = (x1 - x0) * (y1 - y0)
     ndone = int(0)  # noqa: UP018 (a Warp dynamic variable)
     rg = ranges[tile]
@@ -302,6 +307,14 @@ def _rasterise(
             ctr = m[0] - cn[1] * dy * ia
             sx0 = wp.max(int(wp.ceil(ctr - half - 0.5)), gx0)
             sx1 = wp.min(int(wp.floor(ctr + half - 0.5)), gx1)
+            span = ((1 << (sx1 - x0 + 1)) - 1) ^ ((1 << (sx0 - x0)) - 1)
+            done_bits = row_done[tile * 16 + y - y0]
+            if (done_bits & span) == span:
+                continue
+            while ((done_bits >> (sx0 - x0)) & 1) == 1:
+                sx0 += 1
+            while ((done_bits >> (sx1 - x0)) & 1) == 1:
+                sx1 -= 1
             row = y * width
             # d^2 along the row, updated incrementally: d2(x + 1) = d2(x) + step, step += 2 a
             dx = float(sx0) + 0.5 - m[0]
@@ -321,6 +334,8 @@ def _rasterise(
                 if test_t < 1e-4:
                     out_t[row + x] = -t
                     ndone += 1
+                    done_bits = done_bits | (1 << (x - x0))
+                    row_done[tile * 16 + y - y0] = done_bits
                     continue
                 w = alpha * t
                 out_rgb[row + x] = out_rgb[row + x] + w * col
@@ -472,7 +487,7 @@ def _render_warp_one(g: DeviceGaussians, cam: Camera, background: np.ndarray, th
     out_depth = wp.empty(h * w, dtype=wp.float32, device=device)
     out_t = wp.empty(h * w, dtype=wp.float32, device=device)
     raster_in = [ranges, pair_records, w, h, tiles_x, wp.vec3(*[float(c) for c in background])]
-    raster_out = [out_rgb, out_depth, out_t]
+    raster_out = [out_rgb, out_depth, out_t, wp.empty(n_tile_total * 16, dtype=wp.int32, device=device)]
     parts = threads if (cpu and threads > 1) else 1
     rows = np.arange(tiles_y)
     lists = []
