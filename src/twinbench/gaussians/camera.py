@@ -9,7 +9,9 @@ import numpy as np
 
 @dataclass(frozen=True, eq=False)
 class Camera:
-    """Intrinsics in pixels and a 4x4 camera-to-world pose (compared by identity: it holds an array). Pixel (i, j) has its centre at (i+0.5, j+0.5);
+    """Intrinsics in pixels and a 4x4 camera-to-world pose (compared by identity: it holds an array).
+
+    Pixel (i, j) has its centre at (i+0.5, j+0.5);
     a camera-frame point (x, y, z) projects to u = fx x / z + cx, v = fy y / z + cy."""
 
     fx: float
