@@ -5,6 +5,13 @@ front-to-back compositing by camera depth, alpha = min(0.99, o exp(-d^2/2)), ski
 a pixel before the Gaussian that would bring its transmittance below 1e-4. Gaussians with z < near are
 culled. A Gaussian's footprint is the bounding box of the ellipse where alpha >= 1/255
 (d^2 <= 2 ln(255 o), at most 3.33 sigma), so tile culling drops nothing the compositing would keep.
+The Jacobian clamps x/z, y/z to 0.3 tan(fov/2) beyond the image (as gsplat does); SH colours are
+max(0, 0.5 + sum c_k Y_k(d)) with d the unit direction from the camera centre; rgb is clipped to [0, 1].
+
+Pipeline: project (packed 64-byte record per Gaussian) -> depth sort -> (tile, Gaussian) pairs in
+depth order -> stable sort by tile -> records gathered into pair order -> one thread per tile walks its
+Gaussians front to back and updates only the pixels of each Gaussian's ellipse, skipping runs of
+stopped pixels (per-row bitmasks) and stopping the tile when every pixel has stopped.
 """
 
 from __future__ import annotations
