@@ -38,6 +38,14 @@ def test_warp_matches_bruteforce_reference(make_cloud, ref_render, degree, aniso
     _assert_matches(out, ref)
 
 
+def test_many_tiles_and_tile_boundaries(make_cloud, ref_render):
+    # 10 x 8 tiles with a ragged last column/row; Gaussians of 1-20 px straddle many tile borders
+    cloud = make_cloud(600, degree=2, anisotropic=True, seed=21, spread=0.4, log_scale=(-4.5, -2.3))
+    cam = _cam(width=157, height=121, fx=120.0)
+    out = render(cloud, cam, background=(1.0, 1.0, 1.0), threads=2)
+    _assert_matches(out, ref_render(cloud, cam, (1.0, 1.0, 1.0)))
+
+
 def test_behind_camera_offscreen_and_offcentre_principal_point(make_cloud, ref_render):
     # camera inside the cloud: many Gaussians behind it or beside the image; principal point off centre
     cloud = make_cloud(200, degree=3, anisotropic=True, seed=7, spread=0.5, log_scale=(-3.5, -2.0))
