@@ -104,20 +104,35 @@ def test_spz_round_trip_within_quantisation(tmp_path, make_cloud, version):
     assert _rotation_error(back.quats, cloud.quats) < (2e-5 if version == 3 else 5e-3)
 
 
-def test_spz_known_bytes(tmp_path):
-    """Hand-encoded one-point v2 file: position (1.0, -0.5, 0.25) with 12 fractional bits etc."""
+def test_spz_known_bytes_and_rub_axes(tmp_path):
+    """Hand-encoded one-point v2 file (degree 1). .spz stores RUB axes; we read INRIA's RDF: y, z negated."""
     pos = b"".join((int(round(v * 4096)) & 0xFFFFFF).to_bytes(3, "little") for v in (1.0, -0.5, 0.25))
     alpha, colour = bytes([255]), bytes([int(round(0.5 * 255))] * 3)
     scale = bytes([int((np.log(0.01) + 10) * 16 + 0.5)] * 3)
-    rot = bytes([128, 128, 128])  # xyz ~ 0 -> identity
-    body = struct.pack("<IIIBBBB", 0x5053474E, 2, 1, 0, 12, 0, 0) + pos + alpha + colour + scale + rot
+    rot = bytes([191, 191, 191])  # xyz of the xyzw quaternion (0.5, 0.5, 0.5, 0.5)
+    sh = bytes([192] * 9)  # every degree-1 coefficient = 0.5, coefficient-major, rgb inner
+    body = struct.pack("<IIIBBBB", 0x5053474E, 2, 1, 1, 12, 0, 0) + pos + alpha + colour + scale + rot + sh
     path = tmp_path / "one.spz"
     path.write_bytes(gzip.compress(body))
     c = load_gaussians(path)
-    np.testing.assert_allclose(c.means[0], [1.0, -0.5, 0.25])
+    np.testing.assert_allclose(c.means[0], [1.0, 0.5, -0.25])
     np.testing.assert_allclose(c.scales[0], 0.01, rtol=0.04)
-    np.testing.assert_allclose(c.quats[0], [1, 0, 0, 0], atol=0.01)
+    x = 191 / 127.5 - 1
+    np.testing.assert_allclose(c.quats[0], [np.sqrt(1 - 3 * x * x), x, -x, -x], atol=1e-6)
     assert c.opacities[0] > 0.999
+    np.testing.assert_allclose(c.sh[0, 0], (128 / 255 - 0.5) / 0.15, atol=1e-6)  # byte 128
+    # basis functions -C1 y, C1 z, -C1 x: the first two change sign under (x, y, z) -> (x, -y, -z)
+    np.testing.assert_allclose(c.sh[0, 1:], [[-0.5] * 3, [-0.5] * 3, [0.5] * 3])
+
+
+def test_spz_extension_flag_and_v4_container_are_rejected(tmp_path):
+    path = tmp_path / "ext.spz"
+    path.write_bytes(gzip.compress(struct.pack("<IIIBBBB", 0x5053474E, 3, 0, 0, 12, 2, 0)))
+    with pytest.raises(GaussianFileError, match="extension"):
+        load_gaussians(path)
+    path.write_bytes(b"NGSP" + bytes(28))
+    with pytest.raises(GaussianFileError, match="version 4"):
+        load_gaussians(path)
 
 
 def _good_ply(tmp_path, make_cloud, ascii=False):

@@ -2,9 +2,10 @@
 
 `load_gaussians(path)` / `save_gaussians(cloud, path)` dispatch on the extension. Every reader validates
 its input and raises `GaussianFileError` (a ValueError) naming the file and the problem.
-Axes are stored as-is (no coordinate-system conversion for any format); a file in another frame, e.g. a
-y-up RUB .spz, maps to INRIA's RDF by the proper rotation `cloud.transform(np.diag([1, -1, -1, 1]))`,
-which also rotates the SH. SuperSplat's compressed .ply layout is rejected with a clear error.
+Axes: a GaussianCloud uses the INRIA .ply axes as stored. `.spz` stores RUB axes (its spec), so its
+reader and writer convert RUB <-> RDF (y, z negated; the same convention as Niantic's library with
+`to/from = RDF`). `.splat` and `.ply` are read as-is. SuperSplat's compressed .ply layout, .spz
+extension records and the uncompressed NGSP (v4) container are rejected with clear errors.
 """
 
 from __future__ import annotations
@@ -19,6 +20,7 @@ from pathlib import Path
 import numpy as np
 
 from twinbench.gaussians.cloud import SH_C0, GaussianCloud
+from twinbench.gaussians.sh import sh_rotation_matrices
 
 
 class GaussianFileError(ValueError):
@@ -306,8 +308,28 @@ _SPZ_SH_DIM = {0: 0, 1: 3, 2: 8, 3: 15}
 _SQRT1_2 = np.float32(np.sqrt(0.5))
 
 
+def _flip_yz(cloud: GaussianCloud) -> GaussianCloud:
+    """Convert between .spz's RUB axes and INRIA .ply's RDF axes (its own inverse): y and z negated,
+    quaternion (w, x, -y, -z), SH coefficients of functions odd in (y, z) negated."""
+    signs = np.concatenate(
+        [np.diag(m) for m in sh_rotation_matrices(np.diag([1.0, -1.0, -1.0]), cloud.sh_degree)]
+    )
+    return GaussianCloud(
+        cloud.means * np.array([1, -1, -1], np.float32),
+        cloud.quats * np.array([1, 1, -1, -1], np.float32),
+        cloud.log_scales,
+        cloud.logit_opacities,
+        cloud.sh * np.rint(signs).astype(np.float32)[None, :, None],
+    )
+
+
 def _read_spz(path: Path) -> GaussianCloud:
     raw = path.read_bytes()
+    if raw[:4] == b"NGSP":
+        raise GaussianFileError(
+            path,
+            "uncompressed NGSP container (.spz version 4+) is not supported; save it as .spz version 2 or 3",
+        )
     try:
         data = gzip.decompress(raw)
     except (OSError, EOFError, zlib.error) as exc:
@@ -323,6 +345,11 @@ def _read_spz(path: Path) -> GaussianCloud:
         raise GaussianFileError(path, f"unsupported .spz version {version} (supported: 2, 3)")
     if degree not in _SPZ_SH_DIM:
         raise GaussianFileError(path, f"SH degree {degree} out of range 0..3")
+    if flags & 2:
+        raise GaussianFileError(
+            path,
+            "holds .spz extension records (flag 0x2), which this reader does not parse; re-save without them",
+        )
     if flags & 1:
         warnings.warn(
             f"{path}: antialiased .spz flag is set; rendered without antialiasing compensation", stacklevel=3
@@ -369,7 +396,7 @@ def _read_spz(path: Path) -> GaussianCloud:
     sh[:, 0] = dc
     if sh_dim:
         sh[:, 1:] = (sh_b.reshape(n, sh_dim, 3).astype(np.float64) - 128.0) / 128.0
-    return GaussianCloud(means, quats, log_scales, opac, sh)
+    return _flip_yz(GaussianCloud(means, quats, log_scales, opac, sh))
 
 
 def _quantise_sh(x: np.ndarray, bits: int) -> np.ndarray:
@@ -386,6 +413,7 @@ def write_spz(
     xyz bytes (v2) or smallest-three 32-bit (v3), SH 5 bits for degree 1 and 4 bits above)."""
     if version not in (2, 3):
         raise ValueError(f"write_spz: version must be 2 or 3, got {version}")
+    cloud = _flip_yz(cloud)  # .spz stores RUB axes
     n = len(cloud)
     fixed = np.rint(cloud.means.astype(np.float64) * (1 << fractional_bits)).astype(np.int64)
     if np.any(np.abs(fixed) >= (1 << 23)):
