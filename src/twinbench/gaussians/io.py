@@ -289,7 +289,8 @@ def _read_splat(path: Path) -> GaussianCloud:
 
 
 def write_splat(cloud: GaussianCloud, path) -> None:
-    """Write a 32-byte-per-Gaussian .splat (DC colour only; view-dependent SH is dropped)."""
+    """Write a 32-byte-per-Gaussian .splat (DC colour only; view-dependent SH is dropped). Bytes are
+    rounded (antimatter15's converter truncates) and the order is kept (it sorts by size * opacity)."""
     out = np.zeros(len(cloud), dtype=_SPLAT_DTYPE)
     out["pos"] = cloud.means
     out["scale"] = cloud.scales
