@@ -29,10 +29,10 @@ from twinbench.gaussians.cloud import DeviceGaussians, GaussianCloud
 
 TILE = 16
 NEAR = 0.01
-LOW_PASS = 0.3
-ALPHA_MAX = 0.99
-ALPHA_MIN = 1.0 / 255.0
-T_MIN = 1e-4
+LOW_PASS = wp.constant(0.3)  # px^2 added to the 2D covariance diagonal
+ALPHA_MAX = wp.constant(0.99)
+ALPHA_MIN = wp.constant(1.0 / 255.0)
+T_MIN = wp.constant(1.0e-4)
 
 wp.set_module_options({"enable_backward": False})
 
@@ -140,7 +140,7 @@ def _preprocess(
     p = rot_wc * means[i] + t_wc
     z = p[2]
     o = opacities[i]
-    if z < near or o < 1.0 / 255.0:
+    if z < near or o < ALPHA_MIN:
         return
     q = quats[i]
     qn = wp.length(q)
@@ -155,15 +155,15 @@ def _preprocess(
     ty = wp.clamp(p[1] / z, -lim_y_neg, lim_y_pos) * z
     j = wp.mat33(fx / z, 0.0, -fx * tx / (z * z), 0.0, fy / z, -fy * ty / (z * z), 0.0, 0.0, 0.0)
     c2 = j * cov_c * wp.transpose(j)
-    a = c2[0, 0] + 0.3
+    a = c2[0, 0] + LOW_PASS
     b = c2[0, 1]
-    c = c2[1, 1] + 0.3
+    c = c2[1, 1] + LOW_PASS
     det = a * c - b * b
     if det <= 0.0:
         return
     u = fx * p[0] / z + cx
     v = fy * p[1] / z + cy
-    d2max = 2.0 * wp.log(255.0 * o)
+    d2max = 2.0 * wp.log(o / ALPHA_MIN)
     ex = wp.sqrt(d2max * a)
     ey = wp.sqrt(d2max * c)
     # pixel centres i + 0.5 inside [u - ex, u + ex]
@@ -334,11 +334,11 @@ def _rasterise(
                 t = out_t[row + x]
                 if t < 0.0:
                     continue
-                alpha = wp.min(0.99, o * wp.exp(-0.5 * d2_here))
-                if alpha < 1.0 / 255.0:
+                alpha = wp.min(ALPHA_MAX, o * wp.exp(-0.5 * d2_here))
+                if alpha < ALPHA_MIN:
                     continue
                 test_t = t * (1.0 - alpha)
-                if test_t < 1e-4:
+                if test_t < T_MIN:
                     out_t[row + x] = -t
                     ndone += 1
                     done_bits = done_bits | (1 << (x - x0))
