@@ -26,7 +26,11 @@ def random_cloud(
     quats /= np.linalg.norm(quats, axis=1, keepdims=True)
     log_scales = rng.uniform(*log_scale, size=(n, 3))
     if anisotropic:
-        log_scales[:, rng.integers(0, 3, size=n)] -= 3.0  # thin discs / needles
+        # thin discs (one axis ~30x shorter) and, for a third of them, needles (two short axes)
+        axis = rng.integers(0, 3, size=n)
+        log_scales[np.arange(n), axis] -= 3.5
+        needles = rng.random(n) < 1 / 3
+        log_scales[np.flatnonzero(needles), (axis[needles] + 1) % 3] -= 3.5
     k = (degree + 1) ** 2
     sh = rng.normal(scale=0.4, size=(n, k, 3))
     sh[:, 1:] *= 0.5
