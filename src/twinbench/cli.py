@@ -7,7 +7,8 @@ import sys
 
 # command -> (module, config dataclass, function taking the config)
 COMMANDS: dict[str, tuple[str, str, str, str]] = {
-    "demo": ("twinbench.demo", "DemoConfig", "main", "run the demo job on the built-in twin (CPU)"),
+    "demo": ("twinbench.demo", "DemoConfig", "main", "evaluate push-T policies on the built-in twin (CPU)"),
+    "physics-demo": ("twinbench.physics.demo", "DemoConfig", "main", "soft cube dropped, grasped and lifted"),
     "render-ply": ("twinbench.gaussians.cli", "RenderPlyConfig", "main",
                    "render a 3DGS .ply/.splat/.spz to a PNG from an automatic viewpoint"),
     "robot-info": ("twinbench.robot.info", "RobotInfoConfig", "robot_info",

@@ -1,11 +1,11 @@
-"""The interim `make demo` (tiny configuration): outputs are written and the cube is really lifted."""
+"""The physics demo (tiny configuration): outputs are written and the cube is really lifted."""
 
 from __future__ import annotations
 
 import imageio.v2 as imageio
 import numpy as np
 
-from twinbench.demo import DemoConfig, main, simulate
+from twinbench.physics.demo import DemoConfig, main, simulate
 
 
 def test_demo_writes_png_and_video(tmp_path, capsys):

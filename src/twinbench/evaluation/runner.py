@@ -230,10 +230,12 @@ def episode_set(n_grid_states: int, episodes: str | int, seed: int) -> list[tupl
 
 def _versions() -> dict:
     import gymnasium
+    import warp
 
     import twinbench
 
-    return {"twinbench": twinbench.__version__, "gymnasium": gymnasium.__version__, "numpy": np.__version__}
+    return {"twinbench": twinbench.__version__, "gymnasium": gymnasium.__version__, "numpy": np.__version__,
+            "warp": warp.config.version}
 
 
 def _progress(total: int, enabled: bool):
