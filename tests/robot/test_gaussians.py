@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 import trimesh
 
-from twinbench.gaussians.cloud import GaussianCloud
-from twinbench.robot.gaussians import SH_C0, RobotGaussians, sample_robot_scan
+from twinbench.gaussians.cloud import SH_C0, GaussianCloud
+from twinbench.robot.gaussians import RobotGaussians, sample_robot_scan
 from twinbench.robot.transforms import quat_to_matrix
 
 

@@ -5,7 +5,8 @@ from __future__ import annotations
 import numpy as np
 import trimesh
 
-from twinbench.gaussians.cloud import SH_C0, GaussianCloud
+from twinbench.gaussians.cloud import GaussianCloud
+from twinbench.gaussians.primitives import surface_discs
 from twinbench.robot.model import RobotModel
 from twinbench.robot.transforms import matrix_to_quat, quat_multiply
 
@@ -97,15 +98,6 @@ class RobotGaussians:
         return GaussianCloud(means, quats, self.log_scales, self.logit_opacities, self.sh_dc)
 
 
-def _quat_z_to(normals: np.ndarray) -> np.ndarray:
-    """wxyz quaternions rotating +z onto each unit normal (shortest arc; -z maps via a turn about x)."""
-    w = 1.0 + normals[:, 2]
-    q = np.stack([w, -normals[:, 1], normals[:, 0], np.zeros(len(normals))], axis=1)
-    flip = w < 1e-8
-    q[flip] = np.array([0.0, 1.0, 0.0, 0.0])
-    return q / np.linalg.norm(q, axis=1, keepdims=True)
-
-
 def sample_robot_scan(
     model: RobotModel,
     *,
@@ -140,13 +132,12 @@ def sample_robot_scan(
             raise ValueError(f"spacing: must be > 0, got {spacing}")
         counts = np.maximum(1, np.round(areas / spacing**2).astype(int))
     rng = np.random.default_rng(seed)
-    means, quats, idx, colors = [], [], [], []
+    means, normals, idx, colors = [], [], [], []
     for k, (name, count) in enumerate(zip(links, counts, strict=True)):
         mesh: trimesh.Trimesh = model.visual_meshes[name]
         pts, faces = trimesh.sample.sample_surface(mesh, int(count), seed=rng)
-        normals = np.asarray(mesh.face_normals)[faces]
         means.append(pts)
-        quats.append(_quat_z_to(normals))
+        normals.append(np.asarray(mesh.face_normals)[faces])
         idx.append(np.full(len(pts), model.link_index(name)))
         if link_colors is not None and name in link_colors:
             rgb = np.asarray(link_colors[name], dtype=np.float64)
@@ -155,14 +146,7 @@ def sample_robot_scan(
         else:
             rgb = _PALETTE[k % len(_PALETTE)]
         colors.append(np.broadcast_to(rgb, (len(pts), 3)))
-    means = np.concatenate(means)
-    n = len(means)
-    log_scales = np.log(np.array([0.7 * spacing, 0.7 * spacing, 0.07 * spacing]))
-    cloud = GaussianCloud(
-        means=means,
-        quats=np.concatenate(quats),
-        log_scales=np.broadcast_to(log_scales, (n, 3)),
-        logit_opacities=np.full(n, np.log(opacity / (1.0 - opacity))),
-        sh=((np.concatenate(colors) - 0.5) / SH_C0)[:, None, :],
+    cloud = surface_discs(
+        np.concatenate(means), np.concatenate(normals), np.concatenate(colors), 0.7 * spacing, opacity=opacity
     )
     return RobotGaussians(model, cloud, np.concatenate(idx))
