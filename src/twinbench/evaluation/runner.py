@@ -399,7 +399,8 @@ class EvalConfig:
 
     run_id: str
     """evaluation run id; re-running the same id resumes it"""
-    task: str = "point-reach"
+    task: str = "push-t"
+    """task name (twinbench.tasks): push-t, point-reach (a cheap debug task)"""
     policy: Annotated[tuple[str, ...], UseAppendAction] = ()  # repeatable: --policy a --policy b
     """policy spec, repeatable: expert, expert@LEVEL, remote:ws://HOST:PORT, lerobot:PATH, NAME=SPEC"""
     episodes: str = "grid"
