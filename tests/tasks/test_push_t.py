@@ -97,8 +97,11 @@ def test_bad_actions_raise_and_divergence_is_a_sim_error(env):
         env.step(np.array([0.3, 0.0], np.float32))
 
 
-def test_render_views_side_by_side():
-    env = PushTEnv(preset="fast", render_views="front+wrist")
+def test_gymnasium_make_and_render_views_side_by_side():
+    import gymnasium
+
+    env = gymnasium.make("twinbench/PushT-v0", preset="fast", render_views="front+wrist")
+    assert isinstance(env.unwrapped, PushTEnv)
     obs, _ = env.reset(seed=0)
     frame = env.render()
     assert frame.shape == (240, 480, 3)

@@ -91,3 +91,18 @@ def task_names() -> list[str]:
 # (`get_task` of an unknown name or `task_names`), so importing this package stays light.
 _DISCOVERED = False
 importlib.import_module(f"{__name__}.point_reach")
+
+# Gymnasium ids of the heavier tasks, registered by name so that `gymnasium.make` works right after
+# `import twinbench.tasks` without importing them (the module registers its task spec when loaded).
+_LAZY_ENVS = {"twinbench/PushT-v0": "twinbench.tasks.push_t:PushTEnv"}
+
+
+def _register_lazy_envs() -> None:
+    import gymnasium
+
+    for env_id, entry_point in _LAZY_ENVS.items():
+        if env_id not in gymnasium.registry:
+            gymnasium.register(id=env_id, entry_point=entry_point)
+
+
+_register_lazy_envs()
