@@ -146,9 +146,8 @@ def test_sigint_then_resume_via_cli(tmp_path):
             assert r.metrics["started_at"] == first[k]
 
 
-@pytest.mark.slow
 def test_ray_backend_matches_local(tmp_path):
-    """Needs the 'ray' extra (skipped without it); slow: starts a local Ray instance."""
+    """Needs the 'ray' extra (skipped without it; CI installs it): starts a local Ray instance."""
     ray = pytest.importorskip("ray")
     store = ResultsStore(tmp_path / "r.sqlite")
     try:
