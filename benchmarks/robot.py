@@ -15,7 +15,7 @@ from twinbench.robot.builtin import load_builtin_arm
 from twinbench.robot.controller import RobotController
 from twinbench.robot.gaussians import sample_robot_scan
 from twinbench.robot.ik import random_configurations, solve_ik
-from twinbench.robot.transforms import matrix_to_quat
+from twinbench.transforms import matrix_to_quat
 
 
 def _median_time(fn, repeats: int) -> float:

@@ -7,9 +7,10 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from twinbench.gaussians.camera import Camera
-from twinbench.gaussians.cloud import GaussianCloud, matrix_to_quat, quat_multiply, quat_to_matrix
+from twinbench.gaussians.cloud import GaussianCloud
 from twinbench.gaussians.render import render
 from twinbench.gaussians.sh import eval_sh_colour, rotate_sh, sh_basis
+from twinbench.transforms import matrix_to_quat, quat_multiply, quat_to_matrix
 
 
 def test_sh_basis_is_orthonormal_on_the_sphere():

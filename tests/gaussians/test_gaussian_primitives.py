@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from twinbench.gaussians.cloud import quat_to_matrix
 from twinbench.gaussians.primitives import quat_z_to, surface_discs
+from twinbench.transforms import quat_to_matrix
 
 
 def test_quat_z_to_maps_z_onto_each_normal():

@@ -7,8 +7,8 @@ import pytest
 import warp as wp
 from scipy.spatial.transform import Rotation
 
-from twinbench.gaussians.cloud import quat_to_matrix
 from twinbench.gaussians.skinning import LBSSkinner, bind, rigid_transform_device, skin
+from twinbench.transforms import quat_to_matrix
 
 
 def _blob(seed=0, n_particles=300, n_gauss=500):

@@ -7,7 +7,7 @@ import pytest
 
 from twinbench.robot.controller import ControllerConfig, RobotController
 from twinbench.robot.ik import solve_ik
-from twinbench.robot.transforms import matrix_to_quat, pose_matrix, rotation_angle, rotvec_to_matrix
+from twinbench.transforms import matrix_to_quat, pose_matrix, rotation_angle, rotvec_to_matrix
 
 MAX_STEP = 0.1 * 0.15 / 0.02 / 30  # rad: clamp 0.10, v = dq / 0.02 * 0.15, q += v / 30
 

@@ -8,7 +8,7 @@ import trimesh
 
 from twinbench.gaussians.cloud import SH_C0, GaussianCloud
 from twinbench.robot.gaussians import RobotGaussians, sample_robot_scan
-from twinbench.robot.transforms import quat_to_matrix
+from twinbench.transforms import quat_to_matrix
 
 
 @pytest.fixture(scope="module")

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from twinbench.robot.ik import random_configurations, solve_ik
-from twinbench.robot.transforms import pose_matrix, rotation_angle
+from twinbench.transforms import pose_matrix, rotation_angle
 
 
 def test_ik_round_trip_200_random_reachable_poses(arm):

@@ -7,7 +7,7 @@ import pytest
 import trimesh
 
 from twinbench.robot.model import URDFError, load_robot
-from twinbench.robot.transforms import axis_angle_to_matrix, invert_pose
+from twinbench.transforms import axis_angle_to_matrix, invert_pose
 
 DOWN = np.diag([1.0, -1.0, -1.0])  # flange orientation at q = 0: x forward, z pointing down
 

@@ -7,7 +7,7 @@ import re
 import numpy as np
 
 from twinbench.cli import main
-from twinbench.robot.transforms import matrix_to_quat
+from twinbench.transforms import matrix_to_quat
 
 
 def _ee_line(out: str):

@@ -252,7 +252,7 @@ def _tool_meta(tool: str) -> dict:
 def regenerate(folder: Path = ASSETS) -> list[Path]:
     """Write both tools' URDFs and meshes plus a JSON sidecar with the end-effector, gripper and home q."""
     from twinbench.robot.ik import solve_ik
-    from twinbench.robot.transforms import pose_matrix
+    from twinbench.transforms import pose_matrix
 
     written = []
     for tool in TOOLS:

@@ -16,7 +16,7 @@ import numpy as np
 
 from twinbench.robot.ik import DEFAULT_ROT_WEIGHT, solve_ik
 from twinbench.robot.model import RobotModel
-from twinbench.robot.transforms import matrix_to_quat, pose_matrix, rotvec_to_matrix
+from twinbench.transforms import matrix_to_quat, pose_matrix, rotvec_to_matrix
 
 ACTION_MODES = ("absolute", "relative", "planar")
 

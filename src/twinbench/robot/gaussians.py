@@ -8,7 +8,7 @@ import trimesh
 from twinbench.gaussians.cloud import GaussianCloud
 from twinbench.gaussians.primitives import surface_discs
 from twinbench.robot.model import RobotModel
-from twinbench.robot.transforms import matrix_to_quat, quat_multiply
+from twinbench.transforms import matrix_to_quat, quat_multiply
 
 # Colours for links whose URDF has no material (cycled).
 _PALETTE = np.array(

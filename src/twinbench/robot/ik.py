@@ -14,7 +14,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from twinbench.robot.model import RobotModel
-from twinbench.robot.transforms import matrix_to_rotvec
+from twinbench.transforms import matrix_to_rotvec
 
 DEFAULT_ROT_WEIGHT = 0.25  # metres of position error equivalent to one radian of rotation error
 

@@ -9,7 +9,7 @@ import tyro
 
 from twinbench.robot.builtin import TOOLS, load_builtin_arm
 from twinbench.robot.model import RobotModel, load_robot
-from twinbench.robot.transforms import matrix_to_quat
+from twinbench.transforms import matrix_to_quat
 
 
 @dataclass(frozen=True)

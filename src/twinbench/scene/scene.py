@@ -19,8 +19,8 @@ from twinbench.physics import ModelBuilder, SimParams, SpringMassSolver
 from twinbench.robot.controller import ControllerConfig, RobotController
 from twinbench.robot.gaussians import RobotGaussians
 from twinbench.robot.model import RobotModel
-from twinbench.robot.transforms import matrix_to_quat, quat_multiply
 from twinbench.scene.cameras import CameraSpec
+from twinbench.transforms import matrix_to_quat, quat_multiply
 
 
 @dataclass(frozen=True)

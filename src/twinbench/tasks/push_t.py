@@ -157,7 +157,7 @@ class PushTEnv(gymnasium.Env):
     # ------------------------------------------------------------------ setup helpers
     def _start_configuration(self) -> np.ndarray:
         from twinbench.robot.ik import solve_ik
-        from twinbench.robot.transforms import pose_matrix as ee_pose
+        from twinbench.transforms import pose_matrix as ee_pose
 
         cfg = self.config
         ctrl = self.scene.controller.config

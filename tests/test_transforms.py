@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from twinbench.robot.transforms import (
+from twinbench.transforms import (
     invert_pose,
     matrix_to_quat,
     matrix_to_rotvec,

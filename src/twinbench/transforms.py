@@ -1,11 +1,9 @@
-"""Batched rigid-transform helpers (numpy, float64): quaternions wxyz, rotation vectors, 4x4 poses."""
+"""Rigid-transform helpers shared by every package (numpy, float64, batched): quaternions wxyz,
+rotation vectors, 4x4 poses."""
 
 from __future__ import annotations
 
 import numpy as np
-
-# Quaternion product and quaternion -> matrix are shared with the gaussians package (re-exported here).
-from twinbench.gaussians.cloud import quat_multiply, quat_to_matrix
 
 __all__ = [
     "axis_angle_to_matrix",
@@ -18,6 +16,38 @@ __all__ = [
     "rotation_angle",
     "rotvec_to_matrix",
 ]
+
+
+def quat_multiply(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Hamilton product a * b of wxyz quaternions (broadcasting over leading axes)."""
+    a = np.asarray(a)
+    b = np.asarray(b)
+    aw, ax, ay, az = np.moveaxis(a, -1, 0)
+    bw, bx, by, bz = np.moveaxis(b, -1, 0)
+    return np.stack(
+        [
+            aw * bw - ax * bx - ay * by - az * bz,
+            aw * bx + ax * bw + ay * bz - az * by,
+            aw * by - ax * bz + ay * bw + az * bx,
+            aw * bz + ax * by - ay * bx + az * bw,
+        ],
+        axis=-1,
+    )
+
+
+def quat_to_matrix(q: np.ndarray) -> np.ndarray:
+    """Rotation matrices (..., 3, 3) of wxyz quaternions (normalised first)."""
+    q = np.asarray(q, dtype=np.float64)
+    q = q / np.linalg.norm(q, axis=-1, keepdims=True)
+    w, x, y, z = np.moveaxis(q, -1, 0)
+    return np.stack(
+        [
+            np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)], -1),
+            np.stack([2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)], -1),
+            np.stack([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], -1),
+        ],
+        -2,
+    )
 
 
 def matrix_to_quat(r: np.ndarray) -> np.ndarray:
