@@ -25,6 +25,7 @@ import numpy as np
 
 from twinbench import __version__
 from twinbench.evaluation import metrics
+from twinbench.evaluation.replay import confusion_counts
 from twinbench.evaluation.store import DEFAULT_DB, EpisodeRecord, ResultsStore
 
 Key = tuple[str, str]  # (policy, checkpoint)
@@ -358,11 +359,9 @@ def pair_replay(replay: list[EpisodeRecord], real: list[EpisodeRecord]):
 
 
 def _confusion_html(pairs) -> str:
-    m = np.zeros((2, 2), dtype=int)  # [real success?][replay success?], index 0 = success
-    for rep, rl in pairs:
-        m[0 if rl.success else 1, 0 if rep.success else 1] += 1
-    n = int(m.sum())
-    agree = (m[0, 0] + m[1, 1]) / n if n else float("nan")
+    c = confusion_counts((rep.success, rl.success) for rep, rl in pairs)
+    m = np.array([[c.tp, c.fn], [c.fp, c.tn]])  # [real success?][replay success?], index 0 = success
+    n, agree = c.n, c.accuracy
 
     def cell(v):
         return f'<td style="background: rgba(31,119,180,{0.1 + 0.6 * v / max(n, 1):.2f})">{v}</td>'
