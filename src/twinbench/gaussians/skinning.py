@@ -219,7 +219,10 @@ class LabelRigidPoser:
         labels,
         num_labels: int | None = None,
         device: str = "cpu",
+        out: DeviceGaussians | None = None,
     ) -> None:
+        """`out` (optional): where `update` writes means, quats and SH, e.g. views of a scene-wide buffer
+        (its SH may have more coefficients than `rest`: the extra ones are left as they are)."""
         rest_dev = rest if isinstance(rest, DeviceGaussians) else rest.to_device(device)
         self.device = rest_dev.device
         lab = np.asarray(labels)
@@ -232,13 +235,20 @@ class LabelRigidPoser:
         self.rest = rest_dev
         self.degree = int(round(np.sqrt(rest_dev.sh.shape[1]))) - 1
         self._labels = wp.array(lab.astype(np.int32), dtype=wp.int32, device=self.device)
-        self.posed = DeviceGaussians(
-            means=wp.empty(n, dtype=wp.vec3, device=self.device),
-            quats=wp.empty(n, dtype=wp.vec4, device=self.device),
-            scales=rest_dev.scales,
-            opacities=rest_dev.opacities,
-            sh=wp.empty(rest_dev.sh.shape, dtype=wp.vec3, device=self.device),
-        )
+        if out is None:
+            out = DeviceGaussians(
+                means=wp.empty(n, dtype=wp.vec3, device=self.device),
+                quats=wp.empty(n, dtype=wp.vec4, device=self.device),
+                scales=rest_dev.scales,
+                opacities=rest_dev.opacities,
+                sh=wp.empty(rest_dev.sh.shape, dtype=wp.vec3, device=self.device),
+            )
+        elif len(out) != n or out.sh.shape[1] < rest_dev.sh.shape[1] or out.device != self.device:
+            raise ValueError(
+                f"LabelRigidPoser: out must hold {n} Gaussians with >= {rest_dev.sh.shape[1]} SH "
+                f"coefficients on {self.device}, got {len(out)} with {out.sh.shape[1]} on {out.device}"
+            )
+        self.posed = out
 
     def update(self, transforms) -> DeviceGaussians:
         """Pose with `transforms` (num_labels, 4, 4), each a rigid transform from the rest pose."""

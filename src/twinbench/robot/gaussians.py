@@ -5,10 +5,11 @@ from __future__ import annotations
 import numpy as np
 import trimesh
 
-from twinbench.gaussians.cloud import GaussianCloud
+from twinbench.gaussians.cloud import DeviceGaussians, GaussianCloud
 from twinbench.gaussians.primitives import surface_discs
+from twinbench.gaussians.skinning import LabelRigidPoser
 from twinbench.robot.model import RobotModel
-from twinbench.transforms import matrix_to_quat, quat_multiply
+from twinbench.transforms import invert_pose
 
 # Colours for links whose URDF has no material (cycled).
 _PALETTE = np.array(
@@ -24,11 +25,11 @@ _PALETTE = np.array(
 
 
 class RobotGaussians:
-    """Gaussians attached to robot links. `local` holds means/quats in each Gaussian's link frame.
+    """Gaussians attached to robot links. `local` holds them in each Gaussian's link frame.
 
-    Gaussians are kept sorted by link (stable), so `posed` transforms contiguous slices. The posed
-    cloud shares `log_scales` / `logit_opacities` / DC colour arrays with this object (do not mutate);
-    only the DC colour term is kept (higher SH bands are not rotated).
+    Posing moves every Gaussian rigidly with its link's FK pose (positions, rotations and the SH bands),
+    through `gaussians.skinning.LabelRigidPoser`: `posed(q)` on the host, `device_poser(...)` for a
+    scene's device buffer. Gaussians are kept sorted by link (stable).
     """
 
     def __init__(self, model: RobotModel, local: GaussianCloud, link_index: np.ndarray):
@@ -49,11 +50,8 @@ class RobotGaussians:
         self.quats = local.quats[order]
         self.log_scales = np.ascontiguousarray(local.log_scales[order])
         self.logit_opacities = np.ascontiguousarray(local.logit_opacities[order])
-        self.sh_dc = np.ascontiguousarray(local.sh[order][:, :1])
-        bounds = np.searchsorted(self.link_index, np.arange(model.n_links + 1))
-        self._slices = [
-            (k, slice(bounds[k], bounds[k + 1])) for k in range(model.n_links) if bounds[k + 1] > bounds[k]
-        ]
+        self.sh = np.ascontiguousarray(local.sh[order])
+        self._host_poser = None
 
     def __len__(self) -> int:
         return self.means.shape[0]
@@ -61,7 +59,7 @@ class RobotGaussians:
     @property
     def local(self) -> GaussianCloud:
         """The Gaussians in their link frames (sorted by link)."""
-        return GaussianCloud(self.means, self.quats, self.log_scales, self.logit_opacities, self.sh_dc)
+        return GaussianCloud(self.means, self.quats, self.log_scales, self.logit_opacities, self.sh)
 
     @classmethod
     def from_world(
@@ -74,28 +72,31 @@ class RobotGaussians:
             raise ValueError(
                 f"link_index: expected {len(cloud)} entries (one per Gaussian), got {link_index.shape[0]}"
             )
-        t = model.fk(q)
-        inv_r = np.swapaxes(t[:, :3, :3], -1, -2)[link_index]
-        means = np.einsum("nij,nj->ni", inv_r, cloud.means - t[link_index, :3, 3])
-        conj = matrix_to_quat(t[:, :3, :3]) * np.array([1.0, -1.0, -1.0, -1.0])
-        quats = quat_multiply(conj[link_index], cloud.quats.astype(np.float64))
-        local = GaussianCloud(means, quats, cloud.log_scales, cloud.logit_opacities, cloud.sh)
-        return cls(model, local, link_index)
+        # Into the link frames: the inverse of posing (SH bands rotated too).
+        g = LabelRigidPoser(cloud, link_index, model.n_links).update(invert_pose(model.fk(q)))
+        return cls(model, _host_cloud(g, cloud), link_index)
+
+    def device_poser(self, device: str = "cpu", out: DeviceGaussians | None = None) -> LabelRigidPoser:
+        """A poser of these Gaussians on `device`; `poser.update(model.fk(q))` poses them (into `out`)."""
+        return LabelRigidPoser(self.local, self.link_index, self.model.n_links, device, out=out)
 
     def posed(self, q: np.ndarray) -> GaussianCloud:
         """World-frame Gaussians at configuration q: each moved rigidly by its link's FK pose."""
         t = self.model.fk(q)
         if t.ndim != 3:
             raise ValueError("q: posed() takes one configuration (n_q,), not a batch")
-        rot = t[:, :3, :3].astype(np.float32)
-        lq = matrix_to_quat(t[:, :3, :3]).astype(np.float32)
-        trans = t[:, :3, 3].astype(np.float32)
-        means = np.empty_like(self.means)
-        quats = np.empty_like(self.quats)
-        for k, s in self._slices:
-            means[s] = self.means[s] @ rot[k].T + trans[k]
-            quats[s] = quat_multiply(lq[k], self.quats[s])
-        return GaussianCloud(means, quats, self.log_scales, self.logit_opacities, self.sh_dc)
+        if self._host_poser is None:
+            self._host_poser = self.device_poser("cpu")
+        return _host_cloud(self._host_poser.update(t), self.local)
+
+
+def _host_cloud(posed: DeviceGaussians, rest: GaussianCloud) -> GaussianCloud:
+    """Host copy of posed means, quats and SH, with the rest cloud's (pose-invariant) scales, opacities.
+    (On CPU `wp.array.numpy()` is a view of the poser's buffer, which the next update overwrites.)"""
+    return GaussianCloud(
+        posed.means.numpy().copy(), posed.quats.numpy().copy(), rest.log_scales, rest.logit_opacities,
+        posed.sh.numpy().copy(),
+    )
 
 
 def sample_robot_scan(

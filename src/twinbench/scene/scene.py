@@ -10,17 +10,15 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
-import warp as wp
 
 from twinbench.gaussians.cloud import DeviceGaussians, GaussianCloud
 from twinbench.gaussians.render import RenderOutput, render
-from twinbench.gaussians.skinning import LBSSkinner, bind
+from twinbench.gaussians.skinning import LabelRigidPoser, LBSSkinner, bind
 from twinbench.physics import ModelBuilder, SimParams, SpringMassSolver
 from twinbench.robot.controller import ControllerConfig, RobotController
 from twinbench.robot.gaussians import RobotGaussians
 from twinbench.robot.model import RobotModel
 from twinbench.scene.cameras import CameraSpec
-from twinbench.transforms import matrix_to_quat, quat_multiply
 
 
 @dataclass(frozen=True)
@@ -52,10 +50,11 @@ class ToolContact:
 @dataclass
 class _Object:
     spec: ObjectSpec
-    start: int
+    start: int  # first particle in the physics model
     count: int
-    gauss_start: int
-    skinner: LBSSkinner | None = None
+    gaussians: DeviceGaussians | None = None  # views of the scene's Gaussian buffer
+    poser: LabelRigidPoser | None = None  # rigid objects
+    skinner: LBSSkinner | None = None  # deformable objects
     pose: np.ndarray = field(default_factory=lambda: np.eye(4))
 
 
@@ -111,7 +110,7 @@ class Scene:
         for spec in objects:
             builder.add_body(spec.particles, radius=spec.spring_radius, max_neighbors=spec.max_neighbors,
                              spring_Y=spec.spring_Y, mass=spec.mass)
-            self._objects[spec.name] = _Object(spec, start, len(spec.particles), 0)
+            self._objects[spec.name] = _Object(spec, start, len(spec.particles))
             start += len(spec.particles)
         q0 = robot.home_q
         self._tool_mesh: dict[str, int] = {}
@@ -125,19 +124,22 @@ class Scene:
         self.state = self.model.state()
         self.control = self.model.control()
 
-        # Gaussians: [static | robot | objects...] in one device buffer; only means/quats change.
-        self._robot_g = robot_gaussians
-        parts = [static_gaussians, robot_gaussians.posed(q0)]
-        offset = len(static_gaussians) + len(robot_gaussians)
-        for obj in self._objects.values():
-            obj.gauss_start = offset
-            offset += len(obj.spec.gaussians)
-            parts.append(obj.spec.gaussians)
-            if not obj.spec.rigid:
-                binding = bind(obj.spec.gaussians.means, obj.spec.particles, device=device)
-                obj.skinner = LBSSkinner(binding, obj.spec.gaussians.means, obj.spec.gaussians.quats, device)
+        # Gaussians: [static | robot | objects...] in one device buffer. The robot's and the objects'
+        # segments are rewritten in place every step (FK poses, rigid fits or LBS), on the device.
+        parts = [static_gaussians, robot_gaussians.local] + [o.spec.gaussians for o in self._objects.values()]
         self._gaussians: DeviceGaussians = GaussianCloud.concatenate(parts).to_device(device)
-        self._robot_start = len(static_gaussians)
+        offset = len(static_gaussians) + len(robot_gaussians)
+        robot_segment = self._segment(len(static_gaussians), len(robot_gaussians))
+        self._robot_poser = robot_gaussians.device_poser(device, out=robot_segment)
+        for obj in self._objects.values():
+            rest = obj.spec.gaussians
+            obj.gaussians = self._segment(offset, len(rest))
+            offset += len(rest)
+            if obj.spec.rigid:
+                obj.poser = LabelRigidPoser(rest, np.zeros(len(rest), np.int32), 1, device, out=obj.gaussians)
+            else:
+                binding = bind(rest.means, obj.spec.particles, device=device)
+                obj.skinner = LBSSkinner(binding, rest.means, rest.quats, device)
         self.frame = 0
         self.finger_forces: tuple[float, float] | None = None
 
@@ -173,6 +175,11 @@ class Scene:
         self.finger_forces = None
         self._update_gaussians()
 
+    @property
+    def gaussians(self) -> DeviceGaussians:
+        """The scene's Gaussians as rendered: static, then robot, then each object (in order)."""
+        return self._gaussians
+
     def particles(self, name: str) -> np.ndarray:
         """Current world positions (P, 3) of an object's particles."""
         obj = self._objects[name]
@@ -201,33 +208,22 @@ class Scene:
         self._update_gaussians()
 
     # ------------------------------------------------------------------ appearance
-    def _write(self, arr: wp.array, start: int, values: np.ndarray) -> None:
-        values = np.ascontiguousarray(values, dtype=np.float32)
-        if arr.device.is_cpu:
-            arr.numpy()[start: start + len(values)] = values
-        else:
-            src = wp.array(values, dtype=arr.dtype, device=arr.device)
-            wp.copy(arr, src, dest_offset=start, count=len(values))
+    def _segment(self, start: int, count: int) -> DeviceGaussians:
+        """Views of Gaussians [start, start + count) of the scene buffer."""
+        g, end = self._gaussians, start + count
+        return DeviceGaussians(g.means[start:end], g.quats[start:end], g.scales[start:end],
+                               g.opacities[start:end], g.sh[start:end])
 
     def _update_gaussians(self) -> None:
-        g = self._gaussians
-        posed = self._robot_g.posed(self.controller.q)
-        self._write(g.means, self._robot_start, posed.means)
-        self._write(g.quats, self._robot_start, _normalised(posed.quats))
+        self._robot_poser.update(self.robot.fk(self.controller.q))
         x = self.state.x.numpy()
         for obj in self._objects.values():
             p = x[obj.start: obj.start + obj.count]
             obj.pose = fit_rigid_transform(obj.spec.particles, p)
-            rest = obj.spec.gaussians
-            if obj.skinner is None:
-                rot = obj.pose[:3, :3]
-                means = rest.means @ rot.T.astype(np.float32) + obj.pose[:3, 3].astype(np.float32)
-                quats = quat_multiply(matrix_to_quat(rot)[None], rest.quats.astype(np.float64))
+            if obj.poser is not None:
+                obj.poser.update(obj.pose[None])
             else:
-                m, q = obj.skinner.update(p)
-                means, quats = m.numpy(), q.numpy()
-            self._write(g.means, obj.gauss_start, means)
-            self._write(g.quats, obj.gauss_start, _normalised(quats))
+                obj.skinner.update(p, out_means=obj.gaussians.means, out_quats=obj.gaussians.quats)
 
     def camera(self, spec: CameraSpec):
         """The Camera of a CameraSpec at the current robot configuration and policy resolution."""
@@ -241,8 +237,3 @@ class Scene:
         cams = [self.camera(spec) for spec in self.cameras]
         outs = render(self._gaussians, cams, background=self.background, device=self.device)
         return {spec.name: out for spec, out in zip(self.cameras, outs, strict=True)}
-
-
-def _normalised(q: np.ndarray) -> np.ndarray:
-    q = np.asarray(q, dtype=np.float64)
-    return q / np.maximum(np.linalg.norm(q, axis=1, keepdims=True), 1e-12)
