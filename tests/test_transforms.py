@@ -48,3 +48,11 @@ def test_pose_inverse_and_angle():
     t = pose_matrix(rng.normal(size=(50, 3)), matrix_to_quat(rotvec_to_matrix(rv)))
     np.testing.assert_allclose(t @ invert_pose(t), np.broadcast_to(np.eye(4), t.shape), atol=1e-12)
     np.testing.assert_allclose(rotation_angle(np.eye(3), t[:, :3, :3]), np.linalg.norm(rv, axis=1), atol=1e-8)
+
+
+def test_planar_pose_and_transform_points():
+    from twinbench.transforms import planar_pose, transform_points
+
+    pose = planar_pose(0.5, -0.2, np.pi / 2)
+    np.testing.assert_allclose(transform_points(pose, [[1.0, 0.0, 0.3]]), [[0.5, 0.8, 0.3]], atol=1e-12)
+    np.testing.assert_allclose(pose[:3, :3] @ pose[:3, :3].T, np.eye(3), atol=1e-12)

@@ -180,3 +180,18 @@ def rotation_angle(r_a: np.ndarray, r_b: np.ndarray) -> np.ndarray:
     """Geodesic angle (rad) between (..., 3, 3) rotations."""
     rel = np.einsum("...ji,...jk->...ik", r_a, r_b)
     return np.linalg.norm(matrix_to_rotvec(rel), axis=-1)
+
+
+def planar_pose(x: float, y: float, theta: float) -> np.ndarray:
+    """4x4 pose of a planar placement: translation (x, y, 0) and rotation theta (rad) about +z."""
+    c, s = np.cos(theta), np.sin(theta)
+    m = np.eye(4)
+    m[:2, :2] = [[c, -s], [s, c]]
+    m[:2, 3] = [x, y]
+    return m
+
+
+def transform_points(pose: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """Apply a 4x4 rigid transform to (N, 3) points."""
+    pose = np.asarray(pose, dtype=np.float64)
+    return np.asarray(points, dtype=np.float64) @ pose[:3, :3].T + pose[:3, 3]

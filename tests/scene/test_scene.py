@@ -11,7 +11,7 @@ from twinbench.robot.ik import solve_ik
 from twinbench.scene.assets import surface_discs
 from twinbench.scene.cameras import front_camera
 from twinbench.scene.scene import ObjectSpec, Scene
-from twinbench.tasks.push_t_geometry import pose_matrix, transform_points
+from twinbench.transforms import planar_pose, transform_points
 from twinbench.transforms import pose_matrix as ee_pose
 
 N_OBJ_GAUSSIANS = 200
@@ -47,7 +47,7 @@ def _segments(scene, robot_gaussians) -> dict[str, np.ndarray]:
 
 def test_reset_places_robot_and_object_gaussians(setup):
     scene, robot_gaussians = setup
-    poses = {"block": pose_matrix(0.5, 0.1, 0.3), "soft": pose_matrix(0.5, -0.1, -0.2)}
+    poses = {"block": planar_pose(0.5, 0.1, 0.3), "soft": planar_pose(0.5, -0.1, -0.2)}
     scene.reset(None, poses)
     seg = _segments(scene, robot_gaussians)
     # device path (scene buffer) == host path (RobotGaussians.posed) at the same configuration
@@ -62,7 +62,7 @@ def test_pushed_block_carries_its_gaussians_rigidly(setup):
     scene, robot_gaussians = setup
     tip_down = ee_pose(np.array([0.35, 0.0, 0.01]), np.array([0.0, 1.0, 0.0, 0.0]))  # pusher at table height
     q0 = solve_ik(scene.robot, tip_down, scene.robot.home_q).q
-    scene.reset(q0, {"block": pose_matrix(0.45, 0.0, 0.0), "soft": pose_matrix(0.3, -0.2, 0.0)})
+    scene.reset(q0, {"block": planar_pose(0.45, 0.0, 0.0), "soft": planar_pose(0.3, -0.2, 0.0)})
     start = scene.controller.ee_state()
     for k in range(45):  # sweep the pusher through the block's position along +x
         scene.step(np.array([start[0] + 0.006 * (k + 1), 0.0]))
@@ -76,9 +76,9 @@ def test_pushed_block_carries_its_gaussians_rigidly(setup):
 
 def test_soft_object_gaussians_follow_its_particles(setup):
     scene, robot_gaussians = setup
-    drop = pose_matrix(0.3, -0.2, 0.4)
+    drop = planar_pose(0.3, -0.2, 0.4)
     drop[2, 3] = 0.03  # released 3 cm above the table: it falls, lands and squashes a little
-    scene.reset(None, {"soft": drop, "block": pose_matrix(0.6, 0.2, 0.0)})
+    scene.reset(None, {"soft": drop, "block": planar_pose(0.6, 0.2, 0.0)})
     for _ in range(12):
         scene.step(scene.controller.ee_state())
     particles = scene.particles("soft")

@@ -7,7 +7,7 @@ from gymnasium.utils.env_checker import check_env
 from twinbench.tasks import get_task
 from twinbench.tasks.push_t import PushTConfig, PushTEnv
 from twinbench.tasks.push_t_expert import PushTExpert
-from twinbench.tasks.push_t_geometry import pose_matrix
+from twinbench.transforms import planar_pose
 
 
 @pytest.fixture(scope="module")
@@ -48,7 +48,7 @@ def test_goal_pose_gives_zero_distance_full_coverage_and_yellow_overlay(env):
     env.scene.reset(env._q_start, {"tblock": env.goal})
     assert env.goal_msd() == pytest.approx(0.0, abs=1e-12)
     assert env.coverage() == pytest.approx(1.0)
-    env.scene.reset(env._q_start, {"tblock": pose_matrix(0.5, 0.2, 0.0)})  # 20 cm away: no overlap
+    env.scene.reset(env._q_start, {"tblock": planar_pose(0.5, 0.2, 0.0)})  # 20 cm away: no overlap
     assert env.coverage() == 0.0 and env.goal_msd() == pytest.approx(0.04, rel=1e-6)
     front = env._observe()["pixels"]["front"].astype(float)
     mask = env._goal_overlay

@@ -6,11 +6,10 @@ from twinbench.tasks.push_t_geometry import (
     TBlockShape,
     grid_initial_states,
     mean_squared_distance,
-    pose_matrix,
     sample_block_particles,
     sample_initial_states,
-    transform_points,
 )
+from twinbench.transforms import planar_pose, transform_points
 
 
 def test_t_mesh_is_closed_with_analytic_volume_and_centroid():
@@ -49,10 +48,10 @@ def test_mean_squared_distance_matches_rigid_motion_formula():
     pts = sample_block_particles(TBlockShape(), 0.01).astype(np.float64)
     pts[:, :2] -= pts[:, :2].mean(0)  # rotate about the particles' own centroid
     t = np.array([0.03, -0.02])
-    assert mean_squared_distance(transform_points(pose_matrix(*t, 0.0), pts), pts) == pytest.approx(t @ t)
+    assert mean_squared_distance(transform_points(planar_pose(*t, 0.0), pts), pts) == pytest.approx(t @ t)
     th = np.deg2rad(40.0)
     r2 = np.mean(np.sum(pts[:, :2] ** 2, axis=1))
-    moved = transform_points(pose_matrix(0, 0, th), pts)
+    moved = transform_points(planar_pose(0, 0, th), pts)
     assert mean_squared_distance(moved, pts) == pytest.approx(2 * (1 - np.cos(th)) * r2, rel=1e-9)
 
 

@@ -22,6 +22,10 @@ from gymnasium import spaces
 
 from twinbench.gaussians.cloud import GaussianCloud
 from twinbench.physics import SimParams, SimulationDiverged
+from twinbench.robot.builtin import load_builtin_arm
+from twinbench.robot.controller import ControllerConfig
+from twinbench.robot.gaussians import sample_robot_scan
+from twinbench.robot.ik import solve_ik
 from twinbench.scene.assets import backdrop_gaussians, mesh_surface_gaussians, table_gaussians
 from twinbench.scene.cameras import FRONT_INTRINSICS, CameraSpec, look_at_pose, wrist_camera
 from twinbench.scene.scene import ObjectSpec, Scene, ToolContact
@@ -31,11 +35,11 @@ from twinbench.tasks.push_t_geometry import (
     TBlockShape,
     grid_initial_states,
     mean_squared_distance,
-    pose_matrix,
     sample_block_particles,
     sample_initial_states,
-    transform_points,
 )
+from twinbench.transforms import planar_pose, transform_points
+from twinbench.transforms import pose_matrix as ee_pose
 
 ENV_ID = "twinbench/PushT-v0"
 GOAL_RGBA = (1.0, 0.85, 0.1, 0.4)  # translucent yellow goal overlay
@@ -103,10 +107,6 @@ class PushTEnv(gymnasium.Env):
         self.metadata = {**self.metadata, "render_fps": cfg.fps}
         self._max_episode_steps = cfg.max_episode_steps
         self.shape = TBlockShape()
-        from twinbench.robot.builtin import load_builtin_arm
-        from twinbench.robot.controller import ControllerConfig
-        from twinbench.robot.gaussians import sample_robot_scan
-
         robot = load_builtin_arm("pusher")
         particles = sample_block_particles(self.shape, cfg.particle_spacing)
         block = ObjectSpec(
@@ -130,7 +130,7 @@ class PushTEnv(gymnasium.Env):
             image_hw=cfg.image_hw,
             device=cfg.device,
         )
-        self.goal = pose_matrix(*cfg.goal_pose)
+        self.goal = planar_pose(*cfg.goal_pose)
         self._goal_particles = transform_points(self.goal, particles.astype(np.float64))
         self._goal_overlay = self._overlay_mask()
         # Coverage: centres of a 2 mm grid of cells over the T's footprint (block frame).
@@ -156,9 +156,6 @@ class PushTEnv(gymnasium.Env):
 
     # ------------------------------------------------------------------ setup helpers
     def _start_configuration(self) -> np.ndarray:
-        from twinbench.robot.ik import solve_ik
-        from twinbench.transforms import pose_matrix as ee_pose
-
         cfg = self.config
         ctrl = self.scene.controller.config
         target = ee_pose(np.array([*cfg.pusher_start, cfg.pusher_height]), np.asarray(ctrl.planar_quat))
@@ -214,7 +211,7 @@ class PushTEnv(gymnasium.Env):
         sampled = bool(options.get("sampled", False)) or index >= n_grid
         dx, dy, dth = self.initial_state(None if sampled else index, seed)
         x, y, th = self.config.nominal_pose
-        self.scene.reset(self._q_start, {"tblock": pose_matrix(x + dx, y + dy, th + dth)})
+        self.scene.reset(self._q_start, {"tblock": planar_pose(x + dx, y + dy, th + dth)})
         self._success.reset()
         self._steps = 0
         self._status = "ok"

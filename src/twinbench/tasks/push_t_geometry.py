@@ -104,19 +104,6 @@ def sample_block_particles(shape: TBlockShape, spacing: float) -> np.ndarray:
     return grid[inside].astype(np.float32)
 
 
-def pose_matrix(x: float, y: float, theta: float) -> np.ndarray:
-    """Planar pose (metres, radians) as a 4x4 homogeneous matrix about +z."""
-    c, s = np.cos(theta), np.sin(theta)
-    m = np.eye(4)
-    m[:2, :2] = [[c, -s], [s, c]]
-    m[:2, 3] = [x, y]
-    return m
-
-
-def transform_points(pose: np.ndarray, points: np.ndarray) -> np.ndarray:
-    return points @ pose[:3, :3].T + pose[:3, 3]
-
-
 def grid_initial_states() -> np.ndarray:
     """The 16 reference initial states (dx, dy, dtheta) relative to the nominal pose.
 
