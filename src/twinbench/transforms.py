@@ -195,3 +195,17 @@ def transform_points(pose: np.ndarray, points: np.ndarray) -> np.ndarray:
     """Apply a 4x4 rigid transform to (N, 3) points."""
     pose = np.asarray(pose, dtype=np.float64)
     return np.asarray(points, dtype=np.float64) @ pose[:3, :3].T + pose[:3, 3]
+
+
+def fit_rigid_transform(src: np.ndarray, dst: np.ndarray) -> np.ndarray:
+    """Least-squares rigid transform (4x4) mapping points src -> dst (Kabsch, reflection fixed)."""
+    src = np.asarray(src, dtype=np.float64)
+    dst = np.asarray(dst, dtype=np.float64)
+    cs, cd = src.mean(0), dst.mean(0)
+    u, _, vt = np.linalg.svd((src - cs).T @ (dst - cd))
+    d = np.sign(np.linalg.det(vt.T @ u.T))
+    rot = vt.T @ np.diag([1.0, 1.0, d]) @ u.T
+    out = np.eye(4)
+    out[:3, :3] = rot
+    out[:3, 3] = cd - rot @ cs
+    return out

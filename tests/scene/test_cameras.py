@@ -12,7 +12,7 @@ from twinbench.scene.cameras import (
     look_at_pose,
     policy_intrinsics,
 )
-from twinbench.scene.scene import fit_rigid_transform
+from twinbench.transforms import fit_rigid_transform
 
 
 def _project(cam: Camera, pts: np.ndarray) -> np.ndarray:

@@ -19,6 +19,7 @@ from twinbench.robot.controller import ControllerConfig, RobotController
 from twinbench.robot.gaussians import RobotGaussians
 from twinbench.robot.model import RobotModel
 from twinbench.scene.cameras import CameraSpec
+from twinbench.transforms import fit_rigid_transform
 
 
 @dataclass(frozen=True)
@@ -56,20 +57,6 @@ class _Object:
     poser: LabelRigidPoser | None = None  # rigid objects
     skinner: LBSSkinner | None = None  # deformable objects
     pose: np.ndarray = field(default_factory=lambda: np.eye(4))
-
-
-def fit_rigid_transform(src: np.ndarray, dst: np.ndarray) -> np.ndarray:
-    """Least-squares rigid transform (4x4) mapping points src -> dst (Kabsch, reflection fixed)."""
-    src = np.asarray(src, dtype=np.float64)
-    dst = np.asarray(dst, dtype=np.float64)
-    cs, cd = src.mean(0), dst.mean(0)
-    u, _, vt = np.linalg.svd((src - cs).T @ (dst - cd))
-    d = np.sign(np.linalg.det(vt.T @ u.T))
-    rot = vt.T @ np.diag([1.0, 1.0, d]) @ u.T
-    out = np.eye(4)
-    out[:3, :3] = rot
-    out[:3, 3] = cd - rot @ cs
-    return out
 
 
 class Scene:
