@@ -56,3 +56,16 @@ def test_planar_pose_and_transform_points():
     pose = planar_pose(0.5, -0.2, np.pi / 2)
     np.testing.assert_allclose(transform_points(pose, [[1.0, 0.0, 0.3]]), [[0.5, 0.8, 0.3]], atol=1e-12)
     np.testing.assert_allclose(pose[:3, :3] @ pose[:3, :3].T, np.eye(3), atol=1e-12)
+
+
+def test_fit_rigid_transform_recovers_a_known_pose():
+    from twinbench.transforms import fit_rigid_transform
+
+    rng = np.random.default_rng(1)
+    src = rng.normal(size=(40, 3))
+    angle = 2.5
+    truth = np.eye(4)
+    truth[:3, :3] = [[np.cos(angle), -np.sin(angle), 0], [np.sin(angle), np.cos(angle), 0], [0, 0, 1]]
+    truth[:3, 3] = [0.3, -0.2, 0.05]
+    dst = src @ truth[:3, :3].T + truth[:3, 3]
+    np.testing.assert_allclose(fit_rigid_transform(src, dst), truth, atol=1e-12)

@@ -12,7 +12,6 @@ from twinbench.scene.cameras import (
     look_at_pose,
     policy_intrinsics,
 )
-from twinbench.transforms import fit_rigid_transform
 
 
 def _project(cam: Camera, pts: np.ndarray) -> np.ndarray:
@@ -54,14 +53,3 @@ def test_wrist_camera_moves_with_its_link():
     np.testing.assert_allclose(spec.camera((240, 240), link).cam_to_world, link @ offset, atol=1e-12)
     with pytest.raises(ValueError, match="link_pose"):
         spec.camera((240, 240))
-
-
-def test_fit_rigid_transform_recovers_a_known_pose():
-    rng = np.random.default_rng(1)
-    src = rng.normal(size=(40, 3))
-    angle = 2.5
-    truth = np.eye(4)
-    truth[:3, :3] = [[np.cos(angle), -np.sin(angle), 0], [np.sin(angle), np.cos(angle), 0], [0, 0, 1]]
-    truth[:3, 3] = [0.3, -0.2, 0.05]
-    dst = src @ truth[:3, :3].T + truth[:3, 3]
-    np.testing.assert_allclose(fit_rigid_transform(src, dst), truth, atol=1e-12)
