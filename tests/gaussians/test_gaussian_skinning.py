@@ -4,10 +4,9 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-import warp as wp
 from scipy.spatial.transform import Rotation
 
-from twinbench.gaussians.skinning import LBSSkinner, bind, rigid_transform_device, skin
+from twinbench.gaussians.skinning import LabelRigidPoser, LBSSkinner, bind, skin
 from twinbench.transforms import quat_to_matrix
 
 
@@ -106,11 +105,9 @@ def test_host_skin_and_rigid_device_variant(make_cloud):
     transform = np.eye(4)
     transform[:3, :3] = rot
     transform[:3, 3] = [1, 2, 3]
-    m_out = wp.zeros(50, dtype=wp.vec3)
-    q_out = wp.zeros(50, dtype=wp.vec4)
-    rigid_transform_device(
-        wp.array(gauss, dtype=wp.vec3), wp.array(quats, dtype=wp.vec4), transform, m_out, q_out
-    )
+    # rigid variant: one transform for all Gaussians = a single-label LabelRigidPoser
+    posed = LabelRigidPoser(cloud, np.zeros(50, np.int32), 1).update(transform[None])
+    m_out, q_out = posed.means, posed.quats
     ref = cloud.transform(transform)
     np.testing.assert_allclose(m_out.numpy(), ref.means, atol=1e-5)
     np.testing.assert_allclose(quat_to_matrix(q_out.numpy()), quat_to_matrix(ref.quats), atol=1e-5)

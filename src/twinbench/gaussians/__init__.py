@@ -5,6 +5,6 @@ Modules (imported on demand, so `import twinbench.gaussians` stays light):
   camera    Camera (OpenCV pinhole + cam_to_world)
   io        load_gaussians / save_gaussians (.ply, .splat, .spz), GaussianFileError
   render    render(cloud, cameras, ...) -> RenderOutput (Warp tiles on CPU/CUDA, gsplat on CUDA)
-  skinning  bind / LBSSkinner / skin / rigid_transform_device
+  skinning  bind / LBSSkinner / skin (LBS) and LabelRigidPoser (per-label or whole-cloud rigid motion)
   sh        real spherical harmonics and their rotation
 """

@@ -153,23 +153,6 @@ def _skin(
 
 
 @wp.kernel
-def _rigid(
-    rest_means: wp.array(dtype=wp.vec3),
-    rest_quats: wp.array(dtype=wp.vec4),
-    rot: wp.mat33,
-    trans: wp.vec3,
-    out_means: wp.array(dtype=wp.vec3),
-    out_quats: wp.array(dtype=wp.vec4),
-):
-    i = wp.tid()
-    out_means[i] = rot * rest_means[i] + trans
-    qr = wp.quat_from_matrix(rot)
-    q = rest_quats[i]
-    qn = qr * wp.quat(q[1], q[2], q[3], q[0])
-    out_quats[i] = wp.vec4(qn[3], qn[0], qn[1], qn[2])
-
-
-@wp.kernel
 def _rigid_by_label(
     rest_means: wp.array(dtype=wp.vec3),
     rest_quats: wp.array(dtype=wp.vec4),
@@ -249,6 +232,10 @@ class LabelRigidPoser:
                 f"coefficients on {self.device}, got {len(out)} with {out.sh.shape[1]} on {out.device}"
             )
         self.posed = out
+        width = max(1, sum((2 * b + 1) ** 2 for b in range(1, self.degree + 1)))
+        self._rots = wp.empty(self.num_labels, dtype=wp.mat33, device=self.device)
+        self._trans = wp.empty(self.num_labels, dtype=wp.vec3, device=self.device)
+        self._sh_mats = wp.zeros((self.num_labels, width), dtype=wp.float32, device=self.device)
 
     def update(self, transforms) -> DeviceGaussians:
         """Pose with `transforms` (num_labels, 4, 4), each a rigid transform from the rest pose."""
@@ -262,11 +249,14 @@ class LabelRigidPoser:
             np.linalg.det(rots) < 0
         ):
             raise ValueError("LabelRigidPoser.update: every transform's 3x3 block must be a rotation")
-        width = max(1, sum((2 * b + 1) ** 2 for b in range(1, self.degree + 1)))
-        mats = np.zeros((self.num_labels, width), np.float32)
+        self._rots.assign(rots.astype(np.float32))
+        self._trans.assign(t[:, :3, 3].astype(np.float32))
         if self.degree > 0:
-            for i in range(self.num_labels):
-                mats[i] = np.concatenate([m.ravel() for m in sh_rotation_matrices(rots[i], self.degree)[1:]])
+            mats = np.stack([
+                np.concatenate([m.ravel() for m in sh_rotation_matrices(rots[i], self.degree)[1:]])
+                for i in range(self.num_labels)
+            ])
+            self._sh_mats.assign(mats.astype(np.float32))
         wp.launch(
             _rigid_by_label,
             dim=len(self.rest),
@@ -275,9 +265,9 @@ class LabelRigidPoser:
                 self.rest.quats,
                 self.rest.sh,
                 self._labels,
-                wp.array(rots.astype(np.float32), dtype=wp.mat33, device=self.device),
-                wp.array(t[:, :3, 3].astype(np.float32), dtype=wp.vec3, device=self.device),
-                wp.array(mats, dtype=wp.float32, device=self.device),
+                self._rots,
+                self._trans,
+                self._sh_mats,
             ],
             outputs=[self.posed.means, self.posed.quats, self.posed.sh],
             device=self.device,
@@ -371,26 +361,4 @@ def skin(binding: SkinBinding, rest_cloud: GaussianCloud, particles, device: str
         rest_cloud.log_scales.copy(),
         rest_cloud.logit_opacities.copy(),
         rest_cloud.sh.copy(),
-    )
-
-
-def rigid_transform_device(
-    rest_means: wp.array, rest_quats: wp.array, transform, out_means: wp.array, out_quats: wp.array
-) -> None:
-    """Rigid variant on device arrays: one 4x4 rigid transform for all Gaussians (SH bands not rotated;
-    use GaussianCloud.transform for an exact host-side transform with SH rotation)."""
-    t = np.asarray(transform, dtype=np.float64)
-    if t.shape != (4, 4) or not np.allclose(t[:3, :3] @ t[:3, :3].T, np.eye(3), atol=1e-5):
-        raise ValueError("rigid_transform_device: transform must be a 4x4 rigid transform (rotation block)")
-    wp.launch(
-        _rigid,
-        dim=rest_means.shape[0],
-        inputs=[
-            rest_means,
-            rest_quats,
-            wp.mat33(t[:3, :3].astype(np.float32)),
-            wp.vec3(t[:3, 3].astype(np.float32)),
-        ],
-        outputs=[out_means, out_quats],
-        device=rest_means.device,
     )
