@@ -75,8 +75,8 @@ def look_at_pose(eye, target, up=(0.0, 0.0, 1.0)) -> np.ndarray:
     return Camera.look_at(eye, target, up, fx=1.0, width=1, height=1).cam_to_world
 
 
-def front_camera(eye=(1.05, 0.0, 0.55), target=(0.45, 0.0, 0.0)) -> CameraSpec:
-    """The fixed external camera: facing the robot across the table, looking down at the workspace."""
+def front_camera(eye=(0.92, -0.42, 0.52), target=(0.46, 0.0, 0.0)) -> CameraSpec:
+    """The fixed external camera: front-left of the table, looking down at the workspace."""
     return CameraSpec("front", FRONT_INTRINSICS, look_at_pose(eye, target))
 
 

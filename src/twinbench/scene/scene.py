@@ -210,7 +210,8 @@ class Scene:
             if obj.poser is not None:
                 obj.poser.update(obj.pose[None])
             else:
-                obj.skinner.update(p, out_means=obj.gaussians.means, out_quats=obj.gaussians.quats)
+                particles = self.state.x[obj.start: obj.start + obj.count]  # a view, on the device
+                obj.skinner.update(particles, out_means=obj.gaussians.means, out_quats=obj.gaussians.quats)
 
     def camera(self, spec: CameraSpec):
         """The Camera of a CameraSpec at the current robot configuration and policy resolution."""

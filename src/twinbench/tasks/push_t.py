@@ -27,7 +27,7 @@ from twinbench.robot.controller import ControllerConfig
 from twinbench.robot.gaussians import sample_robot_scan
 from twinbench.robot.ik import solve_ik
 from twinbench.scene.assets import backdrop_gaussians, mesh_surface_gaussians, table_gaussians
-from twinbench.scene.cameras import FRONT_INTRINSICS, CameraSpec, look_at_pose, wrist_camera
+from twinbench.scene.cameras import front_camera, wrist_camera
 from twinbench.scene.scene import ObjectSpec, Scene, ToolContact
 from twinbench.tasks import register_task
 from twinbench.tasks.push_t_geometry import (
@@ -84,11 +84,6 @@ class PushTConfig:
         return int(round(self.episode_seconds * self.fps))
 
 
-def front_camera_spec() -> CameraSpec:
-    """The fixed camera: front-left of the table, looking down at the push area."""
-    return CameraSpec("front", FRONT_INTRINSICS, look_at_pose((0.92, -0.42, 0.52), (0.46, 0.0, 0.0)))
-
-
 class PushTEnv(gymnasium.Env):
     """Gymnasium env over the push-T twin. See the module docstring and `twinbench.tasks` conventions."""
 
@@ -123,7 +118,7 @@ class PushTEnv(gymnasium.Env):
             sample_robot_scan(robot, spacing=cfg.robot_gaussian_spacing),
             GaussianCloud.concatenate([table_gaussians(), backdrop_gaussians()]),
             [block],
-            [front_camera_spec(), wrist_camera("link7", offset=(0.0, -0.12, 0.05), look=(0.0, 0.0, 0.2))],
+            [front_camera(), wrist_camera("link7", offset=(0.0, -0.12, 0.05), look=(0.0, 0.0, 0.2))],
             sim=sim,
             controller=ControllerConfig(action_mode="planar", planar_height=cfg.pusher_height),
             tool_contact=ToolContact(restitution=0.0, friction=cfg.pusher_friction),
@@ -249,11 +244,10 @@ class PushTEnv(gymnasium.Env):
     def _observe(self) -> dict:
         outs = self.scene.render()
         frames = {name: out.rgb_uint8() for name, out in outs.items()}
-        front = frames["front"].astype(np.float32)
         r, g, b, alpha = GOAL_RGBA
-        m = self._goal_overlay
-        front[m] = (1 - alpha) * front[m] + alpha * 255.0 * np.array([r, g, b], np.float32)
-        frames["front"] = np.clip(front + 0.5, 0, 255).astype(np.uint8)
+        m = self._goal_overlay  # blend only the goal's pixels
+        blended = (1 - alpha) * frames["front"][m] + alpha * 255.0 * np.array([r, g, b], np.float32)
+        frames["front"][m] = np.clip(blended + 0.5, 0, 255).astype(np.uint8)
         self._frames = frames
         self._last_obs = {
             "pixels": {"front": frames["front"], "wrist": frames["wrist"]},

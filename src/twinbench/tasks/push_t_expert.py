@@ -57,11 +57,7 @@ class PushTExpert:
 
     def _distance_to_t(self, p: np.ndarray) -> float:
         """Distance from a block-frame 2D point to the T (0 inside)."""
-        dist = np.inf
-        for lo, hi in self.env.shape.boxes():
-            d = np.maximum(np.maximum(lo[:2] - p, p - hi[:2]), 0.0)
-            dist = min(dist, float(np.linalg.norm(d)))
-        return dist
+        return float(np.linalg.norm(p - self._nearest_on_t(p)))
 
     def reset(self) -> None:
         self._choice: int | None = None

@@ -98,8 +98,8 @@ def sample_block_particles(shape: TBlockShape, spacing: float) -> np.ndarray:
         count = max(int(np.ceil((hi[k] - lo[k]) / spacing - 1e-9)), 1)
         axes.append(np.linspace(lo[k], hi[k], count + 1))
     grid = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3)
-    # Lattice snapping can leave the stem/bar boundary off-grid; keep points inside with a
-    # half-spacing tolerance in x/y so the shape stays connected.
+    # The stem and bar faces lie on the lattice when the spacing divides the T's dimensions (5 mm,
+    # 15 mm); the small tolerance keeps boundary points that round-off would drop.
     inside = shape.contains(grid, tol=1e-6)
     return grid[inside].astype(np.float32)
 
