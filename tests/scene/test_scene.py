@@ -90,3 +90,31 @@ def test_soft_object_gaussians_follow_its_particles(setup):
     rest = scene._objects["soft"].spec.gaussians.means.astype(np.float64)
     expected = transform_points(scene.object_pose("soft"), rest)
     assert np.abs(means - expected).max() < 2e-3
+
+
+def test_gripper_latches_on_finger_forces_and_lifts_by_friction():
+    """Scene wiring of the latch: the fingers' mesh contact forces reach the controller, which stops
+    closing at the default threshold; the cube then rises with the hand (no pinning)."""
+    robot = load_builtin_arm("gripper")
+    g = (np.arange(4) - 1.5) * 0.01
+    pts = np.stack(np.meshgrid(g, g, g + 0.015, indexing="ij"), -1).reshape(-1, 3)
+    cloud = surface_discs(pts.astype(np.float32), np.tile([0.0, 0.0, 1.0], (64, 1)), (0.8, 0.2, 0.2), 0.004)
+    sim = SimParams(dt=1 / 30 / 200, substeps=200, ground_restitution=0.0, ground_friction=0.5,
+                    object_collision=False, mesh_margin=0.004)
+    cube = ObjectSpec("cube", pts, cloud, rigid=False, spring_radius=0.018)
+    scene = Scene(robot, sample_robot_scan(robot, spacing=0.02), cloud.subset(slice(0, 1)), [cube],
+                  [front_camera()], sim=sim)
+    down = np.array([0.0, 1.0, 0.0, 0.0])
+    q0 = robot.set_gripper(solve_ik(robot, ee_pose(np.array([0.4, 0.0, 0.02]), down), robot.home_q).q, 0.0)
+    scene.reset(q0, {"cube": planar_pose(0.4, 0.0, 0.0)})
+    threshold = scene.controller.config.grasp_force_threshold
+    for _ in range(25):  # close on the cube
+        scene.step(np.array([0.4, 0.0, 0.02, *down, 1.0]))
+    assert scene.controller.latched and min(scene.finger_forces) > threshold
+    held = scene.controller.gripper
+    assert 0.0 < held < 1.0  # stopped closing before the fingers met
+    for k in range(30):  # lift 6 cm with the gripper still commanded closed
+        scene.step(np.array([0.4, 0.0, 0.02 + 0.002 * (k + 1), *down, 1.0]))
+    rise = scene.controller.ee_pose()[2, 3] - 0.02
+    assert scene.controller.gripper == held and scene.controller.latched
+    assert rise > 0.05 and scene.particles("cube")[:, 2].min() > rise - 0.01

@@ -19,7 +19,7 @@ from twinbench.robot.controller import ControllerConfig, RobotController
 from twinbench.robot.gaussians import RobotGaussians
 from twinbench.robot.model import RobotModel
 from twinbench.scene.cameras import CameraSpec
-from twinbench.transforms import fit_rigid_transform
+from twinbench.transforms import fit_rigid_transform, transform_points
 
 
 @dataclass(frozen=True)
@@ -149,9 +149,7 @@ class Scene:
                 raise ValueError(
                     f"object_poses[{name!r}]: expected a finite 4x4 pose, got shape {pose.shape}"
                 )
-            local = obj.spec.particles.astype(np.float64)
-            x[obj.start: obj.start + obj.count] = local @ pose[:3, :3].T + pose[:3, 3]
-            obj.pose = pose
+            x[obj.start: obj.start + obj.count] = transform_points(pose, obj.spec.particles)
         self.state.x.assign(x.astype(np.float32))
         self.state.v.zero_()
         q = self.controller.q
@@ -188,9 +186,10 @@ class Scene:
         for link, mid in self._tool_mesh.items():
             self.control.set_kinematic_mesh(mid, *frames[link])
         self.solver.simulate_frame(self.state, self.control)
-        if len(self._tool_mesh) == 2:  # a gripper: both fingers' contact force magnitudes
-            f = [float(np.linalg.norm(self.solver.mesh_contact_force(m))) for m in self._tool_mesh.values()]
-            self.finger_forces = (f[0], f[1])
+        if self.robot.gripper_joint is not None:  # the fingers' contact force magnitudes, for the latch
+            left, right = (float(np.linalg.norm(self.solver.mesh_contact_force(m)))
+                           for m in self._tool_mesh.values())
+            self.finger_forces = (left, right)
         self.frame += 1
         self._update_gaussians()
 
