@@ -32,6 +32,10 @@ def test_grid_states_sampled_states_and_observation():
     # the agent is drawn red at its position (state 0: x = +0.18, y = 0 -> column 55, row 32)
     obs, _ = env.reset(seed=0, options={"init_state": 0})
     assert tuple(obs["pixels"]["front"][32, 55]) == (220, 30, 30)
+    # goal disk at the centre: grey 200 blended half-and-half with yellow (255, 220, 0); background grey
+    assert tuple(obs["pixels"]["front"][32, 32]) == (227, 210, 100)
+    assert tuple(obs["pixels"]["front"][0, 0]) == (200, 200, 200)
+    assert (obs["pixels"]["front"] == (227, 210, 100)).all(axis=2).sum() > 40  # the disk, not one pixel
     assert np.array_equal(env.render(), obs["pixels"]["front"])
     s1 = env.reset(seed=5, options={"init_state": 8})[0]["agent_pos"]
     s2 = env.reset(seed=5, options={"sampled": True})[0]["agent_pos"]

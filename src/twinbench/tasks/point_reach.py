@@ -55,6 +55,11 @@ class PointReachEnv(gymnasium.Env):
         self.action_space = spaces.Box(-HALF, HALF, (2,), np.float32)
         c = (np.arange(IMG) + 0.5) / IMG * 2 * HALF - HALF  # pixel centres in metres
         self._px, self._py = np.meshgrid(c, -c)  # image row 0 = +y
+        # the background with the translucent goal disk never changes: drawn once, copied per frame
+        bg = np.full((IMG, IMG, 3), 200, np.uint8)
+        goal = (self._px - GOAL[0]) ** 2 + (self._py - GOAL[1]) ** 2 < GOAL_RADIUS**2
+        bg[goal] = (0.5 * bg[goal] + 0.5 * np.array([255, 220, 0])).astype(np.uint8)
+        self._background = bg
         self._pos = grid_state(0)
         self._t = self._hold = 0
 
@@ -99,9 +104,7 @@ class PointReachEnv(gymnasium.Env):
         return self._obs(), reward, success, self._t >= EPISODE_STEPS, info
 
     def render(self):
-        img = np.full((IMG, IMG, 3), 200, np.uint8)
-        goal = (self._px - GOAL[0]) ** 2 + (self._py - GOAL[1]) ** 2 < GOAL_RADIUS**2
-        img[goal] = (0.5 * img[goal] + 0.5 * np.array([255, 220, 0])).astype(np.uint8)  # translucent
+        img = self._background.copy()
         if np.all(np.isfinite(self._pos)):
             agent = (self._px - self._pos[0]) ** 2 + (self._py - self._pos[1]) ** 2 < 0.012**2
             img[agent] = (220, 30, 30)
