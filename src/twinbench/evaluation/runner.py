@@ -340,23 +340,19 @@ def evaluate(task: str, policies: Sequence[str], episodes: str | int = "grid", w
                 "env_id": spec_task.env_id, "versions": _versions()}
     store.start_run(run_id, task, protocol)
     out_dir = Path(output_dir)
-    jobs = []
+    jobs: dict[tuple[str, str, int, int], EpisodeJob] = {}  # by (policy, checkpoint, init_state, seed)
     for spec in specs:
         for init_state, s in states:
             video_path = None
             if video:
                 folder = out_dir / "videos" / run_id / policy_folder(spec.name, spec.checkpoint)
                 video_path = str(folder / f"init{init_state}_seed{s}.mp4")
-            jobs.append(EpisodeJob(task, spec.spec, init_state, s, run_id, env_kwargs, video_path))
+            jobs[(spec.name, spec.checkpoint, init_state, s)] = EpisodeJob(
+                task, spec.spec, init_state, s, run_id, env_kwargs, video_path)
     existing = {(r.policy, r.checkpoint, r.init_state, r.seed): r
                 for r in store.episodes(run_id, domain="sim")}
     skip = {k for k, r in existing.items() if r.status == "ok" or not retry_errors}
-
-    def key(job: EpisodeJob):
-        sp = parse_policy_spec(job.policy)
-        return (sp.name, sp.checkpoint, job.init_state, job.seed)
-
-    todo = [j for j in jobs if key(j) not in skip]
+    todo = [j for k, j in jobs.items() if k not in skip]
     log = log or (lambda msg: None)
     log(f"run {run_id!r}: {len(jobs)} episodes, {len(jobs) - len(todo)} already finished, {len(todo)} to run "
         f"({backend}, {workers} worker{'s' if workers != 1 else ''})")
@@ -386,7 +382,7 @@ def evaluate(task: str, policies: Sequence[str], episodes: str | int = "grid", w
             msg = (f"interrupted: {done_count[0]} of {len(jobs)} episodes of run {run_id!r} are in "
                    f"{store.path}; re-run the same command (same --run-id) to resume the remaining {left}")
             raise EvaluationInterrupted(msg, done_count[0], len(jobs)) from None
-    records = [results[key(j)] for j in jobs]
+    records = [results[k] for k in jobs]
     if write_eval_info:
         write_eval_infos(records, out_dir / "eval" / run_id)
     return records
