@@ -100,6 +100,14 @@ def test_beta_posterior():
     assert post.args == (4, 8)
     assert post.mean() == pytest.approx(4 / 12)
     assert beta_posterior(0, 0).pdf(0.3) == pytest.approx(1.0)  # uniform prior
+    with pytest.raises(ValueError, match="k=11, n=10"):
+        beta_posterior(11, 10)
+    with pytest.raises(ValueError, match="k=1.5"):
+        beta_posterior(1.5, 3)
+    with pytest.raises(ValueError, match="policy A: .*k=3, n=2"):
+        prob_greater(3, 2, 1, 2)
+    with pytest.raises(ValueError, match="policy B: .*k=-1"):
+        prob_greater(1, 2, -1, 2)
 
 
 def _prob_greater_quad(k_a, n_a, k_b, n_b):

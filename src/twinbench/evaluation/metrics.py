@@ -87,13 +87,18 @@ def rate_estimate(k: int, n: int, method: str = "clopper-pearson", confidence: f
     return Estimate(success_rate(k, n), low, high, confidence)
 
 
+def _posterior_params(k: int, n: int, what: str = "") -> tuple[int, int]:
+    """(1 + k, 1 + n - k): the Beta posterior's parameters under a uniform prior (n = 0 allowed)."""
+    if int(n) != n or int(k) != k or not 0 <= k <= n:
+        raise ValueError(f"{what}need integers 0 <= k <= n, got k={k!r}, n={n!r}")
+    return 1 + int(k), 1 + int(n) - int(k)
+
+
 def beta_posterior(k: int, n: int):
     """Posterior of the success probability under a uniform prior: a frozen Beta(1 + k, 1 + n - k).
 
     n = 0 is allowed here (the posterior is then the uniform prior)."""
-    if int(n) != n or int(k) != k or not 0 <= k <= n:
-        raise ValueError(f"need integers 0 <= k <= n, got k={k!r}, n={n!r}")
-    return stats.beta(1 + int(k), 1 + int(n) - int(k))
+    return stats.beta(*_posterior_params(k, n))
 
 
 def prob_greater(k_a: int, n_a: int, k_b: int, n_b: int) -> float:
@@ -101,11 +106,8 @@ def prob_greater(k_a: int, n_a: int, k_b: int, n_b: int) -> float:
 
     Exact: with integer Beta parameters, P(X > Y) for X ~ Beta(a1, b1), Y ~ Beta(a2, b2) is the finite sum
     sum_{i=0}^{a1-1} B(a2+i, b1+b2) / ((b1+i) B(1+i, b1) B(a2, b2)), evaluated in log space."""
-    for k, n, name in ((k_a, n_a, "A"), (k_b, n_b, "B")):
-        if int(n) != n or int(k) != k or not 0 <= k <= n:
-            raise ValueError(f"policy {name}: need integers 0 <= k <= n, got k={k!r}, n={n!r}")
-    a1, b1 = 1 + int(k_a), 1 + int(n_a) - int(k_a)
-    a2, b2 = 1 + int(k_b), 1 + int(n_b) - int(k_b)
+    a1, b1 = _posterior_params(k_a, n_a, "policy A: ")
+    a2, b2 = _posterior_params(k_b, n_b, "policy B: ")
     i = np.arange(a1, dtype=np.float64)
     log_terms = (special.betaln(a2 + i, b1 + b2) - np.log(b1 + i)
                  - special.betaln(1 + i, b1) - special.betaln(a2, b2))
