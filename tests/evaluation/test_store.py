@@ -88,6 +88,8 @@ def test_start_run_idempotent_and_protocol(tmp_path):
         store.start_run("r1", "rope", proto)
     with pytest.raises(KeyError, match="not found"):
         store.run_protocol("missing")
+    with pytest.raises(KeyError, match="'missing' not found"):
+        store.run_task("missing")
 
 
 def test_bad_input_rejected(tmp_path):

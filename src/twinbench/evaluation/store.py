@@ -161,21 +161,21 @@ class ResultsStore:
                 con.execute("ROLLBACK")
                 raise
 
-    def run_protocol(self, run_id: str) -> dict:
-        """The protocol given to `start_run` (KeyError when the run was never started)."""
+    def _run_row(self, run_id: str) -> tuple[str, str]:
+        """(task, protocol JSON) of a started run; KeyError when the run was never started."""
         with self._connect() as con:
-            row = con.execute("SELECT protocol FROM runs WHERE run_id = ?", (run_id,)).fetchone()
+            row = con.execute("SELECT task, protocol FROM runs WHERE run_id = ?", (run_id,)).fetchone()
         if row is None:
             raise KeyError(f"run {run_id!r} not found in {self.path}; known runs: {self.runs()}")
-        return json.loads(row[0])
+        return row
+
+    def run_protocol(self, run_id: str) -> dict:
+        """The protocol given to `start_run` (KeyError when the run was never started)."""
+        return json.loads(self._run_row(run_id)[1])
 
     def run_task(self, run_id: str) -> str:
         """The task given to `start_run` (KeyError when the run was never started)."""
-        with self._connect() as con:
-            row = con.execute("SELECT task FROM runs WHERE run_id = ?", (run_id,)).fetchone()
-        if row is None:
-            raise KeyError(f"run {run_id!r} not found in {self.path}; known runs: {self.runs()}")
-        return row[0]
+        return self._run_row(run_id)[0]
 
     def runs(self) -> list[str]:
         """Run ids, started ones and ones that only have episodes, sorted."""
