@@ -1,6 +1,7 @@
 """Open-loop replay from LeRobotDataset-v3-shaped folders, JSON and NPZ logs; confusion matrices."""
 
 import json
+from dataclasses import replace
 
 import numpy as np
 import pyarrow as pa
@@ -74,6 +75,12 @@ def test_replay_lerobot_v3_folder(tmp_path):
         (True, True), (True, False), (False, True), (False, False), (True, True)]
     assert pairs[0][1].steps == 12 and pairs[1][1].steps == 14  # success terminates; else actions run out
     check(store, "rp")
+    # a replay that ended in an error is counted in `excluded`, never as a replay failure
+    real, rep = pairs[0]
+    store.record_episodes([replace(real, seed=99), replace(rep, seed=99, success=False, status="sim_error")])
+    c1 = replay_confusion(store, "rp")[("point-reach", "act", "step_1")]
+    assert (c1.tp, c1.fp, c1.fn, c1.tn, c1.excluded) == (1, 1, 1, 0, 1)
+    assert replay_confusion(store, "rp")[("point-reach", "act", "step_2")].excluded == 0
 
 
 def test_outcomes_file_and_validation(tmp_path):
@@ -118,6 +125,8 @@ def test_replay_json_and_npz_logs(tmp_path):
 def test_confusion_counts():
     c = confusion_counts([(True, True), (True, False), (False, True), (False, False), (False, False)])
     assert (c.tp, c.fp, c.fn, c.tn, c.n) == (1, 1, 1, 2, 5)
+    assert c.accuracy == pytest.approx(3 / 5) and c.excluded == 0
+    assert np.isnan(confusion_counts([]).accuracy)
 
 
 def test_replay_cli(tmp_path, capsys):

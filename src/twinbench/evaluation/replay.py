@@ -24,7 +24,7 @@ from __future__ import annotations
 
 import json
 from collections.abc import Iterable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -267,11 +267,8 @@ def replay_confusion(store: ResultsStore | str | Path, run_id: str | None = None
             excluded[g] = excluded.get(g, 0) + 1
             continue
         groups[g].append((rep.success, real[k].success))
-    out = {}
-    for g, pairs in sorted(groups.items()):
-        c = confusion_counts(pairs)
-        out[g] = Confusion(c.tp, c.fp, c.fn, c.tn, excluded.get(g, 0))
-    return out
+    return {g: replace(confusion_counts(pairs), excluded=excluded.get(g, 0))
+            for g, pairs in sorted(groups.items())}
 
 
 # ---- CLI -------------------------------------------------------------------------------------------
