@@ -11,8 +11,6 @@ import warp as wp
 
 wp.set_module_options({"enable_backward": True})
 
-GROUND_VZ_THRESHOLD = -1e-4  # PhysTwin's approach threshold for ground and particle contacts
-
 
 @wp.func
 def end_position(
@@ -161,7 +159,6 @@ def mesh_contacts(
     xp: wp.vec3,
     vp: wp.vec3,
     mp: float,
-    tid: int,
     mesh_ids: wp.array(dtype=wp.uint64),
     mesh_elas: wp.array(dtype=float),
     mesh_fric: wp.array(dtype=float),
@@ -228,7 +225,7 @@ def finish_particle(
 ):
     v1 = v
     if cp.mesh_ids.shape[0] > 0:
-        v1 = mesh_contacts(x0, v1, m, tid, cp.mesh_ids, cp.mesh_elas, cp.mesh_fric, cp.face_offsets,
+        v1 = mesh_contacts(x0, v1, m, cp.mesh_ids, cp.mesh_elas, cp.mesh_fric, cp.face_offsets,
                            cp.margin, dt, cp.mesh_force, cp.face_force)
     xn, vn = ground_integrate(x0, v1, cp.ground_elas, cp.ground_fric, dt, cp.ground)
     x_out[tid] = xn
