@@ -139,9 +139,9 @@ class SpringMassSolver:
         n = m.num_particles
         t = self._t(substep_index)
         tail = [float(p.dashpot_damping), control.ctrl_from, control.ctrl_to, t, n]
+        spring_f = self._spring_f  # per-spring forces (gather path); unused by the atomic path
         if grad:
             f = wp.zeros(n, dtype=wp.vec3, device=self.device, requires_grad=True)
-            spring_f = self._spring_f
             wp.launch(K.accumulate_spring_forces, dim=m.num_springs,
                       inputs=[state_in.x, state_in.v, m.springs, m.rest_lengths, m.log_y,
                               float(p.spring_Y_min), float(p.spring_Y_max), *tail],
@@ -149,7 +149,6 @@ class SpringMassSolver:
             v_star = wp.zeros(n, dtype=wp.vec3, device=self.device, requires_grad=True)
         else:
             f = self._f
-            spring_f = self._spring_f
             v_star = self._v_star
             if m.num_springs:
                 self._go(K.eval_spring_forces, m.num_springs,
@@ -251,11 +250,12 @@ class SpringMassSolver:
                 op()
             out = self._graph_out
         state.assign(out)
-        scale = 1.0 / self.model.params.substeps
         nm = len(self.model.meshes)
-        self._last_mesh_force = self._mesh_force.numpy()[:nm].astype(np.float64) * scale
-        nf = self._last_face_force.shape[0]
-        self._last_face_force = self._face_force.numpy()[:nf].astype(np.float64) * scale
+        if nm:  # no meshes: the force buffers stay empty, no device->host copies
+            scale = 1.0 / self.model.params.substeps
+            self._last_mesh_force = self._mesh_force.numpy()[:nm].astype(np.float64) * scale
+            nf = self._last_face_force.shape[0]
+            self._last_face_force = self._face_force.numpy()[:nf].astype(np.float64) * scale
         if check:
             bad = check_divergence(state, self.max_speed)
             if bad.size:
