@@ -335,11 +335,12 @@ class ModelBuilder:
         radius = _positive("radius", radius)
         max_neighbors = _count("max_neighbors", max_neighbors)
         k = pts.shape[0]
+        allx = np.concatenate(self._x)
         if springs is None:
-            allx = np.concatenate(self._x).astype(np.float64)
-            tree = cKDTree(allx)
+            allx64 = allx.astype(np.float64)
             rows = []
-            nbr_lists = _sorted_neighbours(tree, allx, pts, radius, max_neighbors, exclude_self=False)
+            nbr_lists = _sorted_neighbours(cKDTree(allx64), allx64, pts, radius, max_neighbors,
+                                           exclude_self=False)
             for c, nbrs in enumerate(nbr_lists):
                 rows += [(c, j) for j in nbrs.tolist()]
             pairs = np.asarray(rows, dtype=np.int32).reshape(-1, 2)
@@ -352,7 +353,6 @@ class ModelBuilder:
                 raise ValueError("springs must hold (control index < K, particle index < num_particles)")
             pairs = pairs.astype(np.int32).reshape(-1, 2)
         m = pairs.shape[0]
-        allx = np.concatenate(self._x)
         if rest_lengths is None:
             rest = _rest_lengths(pts[pairs[:, 0]], allx[pairs[:, 1]])
         else:
