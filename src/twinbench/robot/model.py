@@ -113,6 +113,7 @@ class RobotModel:
         self.arm_q_indices = np.array([j.q_index for j in chain], dtype=np.int64)
         self._arm_joint_rows = np.array([self.joints.index(j) for j in chain], dtype=np.int64)
         self._arm_prismatic = np.array([j.type == "prismatic" for j in chain])
+        self._arm_axes = np.array([j.axis for j in chain], dtype=np.float64).reshape(-1, 3)  # joint frames
 
     # ----------------------------------------------------------------- basic facts
     @property
@@ -221,9 +222,7 @@ class RobotModel:
         links, frames = self._fk(np.atleast_2d(q))
         ee = links[:, self._link_index[self.ee_link]] @ self.ee_offset
         jf = frames[:, self._arm_joint_rows]  # (B, n_arm, 4, 4)
-        axes = np.einsum(
-            "bkij,kj->bki", jf[:, :, :3, :3], np.stack([self.joints[r].axis for r in self._arm_joint_rows])
-        )
+        axes = np.einsum("bkij,kj->bki", jf[:, :, :3, :3], self._arm_axes)
         lever = ee[:, None, :3, 3] - jf[:, :, :3, 3]
         jv = np.where(self._arm_prismatic[None, :, None], axes, np.cross(axes, lever))
         jw = np.where(self._arm_prismatic[None, :, None], 0.0, axes)
@@ -242,11 +241,14 @@ class RobotModel:
             )
         return self.collision_meshes[link]
 
-    def contact_vertices(self, q: np.ndarray, link: str) -> np.ndarray:
-        """World-frame vertices (V, 3) (or (B, V, 3) for batched q) of a link's collision mesh at q."""
-        t = self.link_pose(q, link)
+    def _posed_contact_vertices(self, t: np.ndarray, link: str) -> np.ndarray:
+        """A link's collision-mesh vertices moved by its pose(s) t (..., 4, 4) -> (..., V, 3)."""
         v = np.asarray(self._contact_mesh(link).vertices, dtype=np.float64)
         return np.einsum("...ij,vj->...vi", t[..., :3, :3], v) + t[..., None, :3, 3]
+
+    def contact_vertices(self, q: np.ndarray, link: str) -> np.ndarray:
+        """World-frame vertices (V, 3) (or (B, V, 3) for batched q) of a link's collision mesh at q."""
+        return self._posed_contact_vertices(self.link_pose(q, link), link)
 
     def contact_mesh_frames(
         self, q_from: np.ndarray, q_to: np.ndarray
@@ -260,9 +262,7 @@ class RobotModel:
         t = self.fk(q)
         out = {}
         for link in self.contact_links:
-            k = self.link_index(link)
-            v = np.asarray(self._contact_mesh(link).vertices, dtype=np.float64)
-            w = np.einsum("bij,vj->bvi", t[:, k, :3, :3], v) + t[:, k, None, :3, 3]
+            w = self._posed_contact_vertices(t[:, self.link_index(link)], link)
             out[link] = (w[0], w[1])
         return out
 
