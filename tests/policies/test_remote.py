@@ -52,6 +52,7 @@ def test_served_expert_reaches_the_goal():
         out = run_episode(env, pol, init_state=3, seed=0)
         assert (out.status, out.success, out.steps) == ("ok", True, 12)
         assert pol.metadata == {"policy": "expert"} and server.n_requests == 12
+        assert pol.n_connects == 1  # one connection carries the whole episode
         pol.close()
 
 
