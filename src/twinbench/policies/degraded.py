@@ -38,6 +38,7 @@ class DegradedPolicy:
                 or not np.all(np.isfinite(self.low)) or not np.all(np.isfinite(self.high))):
             raise ValueError(f"DegradedPolicy: action bounds must be finite with low <= high (the noise "
                              f"scales with the range), got low={self.low}, high={self.high}")
+        self._half = 0.5 * (self.high - self.low)  # half-range of the action space, per dimension
         self.reset()
 
     def reset(self) -> None:
@@ -52,8 +53,7 @@ class DegradedPolicy:
 
     def select_action(self, obs: dict) -> np.ndarray:
         a = np.asarray(self.base.select_action(obs), np.float64)
-        half = 0.5 * (self.high - self.low)
-        a = a + self._rng.normal(0.0, 1.0, a.shape) * self.level * NOISE_SCALE * half
+        a = a + self._rng.normal(0.0, 1.0, a.shape) * self.level * NOISE_SCALE * self._half
         if self._rng.random() < self.level * GLITCH_PROB:
             if self._prev is not None and self._rng.random() < 0.5:
                 a = self._prev
