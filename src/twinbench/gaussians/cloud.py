@@ -8,7 +8,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from twinbench.gaussians.sh import rotate_sh
+from twinbench.gaussians.sh import rotate_sh, sh_degree
 from twinbench.transforms import matrix_to_quat, quat_multiply
 
 if TYPE_CHECKING:
@@ -16,11 +16,6 @@ if TYPE_CHECKING:
 
 
 SH_C0 = 0.28209479177387814
-
-
-def sh_coeffs_for_degree(degree: int) -> int:
-    """Number of SH coefficients per colour channel for a degree (0..3)."""
-    return (degree + 1) ** 2
 
 
 @dataclass
@@ -65,7 +60,7 @@ class GaussianCloud:
 
     @property
     def sh_degree(self) -> int:
-        return int(round(np.sqrt(self.sh.shape[1]))) - 1
+        return sh_degree(self.sh.shape[1])
 
     # ----- derived quantities -------------------------------------------------------------------
     @property

@@ -26,6 +26,7 @@ import warp as wp
 
 from twinbench.gaussians.camera import Camera
 from twinbench.gaussians.cloud import DeviceGaussians, GaussianCloud
+from twinbench.gaussians.sh import sh_degree
 
 TILE = 16
 NEAR = 0.01
@@ -551,13 +552,13 @@ def _render_gsplat(cloud: GaussianCloud | DeviceGaussians, cams: list[Camera], b
             "opacities": wp.to_torch(cloud.opacities),
             "sh": wp.to_torch(cloud.sh),
         }
-        sh_degree = int(round(np.sqrt(cloud.sh.shape[1]))) - 1
+        degree = sh_degree(cloud.sh.shape[1])
     else:
         arrays = dict(
             means=cloud.means, quats=cloud.quats, scales=cloud.scales, opacities=cloud.opacities, sh=cloud.sh
         )
         t = {k: torch.as_tensor(v, device=dev) for k, v in arrays.items()}
-        sh_degree = cloud.sh_degree
+        degree = cloud.sh_degree
     outputs: list[RenderOutput | None] = [None] * len(cams)
     groups: dict[tuple[int, int], list[int]] = {}
     for i, cam in enumerate(cams):
@@ -580,7 +581,7 @@ def _render_gsplat(cloud: GaussianCloud | DeviceGaussians, cams: list[Camera], b
             h,
             near_plane=NEAR,
             eps2d=LOW_PASS,
-            sh_degree=sh_degree,
+            sh_degree=degree,
             tile_size=TILE,
             backgrounds=bgs,
             render_mode="RGB+ED",

@@ -18,6 +18,11 @@ C3 = (
 )
 
 
+def sh_degree(num_coeffs: int) -> int:
+    """SH degree of `num_coeffs` = (degree + 1)^2 coefficients per colour channel."""
+    return int(round(np.sqrt(num_coeffs))) - 1
+
+
 def sh_basis(dirs: np.ndarray, degree: int) -> np.ndarray:
     """SH basis values (M, (degree+1)^2) at unit directions `dirs` (M, 3), 3DGS sign convention."""
     d = np.asarray(dirs, dtype=np.float64)
@@ -43,8 +48,7 @@ def sh_basis(dirs: np.ndarray, degree: int) -> np.ndarray:
 
 def eval_sh_colour(sh: np.ndarray, dirs: np.ndarray) -> np.ndarray:
     """Colour (M, 3) = max(0, 0.5 + sum_k sh[:, k] Y_k(dir)) for sh (M, K, 3) and unit dirs (M, 3)."""
-    degree = int(round(np.sqrt(sh.shape[1]))) - 1
-    basis = sh_basis(dirs, degree)
+    basis = sh_basis(dirs, sh_degree(sh.shape[1]))
     return np.maximum(np.einsum("mk,mkc->mc", basis, sh) + 0.5, 0.0)
 
 
@@ -68,9 +72,8 @@ def sh_rotation_matrices(rotation: np.ndarray, degree: int) -> list[np.ndarray]:
 
 def rotate_sh(sh: np.ndarray, rotation: np.ndarray) -> np.ndarray:
     """SH coefficients (N, K, 3) of the colour field rotated by the 3x3 rotation `rotation`."""
-    degree = int(round(np.sqrt(sh.shape[1]))) - 1
     out = np.array(sh, dtype=np.float32, copy=True)
-    for band, mat in enumerate(sh_rotation_matrices(rotation, degree)):
+    for band, mat in enumerate(sh_rotation_matrices(rotation, sh_degree(sh.shape[1]))):
         if band == 0:
             continue
         sl = slice(band * band, (band + 1) ** 2)

@@ -16,7 +16,7 @@ import numpy as np
 import warp as wp
 
 from twinbench.gaussians.cloud import DeviceGaussians, GaussianCloud
-from twinbench.gaussians.sh import sh_rotation_matrices
+from twinbench.gaussians.sh import sh_degree, sh_rotation_matrices
 
 _EPS_REL = 1e-5
 
@@ -216,7 +216,7 @@ class LabelRigidPoser:
         if lab.size and (lab.min() < 0 or lab.max() >= self.num_labels):
             raise ValueError(f"LabelRigidPoser: labels must lie in [0, {self.num_labels})")
         self.rest = rest_dev
-        self.degree = int(round(np.sqrt(rest_dev.sh.shape[1]))) - 1
+        self.degree = sh_degree(rest_dev.sh.shape[1])
         self._labels = wp.array(lab.astype(np.int32), dtype=wp.int32, device=self.device)
         if out is None:
             out = DeviceGaussians(
