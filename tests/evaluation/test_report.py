@@ -236,3 +236,16 @@ def test_browser_check_sees_errors_and_broken_media(tmp_path):
     assert any("boom" in e for e in res.errors) and any("undefined_fn" in e for e in res.errors)
     assert res.images[0]["naturalWidth"] == 0
     assert res.videos[0]["error"] is not None
+
+
+def test_success_table_shows_train_step_zero(tmp_path):
+    # expert@1.0 is train step 0: shown as 0 (not "–") whether or not the cell has ok episodes
+    store = ResultsStore(tmp_path / "s.sqlite")
+    store.record_episodes(
+        [EpisodeRecord("e", "point-reach", "expert", "step_0", 0, i, i, "sim", False, "sim_error")
+         for i in range(2)]
+        + [EpisodeRecord("e", "point-reach", "noisy", "step_0", 0, i, i, "sim", i == 0, "ok")
+           for i in range(2)])
+    page = write_report(store, "e", tmp_path / "r.html", real_run_id=None).read_text()
+    assert "<tr><td>expert</td><td>step_0</td><td>0</td><td>0</td><td>0</td><td>–</td>" in page
+    assert "<tr><td>noisy</td><td>step_0</td><td>0</td><td>2</td><td>1</td><td><b>50.0%</b></td>" in page

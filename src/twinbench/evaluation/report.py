@@ -143,13 +143,13 @@ def _success_section(sim: dict[Key, Cell]) -> str:
     rows = []
     for c in sim.values():
         est = c.rate()
+        step = "–" if c.train_step is None else c.train_step
         if est is None:
-            rows.append([_e(c.policy), _e(c.checkpoint or "–"), _e(c.train_step or "–"), "0", "0", "–", "–",
+            rows.append([_e(c.policy), _e(c.checkpoint or "–"), _e(step), "0", "0", "–", "–",
                          "–", str(c.sim_error), str(c.policy_error)])
             continue
         wl, wh = metrics.wilson(c.successes, c.ok)
         jl, jh = metrics.jeffreys(c.successes, c.ok)
-        step = "–" if c.train_step is None else c.train_step
         rows.append([_e(c.policy), _e(c.checkpoint or "–"), _e(step), str(c.ok), str(c.successes),
                      f"<b>{_pct(est.value)}</b>", f"[{_pct(est.low)}, {_pct(est.high)}]",
                      f"[{_pct(wl)}, {_pct(wh)}] / [{_pct(jl)}, {_pct(jh)}]", str(c.sim_error),
