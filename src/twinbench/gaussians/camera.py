@@ -6,6 +6,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from twinbench.transforms import invert_pose
+
 
 @dataclass(frozen=True, eq=False)
 class Camera:
@@ -40,11 +42,7 @@ class Camera:
     @property
     def world_to_cam(self) -> np.ndarray:
         """4x4 world-to-camera matrix (inverse of the rigid pose)."""
-        out = np.eye(4)
-        rot = self.cam_to_world[:3, :3]
-        out[:3, :3] = rot.T
-        out[:3, 3] = -rot.T @ self.cam_to_world[:3, 3]
-        return out
+        return invert_pose(self.cam_to_world)
 
     @property
     def position(self) -> np.ndarray:
