@@ -22,12 +22,7 @@ import trimesh
 import warp as wp
 
 from twinbench.physics import ModelBuilder, SimParams, SpringMassSolver
-
-
-def _lattice(nx: int, ny: int, nz: int, spacing: float, origin) -> np.ndarray:
-    g = np.stack(np.meshgrid(np.arange(nx), np.arange(ny), np.arange(nz), indexing="ij"), -1).reshape(-1, 3)
-    return g * spacing + np.asarray(origin, dtype=np.float64)
-
+from twinbench.physics.model import lattice
 
 MODELS = {
     # name: two bodies (main body + a small cube resting on it), self-collision on
@@ -39,12 +34,12 @@ MODELS = {
 def _build(name: str, device: str, with_mesh: bool):
     spec = MODELS[name]
     s = spec["spacing"]
-    body = _lattice(*spec["shape"], s, (0.0, 0.0, 0.0))
+    body = lattice(*spec["shape"], s, (0.0, 0.0, 0.0))
     top = body[:, 2].max()
     p = SimParams(collision_dist=1.5 * s, self_collision=True)
     b = ModelBuilder(p)
     b.add_body(body, radius=spec["radius"], max_neighbors=30)
-    b.add_body(_lattice(3, 3, 3, s, (0.0, 0.0, top + 1.2 * s)), radius=spec["radius"])
+    b.add_body(lattice(3, 3, 3, s, (0.0, 0.0, top + 1.2 * s)), radius=spec["radius"])
     mesh = None
     if with_mesh:
         box = trimesh.creation.box(extents=(0.02, 0.02, 0.02))

@@ -5,7 +5,6 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import warp as wp
-from physics_helpers import lattice
 
 from twinbench.physics import (
     ModelBuilder,
@@ -14,6 +13,7 @@ from twinbench.physics import (
     SpringMassSolver,
     check_divergence,
 )
+from twinbench.physics.model import lattice
 
 
 @wp.kernel

@@ -5,9 +5,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import trimesh
-from physics_helpers import lattice
 
 from twinbench.physics import ModelBuilder, SimParams, SpringMassSolver
+from twinbench.physics.model import lattice
 
 G = 9.8
 

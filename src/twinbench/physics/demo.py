@@ -47,23 +47,19 @@ class DemoConfig:
     """finger friction coefficient (grasping is friction only)"""
 
 
-def _cube(n: int, z0: float) -> np.ndarray:
-    g = np.stack(np.meshgrid(np.arange(n), np.arange(n), np.arange(n), indexing="ij"), -1).reshape(-1, 3)
-    half = (n - 1) * 0.01 / 2
-    return g * 0.01 - (half, half, -z0)
-
-
 def simulate(cfg: DemoConfig) -> dict:
     """Run the scenario; returns per-frame particle positions, finger boxes, COM height and forces."""
     import trimesh
 
     from twinbench.physics import ModelBuilder, SimParams, SpringMassSolver
+    from twinbench.physics.model import lattice
 
     p = SimParams(ground_restitution=0.3, ground_friction=0.5)
     b = ModelBuilder(p)
-    pts = _cube(cfg.cube_size, cfg.drop_height)
+    n = cfg.cube_size
+    half = (n - 1) * 0.01 / 2
+    pts = lattice(n, n, n, 0.01, origin=(-half, -half, cfg.drop_height))  # centred on the z axis
     b.add_body(pts, spring_Y=cfg.spring_Y)
-    half = (cfg.cube_size - 1) * 0.01 / 2
     size = 2 * half + 0.01
     finger = trimesh.creation.box(extents=(0.01, size, size))
     gap = half + p.mesh_margin + 0.01

@@ -97,6 +97,13 @@ def radius_springs(points, radius: float = 0.02, max_neighbors: int = 30) -> np.
     return np.asarray(pairs, dtype=np.int32).reshape(-1, 2)
 
 
+def lattice(nx: int, ny: int, nz: int, spacing: float = 0.01, origin=(0.0, 0.0, 0.0)) -> np.ndarray:
+    """(nx * ny * nz, 3) float64 points of a regular lattice (x slowest, z fastest, as in the golden
+    files), starting at ``origin``: a ready-made body for tests, demos and benchmarks."""
+    g = np.stack(np.meshgrid(np.arange(nx), np.arange(ny), np.arange(nz), indexing="ij"), -1).reshape(-1, 3)
+    return g * spacing + np.asarray(origin, dtype=np.float64)
+
+
 def _rest_lengths(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return np.linalg.norm(b.astype(np.float64) - a.astype(np.float64), axis=1).astype(np.float32)
 
