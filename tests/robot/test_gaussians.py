@@ -117,5 +117,13 @@ def test_from_world_round_trip_and_validation(arm, scan):
 def test_sample_by_count(pusher_arm):
     g = sample_robot_scan(pusher_arm, n_gaussians=5000, seed=1)
     assert len(g) == 5000
+    # split by area: floor(area share) per link (at least 1), the remainder to the largest link
+    links = [name for name in pusher_arm.link_names if name in pusher_arm.visual_meshes]
+    areas = np.array([pusher_arm.visual_meshes[name].area for name in links])
+    counts = np.array([np.sum(g.link_index == pusher_arm.link_index(name)) for name in links])
+    share = np.maximum(1, np.floor(areas / areas.sum() * 5000))
+    big = np.argmax(areas)
+    np.testing.assert_array_equal(np.delete(counts, big), np.delete(share, big))
+    assert counts[big] >= share[big]
     with pytest.raises(ValueError, match="n_gaussians"):
         sample_robot_scan(pusher_arm, n_gaussians=3)
