@@ -417,7 +417,11 @@ def _launch_split(kernel, dim: int, inputs: list, outputs: list, device, threads
     )
 
 
-def _render_warp_one(g: DeviceGaussians, cam: Camera, background: np.ndarray, threads: int) -> RenderOutput:
+def _render_warp_one(
+    g: DeviceGaussians, cam: Camera, background: np.ndarray, threads: int, host_sort: bool | None = None
+) -> RenderOutput:
+    """One camera. host_sort (default: on CPU) sorts the pairs with NumPy, else with Warp's radix sort
+    (the CUDA path; the tests also run it on CPU)."""
     device = g.device
     cpu = device.is_cpu
     n = len(g)
@@ -443,7 +447,7 @@ def _render_warp_one(g: DeviceGaussians, cam: Camera, background: np.ndarray, th
 
     # 2. (tile, Gaussian) pairs sorted by tile, then depth: a depth sort, pairs emitted in depth order,
     #    then a stable sort by tile id (NumPy on CPU, Warp radix sort on CUDA)
-    if cpu:
+    if cpu if host_sort is None else host_sort:
         counts = ws.n_tiles.numpy()
         visible = np.flatnonzero(counts).astype(np.int32)
         order = visible[np.argsort(ws.depth.numpy()[visible])].astype(np.int32)
