@@ -74,6 +74,8 @@ def test_replay_lerobot_v3_folder(tmp_path):
     assert [(real.success, rep.success) for real, rep in pairs] == [
         (True, True), (True, False), (False, True), (False, False), (True, True)]
     assert pairs[0][1].steps == 12 and pairs[1][1].steps == 14  # success terminates; else actions run out
+    # rewards 1 - d / 0.25 with d = 0.16, 0.14, ..., 0.02, then 0 for steps 9-12: 8 - 0.72 / 0.25 + 4
+    assert pairs[0][1].metrics == pytest.approx({"episode_index": 0, "sum_reward": 9.12, "max_reward": 1.0})
     check(store, "rp")
     # a replay that ended in an error is counted in `excluded`, never as a replay failure
     real, rep = pairs[0]

@@ -27,6 +27,10 @@ def test_two_workers_grid_and_resume(tmp_path):
     expert = [r for r in recs if r.checkpoint == ""]
     assert [r.init_state for r in expert] == list(range(8)) and [r.seed for r in expert] == list(range(8))
     assert all(r.success and r.status == "ok" and r.steps == 12 for r in expert)  # analytic: 12 steps
+    # rewards 1 - d / 0.25 with d = 0.16, 0.14, ..., 0.02 over steps 1-8, then 0: 8 - 0.72 / 0.25 + 4
+    for r in expert:
+        assert set(r.metrics) == {"sum_reward", "max_reward", "started_at"}  # no "error" on success
+        assert (r.metrics["sum_reward"], r.metrics["max_reward"]) == pytest.approx((9.12, 1.0))
     bad = [r for r in recs if r.checkpoint == "step_0"]
     assert all(r.train_step == 0 and r.status == "ok" for r in bad) and sum(r.success for r in bad) < 8
     info = json.loads((tmp_path / "eval" / "run1" / "expert" / "eval_info.json").read_text())

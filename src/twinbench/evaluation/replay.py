@@ -205,12 +205,9 @@ def replay_episodes(task: str, episodes: list[RecordedEpisode], store: ResultsSt
                       train_step=ep.train_step, init_state=ep.init_state, seed=ep.key_seed)
         real = EpisodeRecord(**common, domain="real", success=ep.success, status="ok",
                              steps=len(ep.actions), metrics={"episode_index": ep.episode_index})
-        metrics = {"episode_index": ep.episode_index, "sum_reward": out.sum_reward,
-                   "max_reward": out.max_reward}
-        if out.error:
-            metrics["error"] = out.error
         rep = EpisodeRecord(**common, domain="replay", success=out.success, status=out.status,
-                            steps=out.steps, wall_time_s=out.wall_time_s, metrics=metrics)
+                            steps=out.steps, wall_time_s=out.wall_time_s,
+                            metrics=out.metrics(episode_index=ep.episode_index))
         store.record_episodes([real, rep])
         pairs.append((real, rep))
     return pairs

@@ -55,6 +55,13 @@ class EpisodeOutcome:
     video_path: str | None = None
     started_at: float = 0.0
 
+    def metrics(self, **extra) -> dict:
+        """The EpisodeRecord.metrics of this outcome: `extra`, rewards, and the error text if any."""
+        out = {**extra, "sum_reward": self.sum_reward, "max_reward": self.max_reward}
+        if self.error:
+            out["error"] = self.error
+        return out
+
 
 @dataclass(frozen=True)
 class EpisodeJob:
@@ -190,14 +197,11 @@ def run_job(job: EpisodeJob) -> EpisodeRecord:
         out = EpisodeOutcome(False, "policy_error", 0, 0.0, error=build_error, started_at=time.time())
     else:
         out = run_episode(env, policy, init_state=job.init_state, seed=job.seed, video_path=job.video_path)
-    metrics = {"sum_reward": out.sum_reward, "max_reward": out.max_reward, "started_at": out.started_at}
-    if out.error:
-        metrics["error"] = out.error
     return EpisodeRecord(
         run_id=job.run_id, task=job.task, policy=spec.name, checkpoint=spec.checkpoint,
         train_step=spec.train_step, init_state=job.init_state, seed=job.seed, domain="sim",
         success=out.success, status=out.status, steps=out.steps, wall_time_s=out.wall_time_s,
-        video_path=out.video_path, metrics=metrics,
+        video_path=out.video_path, metrics=out.metrics(started_at=out.started_at),
     )
 
 
