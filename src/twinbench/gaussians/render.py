@@ -235,7 +235,9 @@ def _gather_counts(
 
 @wp.kernel
 def _tile_ranges(keys: wp.array(dtype=wp.int32), count: int, ranges: wp.array(dtype=wp.vec2i)):
-    """Start/end of each tile's run in the tile-sorted pair list (Warp does not short-circuit `or`)."""
+    """Start/end of each tile's run in the tile-sorted pair list (Warp does not short-circuit `or`).
+    The first and the last pair of a run are different threads: each stores only its own component
+    (a whole-vector read-modify-write would race on CUDA)."""
     n = wp.tid()
     tile = keys[n]
     first = n == 0
@@ -245,9 +247,9 @@ def _tile_ranges(keys: wp.array(dtype=wp.int32), count: int, ranges: wp.array(dt
     if not last:
         last = keys[n + 1] != tile
     if first:
-        ranges[tile] = wp.vec2i(n, ranges[tile][1])
+        ranges[tile][0] = n
     if last:
-        ranges[tile] = wp.vec2i(ranges[tile][0], n + 1)
+        ranges[tile][1] = n + 1
 
 
 @wp.kernel
