@@ -51,10 +51,11 @@ class SpringMassSolver:
         self._f = wp.zeros(n, dtype=wp.vec3, device=dev)
         self._v_star = wp.zeros(n, dtype=wp.vec3, device=dev)
         self._gravity = wp.vec3(*[float(g) for g in p.gravity])
-        width = p.max_collision_candidates if model.particle_collisions else 1
+        self._collide = model.particle_collisions  # fixed topology: decided once, not per substep
+        width = p.max_collision_candidates if self._collide else 1
         self._cand = wp.zeros((n, width), dtype=int, device=dev)
         self._cand_count = wp.zeros(n, dtype=int, device=dev)
-        self._grid = wp.HashGrid(64, 64, 64, device=dev) if model.particle_collisions else None
+        self._grid = wp.HashGrid(64, 64, 64, device=dev) if self._collide else None
         nm = len(model.meshes)
         nfaces = sum(m.faces.shape[0] for m in model.meshes)
         self._mesh_force = wp.zeros(max(nm, 1), dtype=wp.vec3, device=dev)
@@ -115,7 +116,7 @@ class SpringMassSolver:
     def rebuild_collision_candidates(self, state: State) -> None:
         """Rebuild the particle-particle candidate lists from ``state.x`` (done once per frame)."""
         m = self.model
-        if not m.particle_collisions:
+        if not self._collide:
             return
         cd = float(m.params.collision_dist)
         cand_r = cd * float(m.params.candidate_radius_scale)
@@ -154,7 +155,7 @@ class SpringMassSolver:
                 self._go(K.eval_spring_forces, m.num_springs,
                          [state_in.x, state_in.v, m.springs, m.rest_lengths, self._y_eff, *tail],
                          [spring_f], ops)
-        collide = m.particle_collisions
+        collide = self._collide
         self._go(K.particle_update, n,
                  [state_in.x, state_in.v, spring_f, m.inc_offsets, m.inc_springs, f, int(not grad),
                   m.masses, self._gravity, float(dt), float(p.drag_damping), int(not collide), self._cp],
