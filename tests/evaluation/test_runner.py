@@ -165,3 +165,15 @@ def test_ray_backend_matches_local(tmp_path):
         return [(r.policy, r.checkpoint, r.init_state, r.seed, r.success, r.steps, r.status) for r in recs]
 
     assert key(on_ray) == key(local)
+
+
+def test_parse_env_kwargs():
+    from twinbench.evaluation.runner import parse_env_kwargs
+
+    assert parse_env_kwargs("") == {}
+    assert parse_env_kwargs('{"step_delay_s": 0.01, "fail_mode": null}') == {"step_delay_s": 0.01,
+                                                                             "fail_mode": None}
+    with pytest.raises(ValueError, match="JSON object"):
+        parse_env_kwargs("{step_delay_s: 1}")
+    with pytest.raises(ValueError, match=r"JSON object \(dict\)"):
+        parse_env_kwargs("[1, 2]")

@@ -285,7 +285,9 @@ class ReplayConfig:
 
 
 def main(cfg: ReplayConfig) -> int:
-    env_kwargs = json.loads(cfg.env_kwargs) if cfg.env_kwargs else {}
+    from twinbench.evaluation.runner import parse_env_kwargs
+
+    env_kwargs = parse_env_kwargs(cfg.env_kwargs)
     episodes = load_recorded(cfg.source, cfg.outcomes)
     pairs = replay_episodes(cfg.task, episodes, cfg.db, cfg.run_id, env_kwargs=env_kwargs)
     print(f"replayed {len(pairs)} episodes of {cfg.source} in {cfg.task} (run {cfg.run_id!r}, {cfg.db})")

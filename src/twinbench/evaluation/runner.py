@@ -393,6 +393,18 @@ def evaluate(task: str, policies: Sequence[str], episodes: str | int = "grid", w
 
 
 # ---- CLI -------------------------------------------------------------------------------------------
+def parse_env_kwargs(text: str) -> dict:
+    """The `--env-kwargs` option: a JSON object of extra gymnasium.make keyword arguments ("" = none)."""
+    try:
+        env_kwargs = json.loads(text) if text else {}
+    except json.JSONDecodeError as err:
+        raise ValueError(f"--env-kwargs must be a JSON object, e.g. '{{\"step_delay_s\": 0.01}}': "
+                         f"{err}") from err
+    if not isinstance(env_kwargs, dict):
+        raise ValueError("--env-kwargs must be a JSON object (dict)")
+    return env_kwargs
+
+
 @dataclass(frozen=True)
 class EvalConfig:
     """Evaluate policies on a task over its initial-state grid (or N sampled states)."""
@@ -431,13 +443,7 @@ def main(cfg: EvalConfig) -> int:
     if not cfg.policy:
         say("twinbench eval: give at least one --policy (e.g. --policy expert)")
         return 2
-    try:
-        env_kwargs = json.loads(cfg.env_kwargs) if cfg.env_kwargs else {}
-    except json.JSONDecodeError as err:
-        raise ValueError(f"--env-kwargs must be a JSON object, e.g. '{{\"step_delay_s\": 0.01}}': "
-                         f"{err}") from err
-    if not isinstance(env_kwargs, dict):
-        raise ValueError("--env-kwargs must be a JSON object (dict)")
+    env_kwargs = parse_env_kwargs(cfg.env_kwargs)
     try:
         records = evaluate(cfg.task, list(cfg.policy), cfg.episodes, cfg.workers, cfg.run_id, cfg.db,
                            seed=cfg.seed, video=cfg.video, backend=cfg.backend, output_dir=cfg.output_dir,
