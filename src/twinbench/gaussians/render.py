@@ -122,7 +122,6 @@ def _preprocess(
     cy: float,
     width: int,
     height: int,
-    tiles_x: int,
     near: float,
     lim_x_neg: float,
     lim_x_pos: float,
@@ -223,6 +222,16 @@ def _emit_pairs(
             keys[n] = ty * tiles_x + tx
             values[n] = g
             n += 1
+
+
+@wp.kernel
+def _init_depth_sort(
+    depth: wp.array(dtype=wp.float32), keys: wp.array(dtype=wp.float32), ids: wp.array(dtype=wp.int32)
+):
+    """Radix-sort input: keys = depths, values = Gaussian ids 0..n-1 (no host upload per frame)."""
+    i = wp.tid()
+    keys[i] = depth[i]
+    ids[i] = i
 
 
 @wp.kernel
@@ -441,7 +450,7 @@ def _render_warp_one(
         g.means, g.quats, g.scales, g.opacities, g.sh, g.sh.shape[1],
         wp.mat33(w2c[:3, :3].astype(np.float32)), wp.vec3(w2c[:3, 3].astype(np.float32)),
         wp.vec3(cam.position.astype(np.float32)),
-        float(cam.fx), float(cam.fy), float(cam.cx), float(cam.cy), w, h, tiles_x, NEAR,
+        float(cam.fx), float(cam.fy), float(cam.cx), float(cam.cy), w, h, NEAR,
         float(cam.cx / cam.fx + 0.3 * tan_x), float((w - cam.cx) / cam.fx + 0.3 * tan_x),
         float(cam.cy / cam.fy + 0.3 * tan_y), float((h - cam.cy) / cam.fy + 0.3 * tan_y),
     ]  # fmt: skip
@@ -475,8 +484,7 @@ def _render_warp_one(
         # culled Gaussians carry depth 3e38 and 0 tiles
         dkeys = wp.empty(2 * n, dtype=wp.float32, device=device)
         order = wp.empty(2 * n, dtype=wp.int32, device=device)
-        wp.copy(dkeys, ws.depth, count=n)
-        wp.copy(order, wp.array(np.arange(n, dtype=np.int32), device=device), count=n)
+        wp.launch(_init_depth_sort, dim=n, inputs=[ws.depth], outputs=[dkeys, order], device=device)
         wp.utils.radix_sort_pairs(dkeys, order, n)
         counts = wp.empty(n, dtype=wp.int32, device=device)
         wp.launch(_gather_counts, dim=n, inputs=[order, ws.n_tiles], outputs=[counts], device=device)
