@@ -101,7 +101,10 @@ def test_host_skin_and_rigid_device_variant(make_cloud):
     rot = Rotation.from_rotvec([0.0, 0.3, 0.2]).as_matrix()
     out = skin(bind(cloud.means, particles), cloud, particles @ rot.T)
     np.testing.assert_allclose(out.means, cloud.means @ rot.T, atol=1e-5)
+    np.testing.assert_allclose(quat_to_matrix(out.quats), rot @ quat_to_matrix(cloud.quats), atol=1e-4)
     np.testing.assert_array_equal(out.sh, cloud.sh)
+    np.testing.assert_array_equal(out.log_scales, cloud.log_scales)
+    np.testing.assert_array_equal(out.logit_opacities, cloud.logit_opacities)
     transform = np.eye(4)
     transform[:3, :3] = rot
     transform[:3, 3] = [1, 2, 3]
@@ -170,3 +173,29 @@ def test_label_rigid_poser_matches_host_transform_with_sh(make_cloud):
     assert np.abs(dev_img - host_img).max() < 2e-3
     with pytest.raises(ValueError, match="rotation"):
         LabelRigidPoser(cloud, labels).update(np.tile(np.diag([1.0, 1, -1, 1]), (3, 1, 1)))
+
+
+def test_label_rigid_poser_writes_into_a_wider_out_buffer(make_cloud):
+    """`out=` (a scene-wide buffer of higher SH degree): bands of `rest` are posed, the extra ones kept."""
+    import warp as wp
+
+    from twinbench.gaussians.cloud import DeviceGaussians
+
+    cloud = make_cloud(40, degree=1, seed=13)
+    wide = make_cloud(40, degree=3, seed=14).to_device("cpu")
+    extra_before = wide.sh.numpy()[:, 4:].copy()
+    pose = np.eye(4)
+    pose[:3, :3] = Rotation.from_rotvec([0.2, -0.5, 0.9]).as_matrix()
+    pose[:3, 3] = [0.1, 0.2, -0.3]
+    poser = LabelRigidPoser(cloud, np.zeros(40, np.int32), 1, out=wide)
+    assert poser.update(pose[None]) is wide
+    ref = cloud.transform(pose)
+    np.testing.assert_allclose(wide.means.numpy(), ref.means, atol=1e-5)
+    np.testing.assert_allclose(quat_to_matrix(wide.quats.numpy()), quat_to_matrix(ref.quats), atol=1e-5)
+    np.testing.assert_allclose(wide.sh.numpy()[:, :4], ref.sh, atol=1e-5)
+    np.testing.assert_array_equal(wide.sh.numpy()[:, 4:], extra_before)
+    narrow = DeviceGaussians(
+        wide.means, wide.quats, wide.scales, wide.opacities, wp.zeros((40, 1), dtype=wp.vec3)
+    )
+    with pytest.raises(ValueError, match="SH"):
+        LabelRigidPoser(cloud, np.zeros(40, np.int32), 1, out=narrow)
