@@ -48,9 +48,9 @@ class RobotGaussians:
         self.link_index = link_index[order]
         self.means = local.means[order]
         self.quats = local.quats[order]
-        self.log_scales = np.ascontiguousarray(local.log_scales[order])
-        self.logit_opacities = np.ascontiguousarray(local.logit_opacities[order])
-        self.sh = np.ascontiguousarray(local.sh[order])
+        self.log_scales = local.log_scales[order]  # fancy indexing: fresh C-contiguous copies
+        self.logit_opacities = local.logit_opacities[order]
+        self.sh = local.sh[order]
         self._host_poser = None
 
     def __len__(self) -> int:
