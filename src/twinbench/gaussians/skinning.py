@@ -102,6 +102,13 @@ def _polar_rotation(a: wp.mat33):
     return r
 
 
+@wp.func
+def _rotate_quat_wxyz(r: wp.mat33, q: wp.vec4):
+    """wxyz quaternion of rotation r applied after the rotation of q (wxyz); Warp's quat is xyzw."""
+    qn = wp.quat_from_matrix(r) * wp.quat(q[1], q[2], q[3], q[0])
+    return wp.vec4(qn[3], qn[0], qn[1], qn[2])
+
+
 @wp.kernel
 def _bone_rotations(
     rest: wp.array(dtype=wp.vec3),
@@ -146,10 +153,7 @@ def _skin(
         xn += w * (rots[b] * (x - rest[b]) + cur[b])
         m += w * rots[b]
     out_means[i] = xn
-    qr = wp.quat_from_matrix(_polar_rotation(m))  # xyzw
-    q = rest_quats[i]
-    qn = qr * wp.quat(q[1], q[2], q[3], q[0])
-    out_quats[i] = wp.vec4(qn[3], qn[0], qn[1], qn[2])
+    out_quats[i] = _rotate_quat_wxyz(_polar_rotation(m), rest_quats[i])
 
 
 @wp.kernel
@@ -169,10 +173,7 @@ def _rigid_by_label(
     lab = labels[i]
     r = rots[lab]
     out_means[i] = r * rest_means[i] + trans[lab]
-    qr = wp.quat_from_matrix(r)
-    q = rest_quats[i]
-    qn = qr * wp.quat(q[1], q[2], q[3], q[0])
-    out_quats[i] = wp.vec4(qn[3], qn[0], qn[1], qn[2])
+    out_quats[i] = _rotate_quat_wxyz(r, rest_quats[i])
     out_sh[i, 0] = rest_sh[i, 0]
     # band l occupies coefficients l^2 .. (l+1)^2 - 1; its (2l+1)^2 matrix entries follow the previous bands'
     k = rest_sh.shape[1]
