@@ -14,7 +14,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from twinbench.robot.ik import DEFAULT_ROT_WEIGHT, solve_ik
+from twinbench.robot.ik import solve_ik, weighted_error
 from twinbench.robot.model import RobotModel
 from twinbench.transforms import matrix_to_quat, pose_matrix, rotvec_to_matrix
 
@@ -180,8 +180,7 @@ class RobotController:
             )
             self._restart_cache = cached
         best = cached[1]
-        w = DEFAULT_ROT_WEIGHT
-        if best.pos_err**2 + (w * best.rot_err) ** 2 < ik.pos_err**2 + (w * ik.rot_err) ** 2:
+        if weighted_error(best.pos_err, best.rot_err) < weighted_error(ik.pos_err, ik.rot_err):
             return best
         return ik
 

@@ -38,6 +38,11 @@ def pose_error(ee: np.ndarray, target: np.ndarray, rot_weight: float = 1.0) -> n
     return np.concatenate([ep, rot_weight * er], axis=1)
 
 
+def weighted_error(pos_err, rot_err, rot_weight: float = DEFAULT_ROT_WEIGHT):
+    """Squared weighted pose error |p_err|^2 + (rot_weight |r_err|)^2: how solutions are ranked."""
+    return pos_err**2 + (rot_weight * rot_err) ** 2
+
+
 def _check_targets(target: np.ndarray) -> np.ndarray:
     t = np.asarray(target, dtype=np.float64)
     if t.shape[-2:] != (4, 4) or t.ndim not in (2, 3):
@@ -149,7 +154,7 @@ def solve_ik(
         qr = q0[todo].copy()
         qr[:, model.arm_q_indices] = random_configurations(model, todo.size, rng)[:, model.arm_q_indices]
         qn, pen, ren, _ = _lm(model, t[todo], qr, max_iters, pos_tol, rot_tol, rot_weight)
-        better = pen**2 + (rot_weight * ren) ** 2 < pe[todo] ** 2 + (rot_weight * re[todo]) ** 2
+        better = weighted_error(pen, ren, rot_weight) < weighted_error(pe[todo], re[todo], rot_weight)
         sel = todo[better]
         q[sel], pe[sel], re[sel] = qn[better], pen[better], ren[better]
         conv = (pe <= pos_tol) & (re <= rot_tol)
