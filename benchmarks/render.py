@@ -12,10 +12,10 @@ import time
 
 import numpy as np
 import warp as wp
-from scipy.spatial.transform import Rotation
 
 from twinbench.gaussians.camera import Camera
 from twinbench.gaussians.cloud import GaussianCloud
+from twinbench.gaussians.primitives import quat_z_to
 from twinbench.gaussians.render import gsplat_available, render
 from twinbench.gaussians.skinning import LBSSkinner, bind
 
@@ -43,12 +43,7 @@ def surface_scene(n: int = 200_000, seed: int = 0) -> GaussianCloud:
         normals.append(d)
     means = np.concatenate(parts)
     nrm = np.concatenate(normals)
-    # disc normal (local z) -> surface normal
-    helper = np.where(np.abs(nrm[:, :1]) < 0.9, [[1.0, 0, 0]], [[0, 1.0, 0]])
-    x = np.cross(nrm, helper)
-    x /= np.linalg.norm(x, axis=1, keepdims=True)
-    mats = np.stack([x, np.cross(nrm, x), nrm], axis=2)
-    quats = Rotation.from_matrix(mats).as_quat()[:, [3, 0, 1, 2]]
+    quats = quat_z_to(nrm)  # disc normal (local z) -> surface normal
     log_scales = np.c_[np.log(rng.uniform(0.003, 0.01, (n, 2))), np.full(n, np.log(0.0005))]
     sh = rng.normal(scale=0.5, size=(n, 1, 3))
     return GaussianCloud(means, quats, log_scales, np.full(n, 3.0), sh)
