@@ -126,12 +126,12 @@ class SpringMassSolver:
                   inputs=[self._grid.id, state.x, m.masks, m.nbr_offsets, m.nbr, cand_r, query_r],
                   outputs=[self._cand, self._cand_count], device=self.device)
 
-    def _update_stiffness(self) -> None:
+    def _update_stiffness(self, ops: list | None = None) -> None:
         m = self.model
         if m.num_springs:
-            wp.launch(K.effective_stiffness, dim=m.num_springs,
-                      inputs=[m.log_y, float(m.params.spring_Y_min), float(m.params.spring_Y_max)],
-                      outputs=[self._y_eff], device=self.device)
+            self._go(K.effective_stiffness, m.num_springs,
+                     [m.log_y, float(m.params.spring_Y_min), float(m.params.spring_Y_max)],
+                     [self._y_eff], ops)
 
     def _launch_substep(self, state_in: State, state_out: State, control: Control, dt: float,
                         substep_index: int, grad: bool, ops: list | None = None) -> None:
@@ -191,7 +191,7 @@ class SpringMassSolver:
     def _frame_launches(self, control: Control, ops: list | None = None) -> State:
         a, b = self._buf
         p = self.model.params
-        self._update_stiffness()  # once per frame, outside recorded ops (log Y may change between frames)
+        self._update_stiffness(ops)  # once per frame; a replay reads the current log Y (it may change)
         for s in range(p.substeps):
             src, dst = (a, b) if s % 2 == 0 else (b, a)
             if self._kinematic:
@@ -246,7 +246,6 @@ class SpringMassSolver:
                 ops: list = []
                 out = self._frame_launches(control, ops)
                 self._graph, self._graph_key, self._graph_out = ops, key, out
-            self._update_stiffness()
             for op in self._graph:
                 op()
             out = self._graph_out
