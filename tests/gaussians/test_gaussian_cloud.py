@@ -143,10 +143,16 @@ def test_rendering_is_invariant_under_moving_cloud_and_camera_together(make_clou
 
 def test_device_arrays(make_cloud):
     cloud = make_cloud(10, degree=1)
+    unit = cloud.quats.copy()
     cloud.quats *= 3.0  # unnormalised on the host
+    cloud.quats[0] = 0.0  # a zero quaternion becomes the identity
     dev = cloud.to_device("cpu")
     assert len(dev) == 10 and dev.sh.shape == (10, 4)
     np.testing.assert_allclose(np.linalg.norm(dev.quats.numpy(), axis=1), 1.0, atol=1e-6)
+    np.testing.assert_allclose(dev.quats.numpy()[1:], unit[1:], atol=1e-6)
+    np.testing.assert_array_equal(dev.quats.numpy()[0], [1.0, 0.0, 0.0, 0.0])
+    np.testing.assert_array_equal(dev.means.numpy(), cloud.means)
+    np.testing.assert_array_equal(dev.sh.numpy(), cloud.sh)
     np.testing.assert_allclose(dev.scales.numpy(), np.exp(cloud.log_scales), rtol=1e-6)
     np.testing.assert_allclose(dev.opacities.numpy(), 1 / (1 + np.exp(-cloud.logit_opacities)), rtol=1e-6)
 
