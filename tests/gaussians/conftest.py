@@ -8,6 +8,7 @@ import pytest
 from twinbench.gaussians.camera import Camera
 from twinbench.gaussians.cloud import GaussianCloud
 from twinbench.gaussians.sh import eval_sh_colour
+from twinbench.transforms import quat_to_matrix
 
 
 def random_cloud(
@@ -43,17 +44,7 @@ def reference_render(cloud: GaussianCloud, cam: Camera, background=(0.0, 0.0, 0.
     p = cloud.means.astype(np.float64) @ w2c[:3, :3].T + w2c[:3, 3]
     z = p[:, 2]
     op = 1.0 / (1.0 + np.exp(-cloud.logit_opacities.astype(np.float64)))
-    q = cloud.quats.astype(np.float64)
-    q /= np.linalg.norm(q, axis=1, keepdims=True)
-    w_, x_, y_, z_ = q.T
-    rot = np.stack(
-        [
-            np.stack([1 - 2 * (y_**2 + z_**2), 2 * (x_ * y_ - w_ * z_), 2 * (x_ * z_ + w_ * y_)], -1),
-            np.stack([2 * (x_ * y_ + w_ * z_), 1 - 2 * (x_**2 + z_**2), 2 * (y_ * z_ - w_ * x_)], -1),
-            np.stack([2 * (x_ * z_ - w_ * y_), 2 * (y_ * z_ + w_ * x_), 1 - 2 * (x_**2 + y_**2)], -1),
-        ],
-        -2,
-    )
+    rot = quat_to_matrix(cloud.quats)
     m = rot * np.exp(cloud.log_scales.astype(np.float64))[:, None, :]
     cov_c = w2c[:3, :3] @ (m @ m.transpose(0, 2, 1)) @ w2c[:3, :3].T
     tan_x, tan_y = 0.5 * cam.width / cam.fx, 0.5 * cam.height / cam.fy
