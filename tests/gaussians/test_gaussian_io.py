@@ -64,8 +64,8 @@ def test_ply_with_big_endian_and_extra_properties(tmp_path, make_cloud):
     path.write_bytes(header.encode() + np.stack(cols, 1).astype(">f4").tobytes())
     with pytest.warns(UserWarning, match="extra_thing"):
         back = load_gaussians(path)
-    np.testing.assert_array_equal(back.sh, cloud.sh)
-    np.testing.assert_array_equal(back.means, cloud.means)
+    for name in ("means", "quats", "log_scales", "logit_opacities", "sh"):
+        np.testing.assert_array_equal(getattr(back, name), getattr(cloud, name), err_msg=name)
 
 
 def test_splat_round_trip_within_quantisation(tmp_path, make_cloud):
