@@ -60,8 +60,3 @@ class SimParams:
     def frame_dt(self) -> float:
         """Duration of one frame (all substeps), in seconds."""
         return self.dt * self.substeps
-
-    @staticmethod
-    def substeps_for(dt: float, fps: float = 30.0) -> int:
-        """PhysTwin's rule: ``round(1 / (fps * dt))``."""
-        return int(round(1.0 / (fps * dt)))

@@ -48,11 +48,6 @@ class ControllerConfig:
     def action_dim(self) -> int:
         return {"absolute": 8, "relative": 7, "planar": 2}[self.action_mode]
 
-    @property
-    def step_gain(self) -> float:
-        """Fraction of the (clamped) IK delta applied per step: velocity_gain / velocity_dt / control_hz."""
-        return self.velocity_gain / self.velocity_dt / self.control_hz
-
 
 @dataclass
 class RobotCommand:
