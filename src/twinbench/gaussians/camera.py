@@ -68,18 +68,7 @@ class Camera:
     ) -> Camera:
         """Camera at `eye` looking at `target`; image 'up' (-y) is as close to `up` as possible.
         cx, cy default to the image centre, fy to fx."""
-        eye = np.asarray(eye, dtype=np.float64)
-        forward = np.asarray(target, dtype=np.float64) - eye
-        if np.linalg.norm(forward) < 1e-12:
-            raise ValueError("Camera.look_at: eye and target coincide")
-        forward /= np.linalg.norm(forward)
-        right = np.cross(forward, np.asarray(up, dtype=np.float64))
-        if np.linalg.norm(right) < 1e-9:
-            raise ValueError("Camera.look_at: `up` is parallel to the viewing direction; pass another up")
-        right /= np.linalg.norm(right)
-        down = np.cross(forward, right)
-        pose = np.eye(4)
-        pose[:3, 0], pose[:3, 1], pose[:3, 2], pose[:3, 3] = right, down, forward, eye
+        pose = look_at_pose(eye, target, up)
         return Camera(
             fx=fx,
             fy=fx if fy is None else fy,
@@ -89,3 +78,20 @@ class Camera:
             height=height,
             cam_to_world=pose,
         )
+
+
+def look_at_pose(eye, target, up=(0.0, 0.0, 1.0)) -> np.ndarray:
+    """Camera-to-world pose (OpenCV axes) at `eye` looking at `target`, image 'up' as close to `up` as
+    possible."""
+    eye = np.asarray(eye, dtype=np.float64)
+    forward = np.asarray(target, dtype=np.float64) - eye
+    if np.linalg.norm(forward) < 1e-12:
+        raise ValueError("look_at: eye and target coincide")
+    forward /= np.linalg.norm(forward)
+    right = np.cross(forward, np.asarray(up, dtype=np.float64))
+    if np.linalg.norm(right) < 1e-9:
+        raise ValueError("look_at: `up` is parallel to the viewing direction; pass another up")
+    right /= np.linalg.norm(right)
+    pose = np.eye(4)
+    pose[:3, 0], pose[:3, 1], pose[:3, 2], pose[:3, 3] = right, np.cross(forward, right), forward, eye
+    return pose

@@ -12,7 +12,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from twinbench.gaussians.camera import Camera
+from twinbench.gaussians.camera import Camera, look_at_pose
 
 SENSOR_SIZE = (848, 480)  # width, height of both reference cameras
 # (fx, fy, cx, cy) of the reference cell's cameras (DESIGN §5).
@@ -68,11 +68,6 @@ class CameraSpec:
             pose = np.asarray(link_pose, dtype=np.float64) @ pose
         fx, fy, cx, cy = policy_intrinsics(self.intrinsics, self.sensor_size, out_hw)
         return Camera(fx=fx, fy=fy, cx=cx, cy=cy, width=out_hw[1], height=out_hw[0], cam_to_world=pose)
-
-
-def look_at_pose(eye, target, up=(0.0, 0.0, 1.0)) -> np.ndarray:
-    """Camera-to-world pose (OpenCV axes) at `eye` looking at `target`."""
-    return Camera.look_at(eye, target, up, fx=1.0, width=1, height=1).cam_to_world
 
 
 def front_camera(eye=(0.92, -0.42, 0.52), target=(0.46, 0.0, 0.0)) -> CameraSpec:
