@@ -21,7 +21,7 @@ from twinbench.tasks.push_t_expert import PushTExpert
 def bench(preset: str, device: str, steps: int, warmup: int = 5) -> None:
     env = TwinEnv("push-t", preset=preset, device=device)
     obs, info = env.reset(seed=0, options={"init_state": 0})
-    expert = PushTExpert(env.task.shape)
+    expert = PushTExpert(env.rules.shape)
     twin, state = env.twin, env.state
     physics, render, total = [], [], []
     for k in range(warmup + steps):

@@ -39,7 +39,8 @@ def _split_settings(task_cls, settings: dict) -> tuple[dict, dict]:
 
 
 class TwinEnv(gymnasium.Env):
-    """Gymnasium env = a built twin + a task's rules (see the module docstring)."""
+    """Gymnasium env = a built twin (`twin`, `state`) + a task's rules (`rules`, a TwinTask); see the
+    module docstring. `task` / `task_description` hold the task's text."""
 
     metadata = {"render_modes": ["rgb_array"], "render_fps": 30}
 
@@ -67,22 +68,22 @@ class TwinEnv(gymnasium.Env):
         else:
             task_cls = type(task)
         task_settings, cell_settings = _split_settings(task_cls, settings)
-        self.task = task if not isinstance(task, str) else task_cls(roles, **task_settings)
+        self.rules = task if not isinstance(task, str) else task_cls(roles, **task_settings)
         if twin is None:
-            twin_spec = self.task.default_twin(preset, **cell_settings)
+            twin_spec = self.rules.default_twin(preset, **cell_settings)
         else:
             if cell_settings:
                 raise ValueError(
-                    f"unknown setting(s) {sorted(cell_settings)} for task {self.task.name!r} "
+                    f"unknown setting(s) {sorted(cell_settings)} for task {self.rules.name!r} "
                     f"with a twin from disk; task settings: "
                     f"{sorted(f.name for f in dataclasses.fields(task_cls.settings_cls))}"
                 )
             twin_spec = twin if isinstance(twin, TwinSpec) else load_twin(Path(twin))
-        overrides = self.task.controller_overrides()
+        overrides = self.rules.controller_overrides()
         if overrides:
             twin_spec = replace(twin_spec, controller=replace(twin_spec.controller, **overrides))
         self.twin, self.state = build_twin(twin_spec, device)
-        self.task.setup(self.twin, self.state)
+        self.rules.setup(self.twin, self.state)
 
         self.render_mode = render_mode
         views = render_views or next(iter(self.twin.cameras))
@@ -92,11 +93,11 @@ class TwinEnv(gymnasium.Env):
             raise ValueError(f"render_views: unknown camera(s) {unknown}; cameras: {list(self.twin.cameras)}")
         fps = int(round(self.twin.controller.config.control_hz))
         self.metadata = {**self.metadata, "render_fps": fps}
-        self._max_episode_steps = int(round(self.task.episode_seconds * fps))
-        self.task_description = self.task.description
+        self._max_episode_steps = int(round(self.rules.episode_seconds * fps))
+        self.task_description = self.task = self.rules.description  # `task`: the name LeRobot's loop reads
         self.environment_state = bool(environment_state)
 
-        low, high = self.task.action_bounds(self.twin)
+        low, high = self.rules.action_bounds(self.twin)
         self.action_space = spaces.Box(low, high, dtype=np.float32)
         pixels, depth = {}, {}
         for name, cam in self.twin.cameras.items():
@@ -108,12 +109,12 @@ class TwinEnv(gymnasium.Env):
         if depth:
             obs_space["depth"] = spaces.Dict(depth)
         if self.environment_state:
-            d = self.task.environment_state_dim
+            d = self.rules.environment_state_dim
             obs_space["environment_state"] = spaces.Box(-np.inf, np.inf, (d,), np.float32)
         self.observation_space = spaces.Dict(obs_space)
         from twinbench.tasks.base import SuccessWindow
 
-        self._success = SuccessWindow(self.task.success_window, self.task.success_min_hits)
+        self._success = SuccessWindow(self.rules.success_window, self.rules.success_min_hits)
         self._steps = 0
         self._status = "ok"
         self._done = False
@@ -126,7 +127,7 @@ class TwinEnv(gymnasium.Env):
         unknown = sorted(set(options) - set(RESET_OPTIONS))
         if unknown:
             raise ValueError(f"reset options: unknown key(s) {unknown}; known: {list(RESET_OPTIONS)}")
-        n_grid = len(self.task.initial_states)
+        n_grid = len(self.rules.initial_states)
         index = options.get("init_state", 0 if seed is None else int(seed) % n_grid)
         if isinstance(index, bool) or not isinstance(index, int | np.integer):
             raise ValueError(f"options['init_state'] must be an integer grid index, got {index!r}")
@@ -134,23 +135,23 @@ class TwinEnv(gymnasium.Env):
         if index < 0:
             raise ValueError(f"options['init_state'] must be >= 0, got {index}")
         sampled = bool(options.get("sampled", False)) or index >= n_grid
-        states = self.task.initial_states
+        states = self.rules.initial_states
         offsets = (
             states.sample_offsets(0 if seed is None else int(seed)) if sampled else states.grid_offsets(index)
         )
-        self.task.reset(self.twin, self.state, offsets)
+        self.rules.reset(self.twin, self.state, offsets)
         self._success.reset()
         self._steps, self._status, self._done = 0, "ok", False
-        hit, metrics = self.task.frame(self.twin, self.state)
+        hit, metrics = self.rules.frame(self.twin, self.state)
         obs = self._observe(metrics)
         return obs, {"is_success": False, "status": "ok", **metrics, "privileged": self._privileged}
 
     def step(self, action):
         if self._status != "ok":
-            raise RuntimeError(f"{self.task.name}: the episode ended with a simulation error; call reset()")
+            raise RuntimeError(f"{self.rules.name}: the episode ended with a simulation error; call reset()")
         if self._done:
             raise RuntimeError(
-                f"{self.task.name}: the episode is over (terminated or truncated); call reset()"
+                f"{self.rules.name}: the episode is over (terminated or truncated); call reset()"
             )
         a = np.asarray(action, dtype=np.float64)
         if a.shape != self.action_space.shape:
@@ -165,13 +166,13 @@ class TwinEnv(gymnasium.Env):
             self._status = "sim_error"
             info = {"is_success": False, "status": "sim_error", "error": str(err)}
             return self._last_obs, 0.0, True, False, info
-        hit, metrics = self.task.frame(self.twin, self.state)
+        hit, metrics = self.rules.frame(self.twin, self.state)
         success = self._success.update(hit)
         obs = self._observe(metrics)
         truncated = self._steps >= self._max_episode_steps and not success
         self._done = success or truncated
         info = {"is_success": success, "status": "ok", **metrics, "privileged": self._privileged}
-        return obs, self.task.reward(metrics), success, truncated, info
+        return obs, self.rules.reward(metrics), success, truncated, info
 
     def render(self):
         frames = [self._frames[v] for v in self.render_views]
@@ -180,9 +181,9 @@ class TwinEnv(gymnasium.Env):
     def _observe(self, metrics: dict) -> dict:
         outs = self.twin.render(self.state)
         frames = {name: out.rgb_uint8() for name, out in outs.items()}
-        self.task.decorate(frames)
+        self.rules.decorate(frames)
         self._frames = frames
-        self._privileged = self.task.privileged(self.twin, self.state, metrics)
+        self._privileged = self.rules.privileged(self.twin, self.state, metrics)
         obs = {"pixels": frames, "agent_pos": self.twin.ee_state(self.state).astype(np.float32)}
         depth = {name: outs[name].depth for name, cam in self.twin.cameras.items() if cam.depth}
         if depth:

@@ -28,9 +28,9 @@ def test_registered_and_conforms_to_gymnasium(env):
     assert set(obs) == {"pixels", "agent_pos"} and set(obs["pixels"]) == {"front", "wrist"}
     assert obs["pixels"]["front"].shape == (240, 240, 3) and obs["pixels"]["front"].dtype == np.uint8
     assert obs["agent_pos"].dtype == np.float32 and obs["agent_pos"].shape == (2,)
-    np.testing.assert_allclose(obs["agent_pos"], env.task.settings.pusher_start, atol=1e-3)
+    np.testing.assert_allclose(obs["agent_pos"], env.rules.settings.pusher_start, atol=1e-3)
     assert info["is_success"] is False and info["status"] == "ok"
-    assert info["msd"] == pytest.approx(env.task.goal_msd(env.twin, env.state))
+    assert info["msd"] == pytest.approx(env.rules.goal_msd(env.twin, env.state))
     assert env._max_episode_steps == 1800 and env.metadata["render_fps"] == 30
     assert isinstance(env.metadata["render_fps"], int)
     assert isinstance(env.task_description, str) and env.task_description
@@ -58,7 +58,7 @@ def test_initial_states_place_the_block_on_the_grid(env):
 
 
 def test_goal_pose_gives_zero_distance_full_coverage_and_yellow_overlay(env):
-    task, twin, state = env.task, env.twin, env.state
+    task, twin, state = env.rules, env.twin, env.state
     twin.reset(state, task.q_start, {"tblock": task.goal})
     assert task.goal_msd(twin, state) == pytest.approx(0.0, abs=1e-12)
     assert task.coverage(twin, state) == pytest.approx(1.0)
@@ -78,8 +78,8 @@ def test_pushing_moves_the_block_and_reward_is_coverage(env):
         obs, reward, term, trunc, info = env.step(np.array(before[:2], np.float32))
     after = info["privileged"]["environment_state"][:3]
     assert np.linalg.norm(after[:2] - before[:2]) > 0.01
-    assert reward == pytest.approx(env.task.coverage(env.twin, env.state)) and info["status"] == "ok"
-    assert info["msd"] == pytest.approx(env.task.goal_msd(env.twin, env.state))
+    assert reward == pytest.approx(env.rules.coverage(env.twin, env.state)) and info["status"] == "ok"
+    assert info["msd"] == pytest.approx(env.rules.goal_msd(env.twin, env.state))
 
 
 def test_same_seed_and_state_give_identical_episodes(env):
@@ -151,7 +151,7 @@ def test_presets_are_named_and_validated():
 
 def _run_expert(env, state: int) -> tuple[bool, int]:
     obs, info = env.reset(seed=0, options={"init_state": state})
-    expert = PushTExpert(env.task.shape)
+    expert = PushTExpert(env.rules.shape)
     steps = 0
     while True:
         obs, _, term, trunc, info = env.step(expert.select_action(policy_observation(expert, obs, info)))
@@ -163,7 +163,7 @@ def _run_expert(env, state: int) -> tuple[bool, int]:
 def test_expert_needs_the_environment_state(env):
     obs, _ = env.reset(seed=0)
     with pytest.raises(Exception, match="environment_state"):
-        PushTExpert(env.task.shape).select_action(obs)
+        PushTExpert(env.rules.shape).select_action(obs)
 
 
 @pytest.mark.parametrize("state", [0, 9])

@@ -157,7 +157,7 @@ def make_expert(env):
     """The scripted expert; it acts from `environment_state` (never the env's internals)."""
     from twinbench.tasks.push_t_expert import PushTExpert
 
-    return PushTExpert(env.unwrapped.task.shape)
+    return PushTExpert(env.unwrapped.rules.shape)
 
 
 register_task("push-t", env_id=ENV_ID, make_expert=make_expert, n_grid_states=16,
