@@ -35,9 +35,10 @@ def pytest_collection_modifyitems(config, items):
 
 @pytest.fixture(scope="session")
 def fast_env():
-    """A push-T env on the built-in `fast` cell, built once per session (each test resets it)."""
+    """A push-T env on the built-in `fast` cell with early termination on success (quick expert
+    episodes), built once per session (each test resets it)."""
     from twinbench.env import TwinEnv
 
-    env = TwinEnv("push-t", preset="fast")
+    env = TwinEnv("push-t", preset="fast", success_rule="early")
     env.reset(seed=0, options={"init_state": 0})
     return env

@@ -9,11 +9,17 @@ for cameras with depth, + `"environment_state"` when made with `environment_stat
 `is_success`, `status` ("ok" | "sim_error"), the task's metrics and `privileged` (object poses and the
 task's `environment_state` vector, for scripted experts and offline rescoring).
 
+Success rules (`success_rule`, recorded in `info["success_rule"]` and by the evaluation store):
+- "final" (default, the reference study's rule): every episode runs its full length; the outcome is the
+  task's window criterion (e.g. > 30 hits in the last 100 frames) at the final frame. `info["is_success"]`
+  on each step tells whether the criterion holds over the frames so far.
+- "early": the episode terminates as soon as the window criterion holds (a speed option).
+
 Keyword arguments: `task` (registered name or a TwinTask), `twin` (directory or TwinSpec; default: the
-task's built-in cell at `preset`), `device`, `render_views` ("front", "front+wrist", ...: the cameras
-`render()` puts side by side; default the first camera), `environment_state`, `roles` ({role: object}),
-then the task's settings (e.g. `episode_seconds`) and, for built-in cells only, the cell's settings
-(e.g. `pusher_friction`).
+task's built-in cell at `preset`), `device`, `success_rule`, `render_views` ("front", "front+wrist", ...:
+the cameras `render()` puts side by side; default the first camera), `environment_state`, `roles`
+({role: object}), then the task's settings (e.g. `episode_seconds`) and, for built-in cells only, the
+cell's settings (e.g. `pusher_friction`).
 """
 
 from __future__ import annotations
@@ -29,6 +35,7 @@ from gymnasium import spaces
 from twinbench.physics import SimulationDiverged
 
 RESET_OPTIONS = ("init_state", "sampled")
+SUCCESS_RULES = ("final", "early")
 
 
 def _split_settings(task_cls, settings: dict) -> tuple[dict, dict]:
@@ -54,11 +61,16 @@ class TwinEnv(gymnasium.Env):
         render_mode: str | None = "rgb_array",
         render_views: str | None = None,
         environment_state: bool = False,
+        success_rule: str = "final",
         roles: dict | None = None,
         **settings,
     ):
         from twinbench.tasks import get_task
         from twinbench.twin import TwinSpec, build_twin, load_twin
+
+        if success_rule not in SUCCESS_RULES:
+            raise ValueError(f"success_rule must be one of {SUCCESS_RULES}, got {success_rule!r}")
+        self.success_rule = success_rule
 
         if isinstance(task, str):
             spec = get_task(task)
@@ -144,7 +156,14 @@ class TwinEnv(gymnasium.Env):
         self._steps, self._status, self._done = 0, "ok", False
         hit, metrics = self.rules.frame(self.twin, self.state)
         obs = self._observe(metrics)
-        return obs, {"is_success": False, "status": "ok", **metrics, "privileged": self._privileged}
+        info = {
+            "is_success": False,
+            "status": "ok",
+            "success_rule": self.success_rule,
+            **metrics,
+            "privileged": self._privileged,
+        }
+        return obs, info
 
     def step(self, action):
         if self._status != "ok":
@@ -164,15 +183,27 @@ class TwinEnv(gymnasium.Env):
             self.twin.step(self.state, a)
         except SimulationDiverged as err:
             self._status = "sim_error"
-            info = {"is_success": False, "status": "sim_error", "error": str(err)}
+            info = {
+                "is_success": False,
+                "status": "sim_error",
+                "error": str(err),
+                "success_rule": self.success_rule,
+            }
             return self._last_obs, 0.0, True, False, info
         hit, metrics = self.rules.frame(self.twin, self.state)
         success = self._success.update(hit)
         obs = self._observe(metrics)
-        truncated = self._steps >= self._max_episode_steps and not success
-        self._done = success or truncated
-        info = {"is_success": success, "status": "ok", **metrics, "privileged": self._privileged}
-        return obs, self.rules.reward(metrics), success, truncated, info
+        terminated = success and self.success_rule == "early"
+        truncated = self._steps >= self._max_episode_steps and not terminated
+        self._done = terminated or truncated
+        info = {
+            "is_success": success,
+            "status": "ok",
+            "success_rule": self.success_rule,
+            **metrics,
+            "privileged": self._privileged,
+        }
+        return obs, self.rules.reward(metrics), terminated, truncated, info
 
     def render(self):
         frames = [self._frames[v] for v in self.render_views]

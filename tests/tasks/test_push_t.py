@@ -115,6 +115,33 @@ def test_bad_actions_options_and_divergence(env):
         env.step(np.array([0.3, 0.0], np.float32))
 
 
+@pytest.mark.parametrize("rule", ["final", "early"])
+def test_success_rules_final_window_or_early_termination(rule, tmp_path):
+    """A block that starts on its goal hits on every frame: "final" runs the whole (9-step) episode and
+    judges its last frames, "early" stops once the window holds (3 hits > 2 of the last 5)."""
+    from twinbench.evaluation.runner import run_episode
+    from twinbench.tasks.base import offset_pose
+    from twinbench.tasks.push_t_expert import PushTExpert
+    from twinbench.tasks.push_t_geometry import grid_initial_states
+
+    goal = offset_pose(planar_pose(0.5, 0.0, 0.0), grid_initial_states()[2])
+    env = TwinEnv(
+        "push-t",
+        preset="fast",
+        success_rule=rule,
+        episode_seconds=0.3,
+        success_window=5,
+        success_min_hits=2,
+        goal_pose=(goal[0, 3], goal[1, 3], np.arctan2(goal[1, 0], goal[0, 0])),
+    )
+    out = run_episode(env, PushTExpert(env.rules.shape), init_state=2, seed=0)
+    assert out.status == "ok" and out.success and out.success_rule == rule
+    assert out.steps == (9 if rule == "final" else 3)
+    assert out.metrics()["success_rule"] == rule
+    with pytest.raises(ValueError, match="success_rule"):
+        TwinEnv("push-t", preset="fast", success_rule="sometimes")
+
+
 def test_stepping_after_truncation_raises():
     env = TwinEnv("push-t", preset="fast", episode_seconds=0.1)  # 3 steps
     env.reset(seed=0, options={"init_state": 0})

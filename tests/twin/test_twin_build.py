@@ -174,3 +174,52 @@ def test_gripper_latches_on_finger_forces_and_lifts_by_friction():
     rise = robot.ee_pose(state.robot.q)[2, 3] - 0.02
     assert state.robot.gripper == held and state.robot.latched
     assert rise > 0.05 and twin.particles(state, "cube")[:, 2].min() > rise - 0.01
+
+
+def test_colliders_are_placed_per_episode_with_their_gaussians():
+    """A box collider moved at reset: a cube dropped above its new place lands on it (not on the table),
+    and the box's Gaussians are posed there too."""
+    import trimesh
+
+    from twinbench.twin import ColliderSpec
+
+    box = trimesh.creation.box(extents=(0.1, 0.1, 0.04), transform=np.diag([1.0, 1, 1, 1]))
+    box.vertices[:, 2] += 0.02  # box frame: bottom face on z = 0
+    top = surface_discs(
+        np.array([[0.0, 0.0, 0.04]], np.float32), np.array([[0.0, 0, 1]]), (0.2, 0.8, 0.2), 0.01
+    )
+    sim = SimParams(
+        dt=1 / 30 / 200, substeps=200, ground_restitution=0.0, object_collision=False, mesh_margin=0.004
+    )
+    cube = ObjectSpec("cube", _cube_points(), spring_radius=0.018, max_neighbors=50)
+    spec = TwinSpec(
+        "box",
+        RobotSpec("builtin:xarm7_pusher", scan_spacing=0.05),
+        objects=(cube,),
+        colliders=(ColliderSpec("box", box.vertices, box.faces, planar_pose(0.5, 0.3, 0.0), gaussians=top),),
+        cameras=(front_camera(),),
+        sim=sim,
+        controller=ControllerConfig(action_mode="planar", planar_height=0.2),
+    )
+    twin, state = build_twin(spec)
+    moved = planar_pose(0.45, -0.2, 0.5)
+    above = planar_pose(0.45, -0.2, 0.0)
+    above[2, 3] = 0.06
+    twin.reset(state, None, {"box": moved, "cube": above})
+    for _ in range(20):
+        twin.step(state, twin.ee_state(state))
+    z = twin.particles(state, "cube")[:, 2]
+    assert abs(z.min() - 0.04) < 0.006  # resting on the box top (4 cm), not on the table
+    np.testing.assert_allclose(twin.collider_pose(state, "box"), moved)
+    g = twin.pose_gaussians(state).means.numpy()[-1]
+    np.testing.assert_allclose(g, [0.45, -0.2, 0.04], atol=1e-6)
+    twin.reset(state)  # back to the spec's pose: the cube's rest pose is the origin, the box at (0.5, 0.3)
+    np.testing.assert_allclose(twin.pose_gaussians(state).means.numpy()[-1], [0.5, 0.3, 0.04], atol=1e-6)
+    with pytest.raises(ValueError, match="unique"):
+        TwinSpec(
+            "dup",
+            spec.robot,
+            objects=(cube,),
+            colliders=(ColliderSpec("cube", box.vertices, box.faces),),
+            cameras=spec.cameras,
+        )

@@ -4,7 +4,9 @@ Episodes run in worker processes (spawn context; `workers=0` runs them in the ca
 Ray (`backend="ray"`). The parent commits each finished episode to the results store at once, so a
 re-run of the same run id skips finished episodes and an interrupted run (SIGINT) loses at most the
 episodes in flight. Status: "sim_error" when the env reports or raises a simulation failure (or emits
-a non-finite state), "policy_error" when the policy raises or returns a malformed action.
+a non-finite state), "policy_error" when the policy raises or returns a malformed action. The outcome is
+the env's `info["is_success"]` at the episode's last step (the env's success rule, e.g. TwinEnv's
+"final" window judgement or "early" termination, is stored in the episode's metrics).
 
 Seeds: grid episodes use init_state i with seed `seed + i`; `episodes=N` samples N states, init_state
 `n_grid_states + k` with seed `seed + k` (the env draws the state from that seed).
@@ -54,10 +56,13 @@ class EpisodeOutcome:
     error: str | None = None
     video_path: str | None = None
     started_at: float = 0.0
+    success_rule: str | None = None  # the env's rule that judged the outcome (TwinEnv: "final" or "early")
 
     def metrics(self, **extra) -> dict:
-        """The EpisodeRecord.metrics of this outcome: `extra`, rewards, and the error text if any."""
+        """The EpisodeRecord.metrics of this outcome: `extra`, rewards, success rule, error text."""
         out = {**extra, "sum_reward": self.sum_reward, "max_reward": self.max_reward}
+        if self.success_rule:
+            out["success_rule"] = self.success_rule
         if self.error:
             out["error"] = self.error
         return out
@@ -121,7 +126,7 @@ def run_episode(env, policy, *, init_state: int, seed: int, max_steps: int | Non
     t0, started = time.perf_counter(), time.time()
     rewards: list[float] = []
     video = _VideoWriter(video_path, env) if video_path is not None else None
-    success, status, error, steps = False, "ok", None, 0
+    success, status, error, steps, rule = False, "ok", None, 0, None
     limit = int(max_steps or getattr(env.unwrapped, "_max_episode_steps", 0) or 0)
     if limit <= 0:
         raise ValueError("run_episode: env has no _max_episode_steps; pass max_steps")
@@ -163,7 +168,8 @@ def run_episode(env, policy, *, init_state: int, seed: int, max_steps: int | Non
         if not np.all(np.isfinite(np.asarray(obs["agent_pos"], dtype=np.float64))):
             status, error = "sim_error", f"non-finite agent_pos at step {steps}"
             break
-        success = success or bool(info.get("is_success", False))
+        success = bool(info.get("is_success", False))  # the final frame's judgement
+        rule = info.get("success_rule", rule)
         if video is not None:
             video.add(env.render())
         if terminated or truncated:
@@ -173,7 +179,7 @@ def run_episode(env, policy, *, init_state: int, seed: int, max_steps: int | Non
         success=success and status == "ok", status=status, steps=steps,
         wall_time_s=time.perf_counter() - t0, sum_reward=float(np.sum(rewards)) if rewards else 0.0,
         max_reward=float(np.max(rewards)) if rewards else 0.0, error=error,
-        video_path=str(video_path) if written else None, started_at=started,
+        video_path=str(video_path) if written else None, started_at=started, success_rule=rule,
     )
 
 

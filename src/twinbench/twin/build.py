@@ -42,6 +42,7 @@ class TwinState:
     robot: ControllerState  # joint configuration, gripper command, latch
     gaussians: DeviceGaussians  # the scene's Gaussians, posed by Twin.pose_gaussians
     object_poses: dict[str, np.ndarray] = field(default_factory=dict)  # best-fit rigid pose per object
+    collider_poses: dict[str, np.ndarray] = field(default_factory=dict)  # this episode's collider poses
     finger_forces: tuple[float, float] | None = None  # last frame's contact force per finger (N)
     command: RobotCommand | None = None  # the controller's last command
     frame: int = 0
@@ -161,8 +162,11 @@ class Twin:
                 restitution=tool.restitution,
                 friction=tool.friction,
             )
+        # Colliders are placed per episode (a task may move the box), so they are kinematic meshes whose
+        # vertices live in the state's control, held still within an episode.
+        self._collider_mesh: dict[str, int] = {}
         for col in spec.colliders:
-            builder.add_static_mesh(
+            self._collider_mesh[col.name] = builder.add_kinematic_mesh(
                 transform_points(col.pose, col.vertices),
                 col.faces,
                 restitution=col.contact.restitution,
@@ -172,11 +176,8 @@ class Twin:
         self.solver = SpringMassSolver(self.model)
         self._latch = self.robot.gripper_joint is not None and len(self._tool_mesh) == 2
 
-        # Gaussians: [static (background, colliders) | robot | objects...] in one buffer per state.
+        # Gaussians: [background | robot | objects... | colliders...] in one buffer per state.
         static = [g for g in [with_color_map(spec.background, spec.background_color_map)] if g is not None]
-        for col in spec.colliders:
-            if col.gaussians is not None:
-                static.append(with_color_map(col.gaussians, col.color_map).transform(col.pose))
         self.robot_gaussians = _robot_gaussians(spec.robot, self.robot)
         parts = static + [self.robot_gaussians.local]
         n_static = sum(len(g) for g in static)
@@ -203,7 +204,15 @@ class Twin:
                     binding = bind(rest.means, obj.particles, device=device)
                     self._posers[obj.name] = LBSSkinner(binding, rest.means, rest.quats, device)
             offset += count
-        self._rest_gaussians = GaussianCloud.concatenate(parts) if parts else None
+        self._colliders: dict[str, tuple[int, int]] = {}  # name -> (first Gaussian, count)
+        for col in spec.colliders:
+            rest = with_color_map(col.gaussians, col.color_map)
+            if rest is not None:
+                parts.append(rest)
+                self._colliders[col.name] = (offset, len(rest))
+                self._posers[col.name] = LabelRigidPoser(rest, np.zeros(len(rest), np.int32), 1, device)
+                offset += len(rest)
+        self._rest_gaussians = GaussianCloud.concatenate(parts)
         self._robot_range = (n_static, len(self.robot_gaussians))
         self._robot_poser = self.robot_gaussians.device_poser(device)
 
@@ -211,6 +220,10 @@ class Twin:
     @property
     def object_names(self) -> list[str]:
         return list(self._objects)
+
+    @property
+    def collider_names(self) -> list[str]:
+        return [c.name for c in self.spec.colliders]
 
     def new_state(self) -> TwinState:
         """A state with the robot at home and every object at its rest pose."""
@@ -229,12 +242,16 @@ class Twin:
         q0: np.ndarray | None = None,
         object_poses: dict[str, np.ndarray] | None = None,
     ) -> None:
-        """Robot at q0 (default home), each object at rest at its pose (default: its rest pose)."""
+        """Robot at q0 (default home), each object at rest at its pose and each collider at its pose
+        (`object_poses` keyed by object or collider name; default: their poses in the spec)."""
         state.robot = self.controller.initial_state(q0)
         poses = dict(object_poses or {})
-        unknown = set(poses) - set(self._objects)
+        unknown = set(poses) - set(self._objects) - set(self._collider_mesh)
         if unknown:
-            raise ValueError(f"object_poses: unknown objects {sorted(unknown)}; known: {self.object_names}")
+            raise ValueError(
+                f"object_poses: unknown objects {sorted(unknown)}; objects: {self.object_names}, "
+                f"colliders: {self.collider_names}"
+            )
         x = self.model.x0_np.copy()
         state.object_poses = {}
         for name, slot in self._objects.items():
@@ -250,6 +267,15 @@ class Twin:
         for link, mid in self._tool_mesh.items():
             verts = self.robot.contact_vertices(state.robot.q, link)
             state.control.set_kinematic_mesh(mid, verts, verts)
+        for col in self.spec.colliders:
+            pose = np.asarray(poses.get(col.name, col.pose), dtype=np.float64)
+            if pose.shape != (4, 4) or not np.all(np.isfinite(pose)):
+                raise ValueError(
+                    f"object_poses[{col.name!r}]: expected a finite 4x4 pose, got shape {pose.shape}"
+                )
+            verts = transform_points(pose, col.vertices)
+            state.control.set_kinematic_mesh(self._collider_mesh[col.name], verts, verts)
+            state.collider_poses[col.name] = pose.copy()
         state.frame = 0
         state.finger_forces = None
         state.command = None
@@ -291,6 +317,14 @@ class Twin:
         """An object's particles in its own frame (P, 3)."""
         return self._slot(name).rest_particles.copy()
 
+    def collider_pose(self, state: TwinState, name: str) -> np.ndarray:
+        """A collider's pose (4x4) in this episode."""
+        if name not in self._collider_mesh:
+            raise KeyError(
+                f"twin {self.spec.name!r} has no collider {name!r}; colliders: {self.collider_names}"
+            )
+        return state.collider_poses[name].copy()
+
     def object_pose(self, state: TwinState, name: str) -> np.ndarray:
         """Best-fit rigid pose (4x4) of an object's particles relative to its object frame."""
         self._slot(name)
@@ -321,6 +355,9 @@ class Twin:
         g = state.gaussians
         self._robot_poser.update(self.robot.fk(state.robot.q), out=self._segment(g, *self._robot_range))
         for name, poser in self._posers.items():
+            if name in self._colliders:
+                poser.update(state.collider_poses[name][None], out=self._segment(g, *self._colliders[name]))
+                continue
             slot = self._objects[name]
             seg = self._segment(g, slot.g_start, slot.g_count)
             if isinstance(poser, LabelRigidPoser):

@@ -285,9 +285,8 @@ class TwinSpec:
         object.__setattr__(self, "cameras", tuple(self.cameras))
         object.__setattr__(self, "colliders", tuple(self.colliders))
         for kind, items in (
-            ("objects", self.objects),
+            ("objects and colliders", self.objects + self.colliders),
             ("cameras", self.cameras),
-            ("colliders", self.colliders),
         ):
             names = [it.name for it in items]
             if len(set(names)) != len(names):
