@@ -10,6 +10,8 @@ __version__ = "0.1.0"
 # env id -> (entry point, kwargs, max_episode_steps)
 ENV_IDS = {
     "twinbench/PushT-v0": ("twinbench.env:TwinEnv", {"task": "push-t"}, None),
+    "twinbench/RopeRouting-v0": ("twinbench.env:TwinEnv", {"task": "rope-routing"}, None),
+    "twinbench/ToyPacking-v0": ("twinbench.env:TwinEnv", {"task": "toy-packing"}, None),
     "twinbench/PointReach-v0": ("twinbench.tasks.point_reach:PointReachEnv", {}, 60),
 }
 

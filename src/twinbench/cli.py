@@ -7,7 +7,8 @@ import sys
 
 # command -> (module, config dataclass, function taking the config)
 COMMANDS: dict[str, tuple[str, str, str, str]] = {
-    "demo": ("twinbench.demo", "DemoConfig", "main", "evaluate push-T policies on the built-in twin (CPU)"),
+    "demo": ("twinbench.demo", "DemoConfig", "main",
+             "evaluate scripted policies on a built-in twin (push-T; --task rope-routing | toy-packing)"),
     "twin": ("twinbench.twin.cli", "TwinCommand", "main",
              "twin export (a task's built-in twin as a directory) | twin show (summary + camera PNGs)"),
     "physics-demo": ("twinbench.physics.demo", "DemoConfig", "main", "soft cube dropped, grasped and lifted"),

@@ -1,8 +1,12 @@
-"""`make demo` / `twinbench demo`: evaluate the scripted push-T expert and a degraded copy of it on four
-grid states of the built-in twin (CPU), with a video per episode and the HTML report.
+"""`make demo` / `twinbench demo`: evaluate scripted policies on a few grid states of a task's built-in
+twin (CPU), with a video per episode and the HTML report.
 
-The run is resumable like any evaluation: running the demo again reuses the finished episodes (delete
-`OUT_DIR` to start over).
+- push-t (the default, `make demo`): the expert and a degraded copy of it (`expert@0.5`) on four states;
+- `--task rope-routing`, `--task toy-packing`: the expert on three states of the soft-body cells.
+
+The `fast` presets are used and episodes end once the success window holds (`success_rule="early"`); the
+report names the rule. The run is resumable like any evaluation: running the demo again reuses the
+finished episodes (delete `OUT_DIR` to start over).
 """
 
 from __future__ import annotations
@@ -11,24 +15,35 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
+# task -> (grid states, policies)
+DEFAULTS = {
+    "push-t": ("grid:0,5,10,15", ("expert", "expert@0.5")),
+    "rope-routing": ("grid:4,13,22", ("expert",)),
+    "toy-packing": ("grid:2,9,16", ("expert",)),
+}
+
 
 @dataclass(frozen=True)
 class DemoConfig:
-    """Push-T evaluation demo on the built-in twin."""
+    """Evaluation demo on a task's built-in twin."""
 
-    out_dir: Path = Path("outputs/demo")
-    """results store, videos, eval_info.json files and report.html go here"""
-    episodes: str = "grid:0,5,10,15"
-    """initial states: 'grid', 'grid:I,J,...' or N sampled states"""
-    policies: tuple[str, ...] = ("expert", "expert@0.5")
-    """policy specs (the expert and a degraded copy of it)"""
+    task: str = "push-t"
+    """push-t, rope-routing or toy-packing"""
+    out_dir: Path | None = None
+    """results store, videos, eval_info.json files and report.html (default: outputs/demo, or
+    outputs/demo-TASK for the soft-body tasks)"""
+    episodes: str | None = None
+    """initial states: 'grid', 'grid:I,J,...' or N sampled states (default: a few grid states)"""
+    policies: tuple[str, ...] | None = None
+    """policy specs (default: push-t: the expert and a degraded copy; otherwise the expert)"""
     preset: str = "fast"
-    """push-t twin preset: 'fast' (15 mm block lattice, 100 substeps) or 'reference'"""
+    """twin preset: 'fast' (coarser particles, fewer substeps) or 'reference'"""
     workers: int = 2
     success_rule: str = "early"
-    """'early' ends an episode once the success window holds (quick); 'final' runs the full 60 s and judges
-    the last 100 frames (the reference rule)"""
-    run_id: str = "demo"
+    """'early' ends an episode once the success window holds (quick); 'final' runs the whole episode and
+    judges its last 100 frames (the reference rule)"""
+    run_id: str | None = None
+    """default: demo (push-t) or demo-TASK"""
     device: str = "cpu"
 
 
@@ -37,13 +52,18 @@ def main(cfg: DemoConfig) -> int:
     from twinbench.evaluation.runner import EvaluationInterrupted, evaluate
     from twinbench.evaluation.store import ResultsStore
 
-    out = Path(cfg.out_dir)
+    if cfg.task not in DEFAULTS:
+        raise ValueError(f"--task must be one of {sorted(DEFAULTS)}, got {cfg.task!r}")
+    episodes, policies = DEFAULTS[cfg.task]
+    suffix = "" if cfg.task == "push-t" else f"-{cfg.task}"
+    out = Path(cfg.out_dir or f"outputs/demo{suffix}")
+    run_id = cfg.run_id or f"demo{suffix}"
     out.mkdir(parents=True, exist_ok=True)
     store = ResultsStore(out / "results.sqlite")
     t0 = time.perf_counter()
     try:
         records = evaluate(
-            "push-t", list(cfg.policies), cfg.episodes, cfg.workers, cfg.run_id, store,
+            cfg.task, list(cfg.policies or policies), cfg.episodes or episodes, cfg.workers, run_id, store,
             video=True, output_dir=out, progress=True, log=print,
             env_kwargs={"preset": cfg.preset, "render_views": "front+wrist", "device": cfg.device,
                         "success_rule": cfg.success_rule},
@@ -51,11 +71,11 @@ def main(cfg: DemoConfig) -> int:
     except EvaluationInterrupted as err:
         print(err.message)
         return 130
-    report = write_report(store, cfg.run_id, out / "report.html")
-    print(f"\npush-t demo ({cfg.preset} twin, {time.perf_counter() - t0:.0f} s):")
+    report = write_report(store, run_id, out / "report.html")
+    print(f"\n{cfg.task} demo ({cfg.preset} twin, {time.perf_counter() - t0:.0f} s):")
     for r in records:
         label = r.policy + (f"@{r.checkpoint}" if r.checkpoint else "")
         outcome = "success" if r.success else ("failure" if r.status == "ok" else r.status)
         print(f"  {label:<22} init_state {r.init_state:>2}: {outcome:<8} {r.steps:>4} steps  {r.video_path}")
-    print(f"\nvideos: {out / 'videos' / cfg.run_id}\nreport: {report}")
+    print(f"\nvideos: {out / 'videos' / run_id}\nreport: {report}")
     return 0

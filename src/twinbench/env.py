@@ -6,8 +6,9 @@
 
 Observation: `{"pixels": {camera: HxWx3 uint8}, "agent_pos": float32}` (+ `"depth": {camera: HxW float32}`
 for cameras with depth, + `"environment_state"` when made with `environment_state=True`). `info` holds
-`is_success`, `status` ("ok" | "sim_error"), the task's metrics and `privileged` (object poses and the
-task's `environment_state` vector, for scripted experts and offline rescoring).
+`is_success`, `status` ("ok" | "sim_error"), the task's metrics, `grasp` for a gripper ("holding",
+"closed_on_air", "closing", "open") and `privileged` (object poses and the task's `environment_state`
+vector, for scripted experts and offline rescoring).
 
 Success rules (`success_rule`, recorded in `info["success_rule"]` and by the evaluation store):
 - "final" (default, the reference study's rule): every episode runs its full length; the outcome is the
@@ -161,6 +162,7 @@ class TwinEnv(gymnasium.Env):
             "status": "ok",
             "success_rule": self.success_rule,
             **metrics,
+            **self._grasp(),
             "privileged": self._privileged,
         }
         return obs, info
@@ -201,9 +203,14 @@ class TwinEnv(gymnasium.Env):
             "status": "ok",
             "success_rule": self.success_rule,
             **metrics,
+            **self._grasp(),
             "privileged": self._privileged,
         }
         return obs, self.rules.reward(metrics), terminated, truncated, info
+
+    def _grasp(self) -> dict:
+        status = self.twin.grasp_status(self.state)
+        return {} if status is None else {"grasp": status}
 
     def render(self):
         frames = [self._frames[v] for v in self.render_views]

@@ -147,7 +147,10 @@ class TwinTask:
         return 0.0
 
     def privileged(self, twin, state, metrics: dict) -> dict:
-        return {"object_poses": {role: twin.object_pose(state, name) for role, name in self.roles.items()}}
+        """Poses of every role's object (best-fit rigid pose) or collider, keyed by role."""
+        return {"object_poses": {role: (twin.object_pose(state, name) if name in twin.object_names
+                                        else twin.collider_pose(state, name))
+                                 for role, name in self.roles.items()}}
 
     def decorate(self, frames: dict[str, np.ndarray]) -> None:
         """Draw task overlays into the uint8 camera images (in place)."""
@@ -157,7 +160,8 @@ class TwinTask:
 
     # --- shared ----------------------------------------------------------------------------------------
     def check_twin(self, twin) -> None:
-        missing = {role: name for role, name in self.roles.items() if name not in twin.object_names}
+        present = set(twin.object_names) | set(twin.collider_names)
+        missing = {role: name for role, name in self.roles.items() if name not in present}
         if missing:
             raise ValueError(
                 f"task {self.name!r} needs object(s) {sorted(missing.values())} "
@@ -167,8 +171,17 @@ class TwinTask:
             )
 
     def object_poses(self, twin, offsets: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
-        """World poses of the roles' objects for planar `offsets` from their rest poses."""
-        return {
-            self.roles[role]: offset_pose(twin.spec.object(self.roles[role]).rest_pose, off)
-            for role, off in offsets.items()
-        }
+        """World poses of the roles' objects (or colliders) for planar `offsets` from their rest poses."""
+        return {self.roles[role]: offset_pose(self.rest_pose(twin, role), off) for role, off in offsets.items()}
+
+    def rest_pose(self, twin, role: str) -> np.ndarray:
+        """The rest pose in the twin of the object or collider playing `role`."""
+        name = self.roles[role]
+        if name in twin.object_names:
+            return twin.spec.object(name).rest_pose
+        return next(c.pose for c in twin.spec.colliders if c.name == name)
+
+    def grasp_action_bounds(self, workspace) -> tuple[np.ndarray, np.ndarray]:
+        """Bounds of [x, y, z, qw, qx, qy, qz, gripper] actions in the box `workspace` = (lo xyz, hi xyz)."""
+        lo, hi = workspace
+        return (np.array([*lo, -1, -1, -1, -1, 0], np.float32), np.array([*hi, 1, 1, 1, 1, 1], np.float32))

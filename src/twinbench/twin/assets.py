@@ -89,3 +89,20 @@ def mesh_surface_gaussians(mesh, rgb, spacing: float = 0.003, seed: int = 0) -> 
     pts, faces = trimesh.sample.sample_surface_even(mesh, count, seed=seed)
     normals = np.asarray(mesh.face_normals)[faces]
     return surface_discs(pts.astype(np.float32), normals, rgb, 0.75 * spacing, opacity=0.98)
+
+
+def paint(cloud: GaussianCloud, mask, rgb) -> GaussianCloud:
+    """A copy of `cloud` whose Gaussians selected by `mask` have base colour `rgb` (SH DC rewritten)."""
+    from twinbench.gaussians.cloud import SH_C0
+
+    out = cloud.copy()
+    out.sh[np.asarray(mask, bool), 0] = (np.asarray(rgb, np.float64) - 0.5) / SH_C0
+    return out
+
+
+def box_mesh(lo, hi):
+    """A closed axis-aligned box (trimesh) spanning the corners lo and hi."""
+    import trimesh
+
+    lo, hi = np.asarray(lo, np.float64), np.asarray(hi, np.float64)
+    return trimesh.creation.box(extents=hi - lo, transform=trimesh.transformations.translation_matrix((lo + hi) / 2))

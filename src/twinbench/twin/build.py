@@ -313,6 +313,13 @@ class Twin:
         slot = self._slot(name)
         return state.physics.x.numpy()[slot.start : slot.start + slot.count].copy()
 
+    def object_springs(self, name: str) -> np.ndarray:
+        """(M, 2) springs of an object, as indices into its own particles."""
+        slot = self._slot(name)
+        s = self.model.springs_np[: self.model.num_object_springs]
+        mine = (s[:, 0] >= slot.start) & (s[:, 0] < slot.start + slot.count)
+        return (s[mine] - slot.start).astype(np.int64)
+
     def rest_particles(self, name: str) -> np.ndarray:
         """An object's particles in its own frame (P, 3)."""
         return self._slot(name).rest_particles.copy()
@@ -329,6 +336,18 @@ class Twin:
         """Best-fit rigid pose (4x4) of an object's particles relative to its object frame."""
         self._slot(name)
         return state.object_poses[name].copy()
+
+    def grasp_status(self, state: TwinState) -> str | None:
+        """For a gripper: "holding" (both fingers in contact, over 5 % of the latch force), "closed_on_air"
+        (fully closed without contact), "closing", or "open"; None without a gripper."""
+        if not self._latch:
+            return None
+        threshold = self.controller.config.grasp_force_threshold
+        forces = state.finger_forces or (0.0, 0.0)
+        if min(forces) > 0.05 * threshold:
+            return "holding"
+        g = state.robot.gripper
+        return "closed_on_air" if g >= 0.99 else ("closing" if g > 0.0 else "open")
 
     def ee_state(self, state: TwinState) -> np.ndarray:
         """The policy's state vector (see ControllerConfig.action_mode)."""

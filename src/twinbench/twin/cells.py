@@ -8,19 +8,31 @@ the reference cameras (a fixed front camera and a wrist camera, DESIGN §5), and
   Y = 3e4) whose coloured surface Gaussians follow its rigid motion. Presets: `reference` (5 mm
   lattice, 667 substeps per 30 Hz frame, PhysTwin's dt = 5e-5 s) and `fast` (15 mm lattice, 100
   substeps, about 50x cheaper; the demo and the tests use it).
+- `rope_routing_cell(preset)`: the arm with its parallel gripper (friction on the finger pads, the force
+  latch of DESIGN §5), a 32 cm cotton-like rope (a 1 cm thick cylinder of particles, springs within a
+  radius; its marked end is red) lying on the table, and a clip: two walls on the table forming a
+  2 cm wide, 3 cm deep, 4 cm long channel along y with an opening at each end.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass, fields, replace
 
+import numpy as np
+
 from twinbench.gaussians.camera import look_at_pose
 from twinbench.gaussians.cloud import GaussianCloud
 from twinbench.physics import SimParams
 from twinbench.robot.controller import ControllerConfig
 from twinbench.transforms import planar_pose
-from twinbench.twin.assets import backdrop_gaussians, mesh_surface_gaussians, table_gaussians
-from twinbench.twin.spec import CameraSpec, ContactSpec, ObjectSpec, RobotSpec, TwinSpec
+from twinbench.twin.assets import (
+    backdrop_gaussians,
+    box_mesh,
+    mesh_surface_gaussians,
+    paint,
+    table_gaussians,
+)
+from twinbench.twin.spec import CameraSpec, ColliderSpec, ContactSpec, ObjectSpec, RobotSpec, TwinSpec
 
 # (fx, fy, cx, cy) of the reference cell's cameras (DESIGN §5); both sensors are 848x480.
 FRONT_INTRINSICS = (427.29, 426.79, 430.00, 242.81)
@@ -115,4 +127,196 @@ def push_t_cell(preset: str = "reference", **overrides) -> TwinSpec:
         background=workcell_background(),
         sim=sim,
         controller=ControllerConfig(action_mode="planar", planar_height=cfg.pusher_height),
+    )
+
+
+def _check_settings(cls, name: str, presets: dict, preset: str, overrides: dict):
+    if preset not in presets:
+        raise ValueError(f"{name} preset must be one of {sorted(presets)}, got {preset!r}")
+    known = {f.name for f in fields(cls)}
+    unknown = sorted(set(overrides) - known)
+    if unknown:
+        raise ValueError(f"{name} cell: unknown setting(s) {unknown}; known: {sorted(known)}")
+    return replace(presets[preset], **overrides)
+
+
+def gripper_robot(finger_friction: float = 1.0, scan_spacing: float = 0.006) -> RobotSpec:
+    """The built-in arm with its parallel gripper; finger pads with friction `finger_friction`."""
+    return RobotSpec("builtin:xarm7_gripper", scan_spacing=scan_spacing,
+                     tool_contact=ContactSpec(0.0, finger_friction))
+
+
+# ----------------------------------------------------------------------------------------------- rope
+ROPE_RGB, MARK_RGB, CLIP_RGB = (0.86, 0.80, 0.66), (0.85, 0.12, 0.10), (0.15, 0.45, 0.30)
+
+
+@dataclass(frozen=True)
+class RopeCell:
+    """Settings of the built-in rope-routing cell. `RopeCell.preset(name, **overrides)` gives the presets."""
+
+    length: float = 0.32  # m
+    axial_spacing: float = 0.004  # m between particle rings along the rope
+    ring: int = 9  # particles per cross-section: 5 (centre + 4) or 9 (3 x 3)
+    radius: float = 0.005  # m, half the rope's thickness
+    spring_Y: float = 1e4
+    substeps: int = 667
+    rope_pose: tuple[float, float, float] = (0.45, -0.12, 1.5707963267948966)  # x, y, theta: along +y
+    clip_pose: tuple[float, float, float] = (0.45, 0.12, 0.0)  # channel along the clip frame's y
+    channel_width: float = 0.02
+    channel_depth: float = 0.03
+    channel_length: float = 0.04
+    wall_thickness: float = 0.012
+    finger_friction: float = 1.0
+    ground_friction: float = 0.6
+    self_collision: bool = True
+    image_hw: tuple[int, int] = (240, 240)
+    robot_gaussian_spacing: float = 0.006
+
+    @staticmethod
+    def preset(name: str, **overrides) -> RopeCell:
+        presets = {"reference": RopeCell(),
+                   "fast": RopeCell(axial_spacing=0.006, ring=5, substeps=150, self_collision=False)}
+        return _check_settings(RopeCell, "rope-routing", presets, name, overrides)
+
+
+def rope_particles(length: float, axial_spacing: float, ring: int, radius: float) -> np.ndarray:
+    """(P, 3) particles of a straight rope along x in its own frame (centred, lying on z = 0): rings of
+    `ring` particles (5: centre and 4 at 0.8 radius; 9: a 3 x 3 grid) every `axial_spacing` metres."""
+    if ring not in (5, 9):
+        raise ValueError(f"ring must be 5 or 9, got {ring}")
+    n = int(round(length / axial_spacing)) + 1
+    d = 0.8 * radius
+    if ring == 5:
+        section = [(0, 0), (d, 0), (-d, 0), (0, d), (0, -d)]
+    else:
+        section = [(a, b) for a in (-d, 0, d) for b in (-d, 0, d)]
+    xs = np.linspace(-length / 2, length / 2, n)
+    return np.array([(x, y, radius + z) for x in xs for (y, z) in section])
+
+
+def rope_routing_cell(preset: str = "reference", **overrides) -> TwinSpec:
+    """The built-in rope-routing twin (see the module docstring)."""
+    import trimesh
+
+    cfg = RopeCell.preset(preset, **overrides)
+    pts = rope_particles(cfg.length, cfg.axial_spacing, cfg.ring, cfg.radius)
+    tube = trimesh.creation.cylinder(radius=cfg.radius, height=cfg.length, sections=12)
+    tube.apply_transform(trimesh.transformations.rotation_matrix(np.pi / 2, (0, 1, 0)))
+    tube.apply_translation((0, 0, cfg.radius))
+    skin = mesh_surface_gaussians(tube, ROPE_RGB, spacing=0.0025)
+    skin = paint(skin, skin.means[:, 0] > cfg.length / 2 - 0.03, MARK_RGB)  # the marked end (+x)
+    spacing = cfg.axial_spacing
+    rope = ObjectSpec(
+        "rope", pts, spring_Y=cfg.spring_Y, spring_radius=1.3 * max(spacing, 0.8 * cfg.radius * 1.42),
+        max_neighbors=30, gaussians=skin, binding="lbs", rest_pose=planar_pose(*cfg.rope_pose),
+    )
+    w, depth, half_len, t = cfg.channel_width / 2, cfg.channel_depth, cfg.channel_length / 2, cfg.wall_thickness
+    walls = [box_mesh((-w - t, -half_len, 0.0), (-w, half_len, depth)),
+             box_mesh((w, -half_len, 0.0), (w + t, half_len, depth))]
+    clip_mesh = trimesh.util.concatenate(walls)
+    clip = ColliderSpec(
+        "clip", np.asarray(clip_mesh.vertices), np.asarray(clip_mesh.faces), planar_pose(*cfg.clip_pose),
+        ContactSpec(0.0, 0.5), mesh_surface_gaussians(clip_mesh, CLIP_RGB, spacing=0.003),
+    )
+    dt = 1.0 / 30.0 / cfg.substeps
+    sim = SimParams(dt=dt, substeps=cfg.substeps, ground_restitution=0.0, ground_friction=cfg.ground_friction,
+                    object_collision=False, self_collision=cfg.self_collision, collision_dist=0.6 * spacing,
+                    candidate_radius_scale=2.0, mesh_margin=0.002)
+    return TwinSpec(
+        name=f"rope-routing-{preset}", robot=gripper_robot(cfg.finger_friction, cfg.robot_gaussian_spacing),
+        objects=(rope,), colliders=(clip,), cameras=(front_camera(cfg.image_hw), wrist_camera("link7", cfg.image_hw)),
+        background=workcell_background(), sim=sim,
+    )
+
+
+# ----------------------------------------------------------------------------------------------- toy
+TOY_RGB, LIMB_RGB, BOX_RGB = (0.93, 0.62, 0.20), (0.55, 0.33, 0.15), (0.75, 0.68, 0.52)
+
+
+@dataclass(frozen=True)
+class ToyCell:
+    """Settings of the built-in toy-packing cell. `ToyCell.preset(name, **overrides)` gives the presets."""
+
+    spacing: float = 0.004  # m, particle lattice of the plush toy
+    torso: tuple[float, float, float] = (0.07, 0.05, 0.04)  # m, x y z extents
+    limb_length: float = 0.04  # m, four limbs sticking out along +-y
+    limb_radius: float = 0.011
+    torso_Y: float = 2e4
+    limb_Y: float = 3e3  # limbs are softer
+    substeps: int = 667
+    toy_pose: tuple[float, float, float] = (0.40, -0.15, 0.0)
+    box_pose: tuple[float, float, float] = (0.45, 0.12, 0.0)
+    box_inner: tuple[float, float, float] = (0.09, 0.075, 0.06)  # m, inside of the open-top box
+    wall_thickness: float = 0.01
+    finger_friction: float = 1.0
+    ground_friction: float = 0.6
+    image_hw: tuple[int, int] = (240, 240)
+    robot_gaussian_spacing: float = 0.006
+
+    @staticmethod
+    def preset(name: str, **overrides) -> ToyCell:
+        presets = {"reference": ToyCell(), "fast": ToyCell(spacing=0.008, substeps=150)}
+        return _check_settings(ToyCell, "toy-packing", presets, name, overrides)
+
+
+def toy_particles(cfg: ToyCell) -> tuple[np.ndarray, np.ndarray]:
+    """(P, 3) particles of the plush toy in its own frame (torso centred above the origin, on z = 0) and a
+    (P,) bool mask of the limb particles: a lattice clipped to a box torso and four cylindrical limbs along
+    +-y at x = +-(torso x / 3), at mid height."""
+    s = cfg.spacing
+    tx, ty, tz = cfg.torso
+    reach = ty / 2 + cfg.limb_length
+    axes = [np.arange(-tx / 2, tx / 2 + 1e-9, s), np.arange(-reach, reach + 1e-9, s), np.arange(0, tz + 1e-9, s)]
+    axes = [a - (a[0] + a[-1]) / 2 + (c if k == 2 else 0) for k, (a, c) in enumerate(zip(axes, (0, 0, tz / 2)))]
+    g = np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
+    torso = (np.abs(g[:, 0]) <= tx / 2 + 1e-9) & (np.abs(g[:, 1]) <= ty / 2 + 1e-9)
+    limb = np.zeros(len(g), bool)
+    for cx in (-tx / 3, tx / 3):
+        r = np.hypot(g[:, 0] - cx, g[:, 2] - tz / 2)
+        limb |= (r <= cfg.limb_radius + 1e-9) & (np.abs(g[:, 1]) > ty / 2 + 1e-9) & (np.abs(g[:, 1]) <= reach + 1e-9)
+    keep = torso | limb
+    return g[keep], limb[keep]
+
+
+def toy_packing_cell(preset: str = "reference", **overrides) -> TwinSpec:
+    """The built-in toy-packing twin: the gripper arm, a plush toy (a torso and four softer limbs, LBS
+    Gaussians) and an open-top box (a static collider of four walls) that the toy only fits in with its
+    limbs tucked."""
+    import trimesh
+
+    from twinbench.physics.model import radius_springs
+
+    cfg = ToyCell.preset(preset, **overrides)
+    pts, limb = toy_particles(cfg)
+    radius = 1.8 * cfg.spacing
+    springs = radius_springs(pts, radius, 30)
+    y = np.where(limb[springs[:, 0]] | limb[springs[:, 1]], cfg.limb_Y, cfg.torso_Y)
+    parts = [trimesh.creation.box(extents=cfg.torso, transform=trimesh.transformations.translation_matrix(
+        (0, 0, cfg.torso[2] / 2)))]
+    for cx in (-cfg.torso[0] / 3, cfg.torso[0] / 3):
+        for sy in (-1, 1):
+            y0, y1 = sy * cfg.torso[1] / 2, sy * (cfg.torso[1] / 2 + cfg.limb_length)
+            parts.append(trimesh.creation.cylinder(radius=cfg.limb_radius, segment=((cx, y0, cfg.torso[2] / 2),
+                                                                                    (cx, y1, cfg.torso[2] / 2))))
+    skin = mesh_surface_gaussians(trimesh.util.concatenate(parts), TOY_RGB, spacing=0.003)
+    skin = paint(skin, np.abs(skin.means[:, 1]) > cfg.torso[1] / 2 + 0.002, LIMB_RGB)
+    toy = ObjectSpec("toy", pts, springs=springs, spring_Y=y, gaussians=skin, binding="lbs",
+                     rest_pose=planar_pose(*cfg.toy_pose))
+    ix, iy, h = cfg.box_inner
+    t = cfg.wall_thickness
+    walls = [box_mesh((-ix / 2 - t, -iy / 2 - t, 0), (ix / 2 + t, -iy / 2, h)),
+             box_mesh((-ix / 2 - t, iy / 2, 0), (ix / 2 + t, iy / 2 + t, h)),
+             box_mesh((-ix / 2 - t, -iy / 2, 0), (-ix / 2, iy / 2, h)),
+             box_mesh((ix / 2, -iy / 2, 0), (ix / 2 + t, iy / 2, h))]
+    box_mesh_all = trimesh.util.concatenate(walls)
+    box = ColliderSpec("box", np.asarray(box_mesh_all.vertices), np.asarray(box_mesh_all.faces),
+                       planar_pose(*cfg.box_pose), ContactSpec(0.0, 0.5),
+                       mesh_surface_gaussians(box_mesh_all, BOX_RGB, spacing=0.003))
+    sim = SimParams(dt=1.0 / 30.0 / cfg.substeps, substeps=cfg.substeps, ground_restitution=0.0,
+                    ground_friction=cfg.ground_friction, object_collision=False, self_collision=True,
+                    collision_dist=0.6 * cfg.spacing, candidate_radius_scale=2.0, mesh_margin=0.002)
+    return TwinSpec(
+        name=f"toy-packing-{preset}", robot=gripper_robot(cfg.finger_friction, cfg.robot_gaussian_spacing),
+        objects=(toy,), colliders=(box,), cameras=(front_camera(cfg.image_hw), wrist_camera("link7", cfg.image_hw)),
+        background=workcell_background(), sim=sim,
     )

@@ -1,0 +1,121 @@
+"""`toy-packing` (`twinbench/ToyPacking-v0`): put a plush toy into an open-top box (DESIGN §7).
+
+Rules over a twin with a deformable object in the role `toy` (default `toy`) and a collider in the role
+`box` (default `box`). State and action are `[x, y, z, qw, qx, qy, qz, gripper]` (absolute end-effector
+pose in the robot base frame, gripper 1 = closed). Grid: 20 states pairing 5 toy offsets (x in [-5, 5] cm,
+y in [-5, 3] cm, theta in [-5, 5] deg) with 4 box offsets (x in [-5, 5] cm, y in [0, 5] cm); the sampler
+draws uniformly in those ranges. Episodes last 15 s. Success: at least `inside_fraction` of the toy's
+particles (98.5 %, the reference's 3050 of 3095) inside the box's oriented bounding box scaled by 1.05,
+for more than 30 of the last 100 frames.
+
+`environment_state` (privileged, for the scripted expert): [toy origin x, y, z, toy theta, box x, y,
+theta, fraction of particles inside].
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from twinbench.tasks import register_task
+from twinbench.tasks.base import InitialStates, TwinTask
+from twinbench.tasks.push_t import pose_xytheta
+from twinbench.transforms import invert_pose, transform_points
+
+ENV_ID = "twinbench/ToyPacking-v0"
+
+
+@dataclass(frozen=True)
+class ToyPackingSettings:
+    """Task settings (the built-in twin's are `twinbench.twin.cells.ToyCell`)."""
+
+    episode_seconds: float = 15.0
+    inside_fraction: float = 3050 / 3095
+    box_scale: float = 1.05
+    success_window: int = 100
+    success_min_hits: int = 30
+    workspace: tuple[tuple[float, float, float], tuple[float, float, float]] = ((0.2, -0.4, 0.0), (0.8, 0.4, 0.5))
+    start_position: tuple[float, float, float] = (0.35, 0.0, 0.25)
+
+
+class ToyPackingTask(TwinTask):
+    name = "toy-packing"
+    description = "pick up the plush toy and pack it into the box"
+    default_roles = {"toy": "toy", "box": "box"}
+    environment_state_dim = 8
+    settings_cls = ToyPackingSettings
+
+    def __init__(self, roles=None, **settings):
+        super().__init__(roles)
+        self.settings = s = ToyPackingSettings(**settings)
+        self.episode_seconds = s.episode_seconds
+        self.success_window, self.success_min_hits = s.success_window, s.success_min_hits
+        d = np.deg2rad(5.0)
+        toy = np.array([(-0.05, -0.05, -d), (0.05, -0.05, d), (-0.05, 0.03, d), (0.05, 0.03, -d), (0.0, -0.01, 0.0)])
+        box = np.array([(-0.05, 0.0, 0.0), (0.05, 0.0, 0.0), (-0.05, 0.05, 0.0), (0.05, 0.05, 0.0)])
+        self.initial_states = InitialStates.product(
+            {"toy": toy, "box": box}, {"toy": (-0.05, -0.05, -d), "box": (-0.05, 0.0, 0.0)},
+            {"toy": (0.05, 0.03, d), "box": (0.05, 0.05, 0.0)})
+
+    def default_twin(self, preset: str, **cell_settings):
+        from twinbench.twin.cells import toy_packing_cell
+
+        return toy_packing_cell(preset, **cell_settings)
+
+    def controller_overrides(self) -> dict:
+        return {"action_mode": "absolute"}
+
+    def action_bounds(self, twin):
+        return self.grasp_action_bounds(self.settings.workspace)
+
+    def setup(self, twin, state) -> None:
+        super().setup(twin, state)
+        from twinbench.robot.ik import solve_ik
+        from twinbench.transforms import pose_matrix
+
+        box = next(c for c in twin.spec.colliders if c.name == self.roles["box"])
+        lo, hi = box.vertices.min(0), box.vertices.max(0)
+        self.box_center = (lo + hi) / 2  # the box's bounding box in its own frame
+        self.box_half = (hi - lo) / 2 * self.settings.box_scale
+        robot = twin.robot
+        target = pose_matrix(np.asarray(self.settings.start_position), np.array([0.0, 1.0, 0.0, 0.0]))
+        res = solve_ik(robot, target, robot.home_q)
+        if not res.converged:
+            raise ValueError(f"toy-packing: start position {self.settings.start_position} is not reachable")
+        self.q_start = robot.set_gripper(res.q, 0.0)
+
+    def reset(self, twin, state, offsets) -> None:
+        twin.reset(state, self.q_start, self.object_poses(twin, offsets))
+
+    def inside(self, twin, state) -> float:
+        """Fraction of the toy's particles inside the box's scaled oriented bounding box."""
+        box = twin.collider_pose(state, self.roles["box"])
+        local = transform_points(invert_pose(box), twin.particles(state, self.roles["toy"])) - self.box_center
+        return float(np.mean(np.all(np.abs(local) <= self.box_half, axis=1)))
+
+    def frame(self, twin, state) -> tuple[bool, dict]:
+        frac = self.inside(twin, state)
+        return frac >= self.settings.inside_fraction, {"inside_fraction": frac}
+
+    def reward(self, metrics: dict) -> float:
+        return metrics["inside_fraction"]
+
+    def privileged(self, twin, state, metrics: dict) -> dict:
+        out = super().privileged(twin, state, metrics)
+        toy, box = out["object_poses"]["toy"], out["object_poses"]["box"]
+        out["environment_state"] = np.concatenate(
+            [toy[:3, 3], [pose_xytheta(toy)[2]], pose_xytheta(box), [metrics["inside_fraction"]]]
+        ).astype(np.float32)
+        return out
+
+
+def make_expert(env):
+    """The scripted expert; it acts from `environment_state` (never the env's internals)."""
+    from twinbench.tasks.toy_expert import ToyExpert
+
+    return ToyExpert()
+
+
+register_task("toy-packing", env_id=ENV_ID, make_expert=make_expert, n_grid_states=20,
+              description=ToyPackingTask.description, task_cls=ToyPackingTask)

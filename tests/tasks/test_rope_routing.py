@@ -1,0 +1,122 @@
+"""Rope routing on the built-in `fast` cell: friction grasp and hang, the crossing rule on constructed
+states, gymnasium conformance, determinism, the expert."""
+
+import numpy as np
+import pytest
+from gymnasium.utils.env_checker import check_env
+
+from twinbench.env import TwinEnv
+from twinbench.evaluation.runner import policy_observation
+from twinbench.tasks.gripper_expert import TCP_ABOVE_TIPS, grasp_quat
+from twinbench.tasks.rope_expert import RopeExpert
+from twinbench.tasks.rope_routing import count_crossings
+from twinbench.transforms import planar_pose, transform_points
+
+
+@pytest.fixture(scope="module")
+def env():
+    return TwinEnv("rope-routing", preset="fast", success_rule="early")
+
+
+def test_counting_springs_across_a_plane():
+    pts = np.array([[0.0, -0.01, 0.01], [0.0, 0.01, 0.01], [0.05, -0.01, 0.01], [0.05, 0.01, 0.01],
+                    [0.0, -0.01, 0.05], [0.0, 0.01, 0.05]])
+    springs = np.array([[0, 1], [2, 3], [4, 5], [0, 2]])
+    # only the first crosses y = 0 inside |x| <= 0.01, 0 <= z <= 0.03 (2: too far in x, 3: too high, 4: parallel)
+    assert count_crossings(pts, springs, 0.0, 0.01, 0.03) == 1
+    assert count_crossings(pts, springs, 0.0, 0.1, 0.1) == 3
+
+
+def test_gripper_lifts_the_rope_by_friction_it_hangs_and_drops_when_released(env):
+    obs, info = env.reset(seed=0, options={"init_state": 13})
+    twin, state = env.twin, env.state
+    assert info["grasp"] == "open"
+    rope = twin.particles(state, "rope")
+    end = rope[np.argmax(rope[:, 1])]  # the rope lies along +y; grasp 1 cm in from its +y end
+    quat = grasp_quat((0.0, 1.0))
+    grasp = np.array([end[0], end[1] - 0.01, TCP_ABOVE_TIPS + 0.002])
+
+    def act(p, g):
+        return np.r_[p, quat, g].astype(np.float32)
+
+    for k in range(40):
+        obs, *_ , info = env.step(act(grasp + [0, 0, max(0.0, 0.06 * (1 - k / 25))], 0.0))
+    for _ in range(25):
+        obs, *_, info = env.step(act(grasp, 1.0))
+    assert info["grasp"] == "holding" and state.robot.latched
+    for k in range(50):
+        obs, *_, info = env.step(act(grasp + [0, 0, 0.004 * (k + 1)], 1.0))
+    rope = twin.particles(state, "rope")
+    held, free = rope[np.argmax(rope[:, 1])], rope[np.argmin(rope[:, 1])]
+    assert held[2] > 0.15  # the grasped end rose with the hand (pure friction: no particle is attached)
+    assert free[2] < held[2] - 0.1  # the rope hangs: its free end far below the grasped end
+    assert info["grasp"] == "holding"
+    for _ in range(25):
+        obs, *_, info = env.step(act(grasp + [0, 0, 0.2], 0.0))
+    assert twin.particles(state, "rope")[:, 2].max() < 0.03  # released: it fell back onto the table
+    assert info["grasp"] == "open"
+
+
+def test_closing_on_air_is_reported(env):
+    obs, info = env.reset(seed=0, options={"init_state": 13})
+    for _ in range(20):  # close high above the rope
+        obs, *_, info = env.step(np.r_[0.35, 0.0, 0.2, grasp_quat((1.0, 0.0)), 1.0].astype(np.float32))
+    assert info["grasp"] == "closed_on_air"
+
+
+def _place(env, particles):
+    env.state.physics.x.assign(particles.astype(np.float32))
+    return env.rules.frame(env.twin, env.state)
+
+
+def test_success_rule_on_a_routed_rope_and_a_near_miss(env):
+    env.reset(seed=0, options={"init_state": 13})
+    twin, rules = env.twin, env.rules
+    rest = twin.rest_particles("rope")
+    clip = twin.collider_pose(env.state, "clip")
+    # routed: the rope straight along the channel axis (clip y), centred in the clip, on its floor
+    routed = clip @ planar_pose(0.0, 0.0, np.pi / 2)
+    hit, m = _place(env, transform_points(routed, rest))
+    assert hit and min(m["crossings"]) >= rules.crossing_threshold
+    # near miss: the same rope 2 cm to the side, outside the channel's openings
+    hit, m = _place(env, transform_points(clip @ planar_pose(0.02 + 0.01, 0.0, np.pi / 2), rest))
+    assert not hit and m["crossings"] == [0, 0]
+    # through one opening only: the rope's end stops in the middle of the channel
+    half = transform_points(clip @ planar_pose(0.0, -0.16, np.pi / 2), rest)
+    hit, m = _place(env, half)
+    assert not hit and m["crossings"][0] >= rules.crossing_threshold and m["crossings"][1] == 0
+
+
+def test_conforms_to_gymnasium_and_is_deterministic(env):
+    check_env(env, skip_render_check=True)
+    actions = np.random.default_rng(0).uniform(env.action_space.low, env.action_space.high, (8, 8))
+    actions[:, 3:7] = grasp_quat((1.0, 0.0))
+    runs = []
+    for _ in range(2):
+        obs, _ = env.reset(seed=2, options={"init_state": 5})
+        for a in actions.astype(np.float32):
+            obs, *_ = env.step(a)
+        runs.append([obs["pixels"]["front"], obs["pixels"]["wrist"], obs["agent_pos"],
+                     env.twin.particles(env.state, "rope")])
+    for a, b in zip(*runs, strict=True):
+        np.testing.assert_array_equal(a, b)
+    assert env.observation_space["agent_pos"].shape == (8,) and len(env.rules.initial_states) == 27
+
+
+def _expert_episode(env, state: int) -> bool:
+    obs, info = env.reset(seed=0, options={"init_state": state})
+    expert = RopeExpert()
+    while True:
+        obs, _, term, trunc, info = env.step(expert.select_action(policy_observation(expert, obs, info)))
+        if term or trunc:
+            return bool(info["is_success"])
+
+
+def test_expert_routes_the_centre_state(env):
+    assert _expert_episode(env, 13)
+
+
+@pytest.mark.slow
+def test_expert_routes_at_least_70_percent_of_the_grid(env):
+    results = [_expert_episode(env, i) for i in range(27)]
+    assert sum(results) >= 0.7 * 27, results

@@ -1,0 +1,81 @@
+"""Toy packing on the built-in `fast` cell: the toy and box, the inside rule on constructed states,
+gymnasium conformance, determinism, the expert."""
+
+import numpy as np
+import pytest
+from gymnasium.utils.env_checker import check_env
+
+from twinbench.env import TwinEnv
+from twinbench.evaluation.runner import policy_observation
+from twinbench.tasks.gripper_expert import grasp_quat
+from twinbench.tasks.toy_expert import ToyExpert
+from twinbench.transforms import transform_points
+
+
+@pytest.fixture(scope="module")
+def env():
+    return TwinEnv("toy-packing", preset="fast", success_rule="early")
+
+
+def test_toy_has_softer_limbs_and_the_grid_pairs_toy_and_box_offsets(env):
+    spec = env.twin.spec.object("toy")
+    y = np.asarray(spec.spring_Y)
+    assert y.shape == (len(spec.springs),) and y.min() < y.max()  # limbs softer than the torso
+    states = env.rules.initial_states
+    assert len(states) == 20 and set(states.grid) == {"toy", "box"}
+    _, info = env.reset(seed=0, options={"init_state": 19})
+    box = info["privileged"]["object_poses"]["box"]
+    rest = env.twin.spec.colliders[0].pose
+    np.testing.assert_allclose(box[:2, 3] - rest[:2, 3], states.grid["box"][19][:2], atol=1e-12)
+
+
+def _place(env, particles):
+    env.state.physics.x.assign(particles.astype(np.float32))
+    return env.rules.frame(env.twin, env.state)
+
+
+def test_success_rule_on_a_packed_toy_and_a_near_miss(env):
+    env.reset(seed=0, options={"init_state": 0})
+    twin, rules = env.twin, env.rules
+    rest = twin.rest_particles("toy")
+    box = twin.collider_pose(env.state, "box")
+    # packed: limbs tucked (the toy squeezed to 60 % of its footprint) and set on the box floor
+    packed = rest * [0.6, 0.5, 1.0]
+    hit, m = _place(env, transform_points(box, packed))
+    assert hit and m["inside_fraction"] == 1.0
+    # near miss: the same toy 3 cm too high -- its top pokes out above the walls (scaled box height 6.3 cm)
+    lifted = transform_points(box, packed + [0, 0, 0.03])
+    hit, m = _place(env, lifted)
+    assert not hit and 0.5 < m["inside_fraction"] < rules.settings.inside_fraction
+    # the toy as it is (limbs spread) centred in the box: the limbs stick out
+    hit, m = _place(env, transform_points(box, rest))
+    assert not hit
+
+
+def test_conforms_to_gymnasium_and_is_deterministic(env):
+    check_env(env, skip_render_check=True)
+    actions = np.random.default_rng(1).uniform(env.action_space.low, env.action_space.high, (6, 8))
+    actions[:, 3:7] = grasp_quat((0.0, 1.0))
+    runs = []
+    for _ in range(2):
+        obs, _ = env.reset(seed=1, options={"init_state": 7})
+        for a in actions.astype(np.float32):
+            obs, *_ = env.step(a)
+        runs.append([obs["pixels"]["front"], obs["agent_pos"], env.twin.particles(env.state, "toy")])
+    for a, b in zip(*runs, strict=True):
+        np.testing.assert_array_equal(a, b)
+
+
+def _expert_episode(env, state: int) -> bool:
+    obs, info = env.reset(seed=0, options={"init_state": state})
+    expert = ToyExpert()
+    while True:
+        obs, _, term, trunc, info = env.step(expert.select_action(policy_observation(expert, obs, info)))
+        if term or trunc:
+            return bool(info["is_success"])
+
+
+@pytest.mark.slow
+def test_expert_packs_at_least_70_percent_of_the_grid(env):
+    results = [_expert_episode(env, i) for i in range(20)]
+    assert sum(results) >= 0.7 * 20, results
