@@ -31,3 +31,13 @@ def pytest_collection_modifyitems(config, items):
         for item in items:
             if "gpu" in item.keywords:
                 item.add_marker(skip)
+
+
+@pytest.fixture(scope="session")
+def fast_env():
+    """A push-T env on the built-in `fast` cell, built once per session (each test resets it)."""
+    from twinbench.env import TwinEnv
+
+    env = TwinEnv("push-t", preset="fast")
+    env.reset(seed=0, options={"init_state": 0})
+    return env

@@ -104,6 +104,17 @@ class _VideoWriter:
         return True
 
 
+def policy_observation(policy, obs: dict, info: dict) -> dict:
+    """The observation `policy` is given: `obs`, plus the privileged `environment_state` from
+    `info["privileged"]` for policies that declare `uses_environment_state` (scripted experts)."""
+    if not getattr(policy, "uses_environment_state", False) or "environment_state" in obs:
+        return obs
+    privileged = info.get("privileged") or {}
+    if "environment_state" not in privileged:
+        raise PolicyError("this policy needs the task's environment_state, which the env does not provide")
+    return {**obs, "environment_state": privileged["environment_state"]}
+
+
 def run_episode(env, policy, *, init_state: int, seed: int, max_steps: int | None = None,
                 video_path: str | Path | None = None) -> EpisodeOutcome:
     """Roll `policy` out in `env` from `init_state`; never raises for env or policy failures."""
@@ -115,7 +126,7 @@ def run_episode(env, policy, *, init_state: int, seed: int, max_steps: int | Non
     if limit <= 0:
         raise ValueError("run_episode: env has no _max_episode_steps; pass max_steps")
     try:
-        obs, _ = env.reset(seed=int(seed), options={"init_state": int(init_state)})
+        obs, info = env.reset(seed=int(seed), options={"init_state": int(init_state)})
         if video is not None:
             video.add(env.render())
     except Exception as err:  # noqa: BLE001 - any env failure is a sim_error, reported with its text
@@ -131,7 +142,7 @@ def run_episode(env, policy, *, init_state: int, seed: int, max_steps: int | Non
     shape = env.action_space.shape
     while status == "ok" and steps < limit:
         try:
-            action = np.asarray(policy.select_action(obs), dtype=np.float64)
+            action = np.asarray(policy.select_action(policy_observation(policy, obs, info)), dtype=np.float64)
             if action.shape != shape or not np.all(np.isfinite(action)):
                 raise PolicyError(f"action of shape {action.shape} (expected {shape}) "
                                   f"or non-finite: {action}")
@@ -405,6 +416,18 @@ def parse_env_kwargs(text: str) -> dict:
     return env_kwargs
 
 
+def env_kwargs_with_twin(env_kwargs: dict, twin: Path | None) -> dict:
+    """`--twin DIR`: evaluate in the twin directory DIR (an absolute path, so worker processes find it)."""
+    if twin is None:
+        return env_kwargs
+    if "twin" in env_kwargs:
+        raise ValueError("give the twin either as --twin or in --env-kwargs, not both")
+    if not (Path(twin) / "twin.json").is_file():
+        raise ValueError(f"--twin {twin}: no twin.json there (write one with `twinbench twin export` "
+                         "or the construction tools)")
+    return {**env_kwargs, "twin": str(Path(twin).resolve())}
+
+
 @dataclass(frozen=True)
 class EvalConfig:
     """Evaluate policies on a task over its initial-state grid (or N sampled states)."""
@@ -427,6 +450,8 @@ class EvalConfig:
     output_dir: Path = Path("outputs")
     env_kwargs: str = ""
     """JSON dict of extra gymnasium.make keyword arguments for the task's env"""
+    twin: Path | None = None
+    """a twin directory to evaluate in (default: the task's built-in cell)"""
     retry_errors: bool = False
     """re-run episodes that ended in sim_error/policy_error"""
     progress: bool = True
@@ -443,7 +468,7 @@ def main(cfg: EvalConfig) -> int:
     if not cfg.policy:
         say("twinbench eval: give at least one --policy (e.g. --policy expert)")
         return 2
-    env_kwargs = parse_env_kwargs(cfg.env_kwargs)
+    env_kwargs = env_kwargs_with_twin(parse_env_kwargs(cfg.env_kwargs), cfg.twin)
     try:
         records = evaluate(cfg.task, list(cfg.policy), cfg.episodes, cfg.workers, cfg.run_id, cfg.db,
                            seed=cfg.seed, video=cfg.video, backend=cfg.backend, output_dir=cfg.output_dir,
