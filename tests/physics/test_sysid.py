@@ -167,26 +167,32 @@ def test_cloth_identification_recovers_soft_and_stiff_halves(cloth):
 
 
 def test_outputs_object_directory_and_report(rope, tmp_path):
+    from twinbench.physics import ModelBuilder
+    from twinbench.twin import load_object
+
     data, truth, result = rope
     path = write_object_dir(result, data, tmp_path / "rope")
     meta = json.loads(path.read_text())
     assert meta["format"] == "twinbench-object" and meta["version"] == 1
-    obj = meta["object"]
-    assert obj["springs"] == "explicit" and obj["spring_Y"] is None and obj["mass"] is None
-    assert obj["name"] == "rope" and np.allclose(obj["rest_pose"], np.eye(4))
-    assert not Path(obj["arrays"]).is_absolute() and ".." not in obj["arrays"]
-    with np.load(tmp_path / "rope" / obj["arrays"], allow_pickle=False) as z:
-        n = result.model.num_object_springs
-        np.testing.assert_allclose(z["particles"], data.particles, atol=1e-7)
-        np.testing.assert_array_equal(z["springs"], truth["springs"])
-        np.testing.assert_allclose(z["rest_lengths"], np.linalg.norm(
-            data.particles[z["springs"][:, 0]] - data.particles[z["springs"][:, 1]], axis=1), rtol=1e-6)
-        np.testing.assert_allclose(z["spring_Y"], np.exp(result.log_y[:n].astype(np.float64)))
-        np.testing.assert_array_equal(z["masses"], np.ones(data.num_particles))
-    sim = meta["sim"]
+    assert meta["object"]["springs"] == "explicit" and meta["object"]["spring_Y"] is None
+    obj, sim = load_object(tmp_path / "rope")
+    n = result.model.num_object_springs
+    assert obj.name == "rope" and np.allclose(obj.rest_pose, np.eye(4))
+    np.testing.assert_allclose(obj.particles, data.particles, atol=1e-7)
+    np.testing.assert_array_equal(obj.springs, truth["springs"])
+    np.testing.assert_allclose(obj.spring_Y, np.exp(result.log_y[:n].astype(np.float64)))
+    np.testing.assert_array_equal(obj.mass, np.ones(data.num_particles))
     assert sim["dashpot_damping"] == pytest.approx(result.params.dashpot_damping)
     assert sim["ground_friction"] == pytest.approx(result.params.ground_friction)
-    assert sim["substeps"] == SUBSTEPS and SimParams(**{**sim, "gravity": tuple(sim["gravity"])})
+    assert sim["substeps"] == SUBSTEPS
+    # the loaded object builds (as build_twin does) into the identified object's springs and stiffness
+    b = ModelBuilder(SimParams(**{**sim, "gravity": tuple(sim["gravity"])}))
+    b.add_body(obj.particles, springs=obj.springs, rest_lengths=obj.rest_lengths, spring_Y=obj.spring_Y,
+               mass=obj.mass)
+    twin_model = b.finalize()
+    np.testing.assert_array_equal(twin_model.springs_np, result.model.springs_np[:n])
+    np.testing.assert_allclose(twin_model.rest_lengths_np, result.model.rest_lengths_np[:n])
+    np.testing.assert_allclose(twin_model.log_y_np, result.log_y[:n], atol=1e-5)
 
     jpath, ppath = write_report(result, data, tmp_path)
     rep = json.loads(jpath.read_text())
@@ -342,3 +348,11 @@ def test_cli_help_and_end_to_end(small, tmp_path, capsys):
     assert main(replace(_config(), data=tmp_path / "missing")) == 2
     assert "not found" in capsys.readouterr().err
 
+
+
+@pytest.mark.slow
+def test_plush_block_identification_recovers_soft_and_stiff_halves():
+    """The 6 x 3 x 3 block (54 particles, ~600 springs): the same criteria, a longer run."""
+    data, truth = synthetic_case("plush", seed=0)
+    cfg = _config(cma=replace(_config().cma, budget=150), adam=replace(_config().adam, epochs=15))
+    _check_identification(data, truth, identify(data, cfg, log=_quiet))

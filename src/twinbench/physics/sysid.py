@@ -659,29 +659,19 @@ def sim_dict(sim: SimParams) -> dict:
 
 
 def write_object_dir(result: SysIdResult, data: SysIdData, directory: str | Path) -> Path:
-    """Write the identified object as a standalone twin OBJECT DIRECTORY (``object.json`` + npz with
-    explicit springs, rest lengths, per-spring stiffness and masses; "sim" = the identified SimParams).
+    """Write the identified object as a standalone twin object directory (``object.json`` + npz with
+    explicit object springs, rest lengths, per-spring stiffness and masses; "sim" = the identified
+    SimParams) through ``twinbench.twin.save_object``. Particles are the frame-0 positions with an
+    identity rest pose (object frame = the observations' world frame). Returns object.json's path."""
+    from twinbench.twin import ObjectSpec, save_object
 
-    Isolated here until ``twinbench.twin.files.save_object`` is available; follows the twin format
-    exactly (relative paths, particles in the object frame with an identity rest pose, i.e. the
-    object frame is the world frame of the observations)."""
-    directory = Path(directory)
-    directory.mkdir(parents=True, exist_ok=True)
     m = result.model
-    n_springs = m.num_object_springs
-    arrays = f"{data.name}.npz"
-    np.savez(directory / arrays,
-             particles=m.x0_np.astype(np.float64),
-             springs=m.springs_np[:n_springs].astype(np.int32),
-             rest_lengths=m.rest_lengths_np[:n_springs].astype(np.float64),
-             spring_Y=result.object_spring_Y,
-             masses=m.masses_np.astype(np.float64))
-    obj = {"name": data.name, "arrays": arrays, "springs": "explicit", "spring_Y": None, "mass": None,
-           "gaussians": None, "binding": "lbs", "rest_pose": np.eye(4).tolist(), "color_map": None}
-    path = directory / "object.json"
-    path.write_text(json.dumps({"format": "twinbench-object", "version": 1, "object": obj,
-                                "sim": sim_dict(result.sim)}, indent=2) + "\n")
-    return path
+    n = m.num_object_springs
+    obj = ObjectSpec(name=data.name, particles=m.x0_np.astype(np.float64),
+                     springs=m.springs_np[:n].astype(np.int32),
+                     rest_lengths=m.rest_lengths_np[:n].astype(np.float64), spring_Y=result.object_spring_Y,
+                     mass=m.masses_np.astype(np.float64), binding="lbs")
+    return save_object(obj, directory, sim=sim_dict(result.sim))
 
 
 def _finite(x) -> float | None:
@@ -751,16 +741,16 @@ def write_report(result: SysIdResult, data: SysIdData, directory: str | Path) ->
         a.legend()
     else:
         a.text(0.5, 0.5, "stage 1 off", ha="center", va="center", transform=a.transAxes)
-    a.set(title="stage 1: CMA-ES training loss", xlabel="evaluation")
+    a.set(title="stage 1: CMA-ES training loss (Chamfer + tracking)", xlabel="evaluation")
     a = ax[0, 1]
     rows = [r for r in result.stage2_history if "train_loss" in r]
     if rows:
         ep = [r["epoch"] for r in rows]
-        a.semilogy(ep, [r["train_loss"] for r in rows], "o-", label="training loss")
+        h1 = a.semilogy(ep, [r["train_loss"] for r in rows], "o-", label="training loss (all terms)")
         a2 = a.twinx()
-        a2.plot(ep, [1e3 * r["val_error"] for r in rows], "s--", color="C1", label="validation error (mm)")
+        h2 = a2.plot(ep, [1e3 * r["val_error"] for r in rows], "s--", color="C1", label="validation error")
         a2.set_ylabel("validation tracking error (mm)")
-        a.legend(loc="upper right")
+        a.legend(handles=h1 + h2, loc="upper right")
     else:
         a.text(0.5, 0.5, "stage 2 off", ha="center", va="center", transform=a.transAxes)
     a.set(title="stage 2: Adam on per-spring log Y", xlabel="epoch")
