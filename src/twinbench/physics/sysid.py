@@ -92,13 +92,14 @@ class SearchRange:
     log: bool = False
     integer: bool = False
 
-    def decode(self, u: float) -> float:
+    def decode(self, u: float) -> float | int:
+        """Value at the normalised position ``u`` in [0, 1] (clipped)."""
         u = min(max(float(u), 0.0), 1.0)
         if self.log:
             val = math.exp(math.log(self.lo) + u * (math.log(self.hi) - math.log(self.lo)))
         else:
             val = self.lo + u * (self.hi - self.lo)
-        return float(round(val)) if self.integer else val
+        return int(round(val)) if self.integer else val
 
     def encode(self, value: float) -> float:
         value = min(max(float(value), self.lo), self.hi)
