@@ -24,6 +24,7 @@ COMMANDS: dict[str, tuple[str, str, str, str]] = {
                     "import real-robot episode outcomes from a CSV into the results store"),
     "report": ("twinbench.evaluation.report", "ReportConfig", "main",
                "write a self-contained HTML report of an evaluation run"),
+    "sysid": ("twinbench.physics.sysid", "SysIdConfig", "main", "fit an object's physics to observed motion"),
 }
 
 

@@ -1,0 +1,877 @@
+"""System identification (PhysTwin-style): fit a spring-mass object's physics to observed motion.
+
+    data = load_sysid_data("cases/rope")               # format: twinbench.physics.sysid_data
+    result = identify(data, SysIdConfig(data=Path("cases/rope"), cma=CMAConfig(budget=200)))
+    write_object_dir(result, data, "out/rope")          # twin object directory (object.json + npz)
+    write_report(result, data, "out")                   # sysid_report.json + sysid_report.png
+
+Two stages (DESIGN section 4), each switchable for the ablation "without physics optimisation":
+
+1. **Stage 1** (``stage1=True``): CMA-ES (``cma`` package) over the global parameters of
+   :class:`GlobalParams` within :data:`DEFAULT_RANGES` (normalised to [0, 1], stiffness in log space);
+   each evaluation builds the model and simulates every training frame (fast, graph-replayed path).
+2. **Stage 2** (``stage2=True``): Adam on the per-spring log stiffness (object and control springs)
+   through ``wp.Tape``, truncated to one frame: frame ``k`` is simulated from the simulated state of
+   frame ``k - 1``, the loss's gradient w.r.t. the frame's final positions and velocities is injected as
+   the adjoint of the taped frame's last state, Adam steps, and the detached state carries on.
+
+With both off, the ``initial`` (hand-set) values are used as they are and only evaluated.
+
+Loss of frame ``k`` (PhysTwin's terms and weights 1, 1, 0.01):
+
+* one-sided Chamfer: mean over the visible observed points of the squared distance to the nearest
+  simulated surface particle;
+* tracking: smooth-L1 (``beta``) of the tracked particles against their tracks, over the
+  motion-valid tracks, divided by 3 * count;
+* acceleration: smooth-L1 of the change of the per-frame velocity change
+  ``(v_k - v_{k-1}) - (v_{k-1} - v_{k-2})`` over all particles, divided by 3 * P (from frame 2 on).
+
+The last ``validation_frames`` frames are never fitted; their *tracking error* (mean Euclidean
+distance between tracked particles and motion-valid tracks, metres, simulating the whole sequence
+from frame 0) is the validation figure of the report. Contact parameters are identified by stage 1
+only: the solver takes them as scalar kernel arguments, which ``wp.Tape`` does not differentiate.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import time
+from collections.abc import Callable
+from dataclasses import asdict, dataclass, field, fields, replace
+from pathlib import Path
+
+import numpy as np
+import warp as wp
+from scipy.spatial import cKDTree
+
+from .model import ModelBuilder, SpringMassModel
+from .params import SimParams
+from .solver import SimulationDiverged, SpringMassSolver, check_divergence
+from .sysid_data import SysIdData, SysIdFormatError, load_sysid_data
+
+# ----------------------------------------------------------------------------------------------
+# parameters and search space
+
+
+@dataclass(frozen=True)
+class GlobalParams:
+    """The global (per-object) parameters of DESIGN section 4; defaults are PhysTwin's."""
+
+    spring_Y: float = 3e4
+    """stiffness of every spring (per unit strain) before stage 2"""
+    spring_radius: float = 0.02
+    """object springs join particles within this radius (ignored with explicit springs)"""
+    spring_max_neighbors: int = 30
+    control_radius: float = 0.04
+    """control points attach to the particles within this radius"""
+    control_max_neighbors: int = 50
+    ground_restitution: float = 0.5
+    ground_friction: float = 0.3
+    object_restitution: float = 0.7
+    """self-collision restitution (used when self-collision is on)"""
+    object_friction: float = 0.3
+    collision_dist: float = 0.02
+    drag_damping: float = 3.0
+    dashpot_damping: float = 100.0
+
+    def sim_params(self, base: SimParams) -> SimParams:
+        """``base`` with this object's contact and damping values."""
+        return replace(base, ground_restitution=self.ground_restitution, ground_friction=self.ground_friction,
+                       object_restitution=self.object_restitution, object_friction=self.object_friction,
+                       collision_dist=self.collision_dist, drag_damping=self.drag_damping,
+                       dashpot_damping=self.dashpot_damping)
+
+
+@dataclass(frozen=True)
+class SearchRange:
+    """A stage-1 search interval; ``log`` searches log(value), ``integer`` rounds."""
+
+    lo: float
+    hi: float
+    log: bool = False
+    integer: bool = False
+
+    def decode(self, u: float) -> float | int:
+        """Value at the normalised position ``u`` in [0, 1] (clipped)."""
+        u = min(max(float(u), 0.0), 1.0)
+        if self.log:
+            val = math.exp(math.log(self.lo) + u * (math.log(self.hi) - math.log(self.lo)))
+        else:
+            val = self.lo + u * (self.hi - self.lo)
+        return int(round(val)) if self.integer else val
+
+    def encode(self, value: float) -> float:
+        value = min(max(float(value), self.lo), self.hi)
+        if self.log:
+            return (math.log(value) - math.log(self.lo)) / (math.log(self.hi) - math.log(self.lo))
+        return (value - self.lo) / (self.hi - self.lo)
+
+
+DEFAULT_RANGES: dict[str, SearchRange] = {
+    "spring_Y": SearchRange(1e3, 1e5, log=True),
+    "spring_radius": SearchRange(0.01, 0.05),
+    "spring_max_neighbors": SearchRange(10, 50, integer=True),
+    "control_radius": SearchRange(0.01, 0.08),
+    "control_max_neighbors": SearchRange(10, 80, integer=True),
+    "ground_restitution": SearchRange(0.0, 1.0),
+    "ground_friction": SearchRange(0.0, 2.0),
+    "object_restitution": SearchRange(0.0, 1.0),
+    "object_friction": SearchRange(0.0, 2.0),
+    "collision_dist": SearchRange(0.005, 0.05),
+    "drag_damping": SearchRange(0.0, 20.0),
+    "dashpot_damping": SearchRange(0.0, 200.0),
+}
+
+
+def applicable_parameters(data: SysIdData, base: SimParams) -> tuple[str, ...]:
+    """The global parameters that change the simulation of ``data``: topology rules only without
+    explicit springs, control rules only with control points, self-contact only with self-collision,
+    ground contact only with the ground on."""
+    names = ["spring_Y"]
+    if data.springs is None:
+        names += ["spring_radius", "spring_max_neighbors"]
+    if data.num_controls:
+        names += ["control_radius", "control_max_neighbors"]
+    if base.ground:
+        names += ["ground_restitution", "ground_friction"]
+    if base.self_collision:
+        names += ["object_restitution", "object_friction", "collision_dist"]
+    return tuple(names + ["drag_damping", "dashpot_damping"])
+
+
+def parse_ranges(overrides: tuple[str, ...] | list[str]) -> dict[str, SearchRange]:
+    """DEFAULT_RANGES updated by ``"name=lo:hi"`` strings (the scale, log or integer, is kept)."""
+    ranges = dict(DEFAULT_RANGES)
+    for item in overrides:
+        name, sep, rest = item.partition("=")
+        lo, sep2, hi = rest.partition(":")
+        if not sep or not sep2 or name not in ranges:
+            raise ValueError(f"range override {item!r} must look like NAME=LO:HI with NAME one of "
+                             f"{sorted(ranges)}")
+        try:
+            lo_f, hi_f = float(lo), float(hi)
+        except ValueError:
+            raise ValueError(f"range override {item!r}: LO and HI must be numbers") from None
+        old = ranges[name]
+        if not (math.isfinite(lo_f) and math.isfinite(hi_f) and hi_f > lo_f) or (old.log and lo_f <= 0):
+            need = " and LO > 0 (log scale)" if old.log else ""
+            raise ValueError(f"range override {item!r}: need finite LO < HI{need}")
+        ranges[name] = SearchRange(lo_f, hi_f, old.log, old.integer)
+    return ranges
+
+
+# ----------------------------------------------------------------------------------------------
+# configuration
+
+
+@dataclass(frozen=True)
+class LossWeights:
+    chamfer: float = 1.0
+    track: float = 1.0
+    acc: float = 0.01
+    beta: float = 1.0
+    """smooth-L1 transition (m, or m/s for the acceleration term); 1.0 as fvcore's default in PhysTwin"""
+
+
+@dataclass(frozen=True)
+class CMAConfig:
+    """Stage 1 (CMA-ES) settings."""
+
+    budget: int = 150
+    """maximum number of evaluations (each simulates every training frame)"""
+    popsize: int = 0
+    """population per generation; 0 = cma's default 4 + 3 ln(n)"""
+    sigma0: float = 0.25
+    """initial step size in normalised [0, 1] units"""
+    search: tuple[str, ...] = ()
+    """parameters to search (empty = every applicable one, see applicable_parameters)"""
+    ranges: tuple[str, ...] = ()
+    """range overrides as NAME=LO:HI (e.g. spring_Y=100:20000)"""
+    seed: int = 0
+    """random seed (cma receives seed + 1: its 0 means a time-based seed)"""
+
+
+@dataclass(frozen=True)
+class AdamConfig:
+    """Stage 2 (Adam on per-spring log Y through wp.Tape, one frame at a time) settings."""
+
+    epochs: int = 20
+    """passes over the training frames (one Adam step per frame)"""
+    lr: float = 1e-3
+    betas: tuple[float, float] = (0.9, 0.99)
+    eps: float = 1e-12
+    """Adam epsilon (the loss is in m^2: its gradients are small)"""
+    y_min: float = 1e3
+    """per-spring stiffness bounds (projected after each step); keep y_max within the solver's
+    stable range for the chosen dt"""
+    y_max: float = 1e5
+
+
+@dataclass(frozen=True)
+class SysIdConfig:
+    """`twinbench sysid`: identify an object's physics from observed motion (see sysid_data for the
+    input directory). Writes ``<out_dir>/<name>/`` (object.json + npz) and ``sysid_report.{json,png}``."""
+
+    data: Path
+    """sysid input directory (sysid.json + npz, see twinbench.physics.sysid_data)"""
+    out_dir: Path = Path("outputs/sysid")
+    device: str = "cpu"
+    stage1: bool = True
+    """run CMA-ES over the global parameters (off: use the initial values as given)"""
+    stage2: bool = True
+    """run Adam on per-spring stiffness (off: one global stiffness)"""
+    initial: GlobalParams = GlobalParams()
+    """starting point of stage 1, or the hand-set values when stage 1 is off"""
+    cma: CMAConfig = CMAConfig()
+    adam: AdamConfig = AdamConfig()
+    weights: LossWeights = LossWeights()
+    dt: float = 5e-5
+    substeps: int = 0
+    """substeps per frame; 0 = round(1 / (fps * dt)) (667 at PhysTwin's dt and 30 fps)"""
+    ground: bool = True
+    self_collision: bool = False
+    progress: bool = True
+
+    def base_params(self, fps: float) -> SimParams:
+        substeps = self.substeps or max(1, round(1.0 / (fps * self.dt)))
+        return SimParams(dt=self.dt, substeps=substeps, ground=self.ground,
+                         self_collision=self.self_collision)
+
+
+# ----------------------------------------------------------------------------------------------
+# model and loss
+
+
+def build_model(data: SysIdData, params: GlobalParams, base: SimParams, device: str = "cpu", *,
+                requires_grad: bool = False, log_y: np.ndarray | None = None) -> SpringMassModel:
+    """The spring-mass model of ``data`` under ``params`` (springs by rule or explicit, control points
+    attached at their frame-0 positions, every spring at ``params.spring_Y`` unless ``log_y``)."""
+    b = ModelBuilder(params.sim_params(base))
+    mass = 1.0 if data.masses is None else data.masses
+    if data.springs is not None:
+        b.add_body(data.particles, springs=data.springs, rest_lengths=data.rest_lengths,
+                   spring_Y=params.spring_Y, mass=mass)
+    else:
+        b.add_body(data.particles, radius=params.spring_radius,
+                   max_neighbors=int(params.spring_max_neighbors), spring_Y=params.spring_Y, mass=mass)
+    if data.num_controls:
+        b.add_control_points(data.controls[0], radius=params.control_radius,
+                             max_neighbors=int(params.control_max_neighbors), spring_Y=params.spring_Y)
+    model = b.finalize(device, requires_grad=requires_grad)
+    if log_y is not None:
+        model.set_spring_log_y(log_y)
+    return model
+
+
+def _smooth_l1(d: np.ndarray, beta: float) -> tuple[np.ndarray, np.ndarray]:
+    """Elementwise smooth-L1 value and derivative (fvcore convention)."""
+    a = np.abs(d)
+    val = np.where(a < beta, 0.5 * d * d / beta, a - 0.5 * beta)
+    return val, np.clip(d / beta, -1.0, 1.0)
+
+
+class SequenceLoss:
+    """Per-frame loss of simulated positions/velocities against ``data`` and its gradient."""
+
+    def __init__(self, data: SysIdData, weights: LossWeights = LossWeights()):
+        self.data = data
+        self.w = weights
+        self.surface = (np.arange(data.num_particles) if data.surface_indices is None
+                        else data.surface_indices)
+
+    def frame(self, k: int, x: np.ndarray, v: np.ndarray, prev_v: np.ndarray | None = None,
+              prev_acc: np.ndarray | None = None, grad: bool = False):
+        """Loss terms of frame ``k`` (dict: chamfer, track, acc, total) and, with ``grad``, the
+        gradients w.r.t. ``x`` and ``v`` (float64 arrays shaped like them)."""
+        d, w = self.data, self.w
+        x = np.asarray(x, np.float64)
+        v = np.asarray(v, np.float64)
+        gx = np.zeros_like(x) if grad else None
+        gv = np.zeros_like(v) if grad else None
+        # one-sided Chamfer: observed (visible) -> nearest simulated surface particle
+        obs = d.observed[k][d.visibility[k]]
+        surf = x[self.surface]
+        _, nn = cKDTree(surf).query(obs)
+        diff = surf[nn] - obs
+        chamfer = w.chamfer * float(np.mean(np.sum(diff * diff, axis=1)))
+        if grad:
+            np.add.at(gx, self.surface[nn], 2.0 * w.chamfer / obs.shape[0] * diff)
+        # tracking
+        valid = d.motion_valid[k]
+        track = 0.0
+        if valid.any():
+            idx = d.tracked_indices[valid]
+            val, der = _smooth_l1(x[idx] - d.tracked[k][valid], w.beta)
+            scale = w.track / (3.0 * idx.size)
+            track = scale * float(val.sum())
+            if grad:
+                gx[idx] += scale * der
+        # acceleration smoothness
+        acc = 0.0
+        if prev_v is not None and prev_acc is not None and w.acc:
+            val, der = _smooth_l1((v - prev_v) - prev_acc, w.beta)
+            scale = w.acc / (3.0 * v.shape[0])
+            acc = scale * float(val.sum())
+            if grad:
+                gv += scale * der
+        terms = {"chamfer": chamfer, "track": track, "acc": acc, "total": chamfer + track + acc}
+        return (terms, gx, gv) if grad else terms
+
+    def track_error(self, k: int, x: np.ndarray) -> float:
+        """Mean distance (m) between tracked particles and their motion-valid tracks; NaN if none."""
+        valid = self.data.motion_valid[k]
+        if not valid.any():
+            return float("nan")
+        idx = self.data.tracked_indices[valid]
+        diff = np.asarray(x, np.float64)[idx] - self.data.tracked[k][valid]
+        return float(np.mean(np.linalg.norm(diff, axis=1)))
+
+
+@dataclass
+class SequenceEval:
+    """Fast-path rollout of a model over the data: per-frame loss and tracking error (index = frame)."""
+
+    loss: np.ndarray
+    track_error: np.ndarray
+    train_loss: float
+    train_error: float
+    val_error: float
+    diverged: bool = False
+
+
+def rollout(model: SpringMassModel, controls: np.ndarray, frames: int,
+            solver: SpringMassSolver | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Simulate frames 1..``frames`` (fast path) with the control points moving from ``controls[k-1]``
+    to ``controls[k]`` in frame k; returns positions and velocities (frames + 1, P, 3). Raises
+    SimulationDiverged."""
+    solver = solver or SpringMassSolver(model)
+    state, ctl = model.state(requires_grad=False), model.control()
+    xs = np.empty((frames + 1, model.num_particles, 3), np.float32)
+    vs = np.empty_like(xs)
+    xs[0], vs[0] = state.numpy()
+    for k in range(1, frames + 1):
+        if controls.shape[1]:
+            ctl.set_control_points(controls[k - 1], controls[k])
+        solver.simulate_frame(state, ctl)
+        xs[k], vs[k] = state.numpy()
+    return xs, vs
+
+
+def evaluate(model: SpringMassModel, data: SysIdData, loss: SequenceLoss, *, frames: int | None = None,
+             solver: SpringMassSolver | None = None, acc: bool = True) -> SequenceEval:
+    """Roll out ``frames`` frames (default all) and score them (``acc=False`` leaves out the
+    acceleration term); a divergence gives infinite loss."""
+    n = data.num_frames - 1 if frames is None else frames
+    lossv = np.full(n + 1, np.nan)
+    err = np.full(n + 1, np.nan)
+    try:
+        xs, vs = rollout(model, data.controls, n, solver)
+    except SimulationDiverged:
+        return SequenceEval(lossv, err, math.inf, math.inf, math.inf, diverged=True)
+    for k in range(1, n + 1):
+        pv = vs[k - 1]
+        pa = vs[k - 1] - vs[k - 2] if k >= 2 and acc else None
+        lossv[k] = loss.frame(k, xs[k], vs[k], pv, pa)["total"]
+        err[k] = loss.track_error(k, xs[k])
+    train = [k for k in data.train_frames if k <= n]
+    val = [k for k in data.val_frames if k <= n]
+
+    def mean(a, ks):
+        vals = a[ks] if ks else np.array([])
+        vals = vals[np.isfinite(vals)]
+        return float(vals.mean()) if vals.size else float("nan")
+
+    return SequenceEval(lossv, err, mean(lossv, train), mean(err, train), mean(err, val))
+
+
+# ----------------------------------------------------------------------------------------------
+# progress
+
+
+def _progress(enabled: bool):
+    from rich.progress import (
+        BarColumn,
+        MofNCompleteColumn,
+        Progress,
+        TextColumn,
+        TimeElapsedColumn,
+        TimeRemainingColumn,
+    )
+
+    return Progress(TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(),
+                    TimeElapsedColumn(), TextColumn("ETA"), TimeRemainingColumn(),
+                    TextColumn("{task.fields[info]}"), disable=not enabled)
+
+
+# ----------------------------------------------------------------------------------------------
+# stage 1: CMA-ES over global parameters
+
+PENALTY = 1e6  # loss of a candidate whose simulation diverged or whose model cannot be built
+
+
+def stage1_cma(data: SysIdData, base: SimParams, initial: GlobalParams, cfg: CMAConfig,
+               weights: LossWeights = LossWeights(), device: str = "cpu", progress: bool = False,
+               log: Callable[[str], None] = print) -> tuple[GlobalParams, list[dict]]:
+    """CMA-ES over the searched global parameters (normalised to [0, 1]) starting at ``initial``.
+    Each evaluation simulates the training frames and scores Chamfer + tracking (the acceleration
+    term regularises stage 2's per-spring fit; in a global search it only favours the most damped
+    candidate). Returns the best parameters found and the history (one row per evaluation: index,
+    loss, best-so-far)."""
+    import cma
+
+    ranges = parse_ranges(cfg.ranges)
+    allowed = applicable_parameters(data, base)
+    names = tuple(cfg.search) or allowed
+    bad = [n for n in names if n not in allowed]
+    if bad:
+        raise ValueError(f"cma.search: {bad} do not affect this simulation (applicable: {list(allowed)}; "
+                         "explicit springs fix the spring rule, self-contact needs self_collision)")
+    if cfg.budget < 1:
+        raise ValueError(f"cma.budget must be >= 1, got {cfg.budget}")
+    loss = SequenceLoss(data, weights)
+    n_train = data.train_frames.stop - 1
+    history: list[dict] = []
+    best = (math.inf, initial)
+
+    def decode(u) -> GlobalParams:
+        return replace(initial, **{n: ranges[n].decode(ui) for n, ui in zip(names, u, strict=True)})
+
+    def objective(params: GlobalParams) -> float:
+        nonlocal best
+        try:
+            model = build_model(data, params, base, device)
+            ev = evaluate(model, data, loss, frames=n_train, acc=False)
+            value = ev.train_loss if math.isfinite(ev.train_loss) else PENALTY
+        except ValueError:  # e.g. a rule that gives no springs at all
+            value = PENALTY
+        if value < best[0]:
+            best = (value, params)
+        history.append({"evaluation": len(history), "loss": value, "best": best[0]})
+        return value
+
+    x0 = [ranges[n].encode(getattr(initial, n)) for n in names]
+    with _progress(progress) as bar:
+        task = bar.add_task("stage 1 (CMA-ES)", total=cfg.budget, info="")
+        objective(initial)
+        bar.advance(task)
+        opts = {"bounds": [0.0, 1.0], "maxfevals": max(cfg.budget - 1, 1), "seed": cfg.seed + 1,
+                "verbose": -9, "verb_log": 0, "verb_disp": 0}
+        if cfg.popsize:
+            opts["popsize"] = cfg.popsize
+        es = cma.CMAEvolutionStrategy(x0, cfg.sigma0, opts) if len(names) > 1 else None
+        if es is None:  # cma needs >= 2 dimensions: a 1-D search samples the normalised line instead
+            for u in np.linspace(0.0, 1.0, max(cfg.budget - 1, 1)):
+                objective(decode([u]))
+                bar.update(task, advance=1, info=f"best {best[0]:.3e}")
+        while es is not None and not es.stop() and len(history) < cfg.budget:
+            xs = es.ask()
+            xs = xs[: cfg.budget - len(history)]
+            vals = []
+            for u in xs:
+                vals.append(objective(decode(u)))
+                bar.update(task, advance=1, info=f"best {best[0]:.3e}")
+            if len(vals) < es.popsize:
+                break
+            es.tell(xs, vals)
+    if best[0] >= PENALTY:
+        raise ValueError("stage 1: every candidate diverged; lower the spring_Y range (cma.ranges) or raise "
+                         "the substeps")
+    log(f"stage 1: {len(history)} evaluations, best training loss {best[0]:.4e}")
+    return best[1], history
+
+
+# ----------------------------------------------------------------------------------------------
+# stage 2: Adam on per-spring log Y, truncated backpropagation over one frame
+
+
+class Adam:
+    """Adam on a float64 vector with projection onto [lo, hi] after each step."""
+
+    def __init__(self, x: np.ndarray, lr: float, betas=(0.9, 0.99), eps: float = 1e-12,
+                 lo: float = -math.inf, hi: float = math.inf):
+        self.x = np.asarray(x, np.float64).copy()
+        self.lr, self.b1, self.b2, self.eps, self.lo, self.hi = lr, betas[0], betas[1], eps, lo, hi
+        self.m = np.zeros_like(self.x)
+        self.v = np.zeros_like(self.x)
+        self.t = 0
+
+    def step(self, g: np.ndarray) -> np.ndarray:
+        self.t += 1
+        self.m = self.b1 * self.m + (1 - self.b1) * g
+        self.v = self.b2 * self.v + (1 - self.b2) * g * g
+        mh = self.m / (1 - self.b1 ** self.t)
+        vh = self.v / (1 - self.b2 ** self.t)
+        self.x = np.clip(self.x - self.lr * mh / (np.sqrt(vh) + self.eps), self.lo, self.hi)
+        return self.x
+
+
+def frame_gradient(model: SpringMassModel, solver: SpringMassSolver, state, control, loss: SequenceLoss,
+                   k: int, prev_v=None, prev_acc=None):
+    """Simulate frame ``k`` from ``state`` under ``wp.Tape`` and backpropagate the frame loss.
+
+    Returns (loss terms, d loss / d log_y (per spring, float64), final x, final v). The loss gradient
+    w.r.t. the final positions and velocities is the adjoint injected into the tape.
+    """
+    tape = wp.Tape()
+    with tape:
+        states = solver.simulate_frame_tape(state, control)
+    last = states[-1]
+    bad = check_divergence(last, solver.max_speed)
+    if bad.size:
+        tape.reset()
+        raise SimulationDiverged(bad, f" in frame {k} of stage 2")
+    x, v = last.numpy()
+    terms, gx, gv = loss.frame(k, x, v, prev_v, prev_acc, grad=True)
+    dev = model.device
+    tape.backward(grads={last.x: wp.array(gx.astype(np.float32), dtype=wp.vec3, device=dev),
+                         last.v: wp.array(gv.astype(np.float32), dtype=wp.vec3, device=dev)})
+    g = model.log_y.grad.numpy().astype(np.float64)
+    tape.zero()
+    tape.reset()
+    return terms, g, x, v
+
+
+def stage2_adam(model: SpringMassModel, data: SysIdData, cfg: AdamConfig,
+                weights: LossWeights = LossWeights(), progress: bool = False,
+                log: Callable[[str], None] = print) -> tuple[np.ndarray, list[dict]]:
+    """Adam on ``model.log_y`` (finalized with ``requires_grad=True``), one step per training frame.
+
+    After each epoch the whole sequence is rolled out (fast path) and the parameters with the lowest
+    training loss are kept (the validation frames only report). Stops early, keeping the best
+    parameters, when a taped frame diverges. Returns (best log_y, history rows per epoch)."""
+    if not model.requires_grad:
+        raise ValueError("stage2_adam needs a model finalized with requires_grad=True")
+    if cfg.epochs < 0 or not (0 < cfg.y_min < cfg.y_max):
+        raise ValueError(f"adam: need epochs >= 0 and 0 < y_min < y_max, got {cfg}")
+    loss = SequenceLoss(data, weights)
+    solver = SpringMassSolver(model)
+    eval_solver = SpringMassSolver(model)
+    ctl = model.control()
+    lo, hi = math.log(cfg.y_min), math.log(cfg.y_max)
+    opt = Adam(np.clip(model.log_y_np.astype(np.float64), lo, hi), cfg.lr, cfg.betas, cfg.eps, lo, hi)
+    model.set_spring_log_y(opt.x)
+    ev = evaluate(model, data, loss, solver=eval_solver)
+    best = (ev.train_loss, opt.x.copy())
+    history = [{"epoch": 0, "taped_loss": float("nan"), "train_loss": ev.train_loss,
+                "train_error": ev.train_error, "val_error": ev.val_error,
+                "seconds_per_iteration": float("nan")}]
+    train = list(data.train_frames)
+    with _progress(progress) as bar:
+        task = bar.add_task("stage 2 (Adam)", total=cfg.epochs * len(train), info="")
+        for epoch in range(1, cfg.epochs + 1):
+            state = model.state()
+            prev_v, prev_acc = model.v0_np.astype(np.float64), None
+            total, t0 = 0.0, time.perf_counter()
+            try:
+                for k in train:
+                    if data.num_controls:
+                        ctl.set_control_points(data.controls[k - 1], data.controls[k])
+                    terms, g, x, v = frame_gradient(model, solver, state, ctl, loss, k, prev_v, prev_acc)
+                    total += terms["total"]
+                    model.set_spring_log_y(opt.step(g))
+                    state = model.state()
+                    state.x.assign(x)
+                    state.v.assign(v)
+                    v = v.astype(np.float64)
+                    prev_acc, prev_v = v - prev_v, v
+                    bar.update(task, advance=1, info=f"epoch {epoch} loss {terms['total']:.3e}")
+            except SimulationDiverged as exc:
+                log(f"stage 2: stopped at epoch {epoch}, {exc}; keeping the best parameters so far "
+                    "(lower adam.y_max or raise the substeps)")
+                history.append({"epoch": epoch, "diverged": True})
+                break
+            per_iter = (time.perf_counter() - t0) / len(train)
+            ev = evaluate(model, data, loss, solver=eval_solver)
+            if ev.train_loss < best[0]:
+                best = (ev.train_loss, opt.x.copy())
+            history.append({"epoch": epoch, "taped_loss": total / len(train), "train_loss": ev.train_loss,
+                            "train_error": ev.train_error, "val_error": ev.val_error,
+                            "seconds_per_iteration": per_iter})
+    model.set_spring_log_y(best[1])
+    log(f"stage 2: {len(history) - 1} epochs, best training loss {best[0]:.4e}")
+    return best[1].astype(np.float32), history
+
+
+# ----------------------------------------------------------------------------------------------
+# the whole identification
+
+
+@dataclass
+class SysIdResult:
+    """What :func:`identify` found: final global parameters, per-spring log Y (object springs first,
+    then control springs), the model, evaluations ('initial', 'stage1', 'final') and histories."""
+
+    params: GlobalParams
+    sim: SimParams
+    log_y: np.ndarray
+    model: SpringMassModel
+    evals: dict[str, SequenceEval]
+    stage1_history: list[dict] = field(default_factory=list)
+    stage2_history: list[dict] = field(default_factory=list)
+    seconds: dict[str, float] = field(default_factory=dict)
+    config: SysIdConfig | None = None
+
+    @property
+    def object_spring_Y(self) -> np.ndarray:
+        """Effective per-spring stiffness of the object springs (clamped as the solver does)."""
+        n = self.model.num_object_springs
+        y = np.exp(self.log_y[:n].astype(np.float64))
+        return np.clip(y, self.sim.spring_Y_min, self.sim.spring_Y_max)
+
+
+def identify(data: SysIdData, cfg: SysIdConfig, *, base: SimParams | None = None,
+             log: Callable[[str], None] = print) -> SysIdResult:
+    """Run the configured stages on ``data``; ``base`` overrides the SimParams built from ``cfg``."""
+    base = base or cfg.base_params(data.fps)
+    frame_dt = base.dt * base.substeps
+    if abs(frame_dt * data.fps - 1.0) > 0.05:
+        raise SysIdFormatError(f"{data.source}: field 'fps' is {data.fps} (frame {1 / data.fps:.5f} s) but "
+                               f"the simulation frame is substeps * dt = {frame_dt:.5f} s; set substeps = "
+                               f"round(1 / (fps * dt)) = {round(1 / (data.fps * base.dt))}")
+    loss = SequenceLoss(data, cfg.weights)
+    seconds: dict[str, float] = {}
+    params = cfg.initial
+    evals = {"initial": evaluate(build_model(data, params, base, cfg.device), data, loss)}
+    history1: list[dict] = []
+    if cfg.stage1:
+        t0 = time.perf_counter()
+        params, history1 = stage1_cma(data, base, params, cfg.cma, cfg.weights, cfg.device, cfg.progress, log)
+        seconds["stage1"] = time.perf_counter() - t0
+        evals["stage1"] = evaluate(build_model(data, params, base, cfg.device), data, loss)
+    model = build_model(data, params, base, cfg.device, requires_grad=cfg.stage2)
+    history2: list[dict] = []
+    if cfg.stage2:
+        t0 = time.perf_counter()
+        _, history2 = stage2_adam(model, data, cfg.adam, cfg.weights, cfg.progress, log)
+        seconds["stage2"] = time.perf_counter() - t0
+    evals["final"] = evaluate(model, data, loss)
+    return SysIdResult(params, params.sim_params(base), model.log_y_np.copy(), model, evals, history1,
+                       history2, seconds, cfg)
+
+
+# ----------------------------------------------------------------------------------------------
+# output
+
+
+def sim_dict(sim: SimParams) -> dict:
+    """SimParams as JSON-ready values (tuples as lists)."""
+    return {f.name: (list(v) if isinstance(v := getattr(sim, f.name), tuple) else v) for f in fields(sim)}
+
+
+def write_object_dir(result: SysIdResult, data: SysIdData, directory: str | Path) -> Path:
+    """Write the identified object as a standalone twin object directory (``object.json`` + npz with
+    explicit object springs, rest lengths, per-spring stiffness and masses; "sim" = the identified
+    SimParams) through ``twinbench.twin.save_object``. Particles are the frame-0 positions with an
+    identity rest pose (object frame = the observations' world frame). Returns object.json's path."""
+    from twinbench.twin import ObjectSpec, save_object
+
+    m = result.model
+    n = m.num_object_springs
+    obj = ObjectSpec(name=data.name, particles=m.x0_np.astype(np.float64),
+                     springs=m.springs_np[:n].astype(np.int32),
+                     rest_lengths=m.rest_lengths_np[:n].astype(np.float64), spring_Y=result.object_spring_Y,
+                     mass=m.masses_np.astype(np.float64), binding="lbs")
+    return save_object(obj, directory, sim=sim_dict(result.sim))
+
+
+def _finite(x) -> float | None:
+    x = float(x)
+    return x if math.isfinite(x) else None
+
+
+def report_dict(result: SysIdResult, data: SysIdData) -> dict:
+    """The fit report as JSON-ready data."""
+    ys = result.object_spring_Y
+    cfg = result.config
+    return {
+        "name": data.name,
+        "frames": {"total": data.num_frames, "train": [data.train_frames.start, data.train_frames.stop - 1],
+                   "validation": data.validation_frames},
+        "stages": {"stage1": bool(cfg and cfg.stage1), "stage2": bool(cfg and cfg.stage2)},
+        "global_params": asdict(result.params),
+        "sim": sim_dict(result.sim),
+        "spring_Y": {"count": int(ys.size), "min": _finite(ys.min()) if ys.size else None,
+                     "median": _finite(np.median(ys)) if ys.size else None,
+                     "max": _finite(ys.max()) if ys.size else None},
+        "evaluations": {name: {"train_loss": _finite(e.train_loss), "train_error_m": _finite(e.train_error),
+                               "val_error_m": _finite(e.val_error), "diverged": e.diverged,
+                               "per_frame_error_m": [_finite(v) for v in e.track_error],
+                               "per_frame_loss": [_finite(v) for v in e.loss]}
+                        for name, e in result.evals.items()},
+        "stage1_history": [{k: _finite(v) if isinstance(v, float) else v for k, v in row.items()}
+                           for row in result.stage1_history],
+        "stage2_history": [{k: _finite(v) if isinstance(v, float) else v for k, v in row.items()}
+                           for row in result.stage2_history],
+        "seconds": result.seconds,
+        "config": _jsonable(asdict(cfg)) if cfg else None,
+    }
+
+
+def _jsonable(obj):
+    if isinstance(obj, dict):
+        return {k: _jsonable(v) for k, v in obj.items()}
+    if isinstance(obj, list | tuple):
+        return [_jsonable(v) for v in obj]
+    if isinstance(obj, Path):
+        return str(obj)
+    return obj
+
+
+def write_report(result: SysIdResult, data: SysIdData, directory: str | Path) -> tuple[Path, Path]:
+    """Write ``sysid_report.json`` and ``sysid_report.png`` (loss curves, per-frame tracking error,
+    stiffness histogram) into ``directory``."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    directory = Path(directory)
+    directory.mkdir(parents=True, exist_ok=True)
+    rep = report_dict(result, data)
+    jpath = directory / "sysid_report.json"
+    jpath.write_text(json.dumps(rep, indent=2) + "\n")
+
+    fig, ax = plt.subplots(2, 2, figsize=(11, 7.5))
+    a = ax[0, 0]
+    if result.stage1_history:
+        h = result.stage1_history
+        a.semilogy([r["evaluation"] for r in h], [r["best"] for r in h], label="best so far")
+        a.semilogy([r["evaluation"] for r in h], [r["loss"] for r in h], ".", ms=3, alpha=0.5,
+                   label="candidate")
+        a.legend()
+    else:
+        a.text(0.5, 0.5, "stage 1 off", ha="center", va="center", transform=a.transAxes)
+    a.set(title="stage 1: CMA-ES training loss (Chamfer + tracking)", xlabel="evaluation")
+    a = ax[0, 1]
+    rows = [r for r in result.stage2_history if "train_loss" in r]
+    if rows:
+        ep = [r["epoch"] for r in rows]
+        h1 = a.semilogy(ep, [r["train_loss"] for r in rows], "o-", label="training loss (all terms)")
+        a2 = a.twinx()
+        h2 = a2.plot(ep, [1e3 * r["val_error"] for r in rows], "s--", color="C1", label="validation error")
+        a2.set_ylabel("validation tracking error (mm)")
+        a.legend(handles=h1 + h2, loc="upper right")
+    else:
+        a.text(0.5, 0.5, "stage 2 off", ha="center", va="center", transform=a.transAxes)
+    a.set(title="stage 2: Adam on per-spring log Y", xlabel="epoch")
+    a = ax[1, 0]
+    for name, e in result.evals.items():
+        a.plot(np.arange(e.track_error.size), 1e3 * e.track_error,
+               label=f"{name} (validation {1e3 * e.val_error:.2f} mm)")
+    if data.validation_frames:
+        a.axvspan(data.val_frames.start - 0.5, data.num_frames - 0.5, color="0.9", label="validation frames")
+    a.set(title="tracking error per frame", xlabel="frame", ylabel="mm")
+    a.legend(fontsize=8)
+    a = ax[1, 1]
+    ys = result.object_spring_Y
+    if ys.size:
+        a.hist(np.log10(ys), bins=30)
+    a.set(title=f"object spring stiffness ({ys.size} springs)", xlabel="log10 Y", ylabel="springs")
+    fig.suptitle(f"system identification: {data.name}")
+    fig.tight_layout()
+    ppath = directory / "sysid_report.png"
+    fig.savefig(ppath, dpi=90)
+    plt.close(fig)
+    return jpath, ppath
+
+
+# ----------------------------------------------------------------------------------------------
+# CLI
+
+
+def main(cfg: SysIdConfig) -> int:
+    """`twinbench sysid`: load, identify, write the object directory and the fit report."""
+    from rich.console import Console
+
+    console = Console(stderr=True)
+
+    def say(msg: str) -> None:
+        console.print(msg, markup=False, soft_wrap=True, highlight=False)
+
+    try:
+        data = load_sysid_data(cfg.data)
+        result = identify(data, cfg, log=say)
+    except (SysIdFormatError, ValueError) as exc:
+        say(f"twinbench sysid: {exc}")
+        return 2
+    except SimulationDiverged as exc:
+        say(f"twinbench sysid: {exc}")
+        return 1
+    obj = write_object_dir(result, data, cfg.out_dir / data.name)
+    jpath, ppath = write_report(result, data, cfg.out_dir)
+    for name, e in result.evals.items():
+        say(f"{name:>8}: training loss {e.train_loss:.4e}, tracking error: training "
+            f"{1e3 * e.train_error:.2f} mm, validation {1e3 * e.val_error:.2f} mm")
+    say(f"object: {obj}\nreport: {jpath}, {ppath}")
+    return 0
+
+
+# ----------------------------------------------------------------------------------------------
+# synthetic ground truth (tests, benchmark, demos)
+
+
+def synthetic_case(kind: str = "rope", *, frames: int = 40, validation_frames: int = 10, substeps: int = 40,
+                   soft_Y: float = 300.0, stiff_Y: float = 3000.0, truth: GlobalParams | None = None,
+                   noise: float = 1e-3, visible_fraction: float = 0.7, tracked_stride: int = 1,
+                   seed: int = 0) -> tuple[SysIdData, dict]:
+    """A ground-truth object with hidden, spatially varying stiffness (springs whose midpoint lies at
+    x < the object's middle get ``soft_Y``, the others ``stiff_Y``) and hidden contact parameters
+    (``truth``), lying on the ground, then lifted, stretched and swayed by two control points at each
+    x end (as two hands would); observed at 30 Hz with ``noise`` (m, per axis), a random
+    ``visible_fraction`` of the particles visible per frame, every ``tracked_stride``-th particle
+    tracked (5 % of track samples motion-invalid).
+
+    ``kind``: "rope" (20 particles 1 cm apart), "cloth" (8 x 4 sheet) or "plush" (6 x 3 x 3 block).
+    ``substeps`` per 30 Hz frame (dt = 1 / (30 substeps)). Returns the data and the truth:
+    {"params", "sim", "log_y" (all springs), "springs" (object springs), "positions" (noise-free,
+    F x P x 3), "soft" (per object spring)}.
+    """
+    from .model import lattice
+
+    shapes = {"rope": (20, 1, 1), "cloth": (8, 4, 1), "plush": (6, 3, 3)}
+    if kind not in shapes:
+        raise ValueError(f"kind must be one of {sorted(shapes)}, got {kind!r}")
+    rng = np.random.default_rng(seed)
+    pts = lattice(*shapes[kind], spacing=0.01)
+    lo, hi = pts.min(axis=0), pts.max(axis=0)
+    ymid, zmid = 0.5 * (lo[1] + hi[1]), 0.5 * (lo[2] + hi[2])
+    c0 = np.array([[lo[0] - 0.005, ymid, zmid - 0.005], [lo[0] - 0.005, ymid, zmid + 0.005],
+                   [hi[0] + 0.005, ymid, zmid - 0.005], [hi[0] + 0.005, ymid, zmid + 0.005]])
+    truth = truth or GlobalParams(spring_Y=stiff_Y, spring_radius=0.02, spring_max_neighbors=30,
+                                  control_radius=0.02, control_max_neighbors=8, ground_restitution=0.1,
+                                  ground_friction=0.8, drag_damping=1.0, dashpot_damping=50.0)
+    base = SimParams(dt=1.0 / (30.0 * substeps), substeps=substeps)
+    t = np.arange(frames) / 30.0
+    u = np.clip(t / 0.6, 0.0, 1.0)
+    u = u * u * (3.0 - 2.0 * u)  # smooth 0 -> 1 over 0.6 s: lift by 12 cm and pull the ends 3 cm apart
+    sway = np.clip(t - 0.6, 0.0, None)  # then stretch and relax, and sway sideways
+    stretch = 0.03 * u + 0.015 * np.sin(2.5 * sway)
+    side = 0.03 * (1.0 - np.cos(2.0 * sway))
+    controls = np.repeat(c0[None], frames, axis=0)
+    controls[:, :, 1] += side[:, None]
+    controls[:, :, 2] += 0.12 * u[:, None]
+    controls[:, :2, 0] -= 0.5 * stretch[:, None]
+    controls[:, 2:, 0] += 0.5 * stretch[:, None]
+    b = ModelBuilder(truth.sim_params(base))
+    b.add_body(pts, radius=truth.spring_radius, max_neighbors=truth.spring_max_neighbors)
+    b.add_control_points(c0, radius=truth.control_radius, max_neighbors=truth.control_max_neighbors)
+    model = b.finalize()
+    n_obj = model.num_object_springs
+    sp = model.springs_np[:n_obj]
+    soft = 0.5 * (pts[sp[:, 0], 0] + pts[sp[:, 1], 0]) < 0.5 * (lo[0] + hi[0])
+    log_y = np.full(model.num_springs, math.log(stiff_Y), np.float32)
+    log_y[:n_obj][soft] = math.log(soft_Y)
+    model.set_spring_log_y(log_y)
+    xs = rollout(model, controls, frames - 1)[0].astype(np.float64)
+    n = len(pts)
+    observed = xs + rng.normal(0.0, noise, xs.shape)
+    visibility = rng.random((frames, n)) < visible_fraction
+    visibility[np.arange(frames), rng.integers(0, n, frames)] = True  # never an empty frame
+    tracked_idx = np.arange(0, n, tracked_stride)
+    tracked = xs[:, tracked_idx] + rng.normal(0.0, noise, (frames, tracked_idx.size, 3))
+    motion_valid = rng.random((frames, tracked_idx.size)) >= 0.05
+    data = SysIdData(pts, observed, visibility, tracked_idx, tracked, motion_valid, controls, fps=30.0,
+                     validation_frames=validation_frames, name=kind)
+    return data, {"params": truth, "sim": truth.sim_params(base), "log_y": log_y, "springs": sp,
+                  "positions": xs, "soft": soft}

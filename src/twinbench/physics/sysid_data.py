@@ -1,0 +1,312 @@
+"""On-disk input of system identification (``twinbench sysid``): observed motion of one object.
+
+A sysid directory holds ``sysid.json`` and the ``.npz`` it names (read with ``allow_pickle=False``)::
+
+    sysid.json
+    {"format": "twinbench-sysid", "version": 1, "name": "rope", "arrays": "data.npz",
+     "fps": 30, "validation_frames": 10}
+
+World frame = robot base frame, z up, ground plane z = 0, SI units (DESIGN section 3). Frame 0 is
+the initial state; simulated frame ``k >= 1`` moves the control points from ``controls[k-1]`` to
+``controls[k]`` and is compared with the observations of frame ``k``. The last
+``validation_frames`` frames are held out (never used for fitting).
+
+``data.npz`` keys (F frames, P particles, N observed points, T tracked points, K control points):
+
+=================== ============ ==================================================================
+key                 shape        meaning
+=================== ============ ==================================================================
+``particles``       (P, 3)       initial particle positions (observed surface points plus optional
+                                 surface / interior completions), at rest at frame 0
+``observed``        (F, N, 3)    observed 3D points per frame (e.g. from depth), finite everywhere
+                                 (invisible entries may hold any finite value, e.g. 0)
+``visibility``      (F, N) bool  which observed points exist in each frame (one-sided Chamfer)
+``tracked_indices`` (T,) int     particle index of each tracked point (unique)
+``tracked``         (F, T, 3)    observed positions of the tracked points
+``motion_valid``    (F, T) bool  whether each track is trustworthy in each frame (tracking loss)
+``controls``        (F, K, 3)    kinematic control-point trajectories (e.g. hand keypoints); K may be 0
+``springs``         (M, 2) int   optional explicit object springs (otherwise the radius rule)
+``rest_lengths``    (M,)         optional, with ``springs`` (default: distances in ``particles``)
+``masses``          (P,)         optional per-particle masses (default 1, as PhysTwin)
+``surface_indices`` (S,) int     optional particles the Chamfer term may match (default: all;
+                                 PhysTwin excludes interior completions)
+=================== ============ ==================================================================
+
+Every array is validated on load; errors name the file and field (:class:`SysIdFormatError`).
+PhysTwin cases (``final_data.pkl``) are read through the restricted loader of
+``twinbench.twin.phystwin`` and converted to :class:`SysIdData` there, never unpickled here.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+FORMAT = "twinbench-sysid"
+VERSION = 1
+JSON_NAME = "sysid.json"
+MIN_SPRING_LENGTH = 1e-4  # as the builder's radius rule: shorter springs make a 0/0 strain
+
+
+class SysIdFormatError(ValueError):
+    """Bad system-identification input; the message names the file, the field and the fix."""
+
+
+def _err(source: str, key: str, msg: str) -> SysIdFormatError:
+    return SysIdFormatError(f"{source}: field '{key}' {msg}")
+
+
+def _float_array(source: str, key: str, value, shape: tuple) -> np.ndarray:
+    """Float64 array of ``shape`` (None entries are free), finite everywhere."""
+    try:
+        arr = np.asarray(value, dtype=np.float64)
+    except (TypeError, ValueError) as exc:
+        raise _err(source, key, f"must be a numeric array ({exc})") from None
+    _check_shape(source, key, arr, shape)
+    if not np.all(np.isfinite(arr)):
+        bad = np.argwhere(~np.isfinite(arr))[0].tolist()
+        raise _err(source, key, f"contains NaN or inf (first at index {bad}); give finite values "
+                                "(mark missing observations with the visibility / motion_valid masks)")
+    return arr
+
+
+def _check_shape(source: str, key: str, arr: np.ndarray, shape: tuple) -> None:
+    want = "(" + ", ".join("*" if s is None else str(s) for s in shape) + ")"
+    if arr.ndim != len(shape) or any(s is not None and a != s for a, s in zip(arr.shape, shape, strict=True)):
+        raise _err(source, key, f"has shape {arr.shape}, expected {want}")
+
+
+def _bool_array(source: str, key: str, value, shape: tuple) -> np.ndarray:
+    arr = np.asarray(value)
+    _check_shape(source, key, arr, shape)
+    if arr.dtype != np.bool_:
+        if not (np.issubdtype(arr.dtype, np.integer) or np.issubdtype(arr.dtype, np.floating)) \
+                or not np.all(np.isin(arr, (0, 1))):
+            raise _err(source, key, "must be boolean (or 0/1)")
+        arr = arr.astype(bool)
+    return arr
+
+
+def _index_array(source: str, key: str, value, shape: tuple, upper: int, what: str) -> np.ndarray:
+    arr = np.asarray(value)
+    _check_shape(source, key, arr, shape)
+    if arr.size and not np.issubdtype(arr.dtype, np.integer):
+        raise _err(source, key, f"must hold integer {what} indices, got dtype {arr.dtype}")
+    arr = arr.astype(np.int64)
+    if arr.size and (arr.min() < 0 or arr.max() >= upper):
+        raise _err(source, key, f"indexes {what} outside [0, {upper})")
+    return arr
+
+
+@dataclass(frozen=True, eq=False)
+class SysIdData:
+    """Observed motion of one object (see the module docstring for every field's meaning).
+
+    Construction validates and normalises every array (float64 positions, bool masks, int64
+    indices); ``source`` names the file in error messages.
+    """
+
+    particles: np.ndarray
+    observed: np.ndarray
+    visibility: np.ndarray
+    tracked_indices: np.ndarray
+    tracked: np.ndarray
+    motion_valid: np.ndarray
+    controls: np.ndarray
+    fps: float = 30.0
+    validation_frames: int = 0
+    name: str = "object"
+    springs: np.ndarray | None = None
+    rest_lengths: np.ndarray | None = None
+    masses: np.ndarray | None = None
+    surface_indices: np.ndarray | None = None
+    source: str = field(default="<memory>", compare=False)
+
+    def __post_init__(self) -> None:
+        src = self.source
+        s = object.__setattr__
+        p = _float_array(src, "particles", self.particles, (None, 3))
+        if p.shape[0] == 0:
+            raise _err(src, "particles", "is empty; give at least one particle")
+        n_p = p.shape[0]
+        s(self, "particles", p)
+        obs = _float_array(src, "observed", self.observed, (None, None, 3))
+        n_f = obs.shape[0]
+        if n_f < 2:
+            raise _err(src, "observed", f"has {n_f} frame(s); give the initial frame and at least one more")
+        s(self, "observed", obs)
+        vis = _bool_array(src, "visibility", self.visibility, (n_f, obs.shape[1]))
+        s(self, "visibility", vis)
+        empty = np.flatnonzero(~vis[1:].any(axis=1)) + 1
+        if empty.size:
+            raise _err(src, "visibility", f"frame(s) {empty[:10].tolist()} have no visible observed points; "
+                                          "drop those frames or mark the points that were seen")
+        ti = _index_array(src, "tracked_indices", self.tracked_indices, (None,), n_p, "particle")
+        if ti.size == 0:
+            raise _err(src, "tracked_indices", "is empty; give at least one tracked particle")
+        if np.unique(ti).size != ti.size:
+            raise _err(src, "tracked_indices", "repeats particle indices; give each track its own particle")
+        s(self, "tracked_indices", ti)
+        s(self, "tracked", _float_array(src, "tracked", self.tracked, (n_f, ti.size, 3)))
+        s(self, "motion_valid", _bool_array(src, "motion_valid", self.motion_valid, (n_f, ti.size)))
+        ctl = _float_array(src, "controls", self.controls, (n_f, None, 3))
+        s(self, "controls", ctl)
+        if ctl.shape[1]:
+            d = np.linalg.norm(ctl[0][:, None, :] - p[None, :, :], axis=2)
+            c, j = np.unravel_index(np.argmin(d), d.shape)
+            if d[c, j] <= MIN_SPRING_LENGTH:
+                raise _err(src, "controls", f"point {c} at frame 0 coincides with particle {j} (a zero-"
+                                            "length control spring); offset the control point")
+        fps = float(self.fps)
+        if not (math.isfinite(fps) and fps > 0):
+            raise _err(src, "fps", f"must be a positive number, got {self.fps!r}")
+        s(self, "fps", fps)
+        v = self.validation_frames
+        if isinstance(v, bool) or int(v) != v or not 0 <= v <= n_f - 2:
+            raise _err(src, "validation_frames", f"must be an integer in [0, {n_f - 2}] (keep at least one "
+                                                 f"training frame after frame 0), got {v!r}")
+        s(self, "validation_frames", int(v))
+        if not isinstance(self.name, str) or not self.name or "/" in self.name or "\\" in self.name:
+            raise _err(src, "name", f"must be a non-empty string without path separators, got {self.name!r}")
+        self._check_springs(p)
+        if self.masses is not None:
+            m = _float_array(src, "masses", self.masses, (n_p,))
+            if np.any(m <= 0):
+                raise _err(src, "masses", "must be > 0 (particle masses)")
+            s(self, "masses", m)
+        if self.surface_indices is not None:
+            si = _index_array(src, "surface_indices", self.surface_indices, (None,), n_p, "particle")
+            if si.size == 0:
+                raise _err(src, "surface_indices", "is empty; omit it to match all particles")
+            s(self, "surface_indices", np.unique(si))
+
+    def _check_springs(self, p: np.ndarray) -> None:
+        src = self.source
+        if self.springs is None:
+            if self.rest_lengths is not None:
+                raise _err(src, "rest_lengths", "is given without 'springs'; give both or neither")
+            return
+        sp = _index_array(src, "springs", self.springs, (None, 2), p.shape[0], "particle")
+        if sp.shape[0] == 0:
+            raise _err(src, "springs", "is empty; omit it to build springs by the radius rule")
+        loops = np.flatnonzero(sp[:, 0] == sp[:, 1])
+        if loops.size:
+            raise _err(src, "springs", f"spring {loops[0]} joins particle {sp[loops[0], 0]} to itself")
+        if self.rest_lengths is None:
+            rest = np.linalg.norm(p[sp[:, 1]] - p[sp[:, 0]], axis=1)
+            short = np.flatnonzero(rest <= MIN_SPRING_LENGTH)
+            if short.size:
+                i = short[0]
+                raise _err(src, "springs", f"spring {i} ({sp[i, 0]}, {sp[i, 1]}) has zero length "
+                                           f"({rest[i]:.2e} m <= {MIN_SPRING_LENGTH}); remove it or merge "
+                                           "the coincident particles")
+        else:
+            rest = _float_array(src, "rest_lengths", self.rest_lengths, (sp.shape[0],))
+            short = np.flatnonzero(rest <= MIN_SPRING_LENGTH)
+            if short.size:
+                raise _err(src, "rest_lengths", f"spring {short[0]} has rest length {rest[short[0]]:.2e} m "
+                                                f"(<= {MIN_SPRING_LENGTH}): zero-length springs make a 0/0 "
+                                                "strain")
+        object.__setattr__(self, "springs", sp.astype(np.int32))
+        object.__setattr__(self, "rest_lengths", rest)
+
+    # ------------------------------------------------------------------ derived sizes
+    @property
+    def num_frames(self) -> int:
+        return int(self.observed.shape[0])
+
+    @property
+    def num_particles(self) -> int:
+        return int(self.particles.shape[0])
+
+    @property
+    def num_controls(self) -> int:
+        return int(self.controls.shape[1])
+
+    @property
+    def train_frames(self) -> range:
+        """Simulated frames used for fitting: 1 .. F - 1 - validation_frames."""
+        return range(1, self.num_frames - self.validation_frames)
+
+    @property
+    def val_frames(self) -> range:
+        return range(self.num_frames - self.validation_frames, self.num_frames)
+
+
+_REQUIRED = ("particles", "observed", "visibility", "tracked_indices", "tracked", "motion_valid", "controls")
+_OPTIONAL = ("springs", "rest_lengths", "masses", "surface_indices")
+
+
+def _safe_relative(json_path: Path, key: str, rel) -> Path:
+    if not isinstance(rel, str) or not rel:
+        raise SysIdFormatError(f"{json_path}: field '{key}' must be a relative file path string, got {rel!r}")
+    p = Path(rel)
+    if p.is_absolute() or ".." in p.parts:
+        raise SysIdFormatError(f"{json_path}: field '{key}' must be a path inside the directory "
+                               f"(relative, no '..'), got {rel!r}")
+    return json_path.parent / p
+
+
+def load_sysid_data(path: str | Path) -> SysIdData:
+    """Read a sysid directory (or its ``sysid.json``); see the module docstring for the format."""
+    path = Path(path)
+    json_path = path / JSON_NAME if path.is_dir() else path
+    if not json_path.is_file():
+        raise SysIdFormatError(f"{json_path}: not found; a sysid directory holds {JSON_NAME} and its .npz")
+    try:
+        meta = json.loads(json_path.read_text())
+    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+        raise SysIdFormatError(f"{json_path}: not valid JSON ({exc})") from None
+    if not isinstance(meta, dict):
+        raise SysIdFormatError(f"{json_path}: must hold a JSON object")
+    if meta.get("format") != FORMAT:
+        raise SysIdFormatError(f"{json_path}: field 'format' must be {FORMAT!r}, got {meta.get('format')!r}")
+    if meta.get("version") != VERSION:
+        raise SysIdFormatError(f"{json_path}: field 'version' {meta.get('version')!r} is not supported "
+                               f"(this twinbench reads version {VERSION})")
+    unknown = set(meta) - {"format", "version", "name", "arrays", "fps", "validation_frames"}
+    if unknown:
+        raise SysIdFormatError(f"{json_path}: unknown field(s) {sorted(unknown)}")
+    npz_path = _safe_relative(json_path, "arrays", meta.get("arrays"))
+    if not npz_path.is_file():
+        raise SysIdFormatError(f"{json_path}: field 'arrays' names {npz_path}, which does not exist")
+    for key, kind in (("fps", (int, float)), ("validation_frames", int)):
+        if key in meta and (isinstance(meta[key], bool) or not isinstance(meta[key], kind)):
+            raise SysIdFormatError(f"{json_path}: field '{key}' must be a number, got {meta[key]!r}")
+    try:
+        with np.load(npz_path, allow_pickle=False) as z:
+            arrays = {k: z[k] for k in z.files}
+    except ValueError as exc:  # object arrays need pickle: refused
+        raise SysIdFormatError(f"{npz_path}: cannot be read without pickle ({exc}); store plain numeric "
+                               "arrays") from None
+    except OSError as exc:
+        raise SysIdFormatError(f"{npz_path}: not a readable .npz ({exc})") from None
+    missing = [k for k in _REQUIRED if k not in arrays]
+    if missing:
+        raise SysIdFormatError(f"{npz_path}: missing array(s) {missing} (see twinbench.physics.sysid_data)")
+    extra = set(arrays) - set(_REQUIRED) - set(_OPTIONAL)
+    if extra:
+        raise SysIdFormatError(f"{npz_path}: unknown array(s) {sorted(extra)}")
+    kwargs = {k: arrays.get(k) for k in _REQUIRED + _OPTIONAL}
+    return SysIdData(**kwargs, fps=meta.get("fps", 30.0), validation_frames=meta.get("validation_frames", 0),
+                     name=meta.get("name", json_path.parent.name or "object"), source=str(npz_path))
+
+
+def save_sysid_data(data: SysIdData, directory: str | Path, arrays: str = "data.npz") -> Path:
+    """Write ``data`` as a sysid directory; returns the path of ``sysid.json``."""
+    directory = Path(directory)
+    directory.mkdir(parents=True, exist_ok=True)
+    out = {k: getattr(data, k) for k in _REQUIRED}
+    for k in _OPTIONAL:
+        if getattr(data, k) is not None:
+            out[k] = getattr(data, k)
+    np.savez(directory / arrays, **out)
+    meta = {"format": FORMAT, "version": VERSION, "name": data.name, "arrays": arrays, "fps": data.fps,
+            "validation_frames": data.validation_frames}
+    path = directory / JSON_NAME
+    path.write_text(json.dumps(meta, indent=2) + "\n")
+    return path
