@@ -63,10 +63,22 @@ def main(cfg: DemoConfig) -> int:
     t0 = time.perf_counter()
     try:
         records = evaluate(
-            cfg.task, list(cfg.policies or policies), cfg.episodes or episodes, cfg.workers, run_id, store,
-            video=True, output_dir=out, progress=True, log=print,
-            env_kwargs={"preset": cfg.preset, "render_views": "front+wrist", "device": cfg.device,
-                        "success_rule": cfg.success_rule},
+            cfg.task,
+            list(cfg.policies or policies),
+            cfg.episodes or episodes,
+            cfg.workers,
+            run_id,
+            store,
+            video=True,
+            output_dir=out,
+            progress=True,
+            log=print,
+            env_kwargs={
+                "preset": cfg.preset,
+                "render_views": "front+wrist",
+                "device": cfg.device,
+                "success_rule": cfg.success_rule,
+            },
         )
     except EvaluationInterrupted as err:
         print(err.message)

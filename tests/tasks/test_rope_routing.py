@@ -19,10 +19,18 @@ def env():
 
 
 def test_counting_springs_across_a_plane():
-    pts = np.array([[0.0, -0.01, 0.01], [0.0, 0.01, 0.01], [0.05, -0.01, 0.01], [0.05, 0.01, 0.01],
-                    [0.0, -0.01, 0.05], [0.0, 0.01, 0.05]])
+    pts = np.array(
+        [
+            [0.0, -0.01, 0.01],
+            [0.0, 0.01, 0.01],
+            [0.05, -0.01, 0.01],
+            [0.05, 0.01, 0.01],
+            [0.0, -0.01, 0.05],
+            [0.0, 0.01, 0.05],
+        ]
+    )
     springs = np.array([[0, 1], [2, 3], [4, 5], [0, 2]])
-    # only the first crosses y = 0 inside |x| <= 0.01, 0 <= z <= 0.03 (2: too far in x, 3: too high, 4: parallel)
+    # only the first crosses y = 0 within |x| <= 0.01, 0 <= z <= 0.03 (2: off in x, 3: too high, 4: parallel)
     assert count_crossings(pts, springs, 0.0, 0.01, 0.03) == 1
     assert count_crossings(pts, springs, 0.0, 0.1, 0.1) == 3
 
@@ -39,11 +47,14 @@ def test_gripper_lifts_the_rope_by_friction_it_hangs_and_drops_when_released(env
     def act(p, g):
         return np.r_[p, quat, g].astype(np.float32)
 
-    for k in range(40):
-        obs, *_ , info = env.step(act(grasp + [0, 0, max(0.0, 0.06 * (1 - k / 25))], 0.0))
+    for _ in range(60):  # over the end, then down to it (the velocity-control mimic lags its targets)
+        obs, *_, info = env.step(act(grasp + [0, 0, 0.06], 0.0))
+    for _ in range(25):
+        obs, *_, info = env.step(act(grasp, 0.0))
+    assert np.linalg.norm(obs["agent_pos"][:3] - grasp) < 0.006
     for _ in range(25):
         obs, *_, info = env.step(act(grasp, 1.0))
-    assert info["grasp"] == "holding" and state.robot.latched
+    assert info["grasp"] == "holding"  # the thin rope never loads the fingers to the latch: a closed pinch
     for k in range(50):
         obs, *_, info = env.step(act(grasp + [0, 0, 0.004 * (k + 1)], 1.0))
     rope = twin.particles(state, "rope")
@@ -96,8 +107,14 @@ def test_conforms_to_gymnasium_and_is_deterministic(env):
         obs, _ = env.reset(seed=2, options={"init_state": 5})
         for a in actions.astype(np.float32):
             obs, *_ = env.step(a)
-        runs.append([obs["pixels"]["front"], obs["pixels"]["wrist"], obs["agent_pos"],
-                     env.twin.particles(env.state, "rope")])
+        runs.append(
+            [
+                obs["pixels"]["front"],
+                obs["pixels"]["wrist"],
+                obs["agent_pos"],
+                env.twin.particles(env.state, "rope"),
+            ]
+        )
     for a, b in zip(*runs, strict=True):
         np.testing.assert_array_equal(a, b)
     assert env.observation_space["agent_pos"].shape == (8,) and len(env.rules.initial_states) == 27

@@ -441,7 +441,7 @@ class EvalConfig:
     run_id: str
     """evaluation run id; re-running the same id resumes it"""
     task: str = "push-t"
-    """task name (twinbench.tasks): push-t, point-reach (a cheap debug task)"""
+    """task name (twinbench.tasks): push-t, rope-routing, toy-packing, point-reach (a cheap debug task)"""
     policy: Annotated[tuple[str, ...], UseAppendAction] = ()  # repeatable: --policy a --policy b
     """policy spec, repeatable: expert, expert@LEVEL, remote:ws://HOST:PORT, lerobot:PATH, NAME=SPEC"""
     episodes: str = "grid"

@@ -148,9 +148,16 @@ class TwinTask:
 
     def privileged(self, twin, state, metrics: dict) -> dict:
         """Poses of every role's object (best-fit rigid pose) or collider, keyed by role."""
-        return {"object_poses": {role: (twin.object_pose(state, name) if name in twin.object_names
-                                        else twin.collider_pose(state, name))
-                                 for role, name in self.roles.items()}}
+        return {
+            "object_poses": {
+                role: (
+                    twin.object_pose(state, name)
+                    if name in twin.object_names
+                    else twin.collider_pose(state, name)
+                )
+                for role, name in self.roles.items()
+            }
+        }
 
     def decorate(self, frames: dict[str, np.ndarray]) -> None:
         """Draw task overlays into the uint8 camera images (in place)."""
@@ -172,7 +179,9 @@ class TwinTask:
 
     def object_poses(self, twin, offsets: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
         """World poses of the roles' objects (or colliders) for planar `offsets` from their rest poses."""
-        return {self.roles[role]: offset_pose(self.rest_pose(twin, role), off) for role, off in offsets.items()}
+        return {
+            self.roles[role]: offset_pose(self.rest_pose(twin, role), off) for role, off in offsets.items()
+        }
 
     def rest_pose(self, twin, role: str) -> np.ndarray:
         """The rest pose in the twin of the object or collider playing `role`."""

@@ -66,8 +66,9 @@ class PushTTask(TwinTask):
         self.success_window, self.success_min_hits = s.success_window, s.success_min_hits
         self.shape = TBlockShape()
         h = s.sample_half_range
-        self.initial_states = InitialStates({"block": grid_initial_states()}, {"block": (-h, -h, -np.pi)},
-                                            {"block": (h, h, np.pi)})
+        self.initial_states = InitialStates(
+            {"block": grid_initial_states()}, {"block": (-h, -h, -np.pi)}, {"block": (h, h, np.pi)}
+        )
 
     def default_twin(self, preset: str, **cell_settings):
         from twinbench.twin.cells import push_t_cell
@@ -86,8 +87,9 @@ class PushTTask(TwinTask):
         super().setup(twin, state)
         block = self.roles["block"]
         s = self.settings
-        self.goal = (twin.spec.object(block).rest_pose.copy() if s.goal_pose is None
-                     else planar_pose(*s.goal_pose))
+        self.goal = (
+            twin.spec.object(block).rest_pose.copy() if s.goal_pose is None else planar_pose(*s.goal_pose)
+        )
         self.goal_particles = transform_points(self.goal, twin.rest_particles(block))
         # Coverage: centres of a 2 mm grid of cells over the T's footprint (block frame).
         lo = np.min([b[0] for b in self.shape.boxes()], axis=0)
@@ -141,8 +143,9 @@ class PushTTask(TwinTask):
     def privileged(self, twin, state, metrics: dict) -> dict:
         out = super().privileged(twin, state, metrics)
         block = pose_xytheta(out["object_poses"]["block"])
-        out["environment_state"] = np.concatenate([block, pose_xytheta(self.goal), [metrics["msd"]]]
-                                                  ).astype(np.float32)
+        out["environment_state"] = np.concatenate([block, pose_xytheta(self.goal), [metrics["msd"]]]).astype(
+            np.float32
+        )
         return out
 
     def decorate(self, frames: dict[str, np.ndarray]) -> None:
@@ -160,5 +163,11 @@ def make_expert(env):
     return PushTExpert(env.unwrapped.rules.shape)
 
 
-register_task("push-t", env_id=ENV_ID, make_expert=make_expert, n_grid_states=16,
-              description=PushTTask.description, task_cls=PushTTask)
+register_task(
+    "push-t",
+    env_id=ENV_ID,
+    make_expert=make_expert,
+    n_grid_states=16,
+    description=PushTTask.description,
+    task_cls=PushTTask,
+)

@@ -21,9 +21,18 @@ class RopeExpert:
     uses_environment_state = True
     PHASES = ("approach", "descend", "close", "lift", "carry", "lower", "release", "retreat")
 
-    def __init__(self, *, channel_length: float = 0.04, channel_depth: float = 0.03, grip_inset: float = 0.012,
-                 carry_height: float = 0.12, beyond: float = 0.07, close_steps: int = 20, settle_steps: int = 15,
-                 holding_speed: float = 0.006):
+    def __init__(
+        self,
+        *,
+        channel_length: float = 0.04,
+        channel_depth: float = 0.03,
+        grip_inset: float = 0.012,
+        carry_height: float = 0.12,
+        beyond: float = 0.07,
+        close_steps: int = 20,
+        settle_steps: int = 15,
+        holding_speed: float = 0.006,
+    ):
         self.channel_length, self.channel_depth = channel_length, channel_depth
         self.grip_inset, self.carry_height, self.beyond = grip_inset, carry_height, beyond
         self.close_steps, self.settle_steps = close_steps, settle_steps
@@ -39,8 +48,10 @@ class RopeExpert:
 
     def select_action(self, obs) -> np.ndarray:
         if "environment_state" not in obs:
-            raise PolicyError("the rope expert needs obs['environment_state'] (make the env with "
-                              "environment_state=True, or let the evaluation runner add it)")
+            raise PolicyError(
+                "the rope expert needs obs['environment_state'] (make the env with "
+                "environment_state=True, or let the evaluation runner add it)"
+            )
         s = np.asarray(obs["environment_state"], dtype=np.float64)
         end, along, centroid, clip = s[0:3], s[3:6], s[6:9], s[9:12]
         ee = np.asarray(obs["agent_pos"], dtype=np.float64)[:3]

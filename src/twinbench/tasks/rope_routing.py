@@ -14,8 +14,9 @@ than 30 of the last 100 frames.
 Scaling the reference threshold: the reference study asks for >= 100 crossing springs per opening at its
 rope's resolution. A rope's spring count across a cross-section grows with its particle density, so the
 threshold here is a fraction (`crossing_fraction`, default 0.5) of the springs that cross one cross-section
-of this twin's straight rope at rest (computed at setup; 16 for the `fast` cell, 53 for `reference`):
-"about half of the rope's section lies inside each opening", whatever the resolution.
+of this twin's straight rope at rest, computed at setup (13 springs cross a section of the `fast` rope and
+49 of the `reference` rope: thresholds 7 and 25). It reads "about half of the rope's section lies inside
+each opening", whatever the resolution.
 
 `environment_state` (privileged, for the scripted expert): [marked end (3), the rope point 4 cm from it
 (3), the rope's centroid (3), clip x, y, theta (3), crossings at the two openings (2)].
@@ -45,12 +46,16 @@ class RopeRoutingSettings:
     crossing_fraction: float = 0.5
     success_window: int = 100
     success_min_hits: int = 30
-    workspace: tuple[tuple[float, float, float], tuple[float, float, float]] = ((0.2, -0.4, 0.0), (0.8, 0.4, 0.5))
+    workspace: tuple[tuple[float, float, float], tuple[float, float, float]] = (
+        (0.2, -0.4, 0.0),
+        (0.8, 0.4, 0.5),
+    )
     start_position: tuple[float, float, float] = (0.35, 0.0, 0.25)  # gripper start, pointing down, open
 
 
-def count_crossings(points: np.ndarray, springs: np.ndarray, plane_y: float, half_width: float,
-                    depth: float) -> int:
+def count_crossings(
+    points: np.ndarray, springs: np.ndarray, plane_y: float, half_width: float, depth: float
+) -> int:
     """Springs (M, 2) between `points` (clip frame) that cross the plane y = plane_y within
     |x| <= half_width and 0 <= z <= depth."""
     a, b = points[springs[:, 0]], points[springs[:, 1]]
@@ -74,8 +79,14 @@ class RopeRoutingTask(TwinTask):
         self.settings = s = RopeRoutingSettings(**settings)
         self.episode_seconds = s.episode_seconds
         self.success_window, self.success_min_hits = s.success_window, s.success_min_hits
-        grid = np.array([(dx, dy, np.deg2rad(th)) for dx in (-0.05, 0.0, 0.05) for dy in (-0.05, 0.0, 0.05)
-                         for th in (-10.0, 0.0, 10.0)])
+        grid = np.array(
+            [
+                (dx, dy, np.deg2rad(th))
+                for dx in (-0.05, 0.0, 0.05)
+                for dy in (-0.05, 0.0, 0.05)
+                for th in (-10.0, 0.0, 10.0)
+            ]
+        )
         h, a = 0.075, np.deg2rad(15.0)
         self.initial_states = InitialStates({"rope": grid}, {"rope": (-h, -h, -a)}, {"rope": (h, h, a)})
 
@@ -100,7 +111,9 @@ class RopeRoutingTask(TwinTask):
         mid = 0.5 * (xs[k - 1] + xs[k])  # between two rings near the middle
         per_section = count_crossings(rest[:, [1, 0, 2]] - [0, mid, 0], self.springs, 0.0, np.inf, np.inf)
         self.crossing_threshold = max(1, int(np.ceil(self.settings.crossing_fraction * per_section)))
-        self.marked = int(np.argmax(rest[:, 0] - 1e-3 * np.abs(rest[:, 1]) - 1e-3 * np.abs(rest[:, 2] - rest[:, 2].mean())))
+        self.marked = int(
+            np.argmax(rest[:, 0] - 1e-3 * np.abs(rest[:, 1]) - 1e-3 * np.abs(rest[:, 2] - rest[:, 2].mean()))
+        )
         near = rest[:, 0] < rest[self.marked, 0] - 0.04
         self.along = int(np.flatnonzero(near)[np.argmax(rest[near, 0] - 1e-3 * np.abs(rest[near, 1]))])
         robot = twin.robot
@@ -121,8 +134,10 @@ class RopeRoutingTask(TwinTask):
         clip = twin.collider_pose(state, self.roles["clip"])
         local = transform_points(invert_pose(clip), twin.particles(state, self.roles["rope"]))
         half = s.channel_length / 2
-        return tuple(count_crossings(local, self.springs, y, s.channel_width / 2, s.channel_depth)
-                     for y in (-half, half))
+        return tuple(
+            count_crossings(local, self.springs, y, s.channel_width / 2, s.channel_depth)
+            for y in (-half, half)
+        )
 
     def frame(self, twin, state) -> tuple[bool, dict]:
         a, b = self.crossings(twin, state)
@@ -138,7 +153,8 @@ class RopeRoutingTask(TwinTask):
         clip = out["object_poses"]["clip"]
         clip_xyt = [clip[0, 3], clip[1, 3], np.arctan2(clip[1, 0], clip[0, 0])]
         out["environment_state"] = np.concatenate(
-            [p[self.marked], p[self.along], p.mean(0), clip_xyt, metrics["crossings"]]).astype(np.float32)
+            [p[self.marked], p[self.along], p.mean(0), clip_xyt, metrics["crossings"]]
+        ).astype(np.float32)
         return out
 
 
@@ -151,5 +167,11 @@ def make_expert(env):
     return RopeExpert(channel_length=s.channel_length, channel_depth=s.channel_depth)
 
 
-register_task("rope-routing", env_id=ENV_ID, make_expert=make_expert, n_grid_states=27,
-              description=RopeRoutingTask.description, task_cls=RopeRoutingTask)
+register_task(
+    "rope-routing",
+    env_id=ENV_ID,
+    make_expert=make_expert,
+    n_grid_states=27,
+    description=RopeRoutingTask.description,
+    task_cls=RopeRoutingTask,
+)

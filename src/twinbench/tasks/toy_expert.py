@@ -18,14 +18,29 @@ class ToyExpert:
 
     uses_environment_state = True
 
-    def __init__(self, *, grip_height: float = 0.012, carry_height: float = 0.12, drop_height: float = 0.02,
-                 close_steps: int = 20, settle_steps: int = 20, holding_speed: float = 0.006):
+    def __init__(
+        self,
+        *,
+        grip_height: float = 0.012,
+        carry_height: float = 0.12,
+        drop_height: float = 0.0,
+        close_steps: int = 20,
+        settle_steps: int = 20,
+        holding_speed: float = 0.006,
+    ):
         self.grip_height, self.carry_height, self.drop_height = grip_height, carry_height, drop_height
         self.close_steps, self.settle_steps, self.holding_speed = close_steps, settle_steps, holding_speed
         self.reset()
 
     def reset(self) -> None:
-        self.phase, self._t, self._grip, self._quat, self._box, self._box_quat = "approach", 0, None, None, None, None
+        self.phase, self._t, self._grip, self._quat, self._box, self._box_quat = (
+            "approach",
+            0,
+            None,
+            None,
+            None,
+            None,
+        )
         self._wp = Waypoint()
 
     def _next(self, phase: str) -> None:
@@ -33,8 +48,10 @@ class ToyExpert:
 
     def select_action(self, obs) -> np.ndarray:
         if "environment_state" not in obs:
-            raise PolicyError("the toy expert needs obs['environment_state'] (make the env with "
-                              "environment_state=True, or let the evaluation runner add it)")
+            raise PolicyError(
+                "the toy expert needs obs['environment_state'] (make the env with "
+                "environment_state=True, or let the evaluation runner add it)"
+            )
         s = np.asarray(obs["environment_state"], dtype=np.float64)
         toy, toy_th, box = s[0:3], s[3], s[4:7]
         ee = np.asarray(obs["agent_pos"], dtype=np.float64)[:3]

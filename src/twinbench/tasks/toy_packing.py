@@ -35,7 +35,10 @@ class ToyPackingSettings:
     box_scale: float = 1.05
     success_window: int = 100
     success_min_hits: int = 30
-    workspace: tuple[tuple[float, float, float], tuple[float, float, float]] = ((0.2, -0.4, 0.0), (0.8, 0.4, 0.5))
+    workspace: tuple[tuple[float, float, float], tuple[float, float, float]] = (
+        (0.2, -0.4, 0.0),
+        (0.8, 0.4, 0.5),
+    )
     start_position: tuple[float, float, float] = (0.35, 0.0, 0.25)
 
 
@@ -52,11 +55,15 @@ class ToyPackingTask(TwinTask):
         self.episode_seconds = s.episode_seconds
         self.success_window, self.success_min_hits = s.success_window, s.success_min_hits
         d = np.deg2rad(5.0)
-        toy = np.array([(-0.05, -0.05, -d), (0.05, -0.05, d), (-0.05, 0.03, d), (0.05, 0.03, -d), (0.0, -0.01, 0.0)])
+        toy = np.array(
+            [(-0.05, -0.05, -d), (0.05, -0.05, d), (-0.05, 0.03, d), (0.05, 0.03, -d), (0.0, -0.01, 0.0)]
+        )
         box = np.array([(-0.05, 0.0, 0.0), (0.05, 0.0, 0.0), (-0.05, 0.05, 0.0), (0.05, 0.05, 0.0)])
         self.initial_states = InitialStates.product(
-            {"toy": toy, "box": box}, {"toy": (-0.05, -0.05, -d), "box": (-0.05, 0.0, 0.0)},
-            {"toy": (0.05, 0.03, d), "box": (0.05, 0.05, 0.0)})
+            {"toy": toy, "box": box},
+            {"toy": (-0.05, -0.05, -d), "box": (-0.05, 0.0, 0.0)},
+            {"toy": (0.05, 0.03, d), "box": (0.05, 0.05, 0.0)},
+        )
 
     def default_twin(self, preset: str, **cell_settings):
         from twinbench.twin.cells import toy_packing_cell
@@ -117,5 +124,11 @@ def make_expert(env):
     return ToyExpert()
 
 
-register_task("toy-packing", env_id=ENV_ID, make_expert=make_expert, n_grid_states=20,
-              description=ToyPackingTask.description, task_cls=ToyPackingTask)
+register_task(
+    "toy-packing",
+    env_id=ENV_ID,
+    make_expert=make_expert,
+    n_grid_states=20,
+    description=ToyPackingTask.description,
+    task_cls=ToyPackingTask,
+)

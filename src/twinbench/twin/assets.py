@@ -105,4 +105,6 @@ def box_mesh(lo, hi):
     import trimesh
 
     lo, hi = np.asarray(lo, np.float64), np.asarray(hi, np.float64)
-    return trimesh.creation.box(extents=hi - lo, transform=trimesh.transformations.translation_matrix((lo + hi) / 2))
+    return trimesh.creation.box(
+        extents=hi - lo, transform=trimesh.transformations.translation_matrix((lo + hi) / 2)
+    )

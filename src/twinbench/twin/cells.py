@@ -142,8 +142,9 @@ def _check_settings(cls, name: str, presets: dict, preset: str, overrides: dict)
 
 def gripper_robot(finger_friction: float = 1.0, scan_spacing: float = 0.006) -> RobotSpec:
     """The built-in arm with its parallel gripper; finger pads with friction `finger_friction`."""
-    return RobotSpec("builtin:xarm7_gripper", scan_spacing=scan_spacing,
-                     tool_contact=ContactSpec(0.0, finger_friction))
+    return RobotSpec(
+        "builtin:xarm7_gripper", scan_spacing=scan_spacing, tool_contact=ContactSpec(0.0, finger_friction)
+    )
 
 
 # ----------------------------------------------------------------------------------------------- rope
@@ -174,8 +175,10 @@ class RopeCell:
 
     @staticmethod
     def preset(name: str, **overrides) -> RopeCell:
-        presets = {"reference": RopeCell(),
-                   "fast": RopeCell(axial_spacing=0.006, ring=5, substeps=150, self_collision=False)}
+        presets = {
+            "reference": RopeCell(),
+            "fast": RopeCell(axial_spacing=0.006, ring=5, substeps=150, self_collision=False),
+        }
         return _check_settings(RopeCell, "rope-routing", presets, name, overrides)
 
 
@@ -207,25 +210,54 @@ def rope_routing_cell(preset: str = "reference", **overrides) -> TwinSpec:
     skin = paint(skin, skin.means[:, 0] > cfg.length / 2 - 0.03, MARK_RGB)  # the marked end (+x)
     spacing = cfg.axial_spacing
     rope = ObjectSpec(
-        "rope", pts, spring_Y=cfg.spring_Y, spring_radius=1.3 * max(spacing, 0.8 * cfg.radius * 1.42),
-        max_neighbors=30, gaussians=skin, binding="lbs", rest_pose=planar_pose(*cfg.rope_pose),
+        "rope",
+        pts,
+        spring_Y=cfg.spring_Y,
+        spring_radius=1.3 * max(spacing, 0.8 * cfg.radius * 1.42),
+        max_neighbors=30,
+        gaussians=skin,
+        binding="lbs",
+        rest_pose=planar_pose(*cfg.rope_pose),
     )
-    w, depth, half_len, t = cfg.channel_width / 2, cfg.channel_depth, cfg.channel_length / 2, cfg.wall_thickness
-    walls = [box_mesh((-w - t, -half_len, 0.0), (-w, half_len, depth)),
-             box_mesh((w, -half_len, 0.0), (w + t, half_len, depth))]
+    w, depth, half_len, t = (
+        cfg.channel_width / 2,
+        cfg.channel_depth,
+        cfg.channel_length / 2,
+        cfg.wall_thickness,
+    )
+    walls = [
+        box_mesh((-w - t, -half_len, 0.0), (-w, half_len, depth)),
+        box_mesh((w, -half_len, 0.0), (w + t, half_len, depth)),
+    ]
     clip_mesh = trimesh.util.concatenate(walls)
     clip = ColliderSpec(
-        "clip", np.asarray(clip_mesh.vertices), np.asarray(clip_mesh.faces), planar_pose(*cfg.clip_pose),
-        ContactSpec(0.0, 0.5), mesh_surface_gaussians(clip_mesh, CLIP_RGB, spacing=0.003),
+        "clip",
+        np.asarray(clip_mesh.vertices),
+        np.asarray(clip_mesh.faces),
+        planar_pose(*cfg.clip_pose),
+        ContactSpec(0.0, 0.5),
+        mesh_surface_gaussians(clip_mesh, CLIP_RGB, spacing=0.003),
     )
     dt = 1.0 / 30.0 / cfg.substeps
-    sim = SimParams(dt=dt, substeps=cfg.substeps, ground_restitution=0.0, ground_friction=cfg.ground_friction,
-                    object_collision=False, self_collision=cfg.self_collision, collision_dist=0.6 * spacing,
-                    candidate_radius_scale=2.0, mesh_margin=0.002)
+    sim = SimParams(
+        dt=dt,
+        substeps=cfg.substeps,
+        ground_restitution=0.0,
+        ground_friction=cfg.ground_friction,
+        object_collision=False,
+        self_collision=cfg.self_collision,
+        collision_dist=0.6 * spacing,
+        candidate_radius_scale=2.0,
+        mesh_margin=0.002,
+    )
     return TwinSpec(
-        name=f"rope-routing-{preset}", robot=gripper_robot(cfg.finger_friction, cfg.robot_gaussian_spacing),
-        objects=(rope,), colliders=(clip,), cameras=(front_camera(cfg.image_hw), wrist_camera("link7", cfg.image_hw)),
-        background=workcell_background(), sim=sim,
+        name=f"rope-routing-{preset}",
+        robot=gripper_robot(cfg.finger_friction, cfg.robot_gaussian_spacing),
+        objects=(rope,),
+        colliders=(clip,),
+        cameras=(front_camera(cfg.image_hw), wrist_camera("link7", cfg.image_hw)),
+        background=workcell_background(),
+        sim=sim,
     )
 
 
@@ -242,11 +274,11 @@ class ToyCell:
     limb_length: float = 0.04  # m, four limbs sticking out along +-y
     limb_radius: float = 0.011
     torso_Y: float = 2e4
-    limb_Y: float = 3e3  # limbs are softer
+    limb_Y: float = 800.0  # limbs are much softer (they fold when the toy is pushed into the box)
     substeps: int = 667
     toy_pose: tuple[float, float, float] = (0.40, -0.15, 0.0)
     box_pose: tuple[float, float, float] = (0.45, 0.12, 0.0)
-    box_inner: tuple[float, float, float] = (0.09, 0.075, 0.06)  # m, inside of the open-top box
+    box_inner: tuple[float, float, float] = (0.09, 0.075, 0.07)  # m, inside of the open-top box
     wall_thickness: float = 0.01
     finger_friction: float = 1.0
     ground_friction: float = 0.6
@@ -266,14 +298,22 @@ def toy_particles(cfg: ToyCell) -> tuple[np.ndarray, np.ndarray]:
     s = cfg.spacing
     tx, ty, tz = cfg.torso
     reach = ty / 2 + cfg.limb_length
-    axes = [np.arange(-tx / 2, tx / 2 + 1e-9, s), np.arange(-reach, reach + 1e-9, s), np.arange(0, tz + 1e-9, s)]
-    axes = [a - (a[0] + a[-1]) / 2 + (c if k == 2 else 0) for k, (a, c) in enumerate(zip(axes, (0, 0, tz / 2)))]
+
+    def centred(extent: float) -> np.ndarray:  # lattice coordinates spanning `extent`, centred on 0
+        a = np.arange(0.0, extent + 1e-9, s)
+        return a - a[-1] / 2
+
+    axes = (centred(tx), centred(2 * reach), centred(tz) + tz / 2)
     g = np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
     torso = (np.abs(g[:, 0]) <= tx / 2 + 1e-9) & (np.abs(g[:, 1]) <= ty / 2 + 1e-9)
     limb = np.zeros(len(g), bool)
     for cx in (-tx / 3, tx / 3):
         r = np.hypot(g[:, 0] - cx, g[:, 2] - tz / 2)
-        limb |= (r <= cfg.limb_radius + 1e-9) & (np.abs(g[:, 1]) > ty / 2 + 1e-9) & (np.abs(g[:, 1]) <= reach + 1e-9)
+        limb |= (
+            (r <= cfg.limb_radius + 1e-9)
+            & (np.abs(g[:, 1]) > ty / 2 + 1e-9)
+            & (np.abs(g[:, 1]) <= reach + 1e-9)
+        )
     keep = torso | limb
     return g[keep], limb[keep]
 
@@ -291,32 +331,64 @@ def toy_packing_cell(preset: str = "reference", **overrides) -> TwinSpec:
     radius = 1.8 * cfg.spacing
     springs = radius_springs(pts, radius, 30)
     y = np.where(limb[springs[:, 0]] | limb[springs[:, 1]], cfg.limb_Y, cfg.torso_Y)
-    parts = [trimesh.creation.box(extents=cfg.torso, transform=trimesh.transformations.translation_matrix(
-        (0, 0, cfg.torso[2] / 2)))]
+    parts = [
+        trimesh.creation.box(
+            extents=cfg.torso, transform=trimesh.transformations.translation_matrix((0, 0, cfg.torso[2] / 2))
+        )
+    ]
     for cx in (-cfg.torso[0] / 3, cfg.torso[0] / 3):
         for sy in (-1, 1):
             y0, y1 = sy * cfg.torso[1] / 2, sy * (cfg.torso[1] / 2 + cfg.limb_length)
-            parts.append(trimesh.creation.cylinder(radius=cfg.limb_radius, segment=((cx, y0, cfg.torso[2] / 2),
-                                                                                    (cx, y1, cfg.torso[2] / 2))))
+            parts.append(
+                trimesh.creation.cylinder(
+                    radius=cfg.limb_radius, segment=((cx, y0, cfg.torso[2] / 2), (cx, y1, cfg.torso[2] / 2))
+                )
+            )
     skin = mesh_surface_gaussians(trimesh.util.concatenate(parts), TOY_RGB, spacing=0.003)
     skin = paint(skin, np.abs(skin.means[:, 1]) > cfg.torso[1] / 2 + 0.002, LIMB_RGB)
-    toy = ObjectSpec("toy", pts, springs=springs, spring_Y=y, gaussians=skin, binding="lbs",
-                     rest_pose=planar_pose(*cfg.toy_pose))
+    toy = ObjectSpec(
+        "toy",
+        pts,
+        springs=springs,
+        spring_Y=y,
+        gaussians=skin,
+        binding="lbs",
+        rest_pose=planar_pose(*cfg.toy_pose),
+    )
     ix, iy, h = cfg.box_inner
     t = cfg.wall_thickness
-    walls = [box_mesh((-ix / 2 - t, -iy / 2 - t, 0), (ix / 2 + t, -iy / 2, h)),
-             box_mesh((-ix / 2 - t, iy / 2, 0), (ix / 2 + t, iy / 2 + t, h)),
-             box_mesh((-ix / 2 - t, -iy / 2, 0), (-ix / 2, iy / 2, h)),
-             box_mesh((ix / 2, -iy / 2, 0), (ix / 2 + t, iy / 2, h))]
+    walls = [
+        box_mesh((-ix / 2 - t, -iy / 2 - t, 0), (ix / 2 + t, -iy / 2, h)),
+        box_mesh((-ix / 2 - t, iy / 2, 0), (ix / 2 + t, iy / 2 + t, h)),
+        box_mesh((-ix / 2 - t, -iy / 2, 0), (-ix / 2, iy / 2, h)),
+        box_mesh((ix / 2, -iy / 2, 0), (ix / 2 + t, iy / 2, h)),
+    ]
     box_mesh_all = trimesh.util.concatenate(walls)
-    box = ColliderSpec("box", np.asarray(box_mesh_all.vertices), np.asarray(box_mesh_all.faces),
-                       planar_pose(*cfg.box_pose), ContactSpec(0.0, 0.5),
-                       mesh_surface_gaussians(box_mesh_all, BOX_RGB, spacing=0.003))
-    sim = SimParams(dt=1.0 / 30.0 / cfg.substeps, substeps=cfg.substeps, ground_restitution=0.0,
-                    ground_friction=cfg.ground_friction, object_collision=False, self_collision=True,
-                    collision_dist=0.6 * cfg.spacing, candidate_radius_scale=2.0, mesh_margin=0.002)
+    box = ColliderSpec(
+        "box",
+        np.asarray(box_mesh_all.vertices),
+        np.asarray(box_mesh_all.faces),
+        planar_pose(*cfg.box_pose),
+        ContactSpec(0.0, 0.5),
+        mesh_surface_gaussians(box_mesh_all, BOX_RGB, spacing=0.003),
+    )
+    sim = SimParams(
+        dt=1.0 / 30.0 / cfg.substeps,
+        substeps=cfg.substeps,
+        ground_restitution=0.0,
+        ground_friction=cfg.ground_friction,
+        object_collision=False,
+        self_collision=True,
+        collision_dist=0.6 * cfg.spacing,
+        candidate_radius_scale=2.0,
+        mesh_margin=0.002,
+    )
     return TwinSpec(
-        name=f"toy-packing-{preset}", robot=gripper_robot(cfg.finger_friction, cfg.robot_gaussian_spacing),
-        objects=(toy,), colliders=(box,), cameras=(front_camera(cfg.image_hw), wrist_camera("link7", cfg.image_hw)),
-        background=workcell_background(), sim=sim,
+        name=f"toy-packing-{preset}",
+        robot=gripper_robot(cfg.finger_friction, cfg.robot_gaussian_spacing),
+        objects=(toy,),
+        colliders=(box,),
+        cameras=(front_camera(cfg.image_hw), wrist_camera("link7", cfg.image_hw)),
+        background=workcell_background(),
+        sim=sim,
     )
