@@ -31,3 +31,14 @@ def pytest_collection_modifyitems(config, items):
         for item in items:
             if "gpu" in item.keywords:
                 item.add_marker(skip)
+
+
+@pytest.fixture(scope="session")
+def fast_env():
+    """A push-T env on the built-in `fast` cell with early termination on success (quick expert
+    episodes), built once per session (each test resets it)."""
+    from twinbench.env import TwinEnv
+
+    env = TwinEnv("push-t", preset="fast", success_rule="early")
+    env.reset(seed=0, options={"init_state": 0})
+    return env

@@ -1,3 +1,27 @@
-"""twinbench: evaluate robot manipulation policies in photorealistic digital twins."""
+"""twinbench: evaluate robot manipulation policies in photorealistic digital twins.
+
+Importing twinbench registers its gymnasium env ids (entry points as strings: nothing heavy is
+imported until an env is made), so `gymnasium.make("twinbench/PushT-v0")` works after `import twinbench`;
+in a fresh interpreter `gymnasium.make("twinbench:twinbench/PushT-v0")` imports it for you.
+"""
 
 __version__ = "0.1.0"
+
+# env id -> (entry point, kwargs, max_episode_steps)
+ENV_IDS = {
+    "twinbench/PushT-v0": ("twinbench.env:TwinEnv", {"task": "push-t"}, None),
+    "twinbench/PointReach-v0": ("twinbench.tasks.point_reach:PointReachEnv", {}, 60),
+}
+
+
+def register_envs() -> None:
+    """Register twinbench's env ids with gymnasium (idempotent)."""
+    import gymnasium
+
+    for env_id, (entry_point, kwargs, max_steps) in ENV_IDS.items():
+        if env_id not in gymnasium.registry:
+            gymnasium.register(id=env_id, entry_point=entry_point, kwargs=dict(kwargs),
+                               max_episode_steps=max_steps)
+
+
+register_envs()

@@ -8,6 +8,8 @@ import sys
 # command -> (module, config dataclass, function taking the config)
 COMMANDS: dict[str, tuple[str, str, str, str]] = {
     "demo": ("twinbench.demo", "DemoConfig", "main", "evaluate push-T policies on the built-in twin (CPU)"),
+    "twin": ("twinbench.twin.cli", "TwinCommand", "main",
+             "twin export (a task's built-in twin as a directory) | twin show (summary + camera PNGs)"),
     "physics-demo": ("twinbench.physics.demo", "DemoConfig", "main", "soft cube dropped, grasped and lifted"),
     "render-ply": ("twinbench.gaussians.cli", "RenderPlyConfig", "main",
                    "render a 3DGS .ply/.splat/.spz to a PNG from an automatic viewpoint"),

@@ -25,6 +25,9 @@ class DemoConfig:
     preset: str = "fast"
     """push-t twin preset: 'fast' (15 mm block lattice, 100 substeps) or 'reference'"""
     workers: int = 2
+    success_rule: str = "early"
+    """'early' ends an episode once the success window holds (quick); 'final' runs the full 60 s and judges
+    the last 100 frames (the reference rule)"""
     run_id: str = "demo"
     device: str = "cpu"
 
@@ -42,7 +45,8 @@ def main(cfg: DemoConfig) -> int:
         records = evaluate(
             "push-t", list(cfg.policies), cfg.episodes, cfg.workers, cfg.run_id, store,
             video=True, output_dir=out, progress=True, log=print,
-            env_kwargs={"preset": cfg.preset, "render_views": "front+wrist", "device": cfg.device},
+            env_kwargs={"preset": cfg.preset, "render_views": "front+wrist", "device": cfg.device,
+                        "success_rule": cfg.success_rule},
         )
     except EvaluationInterrupted as err:
         print(err.message)

@@ -27,7 +27,9 @@ def test_monomials_in_documented_order():
 def test_identity_keeps_and_known_map_sets_base_colour():
     rng = np.random.default_rng(0)
     rgb = rng.uniform(0.1, 0.9, (50, 3))
-    cloud = surface_discs(rng.normal(size=(50, 3)).astype(np.float32), np.tile([0.0, 0, 1], (50, 1)), rgb, 0.01)
+    cloud = surface_discs(
+        rng.normal(size=(50, 3)).astype(np.float32), np.tile([0.0, 0, 1], (50, 1)), rgb, 0.01
+    )
     same = apply_color_map(cloud, identity_color_map(2), 2)
     np.testing.assert_allclose(same.base_colours, cloud.base_colours, atol=1e-6)
     coeffs = identity_color_map(2) * 0.0

@@ -1,20 +1,23 @@
-"""Push-T env on the `fast` preset: API conformance, determinism, errors, task quantities, the expert."""
+"""Push-T (TwinEnv + PushTTask on the built-in `fast` cell): API conformance, determinism, errors, task
+quantities, the scripted expert."""
 
+import gymnasium
 import numpy as np
 import pytest
 from gymnasium.utils.env_checker import check_env
 
+from twinbench.env import TwinEnv
+from twinbench.evaluation.runner import policy_observation
 from twinbench.tasks import get_task
-from twinbench.tasks.push_t import PushTConfig, PushTEnv
 from twinbench.tasks.push_t_expert import PushTExpert
 from twinbench.transforms import planar_pose
+from twinbench.twin.cells import PushTCell
 
 
-@pytest.fixture(scope="module")
-def env():
-    e = PushTEnv(preset="fast")
-    yield e
-    e.close()
+@pytest.fixture()
+def env(fast_env):
+    fast_env.reset(seed=0, options={"init_state": 0})
+    return fast_env
 
 
 def test_registered_and_conforms_to_gymnasium(env):
@@ -25,47 +28,58 @@ def test_registered_and_conforms_to_gymnasium(env):
     assert set(obs) == {"pixels", "agent_pos"} and set(obs["pixels"]) == {"front", "wrist"}
     assert obs["pixels"]["front"].shape == (240, 240, 3) and obs["pixels"]["front"].dtype == np.uint8
     assert obs["agent_pos"].dtype == np.float32 and obs["agent_pos"].shape == (2,)
-    np.testing.assert_allclose(obs["agent_pos"], env.config.pusher_start, atol=1e-3)
-    assert info == {"is_success": False, "status": "ok", "msd": pytest.approx(env.goal_msd())}
+    np.testing.assert_allclose(obs["agent_pos"], env.rules.settings.pusher_start, atol=1e-3)
+    assert info["is_success"] is False and info["status"] == "ok"
+    assert info["msd"] == pytest.approx(env.rules.goal_msd(env.twin, env.state))
     assert env._max_episode_steps == 1800 and env.metadata["render_fps"] == 30
+    assert isinstance(env.metadata["render_fps"], int)
     assert isinstance(env.task_description, str) and env.task_description
     np.testing.assert_array_equal(env.render(), obs["pixels"]["front"])
 
 
 def test_initial_states_place_the_block_on_the_grid(env):
     for i, (dx, dy, dth) in [(0, (-0.05, -0.05, -135)), (7, (-0.05, 0.05, 135)), (10, (0.05, -0.05, 45))]:
-        env.reset(seed=0, options={"init_state": i})
-        x, y, th = env.block_pose()
+        _, info = env.reset(seed=0, options={"init_state": i})
+        x, y, th = info["privileged"]["environment_state"][:3]
         assert (x, y) == pytest.approx((0.5 + dx, dy), abs=1e-5)
         assert np.rad2deg(th) == pytest.approx(dth, abs=1e-3)
-    env.reset(seed=5, options={"sampled": True})
-    x, y, _ = env.block_pose()
+    _, info = env.reset(seed=5, options={"sampled": True})
+    x, y, _ = info["privileged"]["environment_state"][:3]
     assert abs(x - 0.5) <= 0.075 + 1e-6 and abs(y) <= 0.075 + 1e-6
+    _, again = env.reset(seed=5, options={"sampled": True})
+    np.testing.assert_array_equal(
+        info["privileged"]["environment_state"], again["privileged"]["environment_state"]
+    )
+    _, by_seed = env.reset(seed=19)  # no init_state: grid state seed mod 16 = 3
+    _, three = env.reset(seed=0, options={"init_state": 3})
+    np.testing.assert_array_equal(
+        by_seed["privileged"]["environment_state"], three["privileged"]["environment_state"]
+    )
 
 
 def test_goal_pose_gives_zero_distance_full_coverage_and_yellow_overlay(env):
-    env.reset(seed=0, options={"init_state": 0})
-    env.scene.reset(env._q_start, {"tblock": env.goal})
-    assert env.goal_msd() == pytest.approx(0.0, abs=1e-12)
-    assert env.coverage() == pytest.approx(1.0)
-    env.scene.reset(env._q_start, {"tblock": planar_pose(0.5, 0.2, 0.0)})  # 20 cm away: no overlap
-    assert env.coverage() == 0.0 and env.goal_msd() == pytest.approx(0.04, rel=1e-6)
-    front = env._observe()["pixels"]["front"].astype(float)
-    mask = env._goal_overlay
+    task, twin, state = env.rules, env.twin, env.state
+    twin.reset(state, task.q_start, {"tblock": task.goal})
+    assert task.goal_msd(twin, state) == pytest.approx(0.0, abs=1e-12)
+    assert task.coverage(twin, state) == pytest.approx(1.0)
+    twin.reset(state, task.q_start, {"tblock": planar_pose(0.5, 0.2, 0.0)})  # 20 cm away: no overlap
+    assert task.coverage(twin, state) == 0.0 and task.goal_msd(twin, state) == pytest.approx(0.04, rel=1e-6)
+    front = env._observe(task.frame(twin, state)[1])["pixels"]["front"].astype(float)
+    mask = task._overlay
     assert 0.005 < mask.mean() < 0.2  # the goal T is a small part of the view
     inside, outside = front[mask].mean(0), front[~mask].mean(0)
     assert inside[0] - inside[2] > outside[0] - outside[2] + 30  # yellow tint: red up, blue down
 
 
 def test_pushing_moves_the_block_and_reward_is_coverage(env):
-    env.reset(seed=0, options={"init_state": 0})
-    before = env.block_pose()
+    _, info = env.reset(seed=0, options={"init_state": 0})
+    before = info["privileged"]["environment_state"][:3].copy()
     for _ in range(60):  # drive the pusher straight through the block's position
         obs, reward, term, trunc, info = env.step(np.array(before[:2], np.float32))
-    after = env.block_pose()
+    after = info["privileged"]["environment_state"][:3]
     assert np.linalg.norm(after[:2] - before[:2]) > 0.01
-    assert reward == pytest.approx(env.coverage()) and info["status"] == "ok"
-    assert info["msd"] == pytest.approx(env.goal_msd())
+    assert reward == pytest.approx(env.rules.coverage(env.twin, env.state)) and info["status"] == "ok"
+    assert info["msd"] == pytest.approx(env.rules.goal_msd(env.twin, env.state))
 
 
 def test_same_seed_and_state_give_identical_episodes(env):
@@ -77,55 +91,106 @@ def test_same_seed_and_state_give_identical_episodes(env):
         for a in actions:
             obs, *_ = env.step(a)
         pixels = obs["pixels"]
-        runs.append((pixels["front"].copy(), pixels["wrist"].copy(), env.scene.particles("tblock")))
+        runs.append((pixels["front"].copy(), pixels["wrist"].copy(), env.twin.particles(env.state, "tblock")))
     for a, b in zip(*runs, strict=True):
         np.testing.assert_array_equal(a, b)
 
 
-def test_bad_actions_raise_and_divergence_is_a_sim_error(env):
-    env.reset(seed=0, options={"init_state": 0})
+def test_bad_actions_options_and_divergence(env):
     with pytest.raises(ValueError, match="shape"):
         env.step(np.zeros(3))
     with pytest.raises(ValueError, match="NaN"):
         env.step(np.array([np.nan, 0.0]))
     with pytest.raises(ValueError, match="init_state"):
         env.reset(options={"init_state": -1})
-    env.scene.state.v.assign(np.full((env.scene.model.num_particles, 3), 1e5, np.float32))
+    with pytest.raises(ValueError, match="integer"):
+        env.reset(options={"init_state": 3.7})
+    with pytest.raises(ValueError, match="unknown key"):
+        env.reset(options={"init_sate": 3})
+    env.reset(seed=0, options={"init_state": 0})
+    env.state.physics.v.assign(np.full((env.twin.model.num_particles, 3), 1e5, np.float32))
     obs, reward, term, trunc, info = env.step(np.array([0.3, 0.0], np.float32))
     assert info["status"] == "sim_error" and term and not info["is_success"]
     with pytest.raises(RuntimeError, match="reset"):
         env.step(np.array([0.3, 0.0], np.float32))
 
 
-def test_gymnasium_make_and_render_views_side_by_side():
-    import gymnasium
+@pytest.mark.parametrize("rule", ["final", "early"])
+def test_success_rules_final_window_or_early_termination(rule, tmp_path):
+    """A block that starts on its goal hits on every frame: "final" runs the whole (9-step) episode and
+    judges its last frames, "early" stops once the window holds (3 hits > 2 of the last 5)."""
+    from twinbench.evaluation.runner import run_episode
+    from twinbench.tasks.base import offset_pose
+    from twinbench.tasks.push_t_expert import PushTExpert
+    from twinbench.tasks.push_t_geometry import grid_initial_states
 
-    env = gymnasium.make("twinbench/PushT-v0", preset="fast", render_views="front+wrist")
-    assert isinstance(env.unwrapped, PushTEnv)
-    obs, _ = env.reset(seed=0)
+    goal = offset_pose(planar_pose(0.5, 0.0, 0.0), grid_initial_states()[2])
+    env = TwinEnv(
+        "push-t",
+        preset="fast",
+        success_rule=rule,
+        episode_seconds=0.3,
+        success_window=5,
+        success_min_hits=2,
+        goal_pose=(goal[0, 3], goal[1, 3], np.arctan2(goal[1, 0], goal[0, 0])),
+    )
+    out = run_episode(env, PushTExpert(env.rules.shape), init_state=2, seed=0)
+    assert out.status == "ok" and out.success and out.success_rule == rule
+    assert out.steps == (9 if rule == "final" else 3)
+    assert out.metrics()["success_rule"] == rule
+    with pytest.raises(ValueError, match="success_rule"):
+        TwinEnv("push-t", preset="fast", success_rule="sometimes")
+
+
+def test_stepping_after_truncation_raises():
+    env = TwinEnv("push-t", preset="fast", episode_seconds=0.1)  # 3 steps
+    env.reset(seed=0, options={"init_state": 0})
+    assert env._max_episode_steps == 3
+    results = [env.step(np.array([0.3, 0.0], np.float32)) for _ in range(3)]
+    assert results[-1][3] and not any(r[3] for r in results[:-1])
+    with pytest.raises(RuntimeError, match="episode is over"):
+        env.step(np.array([0.3, 0.0], np.float32))
+
+
+def test_gymnasium_make_render_views_and_environment_state():
+    env = gymnasium.make(
+        "twinbench/PushT-v0", preset="fast", render_views="front+wrist", environment_state=True
+    )
+    assert isinstance(env.unwrapped, TwinEnv)
+    obs, info = env.reset(seed=0)
     frame = env.render()
     assert frame.shape == (240, 480, 3)
     np.testing.assert_array_equal(frame[:, 240:], obs["pixels"]["wrist"])
+    np.testing.assert_array_equal(obs["environment_state"], info["privileged"]["environment_state"])
+    assert env.observation_space.contains(obs)
     with pytest.raises(ValueError, match="render_views"):
-        PushTEnv(preset="fast", render_views="top")
+        TwinEnv("push-t", preset="fast", render_views="top")
+    with pytest.raises(ValueError, match="unknown setting"):
+        PushTCell.preset("fast", turbo=True)
 
 
 def test_presets_are_named_and_validated():
-    assert PushTConfig.preset("fast").particle_spacing == 0.015
-    assert PushTConfig.preset("reference").substeps == 667
+    assert PushTCell.preset("fast").particle_spacing == 0.015
+    assert PushTCell.preset("reference").substeps == 667
     with pytest.raises(ValueError, match="preset"):
-        PushTConfig.preset("turbo")
+        PushTCell.preset("turbo")
 
 
 def _run_expert(env, state: int) -> tuple[bool, int]:
-    obs, _ = env.reset(seed=0, options={"init_state": state})
-    expert = PushTExpert(env)
+    obs, info = env.reset(seed=0, options={"init_state": state})
+    expert = PushTExpert(env.rules.shape)
     steps = 0
     while True:
-        obs, _, term, trunc, info = env.step(expert.select_action(obs))
+        obs, _, term, trunc, info = env.step(expert.select_action(policy_observation(expert, obs, info)))
         steps += 1
         if term or trunc:
             return info["is_success"], steps
+
+
+def test_expert_needs_the_environment_state(env):
+    obs, _ = env.reset(seed=0)
+    with pytest.raises(Exception, match="environment_state"):
+        PushTExpert(env.rules.shape).select_action(obs)
 
 
 @pytest.mark.parametrize("state", [0, 9])

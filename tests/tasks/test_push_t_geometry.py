@@ -1,13 +1,12 @@
 import numpy as np
 import pytest
 
+from twinbench.tasks.base import InitialStates, SuccessWindow, offset_pose
 from twinbench.tasks.push_t_geometry import (
-    SuccessWindow,
     TBlockShape,
     grid_initial_states,
     mean_squared_distance,
     sample_block_particles,
-    sample_initial_states,
 )
 from twinbench.transforms import planar_pose, transform_points
 
@@ -39,9 +38,46 @@ def test_grid_states_are_the_16_reference_states():
     assert len({tuple(np.round(s, 6)) for s in states}) == 16
     assert set(np.round(states[:, 0], 6)) == {-0.05, 0.05}
     assert set(np.round(np.rad2deg(states[:, 2]), 6)) == {-135.0, -45.0, 45.0, 135.0}
-    sampled = sample_initial_states(200, seed=0)
-    assert sampled.shape == (200, 3) and np.abs(sampled[:, :2]).max() <= 0.075
-    np.testing.assert_array_equal(sampled, sample_initial_states(200, seed=0))
+
+
+def test_initial_states_are_data_with_a_seeded_sampler_and_products():
+    h = 0.075
+    states = InitialStates(
+        {"block": grid_initial_states()}, {"block": (-h, -h, -np.pi)}, {"block": (h, h, np.pi)}
+    )
+    assert len(states) == 16
+    np.testing.assert_array_equal(states.grid_offsets(5)["block"], grid_initial_states()[5])
+    with pytest.raises(ValueError, match="outside"):
+        states.grid_offsets(16)
+    sampled = np.array([states.sample_offsets(s)["block"] for s in range(200)])
+    assert np.abs(sampled[:, :2]).max() <= h and np.abs(sampled[:, 2]).max() <= np.pi
+    assert sampled[:, 2].min() < -2.5 and sampled[:, 2].max() > 2.5  # any angle
+    np.testing.assert_array_equal(states.sample_offsets(7)["block"], sampled[7])
+    # products: every toy offset with every box offset, the first role slowest
+    toy, box = np.arange(6.0).reshape(2, 3), 10 + np.arange(9.0).reshape(3, 3)
+    prod = InitialStates.product(
+        {"toy": toy, "box": box}, {"toy": (0, 0, 0), "box": (0, 0, 0)}, {"toy": (1, 1, 1), "box": (1, 1, 1)}
+    )
+    assert len(prod) == 6
+    np.testing.assert_array_equal(prod.grid["toy"], toy[[0, 0, 0, 1, 1, 1]])
+    np.testing.assert_array_equal(prod.grid["box"], box[[0, 1, 2, 0, 1, 2]])
+    with pytest.raises(ValueError, match="same N"):
+        InitialStates({"a": np.zeros((2, 3)), "b": np.zeros((3, 3))}, {"a": 0, "b": 0}, {"a": 0, "b": 0})
+
+
+def test_offset_pose_rotates_about_the_object_origin_and_world_z():
+    rest = planar_pose(0.5, 0.1, 0.3)
+    np.testing.assert_allclose(
+        offset_pose(rest, (0.02, -0.01, 0.4)), planar_pose(0.52, 0.09, 0.7), atol=1e-12
+    )
+    tilted = np.eye(4)
+    tilted[:3, :3] = [[1, 0, 0], [0, 0, -1], [0, 1, 0]]  # lying on its side
+    tilted[:3, 3] = (0.4, 0.0, 0.05)
+    moved = offset_pose(tilted, (0.0, 0.0, np.pi / 2))
+    np.testing.assert_allclose(moved[:3, 3], (0.4, 0.0, 0.05))  # origin unchanged, height kept
+    np.testing.assert_allclose(
+        moved[:3, :3], planar_pose(0, 0, np.pi / 2)[:3, :3] @ tilted[:3, :3], atol=1e-12
+    )
 
 
 def test_mean_squared_distance_matches_rigid_motion_formula():

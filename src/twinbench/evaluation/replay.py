@@ -282,12 +282,14 @@ class ReplayConfig:
     """JSON with per-episode init_state/success/policy/checkpoint for a LeRobotDataset lacking them"""
     env_kwargs: str = ""
     """JSON dict of extra gymnasium.make keyword arguments"""
+    twin: Path | None = None
+    """a twin directory to replay in (default: the task's built-in cell)"""
 
 
 def main(cfg: ReplayConfig) -> int:
-    from twinbench.evaluation.runner import parse_env_kwargs
+    from twinbench.evaluation.runner import env_kwargs_with_twin, parse_env_kwargs
 
-    env_kwargs = parse_env_kwargs(cfg.env_kwargs)
+    env_kwargs = env_kwargs_with_twin(parse_env_kwargs(cfg.env_kwargs), cfg.twin)
     episodes = load_recorded(cfg.source, cfg.outcomes)
     pairs = replay_episodes(cfg.task, episodes, cfg.db, cfg.run_id, env_kwargs=env_kwargs)
     print(f"replayed {len(pairs)} episodes of {cfg.source} in {cfg.task} (run {cfg.run_id!r}, {cfg.db})")

@@ -523,12 +523,23 @@ def _protocol_section(run_id: str, protocol: dict | None, episodes: list[Episode
             ["sim episodes", str(len(sim))],
             ["initial states used", f"{len(inits)}: {_e(_compact(inits))}"],
             ["seeds used", f"{len(seeds)}: {_e(_compact(seeds))}"],
+            ["success rule", _e(_rule_counts(sim))],
             ["mean episode steps / wall time", f"{np.mean([e.steps for e in sim]):.0f} steps / "
                                                f"{np.mean([e.wall_time_s for e in sim]):.2f} s"],
         ], "kv")
     if real_run_id and real_protocol is not None:
         out += f"<h3>real run {_e(real_run_id)}</h3>" + _value_html(real_protocol)
     return out
+
+
+def _rule_counts(episodes: list[EpisodeRecord]) -> str:
+    """'final: 12, early: 4': which success rule judged how many episodes ('final' = full-length episode
+    judged on its last frames, the reference rule; 'early' = ended when the criterion first held)."""
+    counts: dict[str, int] = {}
+    for e in episodes:
+        rule = str((e.metrics or {}).get("success_rule", "not recorded"))
+        counts[rule] = counts.get(rule, 0) + 1
+    return ", ".join(f"{k}: {v}" for k, v in sorted(counts.items()))
 
 
 def _compact(ints: list[int]) -> str:

@@ -4,7 +4,9 @@ Episodes run in worker processes (spawn context; `workers=0` runs them in the ca
 Ray (`backend="ray"`). The parent commits each finished episode to the results store at once, so a
 re-run of the same run id skips finished episodes and an interrupted run (SIGINT) loses at most the
 episodes in flight. Status: "sim_error" when the env reports or raises a simulation failure (or emits
-a non-finite state), "policy_error" when the policy raises or returns a malformed action.
+a non-finite state), "policy_error" when the policy raises or returns a malformed action. The outcome is
+the env's `info["is_success"]` at the episode's last step (the env's success rule, e.g. TwinEnv's
+"final" window judgement or "early" termination, is stored in the episode's metrics).
 
 Seeds: grid episodes use init_state i with seed `seed + i`; `episodes=N` samples N states, init_state
 `n_grid_states + k` with seed `seed + k` (the env draws the state from that seed).
@@ -54,10 +56,13 @@ class EpisodeOutcome:
     error: str | None = None
     video_path: str | None = None
     started_at: float = 0.0
+    success_rule: str | None = None  # the env's rule that judged the outcome (TwinEnv: "final" or "early")
 
     def metrics(self, **extra) -> dict:
-        """The EpisodeRecord.metrics of this outcome: `extra`, rewards, and the error text if any."""
+        """The EpisodeRecord.metrics of this outcome: `extra`, rewards, success rule, error text."""
         out = {**extra, "sum_reward": self.sum_reward, "max_reward": self.max_reward}
+        if self.success_rule:
+            out["success_rule"] = self.success_rule
         if self.error:
             out["error"] = self.error
         return out
@@ -104,18 +109,29 @@ class _VideoWriter:
         return True
 
 
+def policy_observation(policy, obs: dict, info: dict) -> dict:
+    """The observation `policy` is given: `obs`, plus the privileged `environment_state` from
+    `info["privileged"]` for policies that declare `uses_environment_state` (scripted experts)."""
+    if not getattr(policy, "uses_environment_state", False) or "environment_state" in obs:
+        return obs
+    privileged = info.get("privileged") or {}
+    if "environment_state" not in privileged:
+        raise PolicyError("this policy needs the task's environment_state, which the env does not provide")
+    return {**obs, "environment_state": privileged["environment_state"]}
+
+
 def run_episode(env, policy, *, init_state: int, seed: int, max_steps: int | None = None,
                 video_path: str | Path | None = None) -> EpisodeOutcome:
     """Roll `policy` out in `env` from `init_state`; never raises for env or policy failures."""
     t0, started = time.perf_counter(), time.time()
     rewards: list[float] = []
     video = _VideoWriter(video_path, env) if video_path is not None else None
-    success, status, error, steps = False, "ok", None, 0
+    success, status, error, steps, rule = False, "ok", None, 0, None
     limit = int(max_steps or getattr(env.unwrapped, "_max_episode_steps", 0) or 0)
     if limit <= 0:
         raise ValueError("run_episode: env has no _max_episode_steps; pass max_steps")
     try:
-        obs, _ = env.reset(seed=int(seed), options={"init_state": int(init_state)})
+        obs, info = env.reset(seed=int(seed), options={"init_state": int(init_state)})
         if video is not None:
             video.add(env.render())
     except Exception as err:  # noqa: BLE001 - any env failure is a sim_error, reported with its text
@@ -131,7 +147,7 @@ def run_episode(env, policy, *, init_state: int, seed: int, max_steps: int | Non
     shape = env.action_space.shape
     while status == "ok" and steps < limit:
         try:
-            action = np.asarray(policy.select_action(obs), dtype=np.float64)
+            action = np.asarray(policy.select_action(policy_observation(policy, obs, info)), dtype=np.float64)
             if action.shape != shape or not np.all(np.isfinite(action)):
                 raise PolicyError(f"action of shape {action.shape} (expected {shape}) "
                                   f"or non-finite: {action}")
@@ -152,7 +168,8 @@ def run_episode(env, policy, *, init_state: int, seed: int, max_steps: int | Non
         if not np.all(np.isfinite(np.asarray(obs["agent_pos"], dtype=np.float64))):
             status, error = "sim_error", f"non-finite agent_pos at step {steps}"
             break
-        success = success or bool(info.get("is_success", False))
+        success = bool(info.get("is_success", False))  # the final frame's judgement
+        rule = info.get("success_rule", rule)
         if video is not None:
             video.add(env.render())
         if terminated or truncated:
@@ -162,7 +179,7 @@ def run_episode(env, policy, *, init_state: int, seed: int, max_steps: int | Non
         success=success and status == "ok", status=status, steps=steps,
         wall_time_s=time.perf_counter() - t0, sum_reward=float(np.sum(rewards)) if rewards else 0.0,
         max_reward=float(np.max(rewards)) if rewards else 0.0, error=error,
-        video_path=str(video_path) if written else None, started_at=started,
+        video_path=str(video_path) if written else None, started_at=started, success_rule=rule,
     )
 
 
@@ -405,6 +422,18 @@ def parse_env_kwargs(text: str) -> dict:
     return env_kwargs
 
 
+def env_kwargs_with_twin(env_kwargs: dict, twin: Path | None) -> dict:
+    """`--twin DIR`: evaluate in the twin directory DIR (an absolute path, so worker processes find it)."""
+    if twin is None:
+        return env_kwargs
+    if "twin" in env_kwargs:
+        raise ValueError("give the twin either as --twin or in --env-kwargs, not both")
+    if not (Path(twin) / "twin.json").is_file():
+        raise ValueError(f"--twin {twin}: no twin.json there (write one with `twinbench twin export` "
+                         "or the construction tools)")
+    return {**env_kwargs, "twin": str(Path(twin).resolve())}
+
+
 @dataclass(frozen=True)
 class EvalConfig:
     """Evaluate policies on a task over its initial-state grid (or N sampled states)."""
@@ -427,6 +456,8 @@ class EvalConfig:
     output_dir: Path = Path("outputs")
     env_kwargs: str = ""
     """JSON dict of extra gymnasium.make keyword arguments for the task's env"""
+    twin: Path | None = None
+    """a twin directory to evaluate in (default: the task's built-in cell)"""
     retry_errors: bool = False
     """re-run episodes that ended in sim_error/policy_error"""
     progress: bool = True
@@ -443,7 +474,7 @@ def main(cfg: EvalConfig) -> int:
     if not cfg.policy:
         say("twinbench eval: give at least one --policy (e.g. --policy expert)")
         return 2
-    env_kwargs = parse_env_kwargs(cfg.env_kwargs)
+    env_kwargs = env_kwargs_with_twin(parse_env_kwargs(cfg.env_kwargs), cfg.twin)
     try:
         records = evaluate(cfg.task, list(cfg.policy), cfg.episodes, cfg.workers, cfg.run_id, cfg.db,
                            seed=cfg.seed, video=cfg.video, backend=cfg.backend, output_dir=cfg.output_dir,

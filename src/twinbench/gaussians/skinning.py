@@ -227,19 +227,24 @@ class LabelRigidPoser:
                 opacities=rest_dev.opacities,
                 sh=wp.empty(rest_dev.sh.shape, dtype=wp.vec3, device=self.device),
             )
-        elif len(out) != n or out.sh.shape[1] < rest_dev.sh.shape[1] or out.device != self.device:
-            raise ValueError(
-                f"LabelRigidPoser: out must hold {n} Gaussians with >= {rest_dev.sh.shape[1]} SH "
-                f"coefficients on {self.device}, got {len(out)} with {out.sh.shape[1]} on {out.device}"
-            )
-        self.posed = out
+        self.posed = self._check_out(out)
         width = max(1, sum((2 * b + 1) ** 2 for b in range(1, self.degree + 1)))
         self._rots = wp.empty(self.num_labels, dtype=wp.mat33, device=self.device)
         self._trans = wp.empty(self.num_labels, dtype=wp.vec3, device=self.device)
         self._sh_mats = wp.zeros((self.num_labels, width), dtype=wp.float32, device=self.device)
 
-    def update(self, transforms) -> DeviceGaussians:
-        """Pose with `transforms` (num_labels, 4, 4), each a rigid transform from the rest pose."""
+    def _check_out(self, out: DeviceGaussians) -> DeviceGaussians:
+        n, k = len(self.rest), self.rest.sh.shape[1]
+        if len(out) != n or out.sh.shape[1] < k or out.device != self.device:
+            raise ValueError(
+                f"LabelRigidPoser: out must hold {n} Gaussians with >= {k} SH coefficients on "
+                f"{self.device}, got {len(out)} with {out.sh.shape[1]} on {out.device}"
+            )
+        return out
+
+    def update(self, transforms, out: DeviceGaussians | None = None) -> DeviceGaussians:
+        """Pose with `transforms` (num_labels, 4, 4), each a rigid transform from the rest pose, into
+        `out` (same requirements as the constructor's) or the poser's own output."""
         t = np.asarray(transforms, dtype=np.float64)
         if t.shape != (self.num_labels, 4, 4) or not np.all(np.isfinite(t)):
             raise ValueError(
@@ -250,6 +255,7 @@ class LabelRigidPoser:
             np.linalg.det(rots) < 0
         ):
             raise ValueError("LabelRigidPoser.update: every transform's 3x3 block must be a rotation")
+        target = self.posed if out is None else self._check_out(out)
         self._rots.assign(rots.astype(np.float32))
         self._trans.assign(t[:, :3, 3].astype(np.float32))
         if self.degree > 0:
@@ -270,10 +276,10 @@ class LabelRigidPoser:
                 self._trans,
                 self._sh_mats,
             ],
-            outputs=[self.posed.means, self.posed.quats, self.posed.sh],
+            outputs=[target.means, target.quats, target.sh],
             device=self.device,
         )
-        return self.posed
+        return target
 
 
 class LBSSkinner:

@@ -14,7 +14,12 @@ class PolicyError(RuntimeError):
 
 @runtime_checkable
 class Policy(Protocol):
-    """What the runner drives: `reset()` at the start of an episode, then one `select_action` per step."""
+    """What the runner drives: `reset()` at the start of an episode, then one `select_action` per step.
+
+    A policy with `uses_environment_state = True` (a scripted expert) is given the task's privileged
+    `environment_state` vector in its observation (from the env's `info["privileged"]`); no other
+    policy sees it.
+    """
 
     def reset(self) -> None: ...
 

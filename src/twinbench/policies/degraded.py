@@ -41,6 +41,11 @@ class DegradedPolicy:
         self._half = 0.5 * (self.high - self.low)  # half-range of the action space, per dimension
         self.reset()
 
+    @property
+    def uses_environment_state(self) -> bool:
+        """Whether the wrapped policy reads the privileged `environment_state` (scripted experts)."""
+        return bool(getattr(self.base, "uses_environment_state", False))
+
     def reset(self) -> None:
         self.base.reset()
         self._rng = np.random.default_rng(self.seed)

@@ -50,6 +50,19 @@ class ControllerConfig:
 
 
 @dataclass
+class ControllerState:
+    """What the controller carries from one step to the next."""
+
+    q: np.ndarray  # (n_q,) current configuration (gripper joint included)
+    gripper: float  # gripper command in [0, 1] (1 = closed)
+    latched: bool = False
+    restart_cache: tuple | None = None  # (target, IKResult) of the last target that needed restarts
+
+    def copy(self) -> ControllerState:
+        return ControllerState(self.q.copy(), self.gripper, self.latched, self.restart_cache)
+
+
+@dataclass
 class RobotCommand:
     """What the controller asks of the robot for one frame."""
 
@@ -64,7 +77,10 @@ class RobotCommand:
 
 
 class RobotController:
-    """Stateful velocity-control mimic over a RobotModel. `step(action, finger_forces)` -> RobotCommand."""
+    """Velocity-control mimic over a RobotModel: `advance(state, action, finger_forces)` -> RobotCommand.
+
+    `reset(q0)` / `step(action, finger_forces)` / `q` / `gripper` / `latched` work on the controller's own
+    `state`."""
 
     def __init__(
         self, model: RobotModel, config: ControllerConfig | None = None, q0: np.ndarray | None = None
@@ -73,30 +89,47 @@ class RobotController:
         self.config = config or ControllerConfig()
         self.reset(q0)
 
-    def reset(self, q0: np.ndarray | None = None) -> None:
-        """Set the configuration (default: the model's home, gripper as encoded there)."""
+    def initial_state(self, q0: np.ndarray | None = None) -> ControllerState:
+        """A state at q0 (default: the model's home, gripper command as encoded there), unlatched."""
         q = self.model.home_q if q0 is None else self.model.check_q(q0, "q0")
         if q.ndim != 1:
             raise ValueError(f"q0: expected shape ({self.model.n_q},), got {q.shape}")
-        self.q = self.model.clip_q(q.copy())
-        self.gripper = float(np.clip(self.model.gripper_closedness(self.q), 0.0, 1.0))
-        self.latched = False
-        self._restart_cache = None
+        q = self.model.clip_q(q.copy())
+        return ControllerState(q, float(np.clip(self.model.gripper_closedness(q), 0.0, 1.0)))
+
+    def reset(self, q0: np.ndarray | None = None) -> None:
+        """Set the controller's own state to `initial_state(q0)`."""
+        self.state = self.initial_state(q0)
+
+    @property
+    def q(self) -> np.ndarray:
+        return self.state.q
+
+    @property
+    def gripper(self) -> float:
+        return self.state.gripper
+
+    @property
+    def latched(self) -> bool:
+        return self.state.latched
 
     # ----------------------------------------------------------------- observation
-    def ee_pose(self) -> np.ndarray:
-        return self.model.ee_pose(self.q)
+    def ee_pose(self, state: ControllerState | None = None) -> np.ndarray:
+        return self.model.ee_pose((state or self.state).q)
 
-    def ee_state(self) -> np.ndarray:
+    def ee_state(self, state: ControllerState | None = None) -> np.ndarray:
         """Policy observation: [x, y, z, qw, qx, qy, qz, gripper] ([x, y] in planar mode)."""
-        t = self.ee_pose()
+        state = state or self.state
+        t = self.model.ee_pose(state.q)
         if self.config.action_mode == "planar":
             return t[:2, 3].copy()
-        return np.concatenate([t[:3, 3], matrix_to_quat(t[:3, :3]), [self.gripper]])
+        return np.concatenate([t[:3, 3], matrix_to_quat(t[:3, :3]), [state.gripper]])
 
     # ----------------------------------------------------------------- action -> target
-    def target_from_action(self, action: np.ndarray) -> tuple[np.ndarray, float]:
+    def target_from_action(self, action: np.ndarray, state: ControllerState | None = None
+                           ) -> tuple[np.ndarray, float]:
         """Validate an action and return (target pose (4, 4), gripper command in [0, 1])."""
+        state = state or self.state
         cfg = self.config
         a = np.asarray(action, dtype=np.float64)
         if a.shape != (cfg.action_dim,):
@@ -113,67 +146,73 @@ class RobotController:
             return pose_matrix(a[:3], quat), float(np.clip(a[7], 0.0, 1.0))
         if cfg.action_mode == "relative":
             # Translation in the world frame; rotation vector in the world frame about the EE origin.
-            cur = self.ee_pose()
+            cur = self.model.ee_pose(state.q)
             t = np.eye(4)
             t[:3, 3] = cur[:3, 3] + a[:3]
             t[:3, :3] = rotvec_to_matrix(a[3:6]) @ cur[:3, :3]
             return t, float(np.clip(a[6], 0.0, 1.0))
         pos = np.array([a[0], a[1], cfg.planar_height])
-        return pose_matrix(pos, np.asarray(cfg.planar_quat)), self.gripper
+        return pose_matrix(pos, np.asarray(cfg.planar_quat)), state.gripper
 
     # ----------------------------------------------------------------- step
     def step(self, action: np.ndarray, finger_forces=None) -> RobotCommand:
-        """Advance one frame. `finger_forces`: (f_left, f_right) contact forces (scalars or 3-vectors)."""
+        """`advance` the controller's own state."""
+        return self.advance(self.state, action, finger_forces)
+
+    def advance(self, state: ControllerState, action: np.ndarray, finger_forces=None) -> RobotCommand:
+        """Advance `state` (in place) by one frame. `finger_forces`: (f_left, f_right) contact forces
+        (scalars or 3-vectors) of the previous frame."""
         cfg = self.config
         model = self.model
-        target, g_cmd = self.target_from_action(action)
-        q_prev = self.q.copy()
-        ik = self._solve(target)
+        target, g_cmd = self.target_from_action(action, state)
+        q_prev = state.q.copy()
+        ik = self._solve(state, target)
         arm = model.arm_q_indices
-        dq = ik.q[arm] - self.q[arm]
+        dq = ik.q[arm] - state.q[arm]
         norm = float(np.linalg.norm(dq))
         if norm > cfg.max_joint_delta:
             dq *= cfg.max_joint_delta / norm
         velocity = dq / cfg.velocity_dt * cfg.velocity_gain
-        q = self.q.copy()
+        q = state.q.copy()
         q[arm] = q[arm] + velocity / cfg.control_hz
         q = model.clip_q(q)
 
-        self.latched = self._both_fingers_loaded(finger_forces)
-        delta = float(np.clip(g_cmd - self.gripper, -cfg.gripper_rate, cfg.gripper_rate))
-        if self.latched and delta > 0:
+        state.latched = self._both_fingers_loaded(finger_forces)
+        delta = float(np.clip(g_cmd - state.gripper, -cfg.gripper_rate, cfg.gripper_rate))
+        if state.latched and delta > 0:
             delta = 0.0  # holding: stop closing, opening still allowed
-        self.gripper = float(np.clip(self.gripper + delta, 0.0, 1.0))
-        q = model.set_gripper(q, self.gripper)
-        self.q = q
+        state.gripper = float(np.clip(state.gripper + delta, 0.0, 1.0))
+        q = model.set_gripper(q, state.gripper)
+        state.q = q
         return RobotCommand(
             q=q.copy(),
             q_prev=q_prev,
             joint_velocity=velocity,
-            gripper=self.gripper,
+            gripper=state.gripper,
             gripper_opening=float(model.gripper_opening(q)),
-            latched=self.latched,
+            latched=state.latched,
             target_pose=target,
             ik_converged=bool(ik.converged),
         )
 
-    def _solve(self, target: np.ndarray):
+    def _solve(self, state: ControllerState, target: np.ndarray):
         """IK warm-started at the current q; random restarts only for a new target the warm start misses.
 
-        The restart result for the latest such target is cached: a policy holding an unreachable (or
-        hard) target does not pay for restarts every frame, and the choice stays deterministic.
+        The restart result for the latest such target is cached in the state: a policy holding an
+        unreachable (or hard) target does not pay for restarts every frame, and the choice stays
+        deterministic.
         """
         cfg = self.config
-        ik = solve_ik(self.model, target, self.q, max_iters=cfg.ik_max_iters, restarts=0)
+        ik = solve_ik(self.model, target, state.q, max_iters=cfg.ik_max_iters, restarts=0)
         if ik.converged or cfg.ik_restarts == 0:
             return ik
-        cached = self._restart_cache
+        cached = state.restart_cache
         if cached is None or not np.array_equal(cached[0], target):
             cached = (
                 target.copy(),
-                solve_ik(self.model, target, self.q, max_iters=cfg.ik_max_iters, restarts=cfg.ik_restarts),
+                solve_ik(self.model, target, state.q, max_iters=cfg.ik_max_iters, restarts=cfg.ik_restarts),
             )
-            self._restart_cache = cached
+            state.restart_cache = cached
         best = cached[1]
         if weighted_error(best.pos_err, best.rot_err) < weighted_error(ik.pos_err, ik.rot_err):
             return best

@@ -1,11 +1,14 @@
 """Task registry: every task names its Gymnasium env id, scripted expert and initial-state grid.
 
-A task module registers itself on import (`register_task` + `gymnasium.register`); `get_task` imports
-the package's task modules when asked for a name not registered yet. Env conventions every task follows:
+A task module registers itself on import (`register_task`); `get_task` imports the package's task
+modules when asked for a name not registered yet. Tasks over a twin (`tasks.base.TwinTask`) run in the
+generic `twinbench.env.TwinEnv`; the env ids are registered with gymnasium on `import twinbench`.
+Env conventions every task follows:
 
 - `reset(seed=s, options={"init_state": i})` starts from grid state i (0 <= i < n_grid_states); a
   state sampled from the task's sampler (seeded by `seed`) for i >= n_grid_states or
-  `options={"sampled": True}`.
+  `options={"sampled": True}`; without `init_state`, grid state `seed mod n_grid_states` (0 without a
+  seed).
 - observation `{"pixels": {"front": HxWx3 uint8, "wrist": HxWx3 uint8}, "agent_pos": float32}`.
 - `step` returns `(obs, reward, terminated, truncated, info)` with `info["is_success"]` (bool) and
   `info["status"]` in {"ok", "sim_error"} on every step; an env may instead raise `SimulationError`.
@@ -35,6 +38,7 @@ class TaskSpec:
     make_expert: Callable[[Any], Any]  # make_expert(env) -> policy with reset() / select_action(obs)
     n_grid_states: int
     description: str
+    task_cls: type | None = None  # a tasks.base.TwinTask subclass (None: the task has its own env class)
 
     def make_env(self, **kwargs):
         """`gymnasium.make(env_id, **kwargs)` (env-checker wrapper off: the runner validates outputs)."""
@@ -47,7 +51,7 @@ _TASKS: dict[str, TaskSpec] = {}
 
 
 def register_task(name: str, *, env_id: str, make_expert: Callable[[Any], Any], n_grid_states: int,
-                  description: str) -> TaskSpec:
+                  description: str, task_cls: type | None = None) -> TaskSpec:
     """Register a task under `name` (re-registering the same name replaces it)."""
     if not name or not isinstance(name, str):
         raise ValueError(f"task name must be a non-empty string, got {name!r}")
@@ -55,7 +59,7 @@ def register_task(name: str, *, env_id: str, make_expert: Callable[[Any], Any], 
         raise ValueError(f"task {name!r}: n_grid_states must be >= 1, got {n_grid_states}")
     if not callable(make_expert):
         raise ValueError(f"task {name!r}: make_expert must be callable (make_expert(env) -> policy)")
-    spec = TaskSpec(name, env_id, make_expert, int(n_grid_states), description)
+    spec = TaskSpec(name, env_id, make_expert, int(n_grid_states), description, task_cls)
     _TASKS[name] = spec
     return spec
 
@@ -91,18 +95,3 @@ def task_names() -> list[str]:
 # (`get_task` of an unknown name or `task_names`), so importing this package stays light.
 _DISCOVERED = False
 importlib.import_module(f"{__name__}.point_reach")
-
-# Gymnasium ids of the heavier tasks, registered by name so that `gymnasium.make` works right after
-# `import twinbench.tasks` without importing them (the module registers its task spec when loaded).
-_LAZY_ENVS = {"twinbench/PushT-v0": "twinbench.tasks.push_t:PushTEnv"}
-
-
-def _register_lazy_envs() -> None:
-    import gymnasium
-
-    for env_id, entry_point in _LAZY_ENVS.items():
-        if env_id not in gymnasium.registry:
-            gymnasium.register(id=env_id, entry_point=entry_point)
-
-
-_register_lazy_envs()

@@ -140,8 +140,6 @@ def make_expert(env) -> PointReachExpert:
     return PointReachExpert()
 
 
-ENV_ID = "twinbench/PointReach-v0"
-if ENV_ID not in gymnasium.registry:
-    gymnasium.register(id=ENV_ID, entry_point=PointReachEnv, max_episode_steps=EPISODE_STEPS)
+ENV_ID = "twinbench/PointReach-v0"  # registered with gymnasium by `import twinbench`
 register_task("point-reach", env_id=ENV_ID, make_expert=make_expert,
               n_grid_states=N_GRID, description=PointReachEnv.task_description)

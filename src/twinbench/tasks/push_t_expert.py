@@ -1,4 +1,6 @@
-"""Scripted push-T expert: reads the true block pose and pushes it onto the goal.
+"""Scripted push-T expert: reads the true block and goal poses from the observation's
+`environment_state` (privileged; the runner adds it for experts, or the env when made with
+`environment_state=True`) and pushes the block onto the goal.
 
 Each step it scores candidate contacts on the T's outline: pushing at contact c (outward normal n)
 along -n moves the block, to first order, with velocity -n and angular velocity -(r x n) / rho^2
@@ -12,6 +14,9 @@ from __future__ import annotations
 
 import numpy as np
 
+from twinbench.policies.base import PolicyError
+from twinbench.robot.builtin import PUSHER_RADIUS
+
 
 def _wrap(a: float) -> float:
     return float((a + np.pi) % (2 * np.pi) - np.pi)
@@ -23,13 +28,16 @@ def _rot(th: float) -> np.ndarray:
 
 
 class PushTExpert:
-    """Scripted expert for `twinbench/PushT-v0` (needs the env for the true block pose)."""
+    """Scripted expert for `twinbench/PushT-v0`: acts from `obs["agent_pos"]` and
+    `obs["environment_state"]` = [x, y, theta, goal_x, goal_y, goal_theta, msd] (see tasks.push_t)."""
 
-    def __init__(self, env, *, contact_spacing: float = 0.01, clearance: float = 0.012,
-                 push_depth: float = 0.015, commit_steps: int = 15, done_msd: float = 0.0004):
-        self.env = env.unwrapped
-        shape = self.env.shape
-        self.pusher_radius = 0.015
+    uses_environment_state = True
+
+    def __init__(self, shape, *, pusher_radius: float = PUSHER_RADIUS, contact_spacing: float = 0.01,
+                 clearance: float = 0.012, push_depth: float = 0.015, commit_steps: int = 15,
+                 done_msd: float = 0.0004):
+        self.shape = shape
+        self.pusher_radius = pusher_radius
         self.clearance = clearance
         self.push_depth = push_depth
         self.commit_steps = commit_steps
@@ -50,8 +58,7 @@ class PushTExpert:
         approach = pts + normals * (self.pusher_radius + clearance)
         free = np.array([self._distance_to_t(p) > self.pusher_radius + 0.5 * clearance for p in approach])
         self._contacts, self._normals = pts[free], normals[free]
-        local = self.env._goal_particles - self.env.goal[:3, 3]
-        self._rho2 = float(np.mean(np.sum(local[:, :2] ** 2, axis=1)))
+        self._rho2 = shape.polar_radius2()
         self._radius = float(np.max(np.linalg.norm(outline, axis=1)))
         self.reset()
 
@@ -74,12 +81,14 @@ class PushTExpert:
         return 2.0 * vel @ (pose[:2] - goal[:2]) + 2.0 * np.sin(dth) * self._rho2 * omega
 
     def select_action(self, obs) -> np.ndarray:
-        env = self.env
+        if "environment_state" not in obs:
+            raise PolicyError("the push-T expert needs obs['environment_state'] (make the env with "
+                              "environment_state=True, or let the evaluation runner add it)")
         pusher = np.asarray(obs["agent_pos"], dtype=np.float64)[:2]
-        pose = env.block_pose()
-        goal = np.array([env.goal[0, 3], env.goal[1, 3], np.arctan2(env.goal[1, 0], env.goal[0, 0])])
+        state = np.asarray(obs["environment_state"], dtype=np.float64)
+        pose, goal, msd = state[0:3], state[3:6], float(state[6])
         rot = _rot(pose[2])
-        if env.goal_msd() < self.done_msd:
+        if msd < self.done_msd:
             self._choice = None
             away = pusher - pose[:2]
             away /= max(np.linalg.norm(away), 1e-9)
@@ -106,7 +115,7 @@ class PushTExpert:
     def _nearest_on_t(self, p: np.ndarray) -> np.ndarray:
         """Nearest point of the T to a block-frame 2D point (the point itself when inside)."""
         best, best_d = p, np.inf
-        for lo, hi in self.env.shape.boxes():
+        for lo, hi in self.shape.boxes():
             q = np.clip(p, lo[:2], hi[:2])
             d = float(np.linalg.norm(p - q))
             if d < best_d:

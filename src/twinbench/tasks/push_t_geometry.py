@@ -1,4 +1,5 @@
-"""Push-T geometry and rules: the T-block shape, its particles, initial states and success (DESIGN §7).
+"""Push-T geometry: the T-block shape, its particles, the grid of initial states and the goal distance
+(DESIGN §7).
 
 Pure NumPy: no physics or rendering here, so the rules can be checked on their own.
 Block frame: origin at the T's area centroid in the xy plane, z from 0 (table) to `height`; the bar
@@ -43,6 +44,17 @@ class TBlockShape:
         """(min, max) corners of bar and stem in the block frame (area centroid at the origin)."""
         shift = np.array([0.0, -self.centroid_y, 0.0])
         return [(lo + shift, hi + shift) for lo, hi in self.boxes_raw()]
+
+    def polar_radius2(self) -> float:
+        """Mean squared distance of the T's footprint from its centroid (polar second moment / area), m^2."""
+        total = moment = 0.0
+        for lo, hi in self.boxes():
+            w, h = hi[0] - lo[0], hi[1] - lo[1]
+            c = 0.5 * (lo[:2] + hi[:2])
+            area = w * h
+            total += area
+            moment += area * (float(c @ c) + (w * w + h * h) / 12.0)
+        return moment / total
 
     def contains(self, points: np.ndarray, tol: float = 1e-9) -> np.ndarray:
         """Whether block-frame points lie inside the T (boundary included)."""
@@ -118,40 +130,7 @@ def grid_initial_states() -> np.ndarray:
     return np.array(states)
 
 
-def sample_initial_states(n: int, seed: int, half_range: float = 0.075) -> np.ndarray:
-    """n uniform initial states: x, y in [-7.5, 7.5] cm, any angle (large-scale sampling)."""
-    if n < 0:
-        raise ValueError(f"n must be >= 0, got {n}")
-    rng = np.random.default_rng(seed)
-    xy = rng.uniform(-half_range, half_range, size=(n, 2))
-    th = rng.uniform(-np.pi, np.pi, size=(n, 1))
-    return np.hstack([xy, th])
-
-
 def mean_squared_distance(particles: np.ndarray, goal_particles: np.ndarray) -> float:
     """Mean over particles of the squared distance to the same particle at the goal pose (m^2)."""
     d = np.asarray(particles, dtype=np.float64) - np.asarray(goal_particles, dtype=np.float64)
     return float(np.mean(np.sum(d * d, axis=1)))
-
-
-class SuccessWindow:
-    """Success when the per-frame condition held in more than `min_hits` of the last `window` frames."""
-
-    def __init__(self, window: int = 100, min_hits: int = 30):
-        if window <= 0 or not 0 <= min_hits < window:
-            raise ValueError(f"need window > 0 and 0 <= min_hits < window, got {window}, {min_hits}")
-        self.window, self.min_hits = window, min_hits
-        self._hits: list[bool] = []
-
-    def reset(self) -> None:
-        self._hits.clear()
-
-    def update(self, hit: bool) -> bool:
-        self._hits.append(bool(hit))
-        if len(self._hits) > self.window:
-            self._hits.pop(0)
-        return self.success
-
-    @property
-    def success(self) -> bool:
-        return sum(self._hits) > self.min_hits

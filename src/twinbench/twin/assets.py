@@ -29,8 +29,13 @@ def table_gaussians(
     """The table top (z = 0): wood grain along x, a tape frame around the push area, grid dots."""
     rng = np.random.default_rng(seed)
     pts = _plane_points(
-        (x_range[0], y_range[0], 0.0), (1, 0, 0), (0, 1, 0),
-        x_range[1] - x_range[0], y_range[1] - y_range[0], spacing, rng,
+        (x_range[0], y_range[0], 0.0),
+        (1, 0, 0),
+        (0, 1, 0),
+        x_range[1] - x_range[0],
+        y_range[1] - y_range[0],
+        spacing,
+        rng,
     )
     x, y = pts[:, 0], pts[:, 1]
     grain = 0.5 + 0.5 * np.sin(90.0 * y + 6.0 * np.sin(7.0 * x) + 3.0 * np.sin(23.0 * y))
@@ -52,13 +57,21 @@ def backdrop_gaussians(
     """A wall behind the robot (plane x = const, facing +x) with coloured posters and a skirting stripe."""
     rng = np.random.default_rng(seed)
     pts = _plane_points(
-        (x, y_range[0], z_range[0]), (0, 1, 0), (0, 0, 1),
-        y_range[1] - y_range[0], z_range[1] - z_range[0], spacing, rng,
+        (x, y_range[0], z_range[0]),
+        (0, 1, 0),
+        (0, 0, 1),
+        y_range[1] - y_range[0],
+        z_range[1] - z_range[0],
+        spacing,
+        rng,
     )
     y, z = pts[:, 1], pts[:, 2]
     rgb = np.tile([0.78, 0.79, 0.76], (len(pts), 1)) * (1.0 + rng.normal(0.0, 0.02, (len(pts), 1)))
-    posters = [((-0.55, 0.35, -0.25, 0.75), (0.80, 0.25, 0.20)), ((0.3, 0.4, 0.65, 0.7), (0.20, 0.55, 0.35)),
-               ((0.5, 0.05, 0.75, 0.3), (0.95, 0.80, 0.20))]
+    posters = [
+        ((-0.55, 0.35, -0.25, 0.75), (0.80, 0.25, 0.20)),
+        ((0.3, 0.4, 0.65, 0.7), (0.20, 0.55, 0.35)),
+        ((0.5, 0.05, 0.75, 0.3), (0.95, 0.80, 0.20)),
+    ]
     for (y0, z0, y1, z1), colour in posters:
         rgb[(y > y0) & (y < y1) & (z > z0) & (z < z1)] = colour
     rgb[z < 0.05] = (0.30, 0.30, 0.32)

@@ -1,1 +1,0 @@
-"""twinbench.scene."""

@@ -1,0 +1,174 @@
+"""What every task over a twin shares: initial states declared as data, the success window, and the
+`TwinTask` base class (rules over a built twin; `twinbench.env.TwinEnv` drives it).
+
+A task names the objects it needs by role (`roles`: role -> object name in the twin, overridable), states
+where episodes start (planar offsets of each role's object from its rest pose in the twin), and judges
+each frame (`frame`), rewards it and exposes the privileged state (object poses, particles, a flat
+`environment_state` vector for scripted experts).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from twinbench.transforms import axis_angle_to_matrix
+
+
+def offset_pose(rest_pose: np.ndarray, offset) -> np.ndarray:
+    """`rest_pose` moved by a planar offset (dx, dy, dtheta): rotated by dtheta about the world z axis
+    through the object's origin, then translated by (dx, dy, 0)."""
+    dx, dy, dth = (float(v) for v in offset)
+    out = np.array(rest_pose, dtype=np.float64)
+    out[:3, :3] = axis_angle_to_matrix(np.array([0.0, 0.0, 1.0]), np.array(dth)) @ out[:3, :3]
+    out[:3, 3] += (dx, dy, 0.0)
+    return out
+
+
+@dataclass(frozen=True, eq=False)
+class InitialStates:
+    """Where episodes start: per role, planar offsets (dx, dy, dtheta) from the object's rest pose.
+
+    `grid[role]` is (N, 3), the same N for every role (row i of each is grid state i); `low[role]` and
+    `high[role]` bound the uniform sampler used for large runs.
+    """
+
+    grid: dict[str, np.ndarray]
+    low: dict[str, tuple[float, float, float]]
+    high: dict[str, tuple[float, float, float]]
+
+    def __post_init__(self) -> None:
+        sizes = {role: np.asarray(g).shape for role, g in self.grid.items()}
+        if (
+            not sizes
+            or len({s[0] for s in sizes.values()}) != 1
+            or any(len(s) != 2 or s[1] != 3 for s in sizes.values())
+        ):
+            raise ValueError(
+                f"InitialStates.grid: every role needs an (N, 3) array with the same N, got {sizes}"
+            )
+        if set(self.low) != set(self.grid) or set(self.high) != set(self.grid):
+            raise ValueError("InitialStates: low and high need the same roles as grid")
+
+    def __len__(self) -> int:
+        return int(next(iter(self.grid.values())).shape[0])
+
+    @staticmethod
+    def product(grids: dict[str, np.ndarray], low: dict, high: dict) -> InitialStates:
+        """Every combination of the roles' offsets (the first role varies slowest)."""
+        roles = list(grids)
+        idx = np.stack(np.meshgrid(*[np.arange(len(grids[r])) for r in roles], indexing="ij"), -1)
+        idx = idx.reshape(-1, len(roles))
+        return InitialStates({r: np.asarray(grids[r])[idx[:, k]] for k, r in enumerate(roles)}, low, high)
+
+    def grid_offsets(self, index: int) -> dict[str, np.ndarray]:
+        if not 0 <= index < len(self):
+            raise ValueError(f"grid state {index} is outside [0, {len(self)})")
+        return {role: np.asarray(g[index], dtype=np.float64) for role, g in self.grid.items()}
+
+    def sample_offsets(self, seed: int) -> dict[str, np.ndarray]:
+        """Uniform offsets within [low, high] per role, drawn from `seed` (roles in declaration order)."""
+        rng = np.random.default_rng(seed)
+        return {
+            role: rng.uniform(np.asarray(self.low[role], float), np.asarray(self.high[role], float))
+            for role in self.grid
+        }
+
+
+class SuccessWindow:
+    """Success when the per-frame condition held in more than `min_hits` of the last `window` frames."""
+
+    def __init__(self, window: int = 100, min_hits: int = 30):
+        if window <= 0 or not 0 <= min_hits < window:
+            raise ValueError(f"need window > 0 and 0 <= min_hits < window, got {window}, {min_hits}")
+        self.window, self.min_hits = window, min_hits
+        self._hits: list[bool] = []
+
+    def reset(self) -> None:
+        self._hits.clear()
+
+    def update(self, hit: bool) -> bool:
+        self._hits.append(bool(hit))
+        if len(self._hits) > self.window:
+            self._hits.pop(0)
+        return self.success
+
+    @property
+    def success(self) -> bool:
+        return sum(self._hits) > self.min_hits
+
+
+class TwinTask:
+    """Rules over a twin. Subclasses set the class attributes and implement the methods below.
+
+    Lifecycle (driven by TwinEnv): `setup(twin, state)` once after the twin is built (precompute goals,
+    check the objects), then per episode `reset(twin, state, offsets)`, and per step `frame(twin,
+    state)` -> (hit, metrics), `reward(metrics)`, `privileged(twin, state, metrics)`.
+    """
+
+    name: str = ""
+    description: str = ""
+    default_roles: dict[str, str] = {}
+    episode_seconds: float = 60.0
+    success_window: int = 100
+    success_min_hits: int = 30
+    environment_state_dim: int = 0
+    settings_cls: type  # a frozen dataclass of the task's settings (TwinEnv routes kwargs by its fields)
+
+    def __init__(self, roles: dict[str, str] | None = None):
+        self.roles = dict(self.default_roles)
+        unknown = sorted(set(roles or {}) - set(self.roles))
+        if unknown:
+            raise ValueError(f"task {self.name!r}: unknown role(s) {unknown}; roles: {sorted(self.roles)}")
+        self.roles.update(roles or {})
+
+    # --- to implement ---------------------------------------------------------------------------------
+    initial_states: InitialStates
+
+    def default_twin(self, preset: str, **cell_settings):
+        """The built-in cell of this task as a TwinSpec."""
+        raise NotImplementedError
+
+    def controller_overrides(self) -> dict:
+        """ControllerConfig fields this task requires of any twin (e.g. the action mode)."""
+        return {}
+
+    def setup(self, twin, state) -> None:
+        self.check_twin(twin)
+
+    def reset(self, twin, state, offsets: dict[str, np.ndarray]) -> None:
+        raise NotImplementedError
+
+    def frame(self, twin, state) -> tuple[bool, dict]:
+        raise NotImplementedError
+
+    def reward(self, metrics: dict) -> float:
+        return 0.0
+
+    def privileged(self, twin, state, metrics: dict) -> dict:
+        return {"object_poses": {role: twin.object_pose(state, name) for role, name in self.roles.items()}}
+
+    def decorate(self, frames: dict[str, np.ndarray]) -> None:
+        """Draw task overlays into the uint8 camera images (in place)."""
+
+    def action_bounds(self, twin) -> tuple[np.ndarray, np.ndarray]:
+        raise NotImplementedError
+
+    # --- shared ----------------------------------------------------------------------------------------
+    def check_twin(self, twin) -> None:
+        missing = {role: name for role, name in self.roles.items() if name not in twin.object_names}
+        if missing:
+            raise ValueError(
+                f"task {self.name!r} needs object(s) {sorted(missing.values())} "
+                f"(roles {sorted(missing)}) but "
+                f"twin {twin.spec.name!r} has {twin.object_names}; rename the objects in twin.json or pass "
+                f"roles={{ROLE: OBJECT}}"
+            )
+
+    def object_poses(self, twin, offsets: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+        """World poses of the roles' objects for planar `offsets` from their rest poses."""
+        return {
+            self.roles[role]: offset_pose(twin.spec.object(self.roles[role]).rest_pose, off)
+            for role, off in offsets.items()
+        }

@@ -1,0 +1,399 @@
+"""build_twin: a TwinSpec made runnable. `Twin` is the immutable part (spring-mass model and solver, robot
+model and controller, rest Gaussians, cameras); `TwinState` is what changes per step (particles,
+velocities, kinematic-mesh targets, controller state, posed Gaussians).
+
+    twin, state = build_twin(spec, device="cpu")
+    twin.reset(state, q0, {"tblock": pose})       # robot at q0, objects at rest at their poses
+    twin.step(state, action)                      # controller -> tool meshes swept over the substeps -> frame
+    frames = twin.render(state)                   # {camera: RenderOutput}, Gaussians posed first
+
+Per step: the controller turns the action into joint targets (IK + velocity-control mimic + gripper
+latch, DESIGN §5), the tool meshes' vertices are interpolated over the physics substeps, one spring-mass
+frame runs, and the fingers' contact forces feed the latch on the next step. Rendering poses the
+Gaussians from the state (robot links by FK, rigid objects by the best-fit rigid motion of their
+particles, deformable ones by LBS) into the state's Gaussian buffer, then renders the cameras.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from twinbench.gaussians.camera import Camera
+from twinbench.gaussians.cloud import DeviceGaussians, GaussianCloud
+from twinbench.gaussians.render import RenderOutput, render
+from twinbench.gaussians.skinning import LabelRigidPoser, LBSSkinner, bind
+from twinbench.physics import Control, ModelBuilder, SpringMassModel, SpringMassSolver, State
+from twinbench.robot.controller import ControllerState, RobotCommand, RobotController
+from twinbench.robot.gaussians import RobotGaussians, sample_robot_scan
+from twinbench.robot.model import RobotModel
+from twinbench.transforms import fit_rigid_transform, transform_points
+from twinbench.twin.spec import CameraSpec, RobotSpec, TwinSpec, with_color_map
+
+
+@dataclass
+class TwinState:
+    """Everything of one world that changes while a twin runs. Read it through the Twin's accessors
+    (`particles`, `object_pose`, `ee_state`, ...) so task code does not depend on its layout."""
+
+    physics: State  # particle positions and velocities
+    control: Control  # this frame's kinematic-mesh vertex targets (robot tools)
+    robot: ControllerState  # joint configuration, gripper command, latch
+    gaussians: DeviceGaussians  # the scene's Gaussians, posed by Twin.pose_gaussians
+    object_poses: dict[str, np.ndarray] = field(default_factory=dict)  # best-fit rigid pose per object
+    collider_poses: dict[str, np.ndarray] = field(default_factory=dict)  # this episode's collider poses
+    finger_forces: tuple[float, float] | None = None  # last frame's contact force per finger (N)
+    command: RobotCommand | None = None  # the controller's last command
+    frame: int = 0
+
+
+@dataclass(frozen=True)
+class _ObjectSlot:
+    name: str
+    start: int  # first particle in the spring-mass model
+    count: int
+    g_start: int  # first Gaussian in the scene buffer
+    g_count: int
+    rest_particles: np.ndarray  # (P, 3) object frame
+    rest_pose: np.ndarray
+
+
+def load_spec_robot(spec: RobotSpec) -> RobotModel:
+    """The RobotModel of a RobotSpec (a built-in arm or a URDF file)."""
+    from twinbench.robot.builtin import load_builtin_arm
+    from twinbench.robot.model import load_robot
+
+    if spec.builtin_tool is not None:
+        model = load_builtin_arm(spec.builtin_tool)
+        overrides = {
+            k: getattr(spec, k)
+            for k in ("ee_link", "gripper_joint", "gripper_open", "gripper_closed")
+            if getattr(spec, k) is not None
+        }
+        if spec.contact_links:
+            overrides["contact_links"] = tuple(spec.contact_links)
+        if spec.home_q is not None:
+            overrides["home_q"] = np.asarray(spec.home_q, dtype=np.float64)
+        if overrides:
+            model = load_robot(
+                model.urdf_path,
+                **{
+                    "ee_link": model.ee_link,
+                    "gripper_joint": model.gripper_joint,
+                    "gripper_open": model.gripper_open,
+                    "gripper_closed": model.gripper_closed,
+                    "contact_links": model.contact_links,
+                    "home_q": model.home_q,
+                    **overrides,
+                },
+            )
+        return model
+    return load_robot(
+        spec.urdf,
+        ee_link=spec.ee_link,
+        gripper_joint=spec.gripper_joint,
+        gripper_open=spec.gripper_open,
+        gripper_closed=spec.gripper_closed,
+        contact_links=spec.contact_links,
+        home_q=None if spec.home_q is None else np.asarray(spec.home_q, dtype=np.float64),
+    )
+
+
+def _robot_gaussians(spec: RobotSpec, model: RobotModel) -> RobotGaussians:
+    if spec.gaussians is None:
+        rg = sample_robot_scan(model, spacing=spec.scan_spacing)
+        local = rg.local
+        link_index = rg.link_index
+    else:
+        missing = [name for name in spec.gaussian_links if name not in model.link_names]
+        if missing:
+            raise ValueError(
+                f"robot.gaussians.links: {missing} are not links of {model.urdf_path.name} "
+                f"(links: {model.link_names})"
+            )
+        to_model = np.array([model.link_index(name) for name in spec.gaussian_links], dtype=np.int64)
+        q = None if spec.gaussians_q is None else np.asarray(spec.gaussians_q, dtype=np.float64)
+        rg = RobotGaussians.from_world(model, spec.gaussians, to_model[spec.gaussian_labels], q)
+        local, link_index = rg.local, rg.link_index
+    if spec.color_map is not None:
+        local = spec.color_map.apply(local)
+    return RobotGaussians(model, local, link_index)
+
+
+class Twin:
+    """A built twin (see the module docstring). Immutable after `build_twin`; all per-world quantities
+    live in a `TwinState` (`new_state()`)."""
+
+    def __init__(self, spec: TwinSpec, device: str = "cpu"):
+        self.spec = spec
+        self.device = device
+        self.robot: RobotModel = load_spec_robot(spec.robot)
+        self.controller = RobotController(self.robot, spec.controller)
+        for cam in spec.cameras:
+            if cam.mount_link is not None and cam.mount_link not in self.robot.link_names:
+                raise ValueError(
+                    f"cameras[{cam.name!r}].mount_link: {cam.mount_link!r} is not a robot link "
+                    f"(links: {self.robot.link_names})"
+                )
+        self.cameras: dict[str, CameraSpec] = {c.name: c for c in spec.cameras}
+
+        builder = ModelBuilder(spec.sim)
+        slots, start = [], 0
+        for obj in spec.objects:
+            builder.add_body(
+                obj.particles,
+                radius=obj.spring_radius,
+                max_neighbors=obj.max_neighbors,
+                spring_Y=obj.spring_Y,
+                mass=obj.mass,
+                springs=obj.springs,
+                rest_lengths=obj.rest_lengths,
+            )
+            slots.append((obj, start))
+            start += obj.num_particles
+        q0 = self.robot.home_q
+        tool = spec.robot.tool_contact
+        self._tool_mesh: dict[str, int] = {}
+        for link in self.robot.contact_links:
+            self._tool_mesh[link] = builder.add_kinematic_mesh(
+                self.robot.contact_vertices(q0, link),
+                self.robot.contact_faces(link),
+                restitution=tool.restitution,
+                friction=tool.friction,
+            )
+        # Colliders are placed per episode (a task may move the box), so they are kinematic meshes whose
+        # vertices live in the state's control, held still within an episode.
+        self._collider_mesh: dict[str, int] = {}
+        for col in spec.colliders:
+            self._collider_mesh[col.name] = builder.add_kinematic_mesh(
+                transform_points(col.pose, col.vertices),
+                col.faces,
+                restitution=col.contact.restitution,
+                friction=col.contact.friction,
+            )
+        self.model: SpringMassModel = builder.finalize(device)
+        self.solver = SpringMassSolver(self.model)
+        self._latch = self.robot.gripper_joint is not None and len(self._tool_mesh) == 2
+
+        # Gaussians: [background | robot | objects... | colliders...] in one buffer per state.
+        static = [g for g in [with_color_map(spec.background, spec.background_color_map)] if g is not None]
+        self.robot_gaussians = _robot_gaussians(spec.robot, self.robot)
+        parts = static + [self.robot_gaussians.local]
+        n_static = sum(len(g) for g in static)
+        offset = n_static + len(self.robot_gaussians)
+        self._objects: dict[str, _ObjectSlot] = {}
+        self._posers: dict[str, LabelRigidPoser | LBSSkinner] = {}
+        for obj, p_start in slots:
+            rest = obj.rest_gaussians
+            count = 0 if rest is None else len(rest)
+            self._objects[obj.name] = _ObjectSlot(
+                obj.name,
+                p_start,
+                obj.num_particles,
+                offset,
+                count,
+                np.asarray(obj.particles, np.float64),
+                obj.rest_pose,
+            )
+            if rest is not None:
+                parts.append(rest)
+                if obj.binding == "rigid":
+                    self._posers[obj.name] = LabelRigidPoser(rest, np.zeros(count, np.int32), 1, device)
+                else:
+                    binding = bind(rest.means, obj.particles, device=device)
+                    self._posers[obj.name] = LBSSkinner(binding, rest.means, rest.quats, device)
+            offset += count
+        self._colliders: dict[str, tuple[int, int]] = {}  # name -> (first Gaussian, count)
+        for col in spec.colliders:
+            rest = with_color_map(col.gaussians, col.color_map)
+            if rest is not None:
+                parts.append(rest)
+                self._colliders[col.name] = (offset, len(rest))
+                self._posers[col.name] = LabelRigidPoser(rest, np.zeros(len(rest), np.int32), 1, device)
+                offset += len(rest)
+        self._rest_gaussians = GaussianCloud.concatenate(parts)
+        self._robot_range = (n_static, len(self.robot_gaussians))
+        self._robot_poser = self.robot_gaussians.device_poser(device)
+
+    # ------------------------------------------------------------------ state
+    @property
+    def object_names(self) -> list[str]:
+        return list(self._objects)
+
+    @property
+    def collider_names(self) -> list[str]:
+        return [c.name for c in self.spec.colliders]
+
+    def new_state(self) -> TwinState:
+        """A state with the robot at home and every object at its rest pose."""
+        state = TwinState(
+            physics=self.model.state(),
+            control=self.model.control(),
+            robot=self.controller.initial_state(),
+            gaussians=self._rest_gaussians.to_device(self.device),
+        )
+        self.reset(state)
+        return state
+
+    def reset(
+        self,
+        state: TwinState,
+        q0: np.ndarray | None = None,
+        object_poses: dict[str, np.ndarray] | None = None,
+    ) -> None:
+        """Robot at q0 (default home), each object at rest at its pose and each collider at its pose
+        (`object_poses` keyed by object or collider name; default: their poses in the spec)."""
+        state.robot = self.controller.initial_state(q0)
+        poses = dict(object_poses or {})
+        unknown = set(poses) - set(self._objects) - set(self._collider_mesh)
+        if unknown:
+            raise ValueError(
+                f"object_poses: unknown objects {sorted(unknown)}; objects: {self.object_names}, "
+                f"colliders: {self.collider_names}"
+            )
+        x = self.model.x0_np.copy()
+        state.object_poses = {}
+        for name, slot in self._objects.items():
+            pose = np.asarray(poses.get(name, slot.rest_pose), dtype=np.float64)
+            if pose.shape != (4, 4) or not np.all(np.isfinite(pose)):
+                raise ValueError(
+                    f"object_poses[{name!r}]: expected a finite 4x4 pose, got shape {pose.shape}"
+                )
+            x[slot.start : slot.start + slot.count] = transform_points(pose, slot.rest_particles)
+            state.object_poses[name] = pose.copy()
+        state.physics.x.assign(x.astype(np.float32))
+        state.physics.v.zero_()
+        for link, mid in self._tool_mesh.items():
+            verts = self.robot.contact_vertices(state.robot.q, link)
+            state.control.set_kinematic_mesh(mid, verts, verts)
+        for col in self.spec.colliders:
+            pose = np.asarray(poses.get(col.name, col.pose), dtype=np.float64)
+            if pose.shape != (4, 4) or not np.all(np.isfinite(pose)):
+                raise ValueError(
+                    f"object_poses[{col.name!r}]: expected a finite 4x4 pose, got shape {pose.shape}"
+                )
+            verts = transform_points(pose, col.vertices)
+            state.control.set_kinematic_mesh(self._collider_mesh[col.name], verts, verts)
+            state.collider_poses[col.name] = pose.copy()
+        state.frame = 0
+        state.finger_forces = None
+        state.command = None
+        self._fit_poses(state)
+
+    # ------------------------------------------------------------------ dynamics
+    def step(self, state: TwinState, action) -> RobotCommand:
+        """One control step (30 Hz frame). Raises `SimulationDiverged` when the simulation blows up,
+        `ValueError` for a malformed action."""
+        cmd = self.controller.advance(state.robot, action, state.finger_forces)
+        frames = self.robot.contact_mesh_frames(cmd.q_prev, cmd.q)
+        for link, mid in self._tool_mesh.items():
+            state.control.set_kinematic_mesh(mid, *frames[link])
+        self.solver.simulate_frame(state.physics, state.control)
+        if self._latch:  # the fingers' contact force magnitudes, for the latch on the next step
+            left, right = (
+                float(np.linalg.norm(self.solver.mesh_contact_force(m))) for m in self._tool_mesh.values()
+            )
+            state.finger_forces = (left, right)
+        state.command = cmd
+        state.frame += 1
+        self._fit_poses(state)
+        return cmd
+
+    def _fit_poses(self, state: TwinState) -> None:
+        x = state.physics.x.numpy()
+        for name, slot in self._objects.items():
+            state.object_poses[name] = fit_rigid_transform(
+                slot.rest_particles, x[slot.start : slot.start + slot.count]
+            )
+
+    # ------------------------------------------------------------------ queries
+    def particles(self, state: TwinState, name: str) -> np.ndarray:
+        """Current world positions (P, 3) of an object's particles (a copy)."""
+        slot = self._slot(name)
+        return state.physics.x.numpy()[slot.start : slot.start + slot.count].copy()
+
+    def rest_particles(self, name: str) -> np.ndarray:
+        """An object's particles in its own frame (P, 3)."""
+        return self._slot(name).rest_particles.copy()
+
+    def collider_pose(self, state: TwinState, name: str) -> np.ndarray:
+        """A collider's pose (4x4) in this episode."""
+        if name not in self._collider_mesh:
+            raise KeyError(
+                f"twin {self.spec.name!r} has no collider {name!r}; colliders: {self.collider_names}"
+            )
+        return state.collider_poses[name].copy()
+
+    def object_pose(self, state: TwinState, name: str) -> np.ndarray:
+        """Best-fit rigid pose (4x4) of an object's particles relative to its object frame."""
+        self._slot(name)
+        return state.object_poses[name].copy()
+
+    def ee_state(self, state: TwinState) -> np.ndarray:
+        """The policy's state vector (see ControllerConfig.action_mode)."""
+        return self.controller.ee_state(state.robot)
+
+    def _slot(self, name: str) -> _ObjectSlot:
+        if name not in self._objects:
+            raise KeyError(f"twin {self.spec.name!r} has no object {name!r}; objects: {self.object_names}")
+        return self._objects[name]
+
+    # ------------------------------------------------------------------ appearance
+    def _segment(self, g: DeviceGaussians, start: int, count: int) -> DeviceGaussians:
+        end = start + count
+        return DeviceGaussians(
+            g.means[start:end],
+            g.quats[start:end],
+            g.scales[start:end],
+            g.opacities[start:end],
+            g.sh[start:end],
+        )
+
+    def pose_gaussians(self, state: TwinState) -> DeviceGaussians:
+        """Pose the state's Gaussians: robot links by FK, objects by rigid fit or LBS. Returns them."""
+        g = state.gaussians
+        self._robot_poser.update(self.robot.fk(state.robot.q), out=self._segment(g, *self._robot_range))
+        for name, poser in self._posers.items():
+            if name in self._colliders:
+                poser.update(state.collider_poses[name][None], out=self._segment(g, *self._colliders[name]))
+                continue
+            slot = self._objects[name]
+            seg = self._segment(g, slot.g_start, slot.g_count)
+            if isinstance(poser, LabelRigidPoser):
+                poser.update(state.object_poses[name][None], out=seg)
+            else:
+                particles = state.physics.x[slot.start : slot.start + slot.count]  # a device view
+                poser.update(particles, out_means=seg.means, out_quats=seg.quats)
+        return g
+
+    def camera(self, state: TwinState, name: str) -> Camera:
+        """The Camera of a named camera at the state's robot configuration."""
+        if name not in self.cameras:
+            raise KeyError(f"twin {self.spec.name!r} has no camera {name!r}; cameras: {list(self.cameras)}")
+        spec = self.cameras[name]
+        pose = spec.pose
+        if spec.mount_link is not None:
+            pose = self.robot.link_pose(state.robot.q, spec.mount_link) @ pose
+        fx, fy, cx, cy = spec.output_intrinsics()
+        h, w = spec.output_hw
+        return Camera(fx=fx, fy=fy, cx=cx, cy=cy, width=w, height=h, cam_to_world=pose)
+
+    def render(self, state: TwinState, cameras: list[str] | None = None) -> dict[str, RenderOutput]:
+        """Render the named cameras (default: all) -> {name: RenderOutput (rgb, depth, alpha)}."""
+        names = list(self.cameras) if cameras is None else list(cameras)
+        cams = [self.camera(state, n) for n in names]
+        g = self.pose_gaussians(state)
+        outs = render(g, cams, background=self.spec.render_background, device=self.device)
+        return dict(zip(names, outs, strict=True))
+
+
+def build_twin(spec: TwinSpec, device: str = "cpu", num_worlds: int = 1) -> tuple[Twin, TwinState]:
+    """Build `spec` on `device` -> (Twin, its first TwinState at rest). One world per state for now."""
+    if num_worlds != 1:
+        raise ValueError(
+            f"num_worlds={num_worlds}: batching several worlds in one launch is not built yet; "
+            "use one twin per world (or worker processes)"
+        )
+    twin = Twin(spec, device)
+    return twin, twin.new_state()

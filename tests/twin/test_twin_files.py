@@ -1,0 +1,327 @@
+"""Twin directories: a lossless round trip, built-in vs exported twins giving bit-identical episodes, and
+one clear error per malformed directory."""
+
+import dataclasses
+import json
+import pickle
+import shutil
+
+import numpy as np
+import pytest
+import trimesh
+
+from twinbench.env import TwinEnv
+from twinbench.gaussians.cloud import GaussianCloud
+from twinbench.gaussians.colormap import identity_color_map
+from twinbench.gaussians.primitives import surface_discs
+from twinbench.robot.builtin import load_builtin_arm
+from twinbench.robot.gaussians import sample_robot_scan
+from twinbench.transforms import planar_pose
+from twinbench.twin import (
+    ColliderSpec,
+    ColorMap,
+    ContactSpec,
+    ObjectSpec,
+    RobotSpec,
+    TwinFormatError,
+    build_twin,
+    load_object,
+    load_twin,
+    save_object,
+    save_twin,
+)
+from twinbench.twin.cells import front_camera, push_t_cell, wrist_camera
+from twinbench.twin.cli import ExportConfig, export
+
+
+def assert_same(a, b, where="spec"):
+    """Recursive equality of spec data: arrays bit for bit (dtype included), clouds field by field."""
+    if isinstance(a, GaussianCloud):
+        for f in ("means", "quats", "log_scales", "logit_opacities", "sh"):
+            assert_same(getattr(a, f), getattr(b, f), f"{where}.{f}")
+    elif dataclasses.is_dataclass(a):
+        assert type(a) is type(b), where
+        for f in dataclasses.fields(a):
+            assert_same(getattr(a, f.name), getattr(b, f.name), f"{where}.{f.name}")
+    elif isinstance(a, np.ndarray):
+        assert isinstance(b, np.ndarray) and a.dtype == b.dtype, (
+            f"{where}: {a.dtype} vs {getattr(b, 'dtype', b)}"
+        )
+        np.testing.assert_array_equal(a, b, err_msg=where)
+    elif isinstance(a, tuple | list):
+        assert len(a) == len(b), where
+        for i, (x, y) in enumerate(zip(a, b, strict=True)):
+            assert_same(x, y, f"{where}[{i}]")
+    else:
+        assert a == b, f"{where}: {a!r} != {b!r}"
+
+
+def _disc(n, rgb, seed=0):
+    rng = np.random.default_rng(seed)
+    return surface_discs(
+        rng.uniform(-0.02, 0.02, (n, 3)).astype(np.float32), np.tile([0.0, 0, 1], (n, 1)), rgb, 0.004
+    )
+
+
+def _rich_spec():
+    """A twin using every field: scanned robot Gaussians, explicit springs with per-spring Y and masses,
+    a collider with Gaussians, colour maps, a crop box, depth."""
+    model = load_builtin_arm("gripper")
+    scan = sample_robot_scan(model, spacing=0.03)
+    q = model.home_q.copy()
+    q[0] += 0.2
+    cmap = identity_color_map(2)
+    cmap[0, 0] = 0.05
+    rng = np.random.default_rng(1)
+    pts = rng.uniform(-0.03, 0.03, (40, 3))
+    springs = np.array([[i, j] for i in range(40) for j in range(i + 1, min(i + 4, 40))], np.int32)
+    rope = ObjectSpec(
+        "rope",
+        pts,
+        springs=springs,
+        rest_lengths=np.linalg.norm(pts[springs[:, 0]] - pts[springs[:, 1]], axis=1).astype(np.float32),
+        spring_Y=rng.uniform(1e3, 1e4, len(springs)),
+        mass=rng.uniform(0.5, 2.0, 40),
+        gaussians=_disc(30, (0.9, 0.8, 0.1)),
+        binding="lbs",
+        rest_pose=planar_pose(0.4, 0.1, 0.2),
+        color_map=ColorMap(2, cmap),
+    )
+    block = ObjectSpec(
+        "block",
+        rng.uniform(-0.02, 0.02, (27, 3)).astype(np.float32),
+        spring_radius=0.025,
+        max_neighbors=12,
+        spring_Y=2e4,
+        gaussians=_disc(20, (0.2, 0.3, 0.8), 1),
+        binding="rigid",
+        rest_pose=planar_pose(0.5, -0.1, 0.0),
+    )
+    box = trimesh.creation.box(extents=(0.1, 0.12, 0.05))
+    box.vertices += rng.normal(0, 1e-4, box.vertices.shape)
+    collider = ColliderSpec(
+        "box",
+        np.asarray(box.vertices),
+        np.asarray(box.faces),
+        planar_pose(0.55, 0.2, 0.3),
+        ContactSpec(0.1, 0.7),
+        _disc(15, (0.4, 0.4, 0.4), 2),
+        ColorMap(1, identity_color_map(1)),
+    )
+    front = dataclasses.replace(front_camera((120, 160)), crop=(100.0, 20.0, 640.0, 440.0), depth=True)
+    spec = push_t_cell("fast")
+    return dataclasses.replace(
+        spec,
+        name="rich",
+        robot=RobotSpec(
+            "builtin:xarm7_gripper",
+            gaussians=scan.posed(q),
+            gaussian_labels=scan.link_index,
+            gaussian_links=tuple(model.link_names),
+            gaussians_q=tuple(q),
+            home_q=tuple(model.home_q),
+            tool_contact=ContactSpec(0.0, 1.2),
+            color_map=ColorMap(2, cmap),
+        ),
+        objects=(rope, block),
+        colliders=(collider,),
+        cameras=(front, wrist_camera("link7", (64, 96))),
+        background_color_map=ColorMap(2, cmap),
+        render_background=(0.1, 0.2, 0.3),
+    )
+
+
+def test_round_trip_is_lossless(tmp_path):
+    for spec in (push_t_cell("fast"), _rich_spec()):
+        save_twin(spec, tmp_path / spec.name)
+        assert_same(spec, load_twin(tmp_path / spec.name))
+        # saving the loaded spec again writes the same twin.json
+        save_twin(load_twin(tmp_path / spec.name), tmp_path / f"{spec.name}2")
+        assert (tmp_path / spec.name / "twin.json").read_text() == (
+            tmp_path / f"{spec.name}2" / "twin.json"
+        ).read_text()
+
+
+def test_rich_twin_builds_and_renders(tmp_path):
+    spec = _rich_spec()
+    save_twin(spec, tmp_path / "rich")
+    twin, state = build_twin(load_twin(tmp_path / "rich"))
+    assert twin.object_names == ["rope", "block"] and twin.model.num_particles == 67
+    # the scanned robot Gaussians, taken into their link frames at q and posed again at q, come back
+    q = np.asarray(spec.robot.gaussians_q)
+    twin.reset(state, q)
+    posed = twin.robot_gaussians.posed(q)
+    mapped = spec.robot.color_map.apply(spec.robot.gaussians)
+    order = np.argsort(spec.robot.gaussian_labels, kind="stable")
+    np.testing.assert_allclose(posed.means, mapped.means[order], atol=2e-6)
+    np.testing.assert_allclose(posed.base_colours, mapped.base_colours[order], atol=1e-6)
+    frames = twin.render(state)
+    assert frames["front"].rgb.shape == (120, 160, 3) and frames["wrist"].rgb.shape == (64, 96, 3)
+    assert frames["front"].depth.max() > 0.3
+
+
+def test_builtin_and_exported_twins_give_bit_identical_episodes(tmp_path):
+    assert export(ExportConfig(out=tmp_path / "pusht", preset="fast")) == 0
+    actions = np.random.default_rng(0).uniform([0.35, -0.1], [0.55, 0.1], (12, 2)).astype(np.float32)
+    runs = []
+    for twin in (None, tmp_path / "pusht"):
+        env = TwinEnv("push-t", preset="fast", twin=twin)
+        obs, _ = env.reset(seed=4, options={"init_state": 6})
+        trace = [obs["pixels"]["front"], obs["pixels"]["wrist"]]
+        for a in actions:
+            obs, reward, term, trunc, info = env.step(a)
+            trace += [
+                obs["pixels"]["front"],
+                obs["pixels"]["wrist"],
+                obs["agent_pos"],
+                env.twin.particles(env.state, "tblock"),
+                np.array([reward, info["is_success"], term, trunc]),
+            ]
+        runs.append(trace)
+    for a, b in zip(*runs, strict=True):
+        np.testing.assert_array_equal(a, b)
+
+
+def test_object_directory_round_trip(tmp_path):
+    rope = _rich_spec().objects[0]
+    save_object(rope, tmp_path / "rope", sim={"drag_damping": 2.0, "collision_dist": 0.01})
+    back, sim = load_object(tmp_path / "rope")
+    assert_same(rope, back)
+    assert sim == {"drag_damping": 2.0, "collision_dist": 0.01}
+    with pytest.raises(ValueError, match="unknown SimParams"):
+        save_object(rope, tmp_path / "x", sim={"drag": 1.0})
+
+
+def test_task_in_a_twin_without_its_objects_names_what_is_missing(tmp_path):
+    spec = push_t_cell("fast")
+    block = dataclasses.replace(spec.objects[0], name="my_t")
+    save_twin(dataclasses.replace(spec, objects=(block,)), tmp_path / "t")
+    with pytest.raises(ValueError, match=r"needs object\(s\) \['tblock'\].*roles"):
+        TwinEnv("push-t", twin=tmp_path / "t")
+    env = TwinEnv("push-t", twin=tmp_path / "t", roles={"block": "my_t"})  # a role mapping fixes it
+    _, info = env.reset(seed=0, options={"init_state": 1})
+    assert info["status"] == "ok"
+    with pytest.raises(ValueError, match="unknown setting"):
+        TwinEnv("push-t", twin=tmp_path / "t", roles={"block": "my_t"}, pusher_friction=0.2)
+
+
+# ---------------------------------------------------------------------------------------------- errors
+@pytest.fixture(scope="module")
+def good_dir(tmp_path_factory):
+    root = tmp_path_factory.mktemp("twin")
+    save_twin(_rich_spec(), root / "good")
+    return root / "good"
+
+
+def _broken(tmp_path, good_dir, edit=None, files=None):
+    root = tmp_path / "broken"
+    shutil.copytree(good_dir, root)
+    doc = json.loads((root / "twin.json").read_text())
+    if edit is not None:
+        edit(doc)
+    (root / "twin.json").write_text(json.dumps(doc))
+    if files is not None:
+        files(root)
+    return root
+
+
+def _set(path, value):
+    def edit(doc):
+        node = doc
+        for k in path[:-1]:
+            node = node[k]
+        node[path[-1]] = value
+
+    return edit
+
+
+CASES = {
+    "missing file": (
+        dict(files=lambda r: (r / "objects" / "rope.npz").unlink()),
+        r"objects\[0\]\(rope\)\.arrays: file 'objects/rope.npz' does not exist",
+    ),
+    "wrong shape": (
+        dict(files=lambda r: np.savez(r / "objects" / "block.npz", particles=np.zeros((5, 2)))),
+        r"objects\[1\]\(block\).*particles: expected a finite \(P, 3\) array",
+    ),
+    "explicit springs missing": (
+        dict(files=lambda r: np.savez(r / "objects" / "rope.npz", particles=np.zeros((5, 3)))),
+        r"objects\[0\]\(rope\)\.springs: 'explicit' needs a 'springs' \(M, 2\) array",
+    ),
+    "unknown field": (
+        dict(edit=_set(["cameras", 0, "fov"], 60)),
+        r"cameras\[0\]: unknown field\(s\) \['fov'\]",
+    ),
+    "pickle in npz": (
+        dict(
+            files=lambda r: np.savez(
+                r / "objects" / "block.npz",
+                particles=np.zeros((3, 3)),
+                springs=np.array([{"a": 1}], dtype=object),
+            )
+        ),
+        r"objects\[1\]\(block\)\.arrays: objects/block.npz holds pickled Python objects",
+    ),
+    "path escapes": (
+        dict(edit=_set(["background", "gaussians"], "../../etc/passwd")),
+        r"background\.gaussians: path '../../etc/passwd' leaves the directory",
+    ),
+    "absolute path": (
+        dict(edit=_set(["objects", 1, "gaussians"], "/etc/passwd")),
+        r"objects\[1\]\(block\)\.gaussians: path '/etc/passwd' is absolute",
+    ),
+    "bad pose": (
+        dict(edit=_set(["objects", 0, "rest_pose"], [[1, 0, 0], [0, 1, 0]])),
+        r"objects\[0\]\(rope\)\.rest_pose: expected a finite array of shape \(4, 4\)",
+    ),
+    "wrong version": (dict(edit=_set(["version"], 99)), r"version: this twinbench reads version 1"),
+    "bad sim value": (dict(edit=_set(["sim", "dt"], -1.0)), r"sim: SimParams\.dt=-1\.0 is invalid"),
+    "missing robot": (dict(edit=lambda d: d.pop("robot")), r"\(top level\): missing field\(s\) \['robot'\]"),
+    "bad gaussians": (
+        dict(files=lambda r: (r / "objects" / "block.ply").write_bytes(b"ply\nformat nonsense\n")),
+        r"objects\[1\]\(block\)\.gaussians: .*block.ply",
+    ),
+    "bad colour map": (
+        dict(edit=_set(["background", "color_map"], {"degree": 2, "coeffs": [[1, 2]]})),
+        r"background\.color_map\.coeffs: colour map of degree 2 needs coefficients",
+    ),
+}
+
+
+@pytest.mark.parametrize("case", list(CASES))
+def test_malformed_twin_directories_give_one_line_errors(tmp_path, good_dir, case):
+    kwargs, pattern = CASES[case]
+    root = _broken(tmp_path, good_dir, **kwargs)
+    with pytest.raises(TwinFormatError, match=pattern) as err:
+        load_twin(root)
+    message = str(err.value)
+    assert "\n" not in message and str(root.resolve() / "twin.json") in message
+
+
+def test_pickle_in_npz_is_never_unpickled(tmp_path, good_dir):
+    marker = tmp_path / "executed"
+
+    class Evil:
+        def __reduce__(self):
+            return (open, (str(marker), "w"))
+
+    def plant(root):
+        with open(root / "objects" / "block.npz", "wb") as f:
+            np.savez(f, particles=np.zeros((3, 3)), springs=np.array([Evil()], dtype=object))
+
+    root = _broken(tmp_path, good_dir, files=plant)
+    with pytest.raises(TwinFormatError, match="pickled"):
+        load_twin(root)
+    assert not marker.exists()
+    assert pickle  # the module the attack would rely on is the one np.load refuses to use
+
+
+def test_not_a_twin_directory(tmp_path):
+    with pytest.raises(TwinFormatError, match="not a directory"):
+        load_twin(tmp_path / "nothing")
+    (tmp_path / "empty").mkdir()
+    with pytest.raises(TwinFormatError, match="twin.json"):
+        load_twin(tmp_path / "empty")
+    (tmp_path / "empty" / "twin.json").write_text("{not json")
+    with pytest.raises(TwinFormatError, match="not valid JSON"):
+        load_twin(tmp_path / "empty")
