@@ -233,3 +233,24 @@ def test_phystwin_collision_rule_collides_spring_connected_pairs():
     np.testing.assert_allclose(v_pt, [-1.0, 1.0], atol=1e-2)
     with pytest.raises(ValueError, match="collision_exclusion"):
         SimParams(collision_exclusion="all")
+
+
+def test_import_export_commands_round_trip_a_case(tmp_path):
+    from twinbench.cli import main as cli
+    from twinbench.twin import load_object
+
+    folder, frames = _make_case(tmp_path)
+    assert cli(["import-phystwin", str(folder), "--out", str(tmp_path / "obj"), "--name", "bar"]) == 0
+    obj, sim = load_object(tmp_path / "obj")
+    assert obj.name == "bar" and sim["collision_exclusion"] == "none"
+    np.testing.assert_allclose(obj.particles, frames[0], atol=1e-7)
+    original = read_case(folder)
+    assert len(obj.spring_Y) == original.num_object_springs
+    assert cli(["export-phystwin", str(tmp_path / "obj"), "--out", str(tmp_path / "back")]) == 0
+    again = read_case(tmp_path / "back")
+    for k, v in original.final_data.items():
+        np.testing.assert_array_equal(again.final_data[k], v)
+    np.testing.assert_array_equal(again.checkpoint["spring_Y"], original.checkpoint["spring_Y"])
+    assert again.optimal_params == pytest.approx(original.optimal_params)
+    assert again.scalar("collide_fric") == pytest.approx(original.scalar("collide_fric"))
+    assert again.sources["checkpoint"].endswith("best_7.pth")
