@@ -25,6 +25,18 @@ COMMANDS: dict[str, tuple[str, str, str, str]] = {
     "report": ("twinbench.evaluation.report", "ReportConfig", "main",
                "write a self-contained HTML report of an evaluation run"),
     "sysid": ("twinbench.physics.sysid", "SysIdConfig", "main", "fit an object's physics to observed motion"),
+    "segment": ("twinbench.twin.construct_cli", "SegmentConfig", "segment",
+                "split a workcell scan into robot / background / objects with crop boxes"),
+    "align-robot": ("twinbench.twin.construct_cli", "AlignRobotConfig", "align_robot",
+                    "register robot Gaussians to the URDF (RANSAC + ICP) and label them by link"),
+    "align-color": ("twinbench.twin.construct_cli", "AlignColorConfig", "align_color",
+                    "fit the rendered -> real colour map (IRLS) and apply it to Gaussians"),
+    "import-phystwin": ("twinbench.twin.construct_cli", "ImportPhysTwinConfig", "import_phystwin",
+                        "import a trained PhysTwin case as a twin object (restricted loader)"),
+    "export-phystwin": ("twinbench.twin.construct_cli", "ExportPhysTwinConfig", "export_phystwin",
+                        "write an imported PhysTwin object back as a PhysTwin case"),
+    "mesh-to-object": ("twinbench.twin.construct_cli", "MeshToObjectConfig", "mesh_to_object_cmd",
+                       "a rigid spring-mass object with surface Gaussians from a closed mesh"),
 }
 
 

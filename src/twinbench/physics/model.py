@@ -422,8 +422,10 @@ class ModelBuilder:
         inc_off = np.zeros(n + 1, dtype=np.int32)
         np.cumsum(np.bincount(ends, minlength=n), out=inc_off[1:])
 
-        # spring neighbours per particle (sorted), excluded from particle-particle contact
-        a, b = obj_springs[:, 0].astype(np.int64), obj_springs[:, 1].astype(np.int64)
+        # spring neighbours per particle (sorted), excluded from particle-particle contact, unless
+        # collision_exclusion is "none" (PhysTwin's rule: no pair is excluded)
+        excl = obj_springs if self.params.collision_exclusion == "springs" else obj_springs[:0]
+        a, b = excl[:, 0].astype(np.int64), excl[:, 1].astype(np.int64)
         pa = np.concatenate([a, b])
         pb = np.concatenate([b, a])
         key = np.unique(pa * n + pb)

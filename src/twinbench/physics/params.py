@@ -5,6 +5,8 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
+COLLISION_EXCLUSIONS = ("springs", "none")
+
 
 @dataclass(frozen=True)
 class SimParams:
@@ -13,7 +15,11 @@ class SimParams:
     Particle-particle candidates are listed once per frame for pairs closer than
     ``candidate_radius_scale * collision_dist`` (1.0 is PhysTwin's rule; raise it when bodies move more
     than ``collision_dist`` per frame, otherwise fast pairs pass through each other). The per-substep
-    contact test always uses ``collision_dist``. Units are SI. ``substeps`` defaults to
+    contact test always uses ``collision_dist``. ``collision_exclusion`` picks which pairs never collide:
+    ``"springs"`` (default, twinbench) skips spring-connected particles; ``"none"`` is PhysTwin's rule
+    (every pair of different masks within ``collision_dist`` may collide, spring-connected or not), so a
+    twin trained in PhysTwin simulates as it was trained. The two agree unless a spring is shorter than
+    ``collision_dist`` (or is compressed below it). Units are SI. ``substeps`` defaults to
     ``round(1 / (30 * dt)) = 667`` (one 30 Hz frame is ``substeps * dt = 0.03335 s``, as in PhysTwin).
     Restitution is clamped to [0, 1] and friction to [0, 2] inside the kernels. Springs whose
     ``exp(logY) <= spring_Y_min`` are inactive. ``mesh_margin`` is the contact distance of triangle
@@ -33,6 +39,7 @@ class SimParams:
     object_friction: float = 0.3
     collision_dist: float = 0.02
     self_collision: bool = False
+    collision_exclusion: str = "springs"
     max_collision_candidates: int = 500
     candidate_radius_scale: float = 1.0
     mesh_margin: float = 0.005
@@ -51,6 +58,7 @@ class SimParams:
             "candidate_radius_scale": self.candidate_radius_scale >= 1.0,
             "spring_Y_max": self.spring_Y_max > self.spring_Y_min >= 0,
             "gravity": len(self.gravity) == 3 and all(math.isfinite(g) for g in self.gravity),
+            "collision_exclusion": self.collision_exclusion in COLLISION_EXCLUSIONS,
         }
         for name, ok in checks.items():
             if not ok:

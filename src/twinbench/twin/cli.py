@@ -35,9 +35,20 @@ class ShowConfig:
     device: str = "cpu"
 
 
+@dataclass(frozen=True)
+class BuildConfig:
+    """Write a twin directory from a build config naming the construction steps' outputs."""
+
+    config: tyro.conf.Positional[Path]
+    """build config JSON (see twinbench.twin.construct_cli.build_spec_from_config)"""
+    out: Path
+    """the twin directory to write"""
+
+
 TwinCommand = (
     Annotated[ExportConfig, tyro.conf.subcommand("export")]
     | Annotated[ShowConfig, tyro.conf.subcommand("show")]
+    | Annotated[BuildConfig, tyro.conf.subcommand("build")]
 )
 
 
@@ -120,5 +131,15 @@ def show(cfg: ShowConfig) -> int:
     return 0
 
 
+def build(cfg: BuildConfig) -> int:
+    from twinbench.twin.construct_cli import build_from_config
+
+    path = build_from_config(cfg.config, cfg.out)
+    print(f"wrote the twin to {path.parent}")
+    return 0
+
+
 def main(cfg) -> int:
+    if isinstance(cfg, BuildConfig):
+        return build(cfg)
     return export(cfg) if isinstance(cfg, ExportConfig) else show(cfg)

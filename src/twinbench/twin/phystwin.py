@@ -1,0 +1,595 @@
+"""Read and write trained PhysTwin cases without executing anything from the files (DESIGN §11).
+
+A PhysTwin case is three files (PhysTwin repository layout in brackets):
+
+- `final_data.pkl` [data/different_types/CASE/]: a dict of numpy arrays: `object_points` (F, N, 3),
+  `object_colors` (F, N, 3), `object_visibilities` (F, N), `object_motions_valid` (F, N),
+  `controller_points` (F, K, 3), `surface_points` (S, 3), `interior_points` (I, 3);
+- `optimal_params.pkl` [experiments_optimization/CASE/]: stage-1 (CMA-ES) scalars: `global_spring_Y`,
+  `object_radius`, `object_max_neighbours`, `controller_radius`, `controller_max_neighbours`,
+  `collide_elas`, `collide_fric`, `collide_object_elas`, `collide_object_fric`, `collision_dist`,
+  `drag_damping`, `dashpot_damping`;
+- `best_EPOCH.pth` [experiments/CASE/train/]: a torch zip archive of a dict with `spring_Y` (M,) (Y, not
+  log Y; object springs first, then controller springs), `collide_elas`, `collide_fric`,
+  `collide_object_elas`, `collide_object_fric` (1-element tensors), `num_object_springs`, `epoch`.
+
+`load_pickle` / `load_torch_zip` use a restricted unpickler: it admits numpy arrays and scalars (their
+reconstruct / dtype / frombuffer globals), torch tensors' raw storage bytes (rebuilt as numpy arrays
+from the archive, so torch is not needed) and plain values (dict, list, tuple, str, bytes, int, float,
+bool, None). Any other global raises `PhysTwinFormatError` before anything is called.
+
+PhysTwin's physics frame: the real-data configs use `reverse_z: true` (gravity and the ground normal
+point along +z, objects at z < 0); importing turns such a case by half a turn about x (x, -y, -z),
+a proper rotation, into twinbench's z-up frame. Springs are rebuilt by PhysTwin's rule in its order:
+Open3D's hybrid search returns the query point itself among the `object_max_neighbours`, which PhysTwin
+drops, so each particle links to at most `object_max_neighbours - 1` others
+(`physics.radius_springs(points, object_radius, object_max_neighbours - 1)`); controller points link to
+at most `controller_max_neighbours` particles within `controller_radius`.
+"""
+
+from __future__ import annotations
+
+import io
+import json
+import pickle
+import re
+import zipfile
+from collections import OrderedDict
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+FINAL_KEYS = (
+    "object_points",
+    "object_colors",
+    "object_visibilities",
+    "object_motions_valid",
+    "controller_points",
+    "surface_points",
+    "interior_points",
+)
+OPTIMAL_KEYS = (
+    "global_spring_Y",
+    "object_radius",
+    "object_max_neighbours",
+    "controller_radius",
+    "controller_max_neighbours",
+    "collide_elas",
+    "collide_fric",
+    "collide_object_elas",
+    "collide_object_fric",
+    "collision_dist",
+    "drag_damping",
+    "dashpot_damping",
+)
+CHECKPOINT_KEYS = ("spring_Y", "collide_elas", "collide_fric", "collide_object_elas", "collide_object_fric",
+                   "num_object_springs")
+FLIP_Z = np.diag([1.0, -1.0, -1.0, 1.0])  # half a turn about x: PhysTwin reverse_z frame <-> z up
+
+
+class PhysTwinFormatError(ValueError):
+    """A PhysTwin file that cannot be read safely or lacks a field (message names file, field and fix)."""
+
+
+# ------------------------------------------------------------------------------------------------
+# restricted unpickling
+
+
+@dataclass(frozen=True)
+class _StorageType:
+    name: str
+    dtype: np.dtype | None  # None: bfloat16 (converted to float32)
+
+
+_TORCH_STORAGES = {
+    "FloatStorage": np.dtype("<f4"),
+    "DoubleStorage": np.dtype("<f8"),
+    "HalfStorage": np.dtype("<f2"),
+    "BFloat16Storage": None,
+    "LongStorage": np.dtype("<i8"),
+    "IntStorage": np.dtype("<i4"),
+    "ShortStorage": np.dtype("<i2"),
+    "CharStorage": np.dtype("i1"),
+    "ByteStorage": np.dtype("u1"),
+    "BoolStorage": np.dtype("?"),
+}
+
+
+@dataclass
+class _Storage:
+    data: np.ndarray  # 1-D, the storage's elements
+
+
+def _numpy_globals() -> dict[tuple[str, str], object]:
+    from numpy._core import multiarray, numeric
+
+    out: dict[tuple[str, str], object] = {}
+    for mod in ("numpy.core", "numpy._core"):
+        out[(f"{mod}.multiarray", "_reconstruct")] = multiarray._reconstruct
+        out[(f"{mod}.multiarray", "scalar")] = multiarray.scalar
+        out[(f"{mod}.numeric", "_frombuffer")] = numeric._frombuffer
+    out[("numpy", "ndarray")] = np.ndarray
+    out[("numpy", "dtype")] = np.dtype
+    out[("_codecs", "encode")] = _latin1_bytes  # protocol <= 2 writes bytes as _codecs.encode(str, "latin1")
+    out[("__builtin__", "bytes")] = out[("builtins", "bytes")] = _empty_bytes  # ... and b"" as bytes()
+    return out
+
+
+def _empty_bytes(*args):
+    if args:
+        raise PhysTwinFormatError("unexpected bytes(...) call with arguments in a pickle")
+    return b""
+
+
+def _latin1_bytes(text, encoding="latin1"):
+    if not isinstance(text, str) or encoding not in ("latin1", "latin-1"):
+        raise PhysTwinFormatError(f"unexpected _codecs.encode({type(text).__name__}, {encoding!r})")
+    return text.encode("latin1")
+
+
+def _rebuild_tensor(storage, storage_offset, size, stride, requires_grad=False, backward_hooks=None,
+                    metadata=None):
+    """torch._utils._rebuild_tensor_v2, as a numpy copy; the view is bounds-checked first."""
+    if not isinstance(storage, _Storage):
+        raise PhysTwinFormatError("tensor without a storage record")
+    size = tuple(int(s) for s in size)
+    stride = tuple(int(s) for s in stride)
+    off = int(storage_offset)
+    if len(size) != len(stride) or off < 0 or any(s < 0 for s in size) or any(s < 0 for s in stride):
+        raise PhysTwinFormatError(f"tensor with invalid size {size} / stride {stride} / offset {off}")
+    n = storage.data.shape[0]
+    if int(np.prod(size)) == 0:
+        return np.zeros(size, dtype=storage.data.dtype)
+    last = off + sum((sz - 1) * st for sz, st in zip(size, stride, strict=True))
+    if last >= n:
+        raise PhysTwinFormatError(f"tensor view reaches element {last} of a storage of {n}")
+    item = storage.data.itemsize
+    view = np.lib.stride_tricks.as_strided(
+        storage.data[off:], shape=size, strides=tuple(s * item for s in stride), writeable=False
+    )
+    return np.array(view)
+
+
+def _rebuild_parameter(data, requires_grad=False, backward_hooks=None):
+    return data
+
+
+_TORCH_GLOBALS = {
+    ("torch._utils", "_rebuild_tensor_v2"): _rebuild_tensor,
+    ("torch._utils", "_rebuild_parameter"): _rebuild_parameter,
+    ("collections", "OrderedDict"): OrderedDict,
+}
+
+
+class _RestrictedUnpickler(pickle.Unpickler):
+    def __init__(self, file, *, source: str, records: dict[str, bytes] | None = None,
+                 byteorder: str = "little"):
+        super().__init__(file)
+        self._source = source
+        self._records = records
+        self._byteorder = byteorder
+        self._allowed = _numpy_globals()
+        if records is not None:
+            self._allowed.update(_TORCH_GLOBALS)
+
+    def find_class(self, module, name):
+        obj = self._allowed.get((module, name))
+        if obj is not None:
+            return obj
+        if self._records is not None and module == "torch" and name in _TORCH_STORAGES:
+            return _StorageType(name, _TORCH_STORAGES[name])
+        raise PhysTwinFormatError(
+            f"{self._source}: refuses to load the pickled object {module}.{name}: only numpy arrays, "
+            "tensor data and plain values are read (nothing from the file is executed); re-save the "
+            "file with plain arrays"
+        )
+
+    def persistent_load(self, pid):
+        if self._records is None or not isinstance(pid, tuple) or len(pid) != 5 or pid[0] != "storage":
+            raise PhysTwinFormatError(f"{self._source}: unexpected persistent reference {pid!r:.80}")
+        _, stype, key, _location, numel = pid
+        if not isinstance(stype, _StorageType):
+            raise PhysTwinFormatError(f"{self._source}: storage of unknown type {stype!r:.80}")
+        raw = self._records.get(str(key))
+        if raw is None:
+            raise PhysTwinFormatError(f"{self._source}: the archive has no data/{key} record")
+        if stype.dtype is None:  # bfloat16 -> float32 (upper 16 bits)
+            u16 = np.frombuffer(raw, dtype="<u2" if self._byteorder == "little" else ">u2")
+            data = (u16.astype(np.uint32) << 16).view(np.float32)
+        else:
+            dt = stype.dtype if self._byteorder == "little" else stype.dtype.newbyteorder(">")
+            if len(raw) % dt.itemsize:
+                raise PhysTwinFormatError(f"{self._source}: data/{key} is not a whole number of {dt}")
+            data = np.frombuffer(raw, dtype=dt).astype(dt.newbyteorder("="))
+        if int(numel) > len(data):
+            raise PhysTwinFormatError(f"{self._source}: data/{key} holds {len(data)} elements, needs {numel}")
+        return _Storage(data)
+
+
+def _check_plain(obj, source: str, where: str = "") -> None:
+    """Reject anything but plain values and non-object numpy arrays/scalars in the loaded tree."""
+    if obj is None or isinstance(obj, (bool, int, float, str, bytes)):
+        return
+    if isinstance(obj, np.ndarray | np.generic):
+        if obj.dtype.hasobject:
+            raise PhysTwinFormatError(f"{source}: {where or 'value'} is an object array; only plain arrays")
+        return
+    if isinstance(obj, dict):
+        for k, v in obj.items():
+            _check_plain(k, source, where)
+            _check_plain(v, source, f"{where}[{k!r}]")
+        return
+    if isinstance(obj, (list, tuple)):
+        for i, v in enumerate(obj):
+            _check_plain(v, source, f"{where}[{i}]")
+        return
+    raise PhysTwinFormatError(
+        f"{source}: {where or 'value'} has type {type(obj).__name__}, not a plain value"
+    )
+
+
+def load_pickle(path) -> object:
+    """Safely read a pickle of numpy arrays and plain values (e.g. final_data.pkl, optimal_params.pkl)."""
+    path = Path(path)
+    try:
+        data = path.read_bytes()
+    except OSError as exc:
+        raise PhysTwinFormatError(f"{path}: cannot read ({exc})") from exc
+    try:
+        obj = _RestrictedUnpickler(io.BytesIO(data), source=str(path)).load()
+    except PhysTwinFormatError:
+        raise
+    except Exception as exc:  # noqa: BLE001 - malformed streams raise many types
+        raise PhysTwinFormatError(f"{path}: not a readable pickle ({type(exc).__name__}: {exc})") from exc
+    _check_plain(obj, str(path))
+    return obj
+
+
+def load_torch_zip(path) -> object:
+    """Safely read a `torch.save` zip archive (tensors come back as numpy arrays; torch not needed)."""
+    path = Path(path)
+    if not zipfile.is_zipfile(path):
+        raise PhysTwinFormatError(
+            f"{path}: not a torch zip archive (the legacy pre-1.6 format is not read); re-save it with "
+            "torch.save in a current torch"
+        )
+    with zipfile.ZipFile(path) as zf:
+        names = zf.namelist()
+        pkl = [n for n in names if n.endswith("data.pkl") and n.count("/") == 1]
+        if len(pkl) != 1:
+            raise PhysTwinFormatError(f"{path}: expected one PREFIX/data.pkl in the archive, found {pkl}")
+        prefix = pkl[0][: -len("data.pkl")]
+        records = {n[len(prefix) + 5:]: zf.read(n) for n in names if n.startswith(prefix + "data/")}
+        byteorder = "little"
+        if prefix + "byteorder" in names:
+            byteorder = zf.read(prefix + "byteorder").decode("ascii", "replace").strip()
+            if byteorder not in ("little", "big"):
+                raise PhysTwinFormatError(f"{path}: unknown byteorder {byteorder!r}")
+        data = zf.read(pkl[0])
+    try:
+        obj = _RestrictedUnpickler(io.BytesIO(data), source=str(path), records=records,
+                                   byteorder=byteorder).load()
+    except PhysTwinFormatError:
+        raise
+    except Exception as exc:  # noqa: BLE001
+        raise PhysTwinFormatError(
+            f"{path}: not a readable torch archive ({type(exc).__name__}: {exc})"
+        ) from exc
+    _check_plain(obj, str(path))
+    return obj
+
+
+# ------------------------------------------------------------------------------------------------
+# writing (export)
+
+
+@dataclass(frozen=True)
+class _Global:
+    """A reference to a global written as a GLOBAL opcode (never imported here)."""
+
+    module: str
+    name: str
+
+    def __call__(self, *args):  # pickle requires reduce functions to be callable
+        raise TypeError(f"{self.module}.{self.name} is a pickle reference, not callable here")
+
+
+class _TorchPickler(pickle._Pickler):
+    """Protocol-2 pickler writing numpy arrays as torch tensors (storages as persistent records)."""
+
+    dispatch = dict(pickle._Pickler.dispatch)
+
+    def __init__(self, file):
+        super().__init__(file, protocol=2)
+        self.records: list[bytes] = []
+
+    def _save_global_ref(self, obj):
+        self.write(pickle.GLOBAL + f"{obj.module}\n{obj.name}\n".encode("ascii"))
+
+    dispatch[_Global] = _save_global_ref
+
+    def persistent_id(self, obj):
+        if isinstance(obj, _Storage):
+            names = {v: k for k, v in _TORCH_STORAGES.items() if v is not None}
+            key = str(len(self.records))
+            little = obj.data.dtype.newbyteorder("<")
+            self.records.append(np.ascontiguousarray(obj.data, dtype=little).tobytes())
+            return ("storage", _Global("torch", names[obj.data.dtype.newbyteorder("<")]), key, "cpu",
+                    int(obj.data.size))
+        return None
+
+    def reducer_override(self, obj):
+        if isinstance(obj, np.ndarray):
+            a = np.ascontiguousarray(obj)
+            if a.dtype.newbyteorder("<") not in {v for v in _TORCH_STORAGES.values() if v is not None}:
+                raise ValueError(f"cannot write a {a.dtype} array as a torch tensor")
+            stride = tuple(int(s) // a.itemsize for s in a.strides) if a.ndim else ()
+            return (_Global("torch._utils", "_rebuild_tensor_v2"),
+                    (_Storage(a.reshape(-1)), 0, tuple(a.shape), stride, False, OrderedDict()))
+        return NotImplemented
+
+
+def save_torch_zip(obj, path, *, prefix: str | None = None) -> None:
+    """Write `obj` (plain values and numpy arrays, which become tensors) in torch's zip layout."""
+    path = Path(path)
+    prefix = prefix or re.sub(r"[^A-Za-z0-9_]", "_", path.stem) or "archive"
+    buf = io.BytesIO()
+    pk = _TorchPickler(buf)
+    pk.dump(obj)
+    with zipfile.ZipFile(path, "w", compression=zipfile.ZIP_STORED) as zf:
+        zf.writestr(f"{prefix}/data.pkl", buf.getvalue())
+        zf.writestr(f"{prefix}/byteorder", "little")
+        for i, raw in enumerate(pk.records):
+            zf.writestr(f"{prefix}/data/{i}", raw)
+        zf.writestr(f"{prefix}/version", "3\n")
+
+
+# ------------------------------------------------------------------------------------------------
+# a case
+
+
+@dataclass
+class PhysTwinCase:
+    """The arrays and scalars of a trained case, as read (PhysTwin's own frame)."""
+
+    final_data: dict[str, np.ndarray]
+    optimal_params: dict[str, float]
+    checkpoint: dict[str, object]
+    sources: dict[str, str] = field(default_factory=dict)
+
+    @property
+    def structure_points(self) -> np.ndarray:
+        """Particles in PhysTwin's order: tracked points (first frame), extra surface, interior (float32)."""
+        fd = self.final_data
+        return np.concatenate(
+            [fd["object_points"][0], fd["surface_points"], fd["interior_points"]], axis=0
+        ).astype(np.float32)
+
+    @property
+    def num_object_springs(self) -> int:
+        return int(self.checkpoint["num_object_springs"])
+
+    def scalar(self, key: str) -> float:
+        """A contact scalar from the checkpoint (trained), else from optimal_params."""
+        v = self.checkpoint.get(key, self.optimal_params.get(key))
+        return float(np.asarray(v).reshape(-1)[0])
+
+
+def _latest_checkpoint(folder: Path) -> Path | None:
+    found = []
+    for d in (folder, folder / "train"):
+        for p in d.glob("best_*.pth"):
+            m = re.fullmatch(r"best_(\d+)\.pth", p.name)
+            if m:
+                found.append((int(m.group(1)), p))
+    return max(found)[1] if found else None
+
+
+def find_case_files(case_dir, *, final_data=None, optimal_params=None, checkpoint=None) -> dict[str, Path]:
+    """The three files of a case folder (flat: final_data.pkl, optimal_params.pkl, best_*.pth or
+    train/best_*.pth, the highest epoch); explicit paths override the search."""
+    case_dir = Path(case_dir)
+    out = {
+        "final_data": Path(final_data) if final_data else case_dir / "final_data.pkl",
+        "optimal_params": Path(optimal_params) if optimal_params else case_dir / "optimal_params.pkl",
+    }
+    ck = Path(checkpoint) if checkpoint else _latest_checkpoint(case_dir)
+    if ck is None:
+        raise FileNotFoundError(
+            f"{case_dir}: no best_EPOCH.pth (or train/best_EPOCH.pth); pass the checkpoint path explicitly"
+        )
+    out["checkpoint"] = ck
+    for name, p in out.items():
+        if not p.is_file():
+            raise FileNotFoundError(f"PhysTwin case: {name} file not found: {p}")
+    return out
+
+
+def _require(d, keys, source: str):
+    if not isinstance(d, dict):
+        raise PhysTwinFormatError(f"{source}: expected a dict at the top level, got {type(d).__name__}")
+    missing = [k for k in keys if k not in d]
+    if missing:
+        raise PhysTwinFormatError(f"{source}: missing field(s) {missing}; is this a PhysTwin case file?")
+
+
+def read_case(case_dir, **paths) -> PhysTwinCase:
+    """Read and validate a trained case (see `find_case_files` for the layout)."""
+    files = find_case_files(case_dir, **paths)
+    fd = load_pickle(files["final_data"])
+    _require(fd, FINAL_KEYS, str(files["final_data"]))
+    op = load_pickle(files["optimal_params"])
+    _require(op, OPTIMAL_KEYS, str(files["optimal_params"]))
+    ck = load_torch_zip(files["checkpoint"])
+    _require(ck, CHECKPOINT_KEYS, str(files["checkpoint"]))
+    src = str(files["final_data"])
+    final = {k: np.asarray(fd[k]) for k in FINAL_KEYS}
+    op_ = final["object_points"]
+    if op_.ndim != 3 or op_.shape[2] != 3 or op_.shape[0] < 1:
+        raise PhysTwinFormatError(f"{src}: object_points must have shape (F, N, 3), got {op_.shape}")
+    f, n = op_.shape[:2]
+    shapes = {
+        "object_colors": (f, n, 3), "object_visibilities": (f, n), "object_motions_valid": (f, n),
+    }
+    for k, shp in shapes.items():
+        if final[k].shape != shp:
+            raise PhysTwinFormatError(f"{src}: {k} must have shape {shp}, got {final[k].shape}")
+    cp = final["controller_points"]
+    if cp.ndim != 3 or cp.shape[0] != f or cp.shape[2] != 3:
+        raise PhysTwinFormatError(f"{src}: controller_points must have shape ({f}, K, 3), got {cp.shape}")
+    for k in ("surface_points", "interior_points"):
+        final[k] = final[k].reshape(-1, 3) if final[k].size == 0 else final[k]
+        if final[k].ndim != 2 or final[k].shape[1] != 3:
+            raise PhysTwinFormatError(f"{src}: {k} must have shape (P, 3), got {final[k].shape}")
+    for k in ("object_points", "controller_points", "surface_points", "interior_points"):
+        if not np.all(np.isfinite(final[k])):
+            raise PhysTwinFormatError(f"{src}: {k} contains NaN or inf")
+    spring_y = np.asarray(ck["spring_Y"], dtype=np.float64).reshape(-1)
+    if not np.all(np.isfinite(spring_y)) or np.any(spring_y <= 0):
+        raise PhysTwinFormatError(f"{files['checkpoint']}: spring_Y must be finite and > 0")
+    ck = dict(ck)
+    ck["spring_Y"] = np.asarray(ck["spring_Y"]).reshape(-1)
+    return PhysTwinCase(final, {k: op[k] for k in op}, ck, {k: str(v) for k, v in files.items()})
+
+
+# ------------------------------------------------------------------------------------------------
+# case <-> twinbench object
+
+
+@dataclass
+class ImportedObject:
+    """A PhysTwin case as a twinbench object (z-up object frame) with its simulation settings."""
+
+    particles: np.ndarray  # (P, 3) float32, object frame
+    springs: np.ndarray  # (M, 2) int32, PhysTwin order
+    rest_lengths: np.ndarray  # (M,) float32
+    spring_Y: np.ndarray  # (M,) float32
+    sim: dict  # SimParams fields
+    frame: np.ndarray  # (4, 4) PhysTwin frame -> object frame
+    controller_springs: np.ndarray  # (C, 2) (controller index, particle index), PhysTwin order
+    controller_spring_Y: np.ndarray  # (C,)
+    case: PhysTwinCase
+
+
+def phystwin_springs(points, radius: float, max_neighbours: int) -> np.ndarray:
+    """PhysTwin's object springs (its order): the radius rule with the query point counted among the
+    `max_neighbours` Open3D returns (see the module docstring)."""
+    from twinbench.physics import radius_springs
+
+    if int(max_neighbours) < 2:
+        raise ValueError(f"object_max_neighbours must be >= 2, got {max_neighbours}")
+    return radius_springs(np.asarray(points, dtype=np.float64), float(radius), int(max_neighbours) - 1)
+
+
+def controller_springs(points, controllers, radius: float, max_neighbours: int) -> np.ndarray:
+    """PhysTwin's controller springs: (controller index, particle index), nearest first per controller."""
+    from scipy.spatial import cKDTree
+
+    from twinbench.physics.model import _sorted_neighbours
+
+    pts = np.asarray(points, dtype=np.float64)
+    ctl = np.asarray(controllers, dtype=np.float64).reshape(-1, 3)
+    rows = []
+    for c, nb in enumerate(_sorted_neighbours(cKDTree(pts), pts, ctl, float(radius), int(max_neighbours),
+                                              exclude_self=False)):
+        rows += [(c, int(j)) for j in nb]
+    return np.asarray(rows, dtype=np.int64).reshape(-1, 2)
+
+
+def import_case(
+    case: PhysTwinCase, *, reverse_z: bool = True, self_collision: bool = False
+) -> ImportedObject:
+    """Rebuild the case's springs in PhysTwin's order, check them against the checkpoint, and express
+    the object in twinbench's z-up frame with the simulation settings it was trained with."""
+    op = case.optimal_params
+    pts = case.structure_points
+    springs = phystwin_springs(pts, op["object_radius"], op["object_max_neighbours"])
+    ctrl = controller_springs(pts, case.final_data["controller_points"][0], op["controller_radius"],
+                              op["controller_max_neighbours"])
+    y = np.asarray(case.checkpoint["spring_Y"], dtype=np.float32)
+    src = case.sources.get("checkpoint", "checkpoint")
+    if len(springs) != case.num_object_springs or len(springs) + len(ctrl) != len(y):
+        raise PhysTwinFormatError(
+            f"{src}: the springs rebuilt by PhysTwin's rule ({len(springs)} object + {len(ctrl)} controller) "
+            f"do not match the checkpoint (num_object_springs={case.num_object_springs}, "
+            f"{len(y)} spring_Y values); the case files come from different runs or settings"
+        )
+    frame = FLIP_Z.copy() if reverse_z else np.eye(4)
+    p64 = pts.astype(np.float64)
+    rest = np.linalg.norm(p64[springs[:, 1]] - p64[springs[:, 0]], axis=1).astype(np.float32)
+    obj_pts = (p64 @ frame[:3, :3].T).astype(np.float32)
+    sim = {
+        "dashpot_damping": float(op["dashpot_damping"]),
+        "drag_damping": float(op["drag_damping"]),
+        "ground_restitution": case.scalar("collide_elas"),
+        "ground_friction": case.scalar("collide_fric"),
+        "object_restitution": case.scalar("collide_object_elas"),
+        "object_friction": case.scalar("collide_object_fric"),
+        "collision_dist": float(op["collision_dist"]),
+        "self_collision": bool(self_collision),
+        "collision_exclusion": "none",
+        "spring_Y_min": 0.0,
+        "spring_Y_max": 1e5,
+    }
+    n_obj = len(springs)
+    return ImportedObject(
+        particles=obj_pts, springs=springs.astype(np.int32), rest_lengths=rest, spring_Y=y[:n_obj],
+        sim=sim, frame=frame, controller_springs=ctrl, controller_spring_Y=y[n_obj:], case=case,
+    )
+
+
+def write_case(out_dir, final_data: dict, optimal_params: dict, checkpoint: dict, *, epoch: int = 0) -> dict:
+    """Write a flat case folder: final_data.pkl, optimal_params.pkl (plain pickles of numpy arrays and
+    floats) and train/best_EPOCH.pth (torch zip layout). Returns the written paths."""
+    out = Path(out_dir)
+    (out / "train").mkdir(parents=True, exist_ok=True)
+    _require(final_data, FINAL_KEYS, "final_data")
+    _require(optimal_params, OPTIMAL_KEYS, "optimal_params")
+    _require(checkpoint, CHECKPOINT_KEYS, "checkpoint")
+    paths = {"final_data": out / "final_data.pkl", "optimal_params": out / "optimal_params.pkl",
+             "checkpoint": out / "train" / f"best_{int(epoch)}.pth"}
+    with open(paths["final_data"], "wb") as f:
+        pickle.dump({k: np.asarray(final_data[k]) for k in FINAL_KEYS}, f, protocol=4)
+    with open(paths["optimal_params"], "wb") as f:
+        pickle.dump({k: optimal_params[k] for k in OPTIMAL_KEYS}, f, protocol=4)
+    ck = {"epoch": int(epoch), **checkpoint}
+    save_torch_zip(ck, paths["checkpoint"])
+    return paths
+
+
+def case_metadata(case: PhysTwinCase, imported: ImportedObject, reverse_z: bool) -> dict:
+    """JSON-ready scalars an export needs besides the arrays."""
+    ck = {k: float(np.asarray(case.checkpoint[k]).reshape(-1)[0]) for k in
+          ("collide_elas", "collide_fric", "collide_object_elas", "collide_object_fric")}
+    return {
+        "optimal_params": {k: (int(v) if k.endswith("max_neighbours") else float(v))
+                           for k, v in case.optimal_params.items() if k in OPTIMAL_KEYS},
+        "checkpoint": {**ck, "num_object_springs": case.num_object_springs,
+                       "epoch": int(case.checkpoint.get("epoch", 0))},
+        "reverse_z": bool(reverse_z),
+        "frame": imported.frame.tolist(),
+        "sources": case.sources,
+    }
+
+
+def case_arrays(case: PhysTwinCase) -> dict[str, np.ndarray]:
+    """npz-ready arrays of a case (final_data fields + the full spring_Y), PhysTwin frame."""
+    return {**{f"final_{k}": v for k, v in case.final_data.items()},
+            "checkpoint_spring_Y": np.asarray(case.checkpoint["spring_Y"])}
+
+
+def case_from_arrays(arrays: dict, meta: dict) -> tuple[dict, dict, dict, int]:
+    """(final_data, optimal_params, checkpoint, epoch) back from `case_arrays` + `case_metadata`."""
+    final = {k: np.asarray(arrays[f"final_{k}"]) for k in FINAL_KEYS}
+    ck_meta = dict(meta["checkpoint"])
+    epoch = int(ck_meta.pop("epoch", 0))
+    ck = {"spring_Y": np.asarray(arrays["checkpoint_spring_Y"], dtype=np.float32),
+          "num_object_springs": int(ck_meta.pop("num_object_springs"))}
+    for k, v in ck_meta.items():
+        ck[k] = np.asarray([v], dtype=np.float32)
+    return final, dict(meta["optimal_params"]), ck, epoch
+
+
+def dumps_json(obj) -> str:
+    return json.dumps(obj, indent=1)
