@@ -1,10 +1,9 @@
-"""Scripted rope-routing expert: grasp the marked end, lift, carry it past the clip along the channel's
-axis, lower so the rope lies in the channel, release, and keep clear.
+"""Scripted rope-routing expert: grasp the marked end, lift, carry it to the channel's axis before the
+near opening, drag it along the axis just above the clip (the hanging rope trails into the channel),
+lower it beyond the far opening, release, and keep clear.
 
 It acts from `obs["environment_state"]` (see tasks.rope_routing): the marked end, a rope point 4 cm from
 it (the rope's direction at the end, for the finger orientation), the rope's centroid and the clip pose.
-The carry target is on the line from the rope's lying part through the channel's centre, beyond the far
-opening, so the rope spans the channel when lowered.
 """
 
 from __future__ import annotations
@@ -19,7 +18,7 @@ class RopeExpert:
     """Phase machine over `environment_state`; see the module docstring."""
 
     uses_environment_state = True
-    PHASES = ("approach", "descend", "close", "lift", "carry", "lower", "release", "retreat")
+    PHASES = ("approach", "descend", "close", "lift", "carry", "skim", "drag", "lower", "release", "retreat")
 
     def __init__(
         self,
@@ -61,14 +60,17 @@ class RopeExpert:
             direction /= max(np.linalg.norm(direction), 1e-9)
             self._quat = grasp_quat(direction)
             self._grip = np.r_[end[:2] - self.grip_inset * direction, TCP_ABOVE_TIPS + 0.002]
-        if self._goal is None:  # beyond the far opening, on the line from the rope through the channel
+        if self._goal is None:  # on the channel's axis: before the near opening and beyond the far one
             axis = np.array([-np.sin(clip[2]), np.cos(clip[2])])  # clip frame y in the world
             if axis @ (clip[:2] - centroid[:2]) < 0:
                 axis = -axis
+            self._near = clip[:2] - axis * (self.channel_length / 2 + 0.03)
             self._goal = clip[:2] + axis * (self.channel_length / 2 + self.beyond)
         above = np.r_[self._grip[:2], 0.08]
+        skim = self.channel_depth + 0.02 + TCP_ABOVE_TIPS  # fingertips 2 cm above the clip's walls
+        near_high, near_low = np.r_[self._near, self.carry_height], np.r_[self._near, skim]
+        goal_skim = np.r_[self._goal, skim]
         goal_low = np.r_[self._goal, self.channel_depth * 0.5 + TCP_ABOVE_TIPS]
-        goal_high = np.r_[self._goal, self.carry_height]
         target, g = above, 0.0
         if self.phase == "approach":
             if np.linalg.norm(ee - above) < 0.01 or self._t > 60:
@@ -85,9 +87,17 @@ class RopeExpert:
             target, g = np.r_[self._grip[:2], self.carry_height], 1.0
             if abs(ee[2] - self.carry_height) < 0.01 or self._t > 90:
                 self._next("carry")
-        if self.phase == "carry":
-            target, g = goal_high, 1.0
-            if np.linalg.norm(ee - goal_high) < 0.01 or self._t > 150:
+        if self.phase == "carry":  # over the channel's axis, before the near opening
+            target, g = near_high, 1.0
+            if np.linalg.norm(ee - near_high) < 0.01 or self._t > 150:
+                self._next("skim")
+        if self.phase == "skim":
+            target, g = near_low, 1.0
+            if np.linalg.norm(ee - near_low) < 0.008 or self._t > 60:
+                self._next("drag")
+        if self.phase == "drag":  # along the axis over the clip: the hanging rope trails into the channel
+            target, g = goal_skim, 1.0
+            if np.linalg.norm(ee - goal_skim) < 0.008 or self._t > 120:
                 self._next("lower")
         if self.phase == "lower":
             target, g = goal_low, 1.0
@@ -99,5 +109,7 @@ class RopeExpert:
                 self._next("retreat")
         if self.phase == "retreat":
             target, g = np.r_[self._goal, self.carry_height], 0.0
-        target = self._wp.toward(target, self.holding_speed, self.phase in ("lift", "carry", "lower"))
+        target = self._wp.toward(
+            target, self.holding_speed, self.phase in ("lift", "carry", "skim", "drag", "lower")
+        )
         return np.r_[target, self._quat, g].astype(np.float32)

@@ -27,9 +27,11 @@ class ToyExpert:
         close_steps: int = 20,
         settle_steps: int = 20,
         holding_speed: float = 0.006,
+        hover_steps: int = 15,
     ):
         self.grip_height, self.carry_height, self.drop_height = grip_height, carry_height, drop_height
         self.close_steps, self.settle_steps, self.holding_speed = close_steps, settle_steps, holding_speed
+        self.hover_steps = hover_steps
         self.reset()
 
     def reset(self) -> None:
@@ -82,6 +84,10 @@ class ToyExpert:
         if self.phase == "carry":
             target, quat, g = over_box, self._box_quat, 1.0
             if np.linalg.norm(ee - over_box) < 0.01 or self._t > 150:
+                self._next("hover")
+        if self.phase == "hover":  # let the dangling toy stop swinging before it goes in
+            target, quat, g = over_box, self._box_quat, 1.0
+            if self._t > self.hover_steps:
                 self._next("lower")
         if self.phase == "lower":
             target, quat, g = in_box, self._box_quat, 1.0
@@ -93,5 +99,7 @@ class ToyExpert:
                 self._next("retreat")
         if self.phase == "retreat":
             target, quat, g = over_box, self._box_quat, 0.0
-        target = self._wp.toward(target, self.holding_speed, self.phase in ("lift", "carry", "lower"))
+        target = self._wp.toward(
+            target, self.holding_speed, self.phase in ("lift", "carry", "hover", "lower")
+        )
         return np.r_[target, quat, g].astype(np.float32)
