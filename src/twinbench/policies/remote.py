@@ -76,7 +76,13 @@ class RemotePolicy(ChunkedPolicy):
 
     def infer(self, obs: dict) -> dict:
         """One request/reply round trip (reconnecting as needed); returns the server's reply dict."""
-        from websockets.exceptions import InvalidHandshake, InvalidStatus, InvalidURI, WebSocketException
+        from websockets.exceptions import (
+            ConnectionClosed,
+            InvalidHandshake,
+            InvalidStatus,
+            InvalidURI,
+            WebSocketException,
+        )
 
         payload = packb(obs)
         if len(payload) > self.max_message_bytes:
@@ -99,6 +105,17 @@ class RemotePolicy(ChunkedPolicy):
                 if status in (401, 403):
                     raise PolicyError(f"policy server {self.url} refused the API key (HTTP {status}); set "
                                       f"{API_KEY_ENV} to the server's key") from None
+                last = err
+                continue
+            except ConnectionClosed as err:
+                self._drop()
+                by_server = err.rcvd is not None and (err.sent is None or err.rcvd_then_sent)
+                if by_server and err.rcvd.code == 1009:
+                    raise PolicyError(f"policy server {self.url} refused an observation of {len(payload)} "
+                                      "bytes as too big (raise the server's max_message_bytes)") from None
+                if not by_server and err.sent is not None and err.sent.code == 1009:
+                    raise PolicyError(f"policy server {self.url} sent a reply over max_message_bytes="
+                                      f"{self.max_message_bytes}") from None
                 last = err
                 continue
             except (OSError, TimeoutError, InvalidHandshake, WebSocketException, EOFError) as err:
