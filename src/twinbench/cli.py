@@ -60,8 +60,8 @@ def main(argv: list[str] | None = None) -> int:
 # ---- errors: one line on stderr, exit code 2 for bad input ------------------------------------------
 # Bad input: the project's InputError (GaussianFileError, URDFError, ...) and what reading a user's file
 # or argument raises. Anything else is a bug: one line too (exit 1), the traceback with --debug.
-_BAD_INPUT = (ValueError, KeyError, FileNotFoundError, NotADirectoryError, IsADirectoryError, PermissionError,
-              ImportError)
+_BAD_INPUT = (ValueError, KeyError, FileNotFoundError, FileExistsError, NotADirectoryError, IsADirectoryError,
+              PermissionError, ImportError)
 
 
 def _error_message(err: BaseException) -> str:

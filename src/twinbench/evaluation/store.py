@@ -178,7 +178,11 @@ class ResultsStore:
         if self.path.exists() and self.path.is_dir():
             raise InputError(f"results store path {self.path} is a directory; give a file such as "
                              f"{self.path / 'results.sqlite'}")
-        self.path.parent.mkdir(parents=True, exist_ok=True)
+        try:
+            self.path.parent.mkdir(parents=True, exist_ok=True)
+        except OSError as err:
+            raise InputError(f"results store {self.path}: cannot create its folder ({err.strerror or err}); "
+                             "give a --db path in a writable folder") from None
         with self._connect() as con:
             mode = con.execute("PRAGMA journal_mode=WAL").fetchone()[0]
             if mode.lower() != "wal":
