@@ -100,12 +100,14 @@ def _check_log_scales(path, log_scales: np.ndarray) -> None:
 
 
 def _check_finite(path, name: str, arr: np.ndarray) -> None:
-    bad = ~np.isfinite(arr)
+    """Every value finite, also once stored as float32 (an ASCII 1e308 is finite only in float64)."""
+    with np.errstate(over="ignore"):
+        bad = ~np.isfinite(arr) | ~np.isfinite(np.asarray(arr).astype(np.float32))
     if np.any(bad):
         rows = np.flatnonzero(bad.reshape(len(arr), -1).any(axis=1))
         raise GaussianFileError(
             path,
-            f"{name} has {len(rows)} non-finite (NaN/inf) values, first at "
+            f"{name} has {len(rows)} non-finite (NaN/inf) or float32-overflowing values, first at "
             f"Gaussian {rows[0]}; clean the file (e.g. drop those Gaussians)",
         )
 
@@ -136,7 +138,7 @@ def _parse_ply_header(path, data: bytes):
         elif tok[0] == "property":
             if not elements:
                 raise GaussianFileError(path, f"property before any element: {line!r}")
-            if tok[1] == "list":
+            if len(tok) >= 5 and tok[1] == "list":
                 elements[-1][2].append((tok[-1], None))
             elif len(tok) == 3 and tok[1] in _PLY_TYPES:
                 elements[-1][2].append((tok[2], _PLY_TYPES[tok[1]]))
