@@ -191,3 +191,16 @@ def test_eval_warns_and_records_a_missing_video(tmp_path, monkeypatch):
     assert sum("warning: video missing for expert init_state" in m for m in logs) == 2
     info = json.loads((tmp_path / "eval" / "vid" / "expert" / "eval_info.json").read_text())
     assert info["video_paths"] == []
+
+
+def test_worker_and_seed_bounds_and_safe_policy_folders(tmp_path):
+    from twinbench.evaluation.export import policy_folder
+
+    for workers, seed in ((100_000, 0), (-1, 0), (1, -5), (1, 2**63)):
+        with pytest.raises(InputError, match="--workers|--seed"):
+            evaluate("point-reach", ["expert"], 1, workers, "w", tmp_path / "r.sqlite", seed=seed,
+                     output_dir=tmp_path)
+    assert policy_folder("..", "") == "_." and policy_folder(".", "") == "_"
+    assert policy_folder("a/../..", "x") == "a-..-.._x" and "/" not in policy_folder("/etc", "passwd")
+    recs = evaluate("point-reach", ["..=expert"], 1, 0, "dots", tmp_path / "r.sqlite", output_dir=tmp_path)
+    assert recs[0].policy == ".." and (tmp_path / "eval" / "dots" / "_." / "eval_info.json").is_file()

@@ -135,6 +135,6 @@ def test_bad_geometry_sizes_and_urdf_error_type(tmp_path):
     path = tmp_path / "g.urdf"
     path.write_text('<robot name="r"><link name="base"><visual><geometry><box size="nan 1 1"/></geometry>'
                     "</visual></link></robot>")
-    with pytest.raises(URDFError, match="box size must be finite and > 0"):
+    with pytest.raises(URDFError, match="box size must be 3 finite value"):
         load_robot(path)
     assert issubclass(URDFError, InputError) and issubclass(URDFError, ValueError)

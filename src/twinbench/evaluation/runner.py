@@ -367,8 +367,7 @@ def evaluate(task: str, policies: Sequence[str], episodes: str | int = "grid", w
     spec_task = get_task(task)
     if backend not in ("local", "ray"):
         raise ValueError(f"backend must be 'local' or 'ray', got {backend!r}")
-    if int(workers) < 0:
-        raise ValueError(f"workers must be >= 0 (0 = run in this process), got {workers}")
+    _check_counts(workers, seed)
     if not policies:
         raise ValueError("give at least one policy spec (e.g. 'expert')")
     check_run_id(run_id)  # a name, never a path: it names folders under output_dir
@@ -511,6 +510,15 @@ def main(cfg: EvalConfig) -> int:
 
 # ---- hardening: worker processes that die with their parent, crashes recorded, SIGTERM like Ctrl-C -----
 MAX_EPISODES = 100_000  # per policy and run; more is refused before anything is allocated
+MAX_WORKERS = 256
+
+
+def _check_counts(workers, seed) -> None:
+    """--workers and --seed, checked before anything starts (InputError naming the option)."""
+    if not 0 <= int(workers) <= MAX_WORKERS:
+        raise InputError(f"--workers {workers}: must be between 0 (run in this process) and {MAX_WORKERS}")
+    if not 0 <= int(seed) <= 2**62:
+        raise InputError(f"--seed {seed}: must be between 0 and 2**62")
 
 
 class EvaluationTerminated(EvaluationInterrupted):

@@ -359,6 +359,8 @@ def _resolve_filename(
     package:// path inside its package folder, any other path inside the URDF's folder or one of
     `package_dirs`. Anything else raises URDFError without touching the file."""
     tried: list[Path] = []
+    if not filename:
+        raise URDFError("<mesh> has no filename attribute")
     if "\x00" in filename:
         raise URDFError(f"mesh filename {filename!r} holds a NUL character")
     if filename.startswith("package://"):
@@ -395,10 +397,14 @@ def _resolve_filename(
     return (p if p.is_file() else None), tried
 
 
-def _check_size(urdf_path: Path, link: str, what: str, values) -> np.ndarray:
-    arr = np.asarray(values, dtype=np.float64)
-    if not np.all(np.isfinite(arr)) or np.any(arr <= 0):
-        raise URDFError(f"{urdf_path}: link {link!r}: {what} must be finite and > 0, got {arr.tolist()}")
+def _check_size(urdf_path: Path, link: str, what: str, values, n: int) -> np.ndarray:
+    try:
+        arr = np.asarray(values, dtype=np.float64).reshape(-1)
+    except (TypeError, ValueError):
+        arr = np.array([])
+    if arr.size != n or not np.all(np.isfinite(arr)) or np.any(arr <= 0):
+        raise URDFError(f"{urdf_path}: link {link!r}: {what} must be {n} finite value(s) > 0, "
+                        f"got {arr.tolist()}")
     return arr
 
 
@@ -420,7 +426,11 @@ def _geometry_mesh(
             )
         scale = None
         if geometry.mesh.scale is not None:
-            scale = np.broadcast_to(np.asarray(geometry.mesh.scale, dtype=np.float64), (3,))
+            scale = np.asarray(geometry.mesh.scale, dtype=np.float64).reshape(-1)
+            if scale.size not in (1, 3):
+                raise URDFError(f"{urdf_path}: link {link!r}: mesh scale needs 1 or 3 values, got "
+                                f"{scale.tolist()}")
+            scale = np.broadcast_to(scale, (3,))
             if not np.all(np.isfinite(scale)) or np.any(scale == 0):
                 raise URDFError(f"{urdf_path}: link {link!r}: mesh scale {scale.tolist()} must be finite "
                                 "and non-zero")
@@ -438,13 +448,13 @@ def _geometry_mesh(
             mesh.apply_scale(scale)
         return mesh
     if geometry.box is not None:
-        return trimesh.creation.box(extents=_check_size(urdf_path, link, "box size", geometry.box.size))
+        return trimesh.creation.box(extents=_check_size(urdf_path, link, "box size", geometry.box.size, 3))
     if geometry.cylinder is not None:
         r, h = _check_size(urdf_path, link, "cylinder radius and length",
-                           [geometry.cylinder.radius, geometry.cylinder.length])
+                           [geometry.cylinder.radius, geometry.cylinder.length], 2)
         return trimesh.creation.cylinder(radius=r, height=h, sections=24)
     if geometry.sphere is not None:
-        (r,) = _check_size(urdf_path, link, "sphere radius", [geometry.sphere.radius])
+        (r,) = _check_size(urdf_path, link, "sphere radius", [geometry.sphere.radius], 1)
         return trimesh.creation.icosphere(subdivisions=2, radius=r)
     return None
 
@@ -526,6 +536,8 @@ def load_robot(
                 "continuous, prismatic or fixed)"
             )
         axis = np.array([1.0, 0.0, 0.0]) if j.axis is None else np.asarray(j.axis, dtype=np.float64)
+        if axis.shape != (3,):
+            raise URDFError(f"{urdf_path}: joint {j.name!r}: <axis xyz> needs 3 values, got {axis.tolist()}")
         _check_finite(urdf_path, f"joint {j.name!r} <axis xyz>", axis)
         if jtype != "fixed":
             n = np.linalg.norm(axis)
@@ -575,7 +587,11 @@ def load_robot(
             if mat is not None and mat.color is None and mat.name in materials:
                 mat = materials[mat.name]
             if mat is not None and mat.color is not None and mat.color.rgba is not None:
-                colors[link.name] = np.asarray(mat.color.rgba, dtype=np.float64)[:3]
+                rgba = np.asarray(mat.color.rgba, dtype=np.float64).reshape(-1)
+                if rgba.size != 4 or not np.all(np.isfinite(rgba)):
+                    raise URDFError(f"{urdf_path}: link {link.name!r}: material <color rgba> needs 4 finite "
+                                    f"values, got {rgba.tolist()}")
+                colors[link.name] = np.clip(rgba[:3], 0.0, 1.0)
                 break
         if load_meshes:
             v = _link_mesh(link.visuals, link.name, urdf_path, pdirs)
