@@ -23,6 +23,8 @@ from twinbench.gaussians.io import LOG_SCALE_RANGE, GaussianFileError, load_gaus
 from twinbench.robot.model import URDFError, load_robot
 
 CASES = int(os.environ.get("TWINBENCH_FUZZ_CASES", "150"))
+# mutated inputs legitimately trigger numpy overflow warnings and the readers' "ignoring ..." warnings
+pytestmark = pytest.mark.filterwarnings("ignore::RuntimeWarning", "ignore::UserWarning")
 
 
 # ---- valid seeds and checks --------------------------------------------------------------------------

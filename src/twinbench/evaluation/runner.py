@@ -2,9 +2,11 @@
 
 Episodes run in worker processes (spawn context; `workers=0` runs them in the calling process) or on
 Ray (`backend="ray"`). The parent commits each finished episode to the results store at once, so a
-re-run of the same run id skips finished episodes and an interrupted run (SIGINT) loses at most the
-episodes in flight. Status: "sim_error" when the env reports or raises a simulation failure (or emits
-a non-finite state), "policy_error" when the policy raises or returns a malformed action.
+re-run of the same run id skips finished episodes and an interrupted run (SIGINT, or SIGTERM handled the
+same way) loses at most the episodes in flight. Status: "sim_error" when the env reports or raises a
+simulation failure (or emits a non-finite state, or its worker process dies inside the episode: the run
+goes on with a fresh process), "policy_error" when the policy raises or returns a malformed action.
+Worker processes exit as soon as their parent dies, however it dies.
 
 Seeds: grid episodes use init_state i with seed `seed + i`; `episodes=N` samples N states, init_state
 `n_grid_states + k` with seed `seed + k` (the env draws the state from that seed).
