@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import importlib
+import os
 import sys
 
 # command -> (module, config dataclass, function taking the config)
@@ -41,7 +42,9 @@ COMMANDS: dict[str, tuple[str, str, str, str]] = {
 
 
 def _usage() -> str:
-    lines = ["usage: twinbench <command> [--help] [options]", "", "commands:"]
+    lines = ["usage: twinbench <command> [--help] [--debug] [options]", "",
+             "--debug: show the full traceback of an error (else one line; exit code 2 for bad input)", "",
+             "commands:"]
     lines += [f"  {name:<14} {doc}" for name, (_, _, _, doc) in COMMANDS.items()]
     return "\n".join(lines)
 
@@ -50,6 +53,8 @@ def main(argv: list[str] | None = None) -> int:
     import tyro
 
     argv = list(sys.argv[1:] if argv is None else argv)
+    debug = "--debug" in argv or os.environ.get("TWINBENCH_DEBUG", "") not in ("", "0")
+    argv = [a for a in argv if a != "--debug"]
     if not argv or argv[0] in ("-h", "--help"):
         print(_usage())
         return 0
@@ -60,8 +65,45 @@ def main(argv: list[str] | None = None) -> int:
     module_name, config_name, func_name, _ = COMMANDS[name]
     module = importlib.import_module(module_name)
     config = tyro.cli(getattr(module, config_name), args=rest, prog=f"twinbench {name}")
-    result = getattr(module, func_name)(config)
-    return int(result or 0)
+    if debug:
+        return int(getattr(module, func_name)(config) or 0)
+    try:
+        return int(getattr(module, func_name)(config) or 0)
+    except BaseException as err:  # noqa: BLE001 - reported as one line below, re-raised when not ours
+        return _report_error(name, err)
+
+
+# ---- errors: one line on stderr, exit code 2 for bad input ------------------------------------------
+# Bad input: the project's InputError (GaussianFileError, URDFError, ...) and what reading a user's file
+# or argument raises. Anything else is a bug: one line too (exit 1), the traceback with --debug.
+_BAD_INPUT = (ValueError, KeyError, FileNotFoundError, FileExistsError, NotADirectoryError, IsADirectoryError,
+              PermissionError, ImportError)
+
+
+def _error_message(err: BaseException) -> str:
+    if isinstance(err, KeyError) and len(err.args) == 1 and isinstance(err.args[0], str):
+        text = err.args[0]  # str(KeyError) adds quotes
+    else:
+        text = str(err) or type(err).__name__
+    return text.strip()
+
+
+def _report_error(command: str, err: BaseException) -> int:
+    """Print `err` for a person (no traceback) and return the exit code; re-raises SystemExit."""
+    if isinstance(err, SystemExit):
+        raise err
+    if isinstance(err, KeyboardInterrupt):
+        print(f"twinbench {command}: interrupted", file=sys.stderr)
+        return 130
+    if isinstance(err, _BAD_INPUT):
+        print(f"twinbench {command}: error: {_error_message(err)}", file=sys.stderr)
+        return 2
+    if isinstance(err, OSError):  # the machine failed (disk full, ...), not the input
+        print(f"twinbench {command}: error: {type(err).__name__}: {_error_message(err)}", file=sys.stderr)
+        return 1
+    print(f"twinbench {command}: internal error: {type(err).__name__}: {_error_message(err)} "
+          "(re-run with --debug for the traceback, and please report it)", file=sys.stderr)
+    return 1
 
 
 if __name__ == "__main__":

@@ -100,13 +100,6 @@ def test_error_statuses(tmp_path):
         evaluate("point-reach", ["expert", "expert"], 1, 0, "x", store)
 
 
-def test_dead_worker_process_is_reported(tmp_path):
-    store = ResultsStore(tmp_path / "r.sqlite")
-    with pytest.raises(RuntimeError, match="worker process died.*re-run the same command"):
-        evaluate("point-reach", ["expert"], 2, 1, "dead", store, output_dir=tmp_path,
-                 env_kwargs={"fail_mode": "exit", "fail_step": 2})
-
-
 def test_videos(tmp_path):
     store = ResultsStore(tmp_path / "r.sqlite")
     recs = evaluate("point-reach", ["expert"], "grid", 0, "vid", store, video=True, output_dir=tmp_path)

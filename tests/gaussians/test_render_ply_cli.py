@@ -42,7 +42,7 @@ def test_framing_camera_fits_the_percentile_sphere(make_cloud):
 def test_render_ply_bad_file_exits_nonzero_with_one_line(tmp_path, capsys):
     bad = tmp_path / "bad.ply"
     bad.write_bytes(b"ply\nformat binary_little_endian 1.0\nelement vertex 3\nproperty float x\nend_header\n")
-    assert main(["render-ply", str(bad), "--out", str(tmp_path / "x.png")]) == 1
+    assert main(["render-ply", str(bad), "--out", str(tmp_path / "x.png")]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "bad.ply" in err[0] and "missing vertex properties" in err[0]
     assert "Traceback" not in err[0]

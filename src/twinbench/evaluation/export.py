@@ -58,8 +58,10 @@ def eval_info(records: list[EpisodeRecord]) -> dict:
 
 
 def policy_folder(policy: str, checkpoint: str) -> str:
-    """File-system-safe folder name of a policy/checkpoint pair (eval_info and videos)."""
-    return re.sub(r"[^A-Za-z0-9_.\-]+", "-", policy + (f"_{checkpoint}" if checkpoint else ""))
+    """File-system-safe folder name of a policy/checkpoint pair (eval_info and videos): one path component,
+    never '.', '..' or hidden (a leading '.' becomes '_')."""
+    name = re.sub(r"[^A-Za-z0-9_.\-]+", "-", policy + (f"_{checkpoint}" if checkpoint else ""))
+    return "_" + name[1:] if name.startswith(".") else (name or "_")
 
 
 def write_eval_infos(records: list[EpisodeRecord], out_dir: str | Path) -> list[Path]:

@@ -8,58 +8,50 @@ validated first; nothing is imported when any row is bad.
 from __future__ import annotations
 
 import csv
-import sys
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Annotated
 
 import tyro
 
-from twinbench.evaluation.store import DEFAULT_DB, EpisodeRecord, ResultsStore
+from twinbench.errors import InputError
+from twinbench.evaluation.store import (  # noqa: F401 - parse_success/TRUE_WORDS/FALSE_WORDS re-exported
+    DEFAULT_DB,
+    FALSE_WORDS,
+    TRUE_WORDS,
+    EpisodeRecord,
+    ResultsStore,
+    check_run_id,
+    parse_int,
+    parse_success,
+)
 
 REQUIRED = ("policy", "checkpoint", "init_state", "success")
 OPTIONAL = ("train_step", "seed", "task", "notes")
-TRUE_WORDS = ("1", "true", "yes", "success")
-FALSE_WORDS = ("0", "false", "no", "failure")
 _MAX_REPORTED = 20
 
 
-def parse_success(text: str) -> bool:
-    """1/0, true/false, yes/no, success/failure (case-insensitive) -> bool; ValueError otherwise."""
-    word = text.strip().lower()
-    if word in TRUE_WORDS:
-        return True
-    if word in FALSE_WORDS:
-        return False
-    raise ValueError(f"{text!r} is not one of {', '.join(TRUE_WORDS + FALSE_WORDS)}")
-
-
 def _parse_int(text: str, *, minimum: int | None = None) -> int:
-    try:
-        value = int(text.strip())
-    except ValueError:
-        raise ValueError(f"{text!r} is not an integer") from None
-    if minimum is not None and value < minimum:
-        raise ValueError(f"{value} must be >= {minimum}")
-    return value
+    return parse_int(text, minimum=minimum)
 
 
 def read_real_csv(path: str | Path, run_id: str = "real", task: str = "push-t") -> list[EpisodeRecord]:
     """Validate a real-outcome CSV and return its episodes (domain "real", status "ok").
 
-    Raises ValueError listing every bad row as "FILE row N, column C: problem"."""
+    Raises InputError (a ValueError) listing every bad row as "FILE row N, column C: problem"."""
+    check_run_id(run_id)
     path = Path(path)
     if not path.is_file():
-        raise ValueError(f"real-outcome CSV {path} does not exist (give the path of a .csv file)")
+        raise InputError(f"real-outcome CSV {path} does not exist (give the path of a .csv file)")
     try:
         with path.open(newline="", encoding="utf-8-sig") as fh:
             rows = list(csv.reader(fh))
     except UnicodeDecodeError as err:
-        raise ValueError(f"{path} is not UTF-8 text: {err}; save it as UTF-8 CSV") from err
+        raise InputError(f"{path} is not UTF-8 text: {err}; save it as UTF-8 CSV") from err
     except csv.Error as err:
-        raise ValueError(f"{path} is not a valid CSV file: {err}") from err
+        raise InputError(f"{path} is not a valid CSV file: {err}") from err
     if not rows or not any(cell.strip() for cell in rows[0]):
-        raise ValueError(f"{path} is empty: expected a header row with columns {', '.join(REQUIRED)}")
+        raise InputError(f"{path} is empty: expected a header row with columns {', '.join(REQUIRED)}")
     header = [h.strip().lower() for h in rows[0]]
     missing = [c for c in REQUIRED if c not in header]
     unknown = [h for h in header if h not in REQUIRED + OPTIONAL]
@@ -72,7 +64,7 @@ def read_real_csv(path: str | Path, run_id: str = "real", task: str = "push-t") 
             parts.append(f"unknown column(s) {', '.join(repr(u) for u in unknown)}")
         if dupes:
             parts.append(f"repeated column(s) {', '.join(dupes)}")
-        raise ValueError(f"{path} row 1 (header): {'; '.join(parts)}. Expected columns "
+        raise InputError(f"{path} row 1 (header): {'; '.join(parts)}. Expected columns "
                          f"{', '.join(REQUIRED)} and optionally {', '.join(OPTIONAL)}")
 
     errors: list[str] = []
@@ -127,10 +119,10 @@ def read_real_csv(path: str | Path, run_id: str = "real", task: str = "push-t") 
         ))
     if errors:
         more = f"\n... and {len(errors) - _MAX_REPORTED} more" if len(errors) > _MAX_REPORTED else ""
-        raise ValueError(f"{len(errors)} problem(s) in {path}; nothing was imported:\n"
+        raise InputError(f"{len(errors)} problem(s) in {path}; nothing was imported:\n"
                          + "\n".join(errors[:_MAX_REPORTED]) + more)
     if not records:
-        raise ValueError(f"{path} has a header but no data rows")
+        raise InputError(f"{path} has a header but no data rows")
     return records
 
 
@@ -140,8 +132,7 @@ def import_real_csv(path: str | Path, store: ResultsStore, run_id: str = "real",
 
     Importing the same trials again replaces them (same run id, policy, checkpoint, init_state, seed)."""
     records = read_real_csv(path, run_id=run_id, task=task)
-    store.start_run(run_id, task, {"kind": "real-robot outcomes", "task": task})
-    store.record_episodes(records)
+    store.start_run_with_episodes(run_id, task, {"kind": "real-robot outcomes", "task": task}, records)
     return records
 
 
@@ -161,12 +152,8 @@ class ImportRealConfig:
 
 
 def main(config: ImportRealConfig) -> int:
-    try:
-        records = import_real_csv(config.file, ResultsStore(config.db), run_id=config.run_id,
-                                  task=config.task)
-    except ValueError as err:
-        print(f"twinbench import-real: {err}", file=sys.stderr)
-        return 2
+    """Bad input raises InputError: `twinbench` prints it (every bad row) and exits with code 2."""
+    records = import_real_csv(config.file, ResultsStore(config.db), run_id=config.run_id, task=config.task)
     n_ok = sum(r.success for r in records)
     policies = sorted({(r.policy, r.checkpoint) for r in records})
     print(f"imported {len(records)} real episodes ({n_ok} successes) for {len(policies)} "

@@ -29,7 +29,15 @@ from pathlib import Path
 
 import numpy as np
 
-from twinbench.evaluation.store import DEFAULT_DB, EpisodeRecord, ResultsStore
+from twinbench.errors import InputError
+from twinbench.evaluation.store import (
+    DEFAULT_DB,
+    EpisodeRecord,
+    ResultsStore,
+    check_run_id,
+    parse_int,
+    parse_success,
+)
 from twinbench.policies.base import PolicyError
 
 _OUTCOME_FIELDS = ("init_state", "success", "policy", "checkpoint")
@@ -53,96 +61,222 @@ class RecordedEpisode:
         return self.episode_index if self.seed is None else int(self.seed)
 
 
+MAX_LOG_BYTES = 2 * 2**30
+"""Largest JSON / NPZ log (uncompressed NPZ members) read; larger ones are refused before parsing."""
+
+
+def _field(where: str, index: int, name: str, parse, value):
+    try:
+        return parse(value)
+    except InputError as err:
+        raise InputError(f"{where}: episode {index} field {name!r}: {err}") from None
+
+
+def _text(value) -> str:
+    if isinstance(value, bytes):
+        return value.decode("utf-8", "replace")
+    if value is None or not isinstance(value, str | np.str_):
+        raise InputError(f"{value!r} is not a string")
+    return str(value)
+
+
+def _optional_int(value, minimum: int | None = None) -> int | None:
+    """None (or -1 for train_step, the NPZ convention for 'none') -> None; else a strict int."""
+    return None if value is None else parse_int(value, minimum=minimum)
+
+
 def _episode_from_dict(d: dict, where: str, index: int, actions=None) -> RecordedEpisode:
+    if not isinstance(d, dict):
+        raise InputError(f"{where}: episode {index} is a {type(d).__name__}, expected an object with fields "
+                         "init_state, actions (T x A), success, policy, checkpoint")
     missing = [f for f in _OUTCOME_FIELDS + (() if actions is not None else ("actions",)) if f not in d]
     if missing:
-        raise ValueError(f"{where}: episode {index} lacks field(s) {missing}; each episode needs "
+        raise InputError(f"{where}: episode {index} lacks field(s) {missing}; each episode needs "
                          f"init_state, actions (T x A), success, policy, checkpoint")
-    acts = np.asarray(d["actions"] if actions is None else actions, dtype=np.float64)
+    try:
+        acts = np.asarray(d["actions"] if actions is None else actions, dtype=np.float64)
+    except (TypeError, ValueError, OverflowError) as err:
+        raise InputError(f"{where}: episode {index} field 'actions' is not a numeric (T, A) array "
+                         f"({err})") from None
     if acts.ndim != 2 or len(acts) == 0 or not np.all(np.isfinite(acts)):
-        raise ValueError(f"{where}: episode {index} field 'actions' must be a finite (T, A) array with "
+        raise InputError(f"{where}: episode {index} field 'actions' must be a finite (T, A) array with "
                          f"T >= 1, got shape {acts.shape}")
     step = d.get("train_step")
-    step = None if step is None or (isinstance(step, int | np.integer) and step < 0) else int(step)
-    seed = d.get("seed")
+    if step is not None and not isinstance(step, bool | np.bool_) and np.ndim(step) == 0:
+        try:
+            step = None if float(step) == -1 else step  # NPZ: -1 = no train step
+        except (TypeError, ValueError):
+            pass
+    checkpoint = d["checkpoint"]
     return RecordedEpisode(
-        episode_index=int(d.get("episode_index", index)), init_state=int(d["init_state"]), actions=acts,
-        success=bool(d["success"]), policy=str(d["policy"]), checkpoint=str(d["checkpoint"] or ""),
-        train_step=step, seed=None if seed is None else int(seed),
+        episode_index=_field(where, index, "episode_index", lambda v: parse_int(v, minimum=0),
+                             d.get("episode_index", index)),
+        init_state=_field(where, index, "init_state", lambda v: parse_int(v, minimum=0), d["init_state"]),
+        actions=acts,
+        success=_field(where, index, "success", parse_success, d["success"]),
+        policy=_field(where, index, "policy", _text, d["policy"]),
+        checkpoint="" if checkpoint is None else _field(where, index, "checkpoint", _text, checkpoint),
+        train_step=_field(where, index, "train_step", lambda v: _optional_int(v, 0), step),
+        seed=_field(where, index, "seed", _optional_int, d.get("seed")),
     )
+
+
+def _read_json(path: Path):
+    """Parse a JSON file (size-bounded); InputError naming the file on any problem."""
+    try:
+        size = path.stat().st_size
+        if size > MAX_LOG_BYTES:
+            raise InputError(f"{path}: {size} bytes, over the {MAX_LOG_BYTES}-byte limit for a JSON log; "
+                             "split it or use an NPZ log")
+        return json.loads(path.read_bytes())
+    except (UnicodeDecodeError, json.JSONDecodeError) as err:
+        raise InputError(f"{path}: not valid JSON ({err}); fix or re-export the file") from None
+    except RecursionError:
+        raise InputError(f"{path}: JSON nested too deeply; fix or re-export the file") from None
 
 
 def load_json_log(path: str | Path) -> list[RecordedEpisode]:
     path = Path(path)
-    try:
-        data = json.loads(path.read_text())
-    except json.JSONDecodeError as err:
-        raise ValueError(f"{path}: not valid JSON ({err})") from err
+    data = _read_json(path)
     eps = data.get("episodes") if isinstance(data, dict) else data
     if not isinstance(eps, list) or not eps:
-        raise ValueError(f"{path}: expected {{'episodes': [...]}} with at least one episode")
+        raise InputError(f"{path}: expected {{'episodes': [...]}} with at least one episode")
     return [_episode_from_dict(d, str(path), i) for i, d in enumerate(eps)]
+
+
+def _load_npz(path: Path) -> dict[str, np.ndarray]:
+    """The arrays of an .npz (no pickles), every member's size checked before it is inflated/allocated."""
+    import io
+    import zipfile
+
+    out, total = {}, 0
+    try:
+        with zipfile.ZipFile(path) as zf:
+            for info in zf.infolist():
+                total += info.file_size
+                if total > MAX_LOG_BYTES:
+                    raise InputError(f"{path}: members inflate to more than {MAX_LOG_BYTES} bytes (limit)")
+                with zf.open(info) as fh:
+                    raw = fh.read(info.file_size + 1)  # never more than the declared size (+1 to see excess)
+                if len(raw) != info.file_size:
+                    raise InputError(f"{path}: member {info.filename!r} does not match its declared size")
+                buf = io.BytesIO(raw)
+                version = np.lib.format.read_magic(buf)
+                read_header = {(1, 0): np.lib.format.read_array_header_1_0,
+                               (2, 0): np.lib.format.read_array_header_2_0}.get(version)
+                if read_header is None:
+                    raise InputError(f"{path}: member {info.filename!r} uses .npy format {version}; "
+                                     "save with numpy.savez")
+                shape, _, dtype = read_header(buf)
+                if dtype.hasobject:
+                    raise InputError(f"{path}: member {info.filename!r} holds Python objects (pickles are "
+                                     "never loaded); store plain numeric / string arrays")
+                if int(np.prod(shape, dtype=object)) * dtype.itemsize > len(raw):
+                    raise InputError(f"{path}: member {info.filename!r} declares shape {shape}, larger "
+                                     "than its data")
+                buf.seek(0)
+                out[info.filename.removesuffix(".npy")] = np.lib.format.read_array(buf, allow_pickle=False)
+    except InputError:
+        raise
+    except Exception as err:  # noqa: BLE001 - zipfile and numpy's header parser (tokenize, ast) raise many types
+        raise InputError(f"{path}: not a valid .npz file ({type(err).__name__}: {err})") from None
+    return out
 
 
 def load_npz_log(path: str | Path) -> list[RecordedEpisode]:
     path = Path(path)
-    with np.load(path, allow_pickle=False) as z:
-        missing = [k for k in ("init_state", "success", "policy", "checkpoint", "lengths", "actions")
-                   if k not in z.files]
-        if missing:
-            raise ValueError(f"{path}: missing array(s) {missing} (see twinbench.evaluation.replay)")
-        arrays = {k: z[k] for k in z.files}
-    lengths = arrays["lengths"].astype(int)
-    if lengths.sum() != len(arrays["actions"]):
-        raise ValueError(f"{path}: sum(lengths) = {lengths.sum()} != len(actions) = {len(arrays['actions'])}")
+    arrays = _load_npz(path)
+    missing = [k for k in ("init_state", "success", "policy", "checkpoint", "lengths", "actions")
+               if k not in arrays]
+    if missing:
+        raise InputError(f"{path}: missing array(s) {missing} (see twinbench.evaluation.replay)")
+    lengths = arrays["lengths"]
+    if lengths.ndim != 1 or lengths.dtype.kind not in "iu" or np.any(lengths < 1):
+        raise InputError(f"{path}: 'lengths' must be a 1-D integer array of episode lengths >= 1")
+    n = len(lengths)
+    for k in ("init_state", "success", "policy", "checkpoint", "seed", "train_step"):
+        if k in arrays and (arrays[k].ndim != 1 or len(arrays[k]) != n):
+            raise InputError(f"{path}: {k!r} must be a 1-D array of {n} values (one per episode), got shape "
+                             f"{arrays[k].shape}")
+    total = int(np.sum(lengths, dtype=object))
+    if arrays["actions"].ndim != 2 or total != len(arrays["actions"]):
+        raise InputError(f"{path}: sum(lengths) = {total} != len(actions) = {len(arrays['actions'])} "
+                         "(actions must be (sum T, A))")
     starts = np.concatenate([[0], np.cumsum(lengths)])
     out = []
-    for i in range(len(lengths)):
+    for i in range(n):
         d = {k: arrays[k][i] for k in ("init_state", "success", "policy", "checkpoint", "seed", "train_step")
              if k in arrays}
         out.append(_episode_from_dict(d, str(path), i, arrays["actions"][starts[i]:starts[i + 1]]))
     return out
 
 
-def load_lerobot_dataset(folder: str | Path, outcomes: str | Path | None = None) -> list[RecordedEpisode]:
-    """Recorded episodes of a LeRobotDataset v3 folder (actions from data/, outcomes from meta/episodes/)."""
+def _read_parquet(path: Path, columns: list[str] | None = None):
+    import pyarrow as pa
     import pyarrow.parquet as pq
 
+    try:
+        return pq.read_table(path, columns=columns).to_pylist()
+    except (pa.ArrowException, OSError, ValueError, KeyError) as err:
+        raise InputError(f"{path}: cannot read this parquet file ({type(err).__name__}: {err}); "
+                         "re-export the dataset") from None
+
+
+def load_lerobot_dataset(folder: str | Path, outcomes: str | Path | None = None) -> list[RecordedEpisode]:
+    """Recorded episodes of a LeRobotDataset v3 folder (actions from data/, outcomes from meta/episodes/)."""
     folder = Path(folder)
     info_path = folder / "meta" / "info.json"
     if not info_path.is_file():
-        raise ValueError(f"{folder}: no meta/info.json; not a LeRobotDataset folder")
-    info = json.loads(info_path.read_text())
+        raise InputError(f"{folder}: no meta/info.json; not a LeRobotDataset folder")
+    info = _read_json(info_path)
+    if not isinstance(info, dict):
+        raise InputError(f"{info_path}: expected a JSON object with codebase_version and features")
     version = str(info.get("codebase_version", ""))
     if not version.startswith("v3"):
-        raise ValueError(f"{info_path}: codebase_version {version!r} is not v3.x; convert the dataset to v3 "
+        raise InputError(f"{info_path}: codebase_version {version!r} is not v3.x; convert the dataset to v3 "
                          "(lerobot's convert_dataset_v21_to_v30) first")
-    if "action" not in info.get("features", {}):
-        raise ValueError(f"{info_path}: features has no 'action'")
+    features = info.get("features", {})
+    if not isinstance(features, dict) or "action" not in features:
+        raise InputError(f"{info_path}: features has no 'action'")
     data_files = sorted((folder / "data").glob("chunk-*/file-*.parquet"))
     if not data_files:
-        raise ValueError(f"{folder}: no data/chunk-XXX/file-XXX.parquet files")
+        raise InputError(f"{folder}: no data/chunk-XXX/file-XXX.parquet files")
     actions: dict[int, list[tuple[int, np.ndarray]]] = {}
     for f in data_files:
-        table = pq.read_table(f, columns=["episode_index", "frame_index", "action"])
-        for ep, fr, act in zip(table["episode_index"].to_pylist(), table["frame_index"].to_pylist(),
-                               table["action"].to_pylist(), strict=True):
-            actions.setdefault(int(ep), []).append((int(fr), np.asarray(act, dtype=np.float64)))
+        for i, row in enumerate(_read_parquet(f, ["episode_index", "frame_index", "action"])):
+            ep = _field(str(f), i, "episode_index", lambda v: parse_int(v, minimum=0), row["episode_index"])
+            fr = _field(str(f), i, "frame_index", lambda v: parse_int(v, minimum=0), row["frame_index"])
+            try:
+                act = np.asarray(row["action"], dtype=np.float64)
+            except (TypeError, ValueError) as err:
+                raise InputError(f"{f}: row {i} 'action' is not numeric ({err})") from None
+            actions.setdefault(ep, []).append((fr, act))
     meta_rows: dict[int, dict] = {}
     for f in sorted((folder / "meta" / "episodes").glob("chunk-*/file-*.parquet")):
-        for row in pq.read_table(f).to_pylist():
-            meta_rows[int(row["episode_index"])] = row
+        for i, row in enumerate(_read_parquet(f)):
+            if "episode_index" not in row:
+                raise InputError(f"{f}: no 'episode_index' column")
+            meta_rows[_field(str(f), i, "episode_index", parse_int, row["episode_index"])] = row
     if outcomes is not None:
-        extra = json.loads(Path(outcomes).read_text())
-        for i, d in enumerate(extra.get("episodes", extra) if isinstance(extra, dict) else extra):
-            if "episode_index" not in d:
-                raise ValueError(f"{outcomes}: entry {i} lacks 'episode_index'")
-            meta_rows.setdefault(int(d["episode_index"]), {}).update(d)
+        outcomes = Path(outcomes)
+        if not outcomes.is_file():
+            raise InputError(f"outcomes file {outcomes} does not exist")
+        extra = _read_json(outcomes)
+        entries = extra.get("episodes", extra) if isinstance(extra, dict) else extra
+        if not isinstance(entries, list):
+            raise InputError(f"{outcomes}: expected {{'episodes': [...]}} or a list of per-episode objects")
+        for i, d in enumerate(entries):
+            if not isinstance(d, dict) or "episode_index" not in d:
+                raise InputError(f"{outcomes}: entry {i} lacks 'episode_index'")
+            meta_rows.setdefault(_field(str(outcomes), i, "episode_index", parse_int, d["episode_index"]),
+                                 {}).update(d)
     out = []
     for ep in sorted(actions):
         frames = sorted(actions[ep], key=lambda x: x[0])
         if [f for f, _ in frames] != list(range(len(frames))):
-            raise ValueError(f"{folder}: episode {ep} has non-contiguous frame_index values")
+            raise InputError(f"{folder}: episode {ep} has non-contiguous frame_index values")
+        if len({a.shape for _, a in frames}) != 1:
+            raise InputError(f"{folder}: episode {ep} has actions of different lengths")
         row = dict(meta_rows.get(ep, {}))
         row["episode_index"] = ep
         where = f"{folder} (meta/episodes or outcomes file)"
@@ -156,12 +290,12 @@ def load_recorded(source: str | Path, outcomes: str | Path | None = None) -> lis
     if source.is_dir():
         return load_lerobot_dataset(source, outcomes)
     if not source.is_file():
-        raise ValueError(f"replay source {source} does not exist")
+        raise InputError(f"replay source {source} does not exist")
     if source.suffix == ".json":
         return load_json_log(source)
     if source.suffix == ".npz":
         return load_npz_log(source)
-    raise ValueError(f"replay source {source}: expected a LeRobotDataset folder, a .json or an .npz log")
+    raise InputError(f"replay source {source}: expected a LeRobotDataset folder, a .json or an .npz log")
 
 
 class OpenLoopPolicy:
@@ -187,13 +321,19 @@ def replay_episodes(task: str, episodes: list[RecordedEpisode], store: ResultsSt
     from twinbench.evaluation.runner import run_episode
     from twinbench.tasks import get_task
 
+    check_run_id(run_id)
     spec = get_task(task)
+    for ep in episodes:  # a replay starts from the recorded grid state, never from a sampled one
+        if not 0 <= ep.init_state < spec.n_grid_states:
+            raise InputError(f"episode {ep.episode_index}: init_state {ep.init_state} is not a grid state "
+                             f"of task {task!r} (0..{spec.n_grid_states - 1}); the env would sample a "
+                             "random state instead of replaying the recorded one. Fix the recording")
     store = store if isinstance(store, ResultsStore) else ResultsStore(store)
     env = spec.make_env(**(env_kwargs or {}))
     a_shape = env.action_space.shape
     for ep in episodes:
         if ep.actions.shape[1:] != a_shape:
-            raise ValueError(f"episode {ep.episode_index}: actions of shape {ep.actions.shape[1:]} per step, "
+            raise InputError(f"episode {ep.episode_index}: actions of shape {ep.actions.shape[1:]} per step, "
                              f"task {task!r} expects {a_shape}")
     store.start_run(run_id, task, {"task": task, "kind": "replay", "n_episodes": len(episodes),
                                    "env_kwargs": dict(env_kwargs or {})})

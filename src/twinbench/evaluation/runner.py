@@ -2,11 +2,13 @@
 
 Episodes run in worker processes (spawn context; `workers=0` runs them in the calling process) or on
 Ray (`backend="ray"`). The parent commits each finished episode to the results store at once, so a
-re-run of the same run id skips finished episodes and an interrupted run (SIGINT) loses at most the
-episodes in flight. Status: "sim_error" when the env reports or raises a simulation failure (or emits
-a non-finite state), "policy_error" when the policy raises or returns a malformed action. The outcome is
-the env's `info["is_success"]` at the episode's last step (the env's success rule, e.g. TwinEnv's
-"final" window judgement or "early" termination, is stored in the episode's metrics).
+re-run of the same run id skips finished episodes and an interrupted run (SIGINT, or SIGTERM handled the
+same way) loses at most the episodes in flight. Status: "sim_error" when the env reports or raises a
+simulation failure (or emits a non-finite state, or its worker process dies inside the episode: the run
+goes on with a fresh process), "policy_error" when the policy raises or returns a malformed action.
+Worker processes exit as soon as their parent dies, however it dies. The outcome is the env's
+`info["is_success"]` at the episode's last step (the env's success rule, e.g. TwinEnv's "final" window
+judgement or "early" termination, is stored in the episode's metrics).
 
 Seeds: grid episodes use init_state i with seed `seed + i`; `episodes=N` samples N states, init_state
 `n_grid_states + k` with seed `seed + k` (the env draws the state from that seed).
@@ -18,8 +20,8 @@ import json
 import signal
 import time
 import traceback
+import warnings
 from collections.abc import Sequence
-from concurrent.futures import BrokenExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Annotated, Literal
@@ -27,8 +29,9 @@ from typing import Annotated, Literal
 import numpy as np
 from tyro.conf import UseAppendAction
 
+from twinbench.errors import InputError
 from twinbench.evaluation.export import policy_folder, write_eval_infos
-from twinbench.evaluation.store import DEFAULT_DB, EpisodeRecord, ResultsStore
+from twinbench.evaluation.store import DEFAULT_DB, EpisodeRecord, ResultsStore, check_run_id
 from twinbench.policies.base import PolicyError
 from twinbench.policies.spec import make_policy, parse_policy_spec
 
@@ -57,6 +60,7 @@ class EpisodeOutcome:
     video_path: str | None = None
     started_at: float = 0.0
     success_rule: str | None = None  # the env's rule that judged the outcome (TwinEnv: "final" or "early")
+    video_error: str | None = None  # why a requested video is missing (the episode itself is unaffected)
 
     def metrics(self, **extra) -> dict:
         """The EpisodeRecord.metrics of this outcome: `extra`, rewards, success rule, error text."""
@@ -65,6 +69,8 @@ class EpisodeOutcome:
             out["success_rule"] = self.success_rule
         if self.error:
             out["error"] = self.error
+        if self.video_error:
+            out["video_error"] = self.video_error
         return out
 
 
@@ -86,27 +92,76 @@ def _error_text(err: BaseException) -> str:
 
 
 class _VideoWriter:
-    """Streams frames to an MP4 as they come (an episode's frames never sit in memory at once)."""
+    """Streams frames to an MP4 as they come (an episode's frames never sit in memory at once).
+
+    A failing writer (disk full, ffmpeg error) never affects the episode: writing stops, `close()` reports
+    the video as missing with the reason, and a file that is not a complete MP4 is deleted."""
 
     def __init__(self, path: str | Path, env):
         self.path = Path(path)
         self.fps = env.unwrapped.metadata.get("render_fps", 30)
         self._writer = None
+        self.error: str | None = None
 
     def add(self, frame) -> None:
-        if self._writer is None:
-            import imageio.v2 as imageio
+        if self.error is not None:
+            return
+        try:
+            if self._writer is None:
+                import imageio.v2 as imageio
 
-            self.path.parent.mkdir(parents=True, exist_ok=True)
-            self._writer = imageio.get_writer(str(self.path), fps=self.fps)
-        self._writer.append_data(np.asarray(frame))
+                self.path.parent.mkdir(parents=True, exist_ok=True)
+                self._writer = imageio.get_writer(str(self.path), fps=self.fps)
+            self._writer.append_data(np.asarray(frame))
+        except Exception as err:  # noqa: BLE001 - a video failure is reported, not an episode failure
+            self.error = f"writing {self.path}: {_error_text(err)}"
 
-    def close(self) -> bool:
-        """Finish the file; whether any frame was written."""
+    def close(self) -> tuple[bool, str | None]:
+        """Finish the file -> (whether a complete video was written, why not)."""
         if self._writer is None:
-            return False
-        self._writer.close()
-        return True
+            return False, self.error
+        try:
+            self._writer.close()
+        except Exception as err:  # noqa: BLE001
+            self.error = self.error or f"finishing {self.path}: {_error_text(err)}"
+        if self.error is None and not mp4_complete(self.path):
+            self.error = f"{self.path} is truncated (incomplete MP4; disk full?)"
+        if self.error is not None:
+            self.path.unlink(missing_ok=True)
+            warnings.warn(f"video missing: {self.error}", stacklevel=2)
+            return False, self.error
+        return True, None
+
+
+def mp4_complete(path: str | Path) -> bool:
+    """Whether `path` is a complete MP4: its top-level boxes tile the file exactly and include ftyp, mdat
+    and moov (a file cut short by a full disk fails this)."""
+    import struct
+
+    path = Path(path)
+    try:
+        size, seen, pos = path.stat().st_size, set(), 0
+        with path.open("rb") as fh:
+            while pos < size:
+                fh.seek(pos)
+                head = fh.read(8)
+                if len(head) < 8:
+                    return False
+                n, kind = struct.unpack(">I4s", head)
+                if n == 1:
+                    ext = fh.read(8)
+                    if len(ext) < 8:
+                        return False
+                    n = struct.unpack(">Q", ext)[0]
+                elif n == 0:
+                    n = size - pos
+                if n < 8 or pos + n > size:
+                    return False
+                seen.add(kind)
+                pos += n
+    except OSError:
+        return False
+    return {b"ftyp", b"mdat", b"moov"} <= seen
 
 
 def policy_observation(policy, obs: dict, info: dict) -> dict:
@@ -174,22 +229,18 @@ def run_episode(env, policy, *, init_state: int, seed: int, max_steps: int | Non
             video.add(env.render())
         if terminated or truncated:
             break
-    written = video.close() if video is not None else False
+    written, video_error = video.close() if video is not None else (False, None)
     return EpisodeOutcome(
         success=success and status == "ok", status=status, steps=steps,
         wall_time_s=time.perf_counter() - t0, sum_reward=float(np.sum(rewards)) if rewards else 0.0,
         max_reward=float(np.max(rewards)) if rewards else 0.0, error=error,
         video_path=str(video_path) if written else None, started_at=started, success_rule=rule,
+        video_error=video_error,
     )
 
 
 # ---- worker side -----------------------------------------------------------------------------------
 _CACHE: dict = {}  # per process: envs by (task, env_kwargs), policies by (task, spec)
-
-
-def _worker_init() -> None:
-    """Workers ignore SIGINT: the parent decides what to do (commit finished episodes, stop the rest)."""
-    signal.signal(signal.SIGINT, signal.SIG_IGN)
 
 
 def run_job(job: EpisodeJob) -> EpisodeRecord:
@@ -200,7 +251,11 @@ def run_job(job: EpisodeJob) -> EpisodeRecord:
     spec = parse_policy_spec(job.policy)
     env_key = (job.task, json.dumps(job.env_kwargs, sort_keys=True))
     if env_key not in _CACHE:
-        _CACHE[env_key] = task.make_env(**job.env_kwargs)
+        try:
+            _CACHE[env_key] = task.make_env(**job.env_kwargs)
+        except TypeError as err:  # an unknown keyword in --env-kwargs
+            raise InputError(f"--env-kwargs {json.dumps(job.env_kwargs)}: the {job.task!r} env does not "
+                             f"accept them ({err})") from None
     env = _CACHE[env_key]
     pol_key = (job.task, job.policy)
     policy, build_error = _CACHE.get(pol_key), None
@@ -246,6 +301,9 @@ def episode_set(n_grid_states: int, episodes: str | int, seed: int) -> list[tupl
                          f"got {episodes!r}") from None
     if n < 1:
         raise ValueError(f"episodes must be 'grid', 'grid:I,J,...' or a positive integer, got {episodes!r}")
+    if n > MAX_EPISODES:
+        raise InputError(f"--episodes {n}: at most {MAX_EPISODES} sampled episodes per run; split the "
+                         "evaluation into several runs")
     return [(n_grid_states + k, seed + k) for k in range(n)]
 
 
@@ -275,30 +333,13 @@ def _progress(total: int, enabled: bool):
 
 def _run_local(jobs: list[EpisodeJob], workers: int, on_done) -> None:
     if workers == 0:
-        for job in jobs:
-            on_done(run_job(job))
+        try:
+            for job in jobs:
+                on_done(run_job(job))
+        finally:
+            close_cached_policies()
         return
-    import multiprocessing as mp
-    from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
-
-    ex = ProcessPoolExecutor(max_workers=workers, mp_context=mp.get_context("spawn"),
-                             initializer=_worker_init)
-    futures = set()
-    try:
-        futures = {ex.submit(run_job, job) for job in jobs}
-        while futures:
-            done, futures = wait(futures, return_when=FIRST_COMPLETED)
-            for fut in done:
-                on_done(fut.result())
-    except BaseException:
-        for fut in futures:
-            fut.cancel()
-        # Stop in-flight episodes now instead of waiting for them (their results are given up).
-        for proc in list(getattr(ex, "_processes", {}).values()):
-            proc.terminate()
-        ex.shutdown(wait=False, cancel_futures=True)
-        raise
-    ex.shutdown(wait=True)
+    _run_pool(jobs, workers, on_done)
 
 
 def _import_ray():
@@ -313,12 +354,17 @@ def _run_ray(jobs: list[EpisodeJob], workers: int, on_done) -> None:
     ray = _import_ray()
     if not ray.is_initialized():
         ray.init(num_cpus=workers if workers > 0 else None, include_dashboard=False)
-    remote_job = ray.remote(num_cpus=1)(run_job)
-    pending = [remote_job.remote(job) for job in jobs]
+    remote_job = ray.remote(num_cpus=1, max_retries=0)(run_job)
+    by_ref = {remote_job.remote(job): job for job in jobs}
+    pending = list(by_ref)
     try:
         while pending:
             done, pending = ray.wait(pending, num_returns=1)
-            on_done(ray.get(done[0]))
+            try:
+                rec = ray.get(done[0])
+            except (ray.exceptions.WorkerCrashedError, ray.exceptions.NodeDiedError) as err:
+                rec = crash_record(by_ref[done[0]], f"the Ray worker died during the episode ({err})")
+            on_done(rec)
     except BaseException:
         for ref in pending:
             ray.cancel(ref, force=True)
@@ -341,12 +387,10 @@ def evaluate(task: str, policies: Sequence[str], episodes: str | int = "grid", w
     spec_task = get_task(task)
     if backend not in ("local", "ray"):
         raise ValueError(f"backend must be 'local' or 'ray', got {backend!r}")
-    if int(workers) < 0:
-        raise ValueError(f"workers must be >= 0 (0 = run in this process), got {workers}")
+    _check_counts(workers, seed)
     if not policies:
         raise ValueError("give at least one policy spec (e.g. 'expert')")
-    if not run_id:
-        raise ValueError("run_id must be a non-empty string")
+    check_run_id(run_id)  # a name, never a path: it names folders under output_dir
     specs = [parse_policy_spec(p) for p in policies]
     keys = [(s.name, s.checkpoint) for s in specs]
     if len(set(keys)) != len(keys):
@@ -390,19 +434,22 @@ def evaluate(task: str, policies: Sequence[str], episodes: str | int = "grid", w
             bar.advance(bar_task)
 
         try:
-            if backend == "ray":
-                _run_ray(todo, int(workers), on_done)
-            else:
-                _run_local(todo, int(workers), on_done)
-        except BrokenExecutor as err:
-            raise RuntimeError(
-                f"a worker process died ({err}); {done_count[0]} of {len(jobs)} episodes of run {run_id!r} "
-                f"are in {store.path}; re-run the same command to resume (or --workers 0 to debug)") from err
-        except KeyboardInterrupt:
+            with _sigterm_as_interrupt():
+                if backend == "ray":
+                    _run_ray(todo, int(workers), on_done)
+                else:
+                    _run_local(todo, int(workers), on_done)
+        except KeyboardInterrupt as err:
             left = len(jobs) - done_count[0]
-            msg = (f"interrupted: {done_count[0]} of {len(jobs)} episodes of run {run_id!r} are in "
+            what, exc = ("terminated (SIGTERM)", EvaluationTerminated) if isinstance(err, _SigTerm) else (
+                "interrupted", EvaluationInterrupted)
+            msg = (f"{what}: {done_count[0]} of {len(jobs)} episodes of run {run_id!r} are in "
                    f"{store.path}; re-run the same command (same --run-id) to resume the remaining {left}")
-            raise EvaluationInterrupted(msg, done_count[0], len(jobs)) from None
+            raise exc(msg, done_count[0], len(jobs)) from None
+    missing = [r for r in results.values() if r.metrics.get("video_error")]
+    for r in missing:
+        log(f"warning: video missing for {r.policy} init_state {r.init_state} seed {r.seed}: "
+            f"{r.metrics['video_error']}")
     records = [results[k] for k in jobs]
     if write_eval_info:
         write_eval_infos(records, out_dir / "eval" / run_id)
@@ -482,7 +529,7 @@ def main(cfg: EvalConfig) -> int:
                            log=say)
     except EvaluationInterrupted as err:
         say(err.message)
-        return 130
+        return 143 if isinstance(err, EvaluationTerminated) else 130
     by_policy: dict[tuple[str, str], list[EpisodeRecord]] = {}
     for r in records:
         by_policy.setdefault((r.policy, r.checkpoint), []).append(r)
@@ -493,3 +540,205 @@ def main(cfg: EvalConfig) -> int:
         say(f"{label}: {ok}/{len(recs)} successes ({100 * ok / len(recs):.1f}%), {errs} errors")
     say(f"eval_info.json files under {cfg.output_dir / 'eval' / cfg.run_id}")
     return 0
+
+
+# ---- hardening: worker processes that die with their parent, crashes recorded, SIGTERM like Ctrl-C -----
+MAX_EPISODES = 100_000  # per policy and run; more is refused before anything is allocated
+MAX_WORKERS = 256
+
+
+def _check_counts(workers, seed) -> None:
+    """--workers and --seed, checked before anything starts (InputError naming the option)."""
+    if not 0 <= int(workers) <= MAX_WORKERS:
+        raise InputError(f"--workers {workers}: must be between 0 (run in this process) and {MAX_WORKERS}")
+    if not 0 <= int(seed) <= 2**62:
+        raise InputError(f"--seed {seed}: must be between 0 and 2**62")
+
+
+class EvaluationTerminated(EvaluationInterrupted):
+    """Raised by `evaluate` after SIGTERM (handled like Ctrl-C: every finished episode is committed)."""
+
+
+class _SigTerm(KeyboardInterrupt):
+    """Raised in the main thread by the SIGTERM handler, so SIGTERM takes Ctrl-C's path."""
+
+
+class _sigterm_as_interrupt:
+    """Context manager: while active (main thread only), SIGTERM raises _SigTerm."""
+
+    def __enter__(self):
+        import threading
+
+        self._old = None
+        if threading.current_thread() is threading.main_thread():
+            def handler(signum, frame):
+                raise _SigTerm("SIGTERM")
+
+            self._old = signal.signal(signal.SIGTERM, handler)
+        return self
+
+    def __exit__(self, *exc) -> None:
+        if self._old is not None:
+            signal.signal(signal.SIGTERM, self._old)
+
+
+def close_cached_policies() -> None:
+    """Close and forget this process's cached policies (a remote policy's connection is closed here, not
+    from `__del__` at interpreter shutdown, where closing it could hang). Cached envs are kept."""
+    for key in [k for k, v in _CACHE.items() if hasattr(v, "select_action")]:
+        policy = _CACHE.pop(key)
+        close = getattr(policy, "close", None)
+        if callable(close):
+            try:
+                close()
+            except Exception:  # noqa: BLE001 - closing is best effort
+                pass
+
+
+def crash_record(job: EpisodeJob, reason: str) -> EpisodeRecord:
+    """The record of an episode whose process died: status sim_error, with the reason."""
+    spec = parse_policy_spec(job.policy)
+    out = EpisodeOutcome(False, "sim_error", 0, 0.0, error=reason, started_at=time.time())
+    return EpisodeRecord(
+        run_id=job.run_id, task=job.task, policy=spec.name, checkpoint=spec.checkpoint,
+        train_step=spec.train_step, init_state=job.init_state, seed=job.seed, domain="sim",
+        success=False, status="sim_error", steps=0, wall_time_s=0.0, video_path=None,
+        metrics=out.metrics(started_at=out.started_at),
+    )
+
+
+def _exit_reason(exitcode: int | None) -> str:
+    if exitcode is not None and exitcode < 0:
+        try:
+            return f"killed by signal {signal.Signals(-exitcode).name}"
+        except ValueError:
+            return f"killed by signal {-exitcode}"
+    return f"exit code {exitcode}"
+
+
+def _watch_parent(poll_s: float = 0.5) -> None:
+    """Start a daemon thread that ends this process as soon as its parent dies (any way, SIGKILL too)."""
+    import multiprocessing as mp
+    import os
+    import threading
+    from multiprocessing.connection import wait
+
+    parent = mp.parent_process()
+    sentinel = getattr(parent, "sentinel", None)
+    ppid = os.getppid()
+
+    def run() -> None:
+        while True:
+            if sentinel is not None:
+                if wait([sentinel], timeout=poll_s):
+                    os._exit(75)
+            else:
+                time.sleep(poll_s)
+            if os.getppid() != ppid:
+                os._exit(75)
+
+    threading.Thread(target=run, name="twinbench-parent-watchdog", daemon=True).start()
+
+
+def _worker_main(conn) -> None:
+    """A worker process: runs one job at a time from `conn`, replies ("ok", record) or ("error", exc).
+
+    Ignores SIGINT and SIGTERM (the parent decides: commit finished episodes, kill the rest) and exits
+    as soon as the parent dies."""
+    import pickle
+
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.signal(signal.SIGTERM, signal.SIG_IGN)
+    _watch_parent()
+    try:
+        while True:
+            try:
+                job = conn.recv()
+            except (EOFError, OSError):
+                return
+            if job is None:
+                return
+            try:
+                reply = ("ok", run_job(job))
+            except BaseException as err:  # noqa: BLE001 - sent to the parent, which raises it
+                try:
+                    pickle.dumps(err)
+                except Exception:  # noqa: BLE001
+                    err = RuntimeError(_error_text(err))
+                reply = ("error", err)
+            conn.send(reply)
+    finally:
+        close_cached_policies()
+
+
+class _Worker:
+    def __init__(self, ctx):
+        self.conn, child = ctx.Pipe(duplex=True)
+        self.process = ctx.Process(target=_worker_main, args=(child,), daemon=True, name="twinbench-worker")
+        self.process.start()
+        child.close()
+        self.job: EpisodeJob | None = None
+
+    def stop(self, graceful: bool) -> None:
+        if graceful and self.job is None and self.process.is_alive():
+            try:
+                self.conn.send(None)
+            except OSError:
+                pass
+            self.process.join(timeout=5)
+        if self.process.is_alive():
+            self.process.kill()  # SIGKILL: workers ignore SIGTERM
+            self.process.join(timeout=5)
+        self.conn.close()
+
+
+def _run_pool(jobs: list[EpisodeJob], workers: int, on_done) -> None:
+    """Run `jobs` on `workers` spawned processes, one job per process at a time, so that a process that
+    dies (segfault, os._exit, OOM kill) is known to have died in its job: that episode is recorded as
+    sim_error with the reason, a fresh process takes its place and the run goes on. An exception raised
+    by run_job itself (bad input) stops the run and is re-raised here."""
+    import multiprocessing as mp
+    from collections import deque
+    from multiprocessing.connection import wait
+
+    ctx = mp.get_context("spawn")
+    todo = deque(jobs)
+    pool: list[_Worker] = []
+    ok = False
+    try:
+        while todo or any(w.job is not None for w in pool):
+            pool = [w for w in pool if w.job is not None or w.process.is_alive()]
+            while todo and len(pool) < workers and sum(w.job is None for w in pool) < len(todo):
+                pool.append(_Worker(ctx))
+            for w in pool:
+                if w.job is None and todo:
+                    w.job = todo.popleft()
+                    w.conn.send(w.job)
+            busy = [w for w in pool if w.job is not None]
+            ready = set(wait([w.conn for w in busy] + [w.process.sentinel for w in busy]))
+            for w in pool:
+                if w.job is None or not (w.conn in ready or w.process.sentinel in ready):
+                    continue
+                reply = None
+                try:
+                    if w.conn.poll():
+                        reply = w.conn.recv()
+                except (EOFError, OSError):
+                    reply = None
+                if reply is None:  # the process died inside the episode
+                    w.process.join(timeout=5)
+                    job = w.job
+                    w.job = None
+                    w.stop(graceful=False)
+                    on_done(crash_record(job, f"worker process died during the episode "
+                                              f"({_exit_reason(w.process.exitcode)})"))
+                    continue  # replaced at the top of the loop
+                w.job = None
+                kind, value = reply
+                if kind == "error":
+                    raise value
+                on_done(value)
+        ok = True
+    finally:
+        for w in pool:
+            w.stop(graceful=ok)

@@ -8,6 +8,7 @@ of an episode is (run_id, domain, policy, checkpoint, init_state, seed); recordi
 from __future__ import annotations
 
 import json
+import re
 import sqlite3
 import time
 from collections.abc import Iterator
@@ -15,9 +16,74 @@ from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import numpy as np
+
+from twinbench.errors import InputError
+
 DEFAULT_DB = Path("outputs/results.sqlite")
 DOMAINS = ("sim", "real", "replay")
 STATUSES = ("ok", "sim_error", "policy_error")
+TRUE_WORDS = ("1", "true", "yes", "success")
+FALSE_WORDS = ("0", "false", "no", "failure")
+INT64 = (-(2**63), 2**63 - 1)  # what an SQLite INTEGER holds
+_RUN_ID_RE = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.\-]{0,127}$")
+
+
+# ---- the one way outcomes and indices enter the store ------------------------------------------------
+def parse_success(value) -> bool:
+    """An episode outcome -> bool, strictly: a bool (numpy too), the integers 0 / 1 (or 0.0 / 1.0), or
+    the words 1/0, true/false, yes/no, success/failure (any case). Anything else (e.g. "maybe", 2, NaN,
+    None) raises InputError: `bool("false")` is True, so outcomes never go through `bool()`."""
+    if isinstance(value, bool | np.bool_):
+        return bool(value)
+    if isinstance(value, int | np.integer | float | np.floating):
+        if value == 0 or value == 1:  # NaN compares unequal to both
+            return bool(value == 1)
+    elif isinstance(value, str | bytes):
+        text = value.decode("utf-8", "replace") if isinstance(value, bytes) else value
+        word = text.strip().lower()
+        if word in TRUE_WORDS:
+            return True
+        if word in FALSE_WORDS:
+            return False
+    raise InputError(f"{value!r} is not one of {', '.join(TRUE_WORDS + FALSE_WORDS)} (or a boolean): "
+                     "not an outcome")
+
+
+def parse_int(value, *, minimum: int | None = None, maximum: int | None = None) -> int:
+    """An integer field -> int, strictly: an int (numpy too), an integral float (3.0) or a decimal string;
+    never a bool, 3.7, NaN or a value outside [minimum, maximum] (and SQLite's int64). InputError."""
+    if isinstance(value, bool | np.bool_):
+        raise InputError(f"{value!r} is a boolean, not an integer")
+    if isinstance(value, int | np.integer):
+        out = int(value)
+    elif isinstance(value, float | np.floating):
+        if not (np.isfinite(value) and float(value).is_integer()):
+            raise InputError(f"{value!r} is not an integer")
+        out = int(value)
+    elif isinstance(value, str):
+        text = value.strip()
+        if not re.fullmatch(r"[+-]?\d{1,100}", text):
+            raise InputError(f"{value!r} is not an integer")
+        out = int(text)
+    else:
+        raise InputError(f"{value!r} ({type(value).__name__}) is not an integer")
+    lo = INT64[0] if minimum is None else max(minimum, INT64[0])
+    hi = INT64[1] if maximum is None else min(maximum, INT64[1])
+    if out < lo:
+        raise InputError(f"{out} must be >= {lo}")
+    if out > hi:
+        raise InputError(f"{out} must be <= {hi}")
+    return out
+
+
+def check_run_id(run_id) -> str:
+    """A run id is a name, never a path: letters, digits, '_', '.', '-' (at most 128, not starting with
+    '.' or '-'), since it names folders under the output directory. InputError otherwise."""
+    if not isinstance(run_id, str) or not _RUN_ID_RE.fullmatch(run_id):
+        raise InputError(f"run id {run_id!r}: use a name of letters, digits, '_', '.', '-' (no '/', no "
+                         "leading '.' or '-', at most 128 characters), e.g. 'push-t_2024-05-01'")
+    return run_id
 
 _SCHEMA = """
 CREATE TABLE IF NOT EXISTS runs (
@@ -72,6 +138,14 @@ class EpisodeRecord:
     metrics: dict = field(default_factory=dict)  # extra metrics, stored as JSON
 
     def __post_init__(self) -> None:
+        # Strict types at the door: a string outcome like "false" must never become True, 3.7 never 3.
+        object.__setattr__(self, "success", parse_success(self.success))
+        ints = ("init_state", "seed", "steps") + (("train_step",) if self.train_step is not None else ())
+        for name in ints:
+            try:
+                object.__setattr__(self, name, parse_int(getattr(self, name)))
+            except InputError as err:
+                raise InputError(f"EpisodeRecord.{name}: {err}") from None
         if self.domain not in DOMAINS:
             raise ValueError(f"EpisodeRecord.domain {self.domain!r} is not one of {DOMAINS}")
         if self.status not in STATUSES:
@@ -102,15 +176,26 @@ class ResultsStore:
         self.path = Path(path)
         self.timeout_s = float(timeout_s)
         if self.path.exists() and self.path.is_dir():
-            raise ValueError(f"results store path {self.path} is a directory; give a file such as "
+            raise InputError(f"results store path {self.path} is a directory; give a file such as "
                              f"{self.path / 'results.sqlite'}")
-        self.path.parent.mkdir(parents=True, exist_ok=True)
+        try:
+            self.path.parent.mkdir(parents=True, exist_ok=True)
+        except OSError as err:
+            raise InputError(f"results store {self.path}: cannot create its folder ({err.strerror or err}); "
+                             "give a --db path in a writable folder") from None
         with self._connect() as con:
             mode = con.execute("PRAGMA journal_mode=WAL").fetchone()[0]
             if mode.lower() != "wal":
                 raise RuntimeError(f"{self.path}: SQLite refused WAL mode (got {mode!r}); "
                                    "put the store on a local file system")
             con.executescript(_SCHEMA)
+            for table, wanted in (("runs", ("run_id", "task", "protocol", "created")),
+                                  ("episodes", _COLUMNS + ("recorded",))):
+                have = {r[1] for r in con.execute(f"PRAGMA table_info({table})")}
+                if not set(wanted) <= have:
+                    raise InputError(f"{self.path} is an SQLite file but not a twinbench results store "
+                                     f"(table {table!r} lacks {sorted(set(wanted) - have)}); "
+                                     "give another --db")
 
     def __repr__(self) -> str:
         return f"ResultsStore({str(self.path)!r})"
@@ -120,13 +205,15 @@ class ResultsStore:
         try:
             con = sqlite3.connect(self.path, timeout=self.timeout_s, isolation_level=None)
         except sqlite3.DatabaseError as err:
-            raise ValueError(f"cannot open results store {self.path}: {err}") from err
+            raise InputError(f"cannot open results store {self.path}: {err}; give the path of a results "
+                             "store (.sqlite) in a writable folder") from err
         try:
             con.execute(f"PRAGMA busy_timeout={int(self.timeout_s * 1000)}")
             yield con
         except sqlite3.DatabaseError as err:
             if "not a database" in str(err) or "malformed" in str(err):
-                raise ValueError(f"{self.path} is not a twinbench results store (SQLite): {err}") from err
+                raise InputError(f"{self.path} is not a twinbench results store (SQLite): {err}; give "
+                                 "another --db path") from err
             raise
         finally:
             con.close()
@@ -140,10 +227,16 @@ class ResultsStore:
     def start_run(self, run_id: str, task: str, protocol: dict) -> None:
         """Register a run with its protocol (JSON). Idempotent: calling again with the same task and
         protocol does nothing; a different task or protocol for an existing run id raises ValueError
-        (resuming must not mix protocols: use a new run id)."""
-        if not run_id:
-            raise ValueError("run_id must be a non-empty string")
+        (resuming must not mix protocols: use a new run id). The run id must be a name (`check_run_id`)."""
+        self.start_run_with_episodes(run_id, task, protocol, [])
+
+    def start_run_with_episodes(self, run_id: str, task: str, protocol: dict,
+                                recs: list[EpisodeRecord]) -> None:
+        """`start_run` and `record_episodes(recs)` in ONE transaction: all of it is stored, or nothing
+        (no empty run row is left behind when a record cannot be written)."""
+        check_run_id(run_id)
         proto = _dumps(dict(protocol), "protocol")
+        rows = self._episode_rows(recs)
         with self._connect() as con:
             con.execute("BEGIN IMMEDIATE")
             try:
@@ -154,8 +247,9 @@ class ResultsStore:
                     old, new = json.loads(row[1]), json.loads(proto)
                     keys = sorted(k for k in set(old) | set(new) if old.get(k) != new.get(k))
                     what = f"task {row[0]!r} != {task!r}" if row[0] != task else f"protocol keys {keys}"
-                    raise ValueError(f"run {run_id!r} already exists in {self.path} with a different "
+                    raise InputError(f"run {run_id!r} already exists in {self.path} with a different "
                                      f"{what}; use a new run id to evaluate a different protocol")
+                self._insert_episodes(con, rows)
                 con.execute("COMMIT")
             except BaseException:
                 con.execute("ROLLBACK")
@@ -190,6 +284,19 @@ class ResultsStore:
 
     def record_episodes(self, recs: list[EpisodeRecord]) -> None:
         """Store several episodes atomically (all or none), e.g. a validated CSV import."""
+        rows = self._episode_rows(recs)
+        with self._connect() as con:
+            con.execute("BEGIN IMMEDIATE")
+            try:
+                self._insert_episodes(con, rows)
+                con.execute("COMMIT")
+            except BaseException:
+                con.execute("ROLLBACK")
+                raise
+
+    @staticmethod
+    def _episode_rows(recs: list[EpisodeRecord]) -> list[tuple]:
+        """Validated SQL rows (before any transaction starts)."""
         rows = []
         for rec in recs:
             if not isinstance(rec, EpisodeRecord):
@@ -197,21 +304,19 @@ class ResultsStore:
             rows.append((
                 rec.run_id, rec.task, rec.policy, rec.checkpoint,
                 None if rec.train_step is None else int(rec.train_step),
-                int(rec.init_state), int(rec.seed), rec.domain, int(bool(rec.success)), rec.status,
+                int(rec.init_state), int(rec.seed), rec.domain, int(rec.success), rec.status,
                 int(rec.steps), float(rec.wall_time_s),
                 None if rec.video_path is None else str(rec.video_path),
                 _dumps(rec.metrics, "EpisodeRecord.metrics"), time.time(),
             ))
-        cols = ", ".join(_COLUMNS + ("recorded",))
-        marks = ", ".join("?" * (len(_COLUMNS) + 1))
-        with self._connect() as con:
-            con.execute("BEGIN IMMEDIATE")
-            try:
-                con.executemany(f"INSERT OR REPLACE INTO episodes ({cols}) VALUES ({marks})", rows)
-                con.execute("COMMIT")
-            except BaseException:
-                con.execute("ROLLBACK")
-                raise
+        return rows
+
+    @staticmethod
+    def _insert_episodes(con: sqlite3.Connection, rows: list[tuple]) -> None:
+        if rows:
+            cols = ", ".join(_COLUMNS + ("recorded",))
+            marks = ", ".join("?" * (len(_COLUMNS) + 1))
+            con.executemany(f"INSERT OR REPLACE INTO episodes ({cols}) VALUES ({marks})", rows)
 
     def finished(self, run_id: str, domain: str = "sim") -> set[tuple[str, str, int, int]]:
         """{(policy, checkpoint, init_state, seed)} already recorded for this run and domain."""

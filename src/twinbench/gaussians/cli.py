@@ -2,13 +2,13 @@
 
 from __future__ import annotations
 
-import sys
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 import tyro
 
+from twinbench.errors import InputError
 from twinbench.gaussians.camera import Camera
 from twinbench.gaussians.cloud import GaussianCloud
 
@@ -67,28 +67,48 @@ def framing_camera(
     return Camera.look_at(eye, centre, up, fx=fx, width=width, height=height)
 
 
+MAX_IMAGE_SIDE = 8192  # pixels; 8192 x 8192 float32 RGBA buffers are ~1 GiB
+
+
+def check_config(config: RenderPlyConfig) -> None:
+    """Refuse bad options before anything is loaded or allocated (InputError naming the option)."""
+    for name in ("width", "height"):
+        v = getattr(config, name)
+        if not 1 <= v <= MAX_IMAGE_SIDE:
+            raise InputError(f"--{name} {v}: must be between 1 and {MAX_IMAGE_SIDE} pixels")
+    if not (np.isfinite(config.fov_deg) and 0 < config.fov_deg < 180):
+        raise InputError(f"--fov-deg {config.fov_deg}: must be in (0, 180)")
+    if not (np.isfinite(config.percentile) and 0 < config.percentile <= 100):
+        raise InputError(f"--percentile {config.percentile}: must be in (0, 100]")
+    for name in ("view_dir", "up"):
+        v = np.asarray(getattr(config, name), dtype=np.float64)
+        if not np.all(np.isfinite(v)) or np.linalg.norm(v) < 1e-12:
+            raise InputError(f"--{name.replace('_', '-')} {tuple(v)}: must be a finite non-zero direction")
+    bg = np.asarray(config.background, dtype=np.float64)
+    if not np.all((bg >= 0) & (bg <= 1)):
+        raise InputError(f"--background {tuple(bg)}: each channel must be in [0, 1]")
+
+
 def main(config: RenderPlyConfig) -> int:
+    """Bad options or files raise InputError / GaussianFileError (one line via `twinbench`, exit code 2)."""
     import imageio.v3 as iio
 
     from twinbench.gaussians.io import load_gaussians
     from twinbench.gaussians.render import render
 
-    try:
-        cloud = load_gaussians(config.file)
-        cam = framing_camera(
-            cloud,
-            width=config.width,
-            height=config.height,
-            fov_deg=config.fov_deg,
-            view_dir=config.view_dir,
-            up=config.up,
-            percentile=config.percentile,
-        )
-        out = render(cloud, cam, background=config.background, device=config.device)
-        config.out.parent.mkdir(parents=True, exist_ok=True)
-        iio.imwrite(config.out, out.rgb_uint8())
-    except (ValueError, OSError, ImportError) as exc:
-        print(f"twinbench render-ply: error: {exc}", file=sys.stderr)
-        return 1
+    check_config(config)
+    cloud = load_gaussians(config.file)
+    cam = framing_camera(
+        cloud,
+        width=config.width,
+        height=config.height,
+        fov_deg=config.fov_deg,
+        view_dir=config.view_dir,
+        up=config.up,
+        percentile=config.percentile,
+    )
+    out = render(cloud, cam, background=config.background, device=config.device)
+    config.out.parent.mkdir(parents=True, exist_ok=True)
+    iio.imwrite(config.out, out.rgb_uint8())
     print(f"wrote {config.out} ({config.width}x{config.height}, {len(cloud)} Gaussians)")
     return 0

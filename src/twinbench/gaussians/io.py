@@ -19,11 +19,12 @@ from pathlib import Path
 
 import numpy as np
 
+from twinbench.errors import InputError
 from twinbench.gaussians.cloud import SH_C0, GaussianCloud
 from twinbench.gaussians.sh import sh_rotation_matrices
 
 
-class GaussianFileError(ValueError):
+class GaussianFileError(InputError):
     """A Gaussian file is missing, truncated, malformed or holds invalid values."""
 
     def __init__(self, path, problem: str) -> None:
@@ -70,13 +71,43 @@ _REQUIRED = [
 _IGNORED = {"nx", "ny", "nz"}
 
 
+MAX_GAUSSIANS = 50_000_000
+"""Most Gaussians a file may declare (a large room scan holds ~5-10 million); more is refused before any
+allocation. Pass `max_gaussians=` to `load_gaussians` to change it."""
+LOG_SCALE_RANGE = (-30.0, 20.0)
+"""Accepted log-scales (scale from 9e-14 m to 4.9e8 m); anything outside is a corrupt value that would
+render as NaN/inf (an all-black image)."""
+
+
+def _check_count(path, n: int, max_gaussians: int) -> None:
+    if n > max_gaussians:
+        raise GaussianFileError(
+            path, f"declares {n} Gaussians, over the limit of {max_gaussians} (corrupt header?); "
+            "pass max_gaussians= to load_gaussians to raise the limit"
+        )
+
+
+def _check_log_scales(path, log_scales: np.ndarray) -> None:
+    lo, hi = LOG_SCALE_RANGE
+    bad = (log_scales < lo) | (log_scales > hi)
+    if np.any(bad):
+        rows = np.flatnonzero(bad.reshape(len(log_scales), -1).any(axis=1))
+        raise GaussianFileError(
+            path,
+            f"{len(rows)} Gaussians have a log-scale outside [{lo:g}, {hi:g}] (first at Gaussian {rows[0]}: "
+            f"{log_scales[rows[0]].tolist()}); corrupt values, clean the file",
+        )
+
+
 def _check_finite(path, name: str, arr: np.ndarray) -> None:
-    bad = ~np.isfinite(arr)
+    """Every value finite, also once stored as float32 (an ASCII 1e308 is finite only in float64)."""
+    with np.errstate(over="ignore"):
+        bad = ~np.isfinite(arr) | ~np.isfinite(np.asarray(arr).astype(np.float32))
     if np.any(bad):
         rows = np.flatnonzero(bad.reshape(len(arr), -1).any(axis=1))
         raise GaussianFileError(
             path,
-            f"{name} has {len(rows)} non-finite (NaN/inf) values, first at "
+            f"{name} has {len(rows)} non-finite (NaN/inf) or float32-overflowing values, first at "
             f"Gaussian {rows[0]}; clean the file (e.g. drop those Gaussians)",
         )
 
@@ -107,7 +138,7 @@ def _parse_ply_header(path, data: bytes):
         elif tok[0] == "property":
             if not elements:
                 raise GaussianFileError(path, f"property before any element: {line!r}")
-            if tok[1] == "list":
+            if len(tok) >= 5 and tok[1] == "list":
                 elements[-1][2].append((tok[-1], None))
             elif len(tok) == 3 and tok[1] in _PLY_TYPES:
                 elements[-1][2].append((tok[2], _PLY_TYPES[tok[1]]))
@@ -118,7 +149,7 @@ def _parse_ply_header(path, data: bytes):
     return fmt, elements, nl + 1
 
 
-def _read_ply(path: Path) -> GaussianCloud:
+def _read_ply(path: Path, max_gaussians: int = MAX_GAUSSIANS) -> GaussianCloud:
     data = path.read_bytes()
     fmt, elements, body = _parse_ply_header(path, data)
     names = [e[0] for e in elements]
@@ -126,6 +157,10 @@ def _read_ply(path: Path) -> GaussianCloud:
         raise GaussianFileError(path, "no 'vertex' element in the PLY header")
     vi = names.index("vertex")
     count, props = elements[vi][1], elements[vi][2]
+    _check_count(path, count, max_gaussians)
+    for name, cnt, _ in elements:
+        if cnt > len(data):  # every element row takes at least one byte
+            raise GaussianFileError(path, f"element {name!r} declares {cnt} rows in a {len(data)}-byte file")
     prop_names = [p for p, _ in props]
     if "packed_position" in prop_names or "chunk" in names:
         raise GaussianFileError(
@@ -214,6 +249,7 @@ def _read_ply(path: Path) -> GaussianCloud:
     ):
         _check_finite(path, name, arr)
     _check_quats(path, quats)
+    _check_log_scales(path, log_scales)
     return GaussianCloud(means, quats, log_scales, opac, sh)
 
 
@@ -264,10 +300,12 @@ def _logit(p: np.ndarray) -> np.ndarray:
     return np.log(p / (1 - p))
 
 
-def _read_splat(path: Path) -> GaussianCloud:
+def _read_splat(path: Path, max_gaussians: int = MAX_GAUSSIANS) -> GaussianCloud:
+    size = path.stat().st_size
+    if size % 32:
+        raise GaussianFileError(path, f"size {size} is not a multiple of 32 bytes (truncated .splat?)")
+    _check_count(path, size // 32, max_gaussians)
     data = path.read_bytes()
-    if len(data) % 32:
-        raise GaussianFileError(path, f"size {len(data)} is not a multiple of 32 bytes (truncated .splat?)")
     arr = np.frombuffer(data, dtype=_SPLAT_DTYPE)
     _check_finite(path, "position", arr["pos"])
     _check_finite(path, "scale", arr["scale"])
@@ -277,12 +315,14 @@ def _read_splat(path: Path) -> GaussianCloud:
         )
     quats = (arr["rot"].astype(np.float64) - 128.0) / 128.0
     _check_quats(path, quats)
+    log_scales = np.log(arr["scale"].astype(np.float64))
+    _check_log_scales(path, log_scales)
     rgba = arr["rgba"].astype(np.float64) / 255.0
     sh = ((rgba[:, :3] - 0.5) / SH_C0)[:, None, :]
     return GaussianCloud(
         arr["pos"],
         quats / np.linalg.norm(quats, axis=1, keepdims=True),
-        np.log(arr["scale"].astype(np.float64)),
+        log_scales,
         _logit(rgba[:, 3]),
         sh,
     )
@@ -324,28 +364,44 @@ def _flip_yz(cloud: GaussianCloud) -> GaussianCloud:
     )
 
 
-def _read_spz(path: Path) -> GaussianCloud:
+def _gunzip_capped(path, raw: bytes, n_bytes: int) -> tuple[bytes, str]:
+    """Inflate at most `n_bytes` of a gzip stream -> (data, "end" | "more" | "truncated"): "end" when the
+    stream ends there (CRC checked), "more" when it holds more data (or bytes after it). Never inflates
+    more than `n_bytes` + 1, whatever the stream claims (a gzip bomb costs nothing)."""
+    d = zlib.decompressobj(wbits=16 + zlib.MAX_WBITS)  # gzip container
+    try:
+        out = d.decompress(raw, n_bytes)
+        if d.unconsumed_tail and d.decompress(d.unconsumed_tail, 1):
+            return out, "more"
+    except zlib.error as exc:
+        raise GaussianFileError(
+            path, f"not a valid gzip stream ({exc}); .spz files are gzip-compressed"
+        ) from None
+    if not d.eof:
+        return out, "truncated"
+    return out, ("more" if d.unused_data else "end")
+
+
+def _read_spz(path: Path, max_gaussians: int = MAX_GAUSSIANS) -> GaussianCloud:
     raw = path.read_bytes()
     if raw[:4] == b"NGSP":
         raise GaussianFileError(
             path,
             "uncompressed NGSP container (.spz version 4+) is not supported; save it as .spz version 2 or 3",
         )
-    try:
-        data = gzip.decompress(raw)
-    except (OSError, EOFError, zlib.error) as exc:
-        raise GaussianFileError(
-            path, f"not a valid gzip stream ({exc}); .spz files are gzip-compressed"
-        ) from None
-    if len(data) < 16:
-        raise GaussianFileError(path, f"truncated: {len(data)} bytes, the .spz header needs 16")
-    magic, version, n, degree, frac_bits, flags, _ = struct.unpack("<IIIBBBB", data[:16])
+    header, _ = _gunzip_capped(path, raw, 16)
+    if len(header) < 16:
+        raise GaussianFileError(path, f"truncated: {len(header)} bytes, the .spz header needs 16")
+    magic, version, n, degree, frac_bits, flags, _ = struct.unpack("<IIIBBBB", header)
     if magic != SPZ_MAGIC:
         raise GaussianFileError(path, f"bad magic 0x{magic:08x} (expected 0x{SPZ_MAGIC:08x} 'NGSP')")
     if version not in (2, 3):
         raise GaussianFileError(path, f"unsupported .spz version {version} (supported: 2, 3)")
     if degree not in _SPZ_SH_DIM:
         raise GaussianFileError(path, f"SH degree {degree} out of range 0..3")
+    if frac_bits > 24:
+        raise GaussianFileError(path, f"{frac_bits} fractional bits for 24-bit positions (at most 24)")
+    _check_count(path, n, max_gaussians)  # before inflating anything past the header
     if flags & 2:
         raise GaussianFileError(
             path,
@@ -359,10 +415,16 @@ def _read_spz(path: Path) -> GaussianCloud:
     rot_bytes = 3 if version == 2 else 4
     sizes = [9 * n, n, 3 * n, 3 * n, rot_bytes * n, sh_dim * 3 * n]
     need = 16 + sum(sizes)
-    if len(data) != need:
-        what = "truncated" if len(data) < need else "has trailing bytes"
+    data, state = _gunzip_capped(path, raw, need)
+    if len(data) < need or state == "truncated":
         raise GaussianFileError(
-            path, f"{what}: {n} points of SH degree {degree} need {need} bytes, got {len(data)}"
+            path, f"truncated: {n} points of SH degree {degree} need {need} bytes, got {len(data)}"
+            + (" and the gzip stream ends early" if len(data) == need else "")
+        )
+    if state == "more":
+        raise GaussianFileError(
+            path, f"has trailing bytes: {n} points of SH degree {degree} need {need} bytes, the stream holds "
+            "more (wrong point count in the header?)"
         )
     buf = np.frombuffer(data, dtype=np.uint8, offset=16)
     cuts = np.cumsum([0] + sizes)
@@ -461,8 +523,10 @@ def write_spz(
 _READERS = {".ply": _read_ply, ".splat": _read_splat, ".spz": _read_spz}
 
 
-def load_gaussians(path) -> GaussianCloud:
-    """Read a .ply, .splat or .spz file into a GaussianCloud (validated; GaussianFileError on bad input)."""
+def load_gaussians(path, *, max_gaussians: int = MAX_GAUSSIANS) -> GaussianCloud:
+    """Read a .ply, .splat or .spz file into a GaussianCloud (validated; GaussianFileError on bad input).
+
+    A file declaring more than `max_gaussians` Gaussians is refused before its data is read/inflated."""
     path = Path(path)
     reader = _READERS.get(path.suffix.lower())
     if reader is None:
@@ -472,7 +536,7 @@ def load_gaussians(path) -> GaussianCloud:
     if not path.is_file():
         raise GaussianFileError(path, "file not found")
     try:
-        return reader(path)
+        return reader(path, max_gaussians=int(max_gaussians))
     except GaussianFileError:
         raise
     except ValueError as exc:  # e.g. GaussianCloud shape validation

@@ -2,14 +2,32 @@
 
 An ndarray is packed as the map `{b"__ndarray__": True, b"data": bytes, b"dtype": dtype.str,
 b"shape": shape}` and a numpy scalar as `{b"__npgeneric__": True, b"data": value, b"dtype": dtype.str}`
-(a `default` hook on packing, an `object_hook` on unpacking). Object, void and complex arrays are
-rejected: they cannot be sent without pickling.
+(a `default` hook on packing, an `object_hook` on unpacking). Only plain bool / integer / float /
+string dtypes travel: object, void, complex and structured dtypes are rejected (they cannot be sent
+without pickling). Unpacking is bounded: at most `max_containers` maps + lists per message (a 5 MB
+message of 5 million empty arrays would otherwise cost hundreds of MB), and a malformed message raises
+`MessageError` (a ValueError), never something else.
 """
 
 from __future__ import annotations
 
 import msgpack
 import numpy as np
+
+from twinbench.errors import InputError
+
+MAX_CONTAINERS = 100_000  # maps + lists (an ndarray is one map) in one unpacked message
+_KINDS = "biufUS"  # bool, signed, unsigned, float, unicode, bytes
+
+
+class MessageError(InputError):
+    """A message that is not valid msgpack-numpy, or exceeds a limit."""
+
+
+def _check_dtype(dtype: np.dtype, action: str) -> np.dtype:
+    if dtype.kind not in _KINDS or dtype.fields is not None or dtype.subdtype is not None:
+        raise MessageError(f"refusing to {action} numpy dtype {dtype} (only bool/int/float/str arrays)")
+    return dtype
 
 
 def _pack_hook(obj):
@@ -23,15 +41,27 @@ def _pack_hook(obj):
     raise TypeError(f"cannot msgpack an object of type {type(obj).__name__}")
 
 
-def _unpack_hook(obj: dict):
-    if b"__ndarray__" in obj:
-        dtype = np.dtype(obj[b"dtype"])
-        if dtype.kind in ("V", "O", "c"):
-            raise ValueError(f"refusing to unpack numpy dtype {dtype} (object/void/complex)")
-        return np.frombuffer(obj[b"data"], dtype=dtype).reshape(tuple(obj[b"shape"])).copy()
-    if b"__npgeneric__" in obj:
-        return np.dtype(obj[b"dtype"]).type(obj[b"data"])
-    return obj
+def _decode_ndarray(obj: dict):
+    try:
+        dtype = _check_dtype(np.dtype(obj[b"dtype"]), "unpack")
+        shape = tuple(int(v) for v in obj[b"shape"])
+        data = obj[b"data"]
+        if not isinstance(data, bytes) or any(v < 0 for v in shape):
+            raise MessageError("bad ndarray entry")
+        return np.frombuffer(data, dtype=dtype).reshape(shape).copy()
+    except MessageError:
+        raise
+    except (KeyError, TypeError, ValueError) as err:
+        raise MessageError(f"malformed ndarray entry: {type(err).__name__}: {err}") from None
+
+
+def _decode_generic(obj: dict):
+    try:
+        return _check_dtype(np.dtype(obj[b"dtype"]), "unpack").type(obj[b"data"])
+    except MessageError:
+        raise
+    except (KeyError, TypeError, ValueError, OverflowError) as err:
+        raise MessageError(f"malformed numpy scalar entry: {type(err).__name__}: {err}") from None
 
 
 def packb(obj) -> bytes:
@@ -39,6 +69,33 @@ def packb(obj) -> bytes:
     return msgpack.packb(obj, default=_pack_hook, use_bin_type=True)
 
 
-def unpackb(data: bytes):
-    """Inverse of `packb` (arrays come back writable)."""
-    return msgpack.unpackb(data, object_hook=_unpack_hook, raw=False)
+def unpackb(data: bytes, *, max_containers: int = MAX_CONTAINERS):
+    """Inverse of `packb` (arrays come back writable); MessageError on malformed or oversized input."""
+    count = [0]
+
+    def budget() -> None:
+        count[0] += 1
+        if count[0] > max_containers:
+            raise MessageError(f"message holds more than {max_containers} maps/lists (limit)")
+
+    def object_hook(obj: dict):
+        budget()
+        if b"__ndarray__" in obj:
+            return _decode_ndarray(obj)
+        if b"__npgeneric__" in obj:
+            return _decode_generic(obj)
+        return obj
+
+    def list_hook(obj: list):
+        budget()
+        return obj
+
+    if not isinstance(data, bytes | bytearray | memoryview):
+        raise MessageError(f"expected a binary message, got {type(data).__name__}")
+    try:
+        return msgpack.unpackb(data, object_hook=object_hook, list_hook=list_hook, raw=False,
+                               max_array_len=max_containers, max_map_len=max_containers)
+    except MessageError:
+        raise
+    except (ValueError, TypeError, msgpack.UnpackException, RecursionError) as err:
+        raise MessageError(f"not a valid msgpack message: {type(err).__name__}: {err}") from None

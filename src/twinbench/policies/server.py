@@ -4,22 +4,47 @@
 
 Each connection gets its own policy instance (from `make_policy()`), is sent `metadata` first, then
 every binary message (a packed observation) is answered with `{"actions": (T, A) array}`: the
-policy's `predict_chunk` when it has one, else its `select_action` as a chunk of one. An exception is
-reported to the client as a text frame holding the traceback, then the connection is closed.
-Binds 127.0.0.1 by default.
+policy's `predict_chunk` when it has one, else its `select_action` as a chunk of one. A failure is
+reported to the client as one text frame, "policy error: TYPE: message" (no traceback, file paths
+replaced by <path>; the full traceback goes to this process's log), then the connection is closed.
+
+Limits (all configurable): binds 127.0.0.1 by default; messages over `max_message_bytes` close the
+connection (code 1009) before they are read; at most `max_connections` clients at once (more get HTTP
+503); an idle client is dropped after `idle_timeout_s`; with an `api_key` (or TWINBENCH_API_KEY set)
+every client must send openpi's header `Authorization: Api-Key <key>` (else HTTP 401).
 """
 
 from __future__ import annotations
 
+import hmac
+import http
+import logging
+import os
+import re
+import sys
 import threading
 import time
-import traceback
 from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
 
-from twinbench.policies.msgpack_numpy import packb, unpackb
+from twinbench.policies.msgpack_numpy import MessageError, packb, unpackb
+
+API_KEY_ENV = "TWINBENCH_API_KEY"
+DEFAULT_MAX_MESSAGE_BYTES = 64 * 2**20  # an observation: a few camera images (848x480x3 is 1.2 MB)
+DEFAULT_MAX_CONNECTIONS = 16
+DEFAULT_IDLE_TIMEOUT_S = 600.0
+
+log = logging.getLogger(__name__)
+_PATH_RE = re.compile(r"(?:[A-Za-z]:)?(?:[\\/][^\s\\/'\":,()\[\]]+){2,}[\\/]?")
+
+
+def public_error(err: BaseException) -> str:
+    """'TYPE: message' with file paths replaced by <path>: what a remote client may see of an error."""
+    text = f"{type(err).__name__}: {err}".strip()
+    text = _PATH_RE.sub("<path>", text)
+    return text if len(text) <= 2000 else text[:2000] + " ..."
 
 
 def _predict(policy, obs: dict) -> np.ndarray:
@@ -29,15 +54,32 @@ def _predict(policy, obs: dict) -> np.ndarray:
 
 
 class PolicyServer:
-    """Serve `make_policy()` policies on ws://host:port (port 0 = pick a free one)."""
+    """Serve `make_policy()` policies on ws://host:port (port 0 = pick a free one).
+
+    `api_key`: None reads TWINBENCH_API_KEY (unset or empty = no key required)."""
 
     def __init__(self, make_policy: Callable[[], object], *, host: str = "127.0.0.1", port: int = 0,
-                 metadata: dict | None = None):
+                 metadata: dict | None = None, max_message_bytes: int = DEFAULT_MAX_MESSAGE_BYTES,
+                 max_connections: int = DEFAULT_MAX_CONNECTIONS,
+                 idle_timeout_s: float | None = DEFAULT_IDLE_TIMEOUT_S, api_key: str | None = None):
         from websockets.sync.server import serve
 
+        if int(max_message_bytes) < 1 or int(max_connections) < 1:
+            raise ValueError("PolicyServer: max_message_bytes and max_connections must be >= 1")
+        if idle_timeout_s is not None and not idle_timeout_s > 0:
+            raise ValueError(f"PolicyServer: idle_timeout_s must be > 0 or None, got {idle_timeout_s}")
         self.make_policy, self.metadata = make_policy, dict(metadata or {})
+        self.max_message_bytes, self.max_connections = int(max_message_bytes), int(max_connections)
+        self.idle_timeout_s = idle_timeout_s
+        key = os.environ.get(API_KEY_ENV) if api_key is None else api_key
+        self._auth = f"Api-Key {key}".encode() if key else None
         self.n_requests = 0
-        self._server = serve(self._handle, host, port, compression=None, max_size=None)
+        self.n_rejected = 0
+        self._active = 0
+        self._lock = threading.Lock()
+        # max_queue=2: requests are answered one at a time, so a client cannot park many big frames here
+        self._server = serve(self._handle, host, port, compression=None, max_size=self.max_message_bytes,
+                             max_queue=2, process_request=self._process_request, open_timeout=10)
         self.host, self.port = self._server.socket.getsockname()[:2]
         self._thread: threading.Thread | None = None
 
@@ -45,23 +87,89 @@ class PolicyServer:
     def url(self) -> str:
         return f"ws://{self.host}:{self.port}"
 
+    @property
+    def requires_api_key(self) -> bool:
+        return self._auth is not None
+
+    def _process_request(self, connection, request):
+        """HTTP-level checks before the websocket opens: API key, then the connection limit."""
+        if self._auth is not None:
+            sent = (request.headers.get("Authorization") or "").encode()
+            if not hmac.compare_digest(sent, self._auth):
+                self.n_rejected += 1
+                return connection.respond(http.HTTPStatus.UNAUTHORIZED,
+                                          "missing or wrong 'Authorization: Api-Key <key>' header\n")
+        with self._lock:
+            full = self._active >= self.max_connections
+        if full:
+            self.n_rejected += 1
+            return connection.respond(http.HTTPStatus.SERVICE_UNAVAILABLE,
+                                      f"too many connections (limit {self.max_connections})\n")
+        return None
+
     def _handle(self, ws) -> None:
-        policy = self.make_policy()
-        if hasattr(policy, "reset"):
-            policy.reset()
-        ws.send(packb(self.metadata))
-        for message in ws:
-            try:
+        with self._lock:
+            self._active += 1
+            over = self._active > self.max_connections
+        try:
+            if over:  # two clients raced past _process_request
+                self.n_rejected += 1
+                ws.close(1013, "too many connections")
+                return
+            self._serve_connection(ws)
+        finally:
+            with self._lock:
+                self._active -= 1
+
+    def _fail(self, ws, prefix: str, err: BaseException, code: int) -> None:
+        try:
+            ws.send(f"{prefix}: {public_error(err)}")
+            ws.close(code, prefix)
+        except Exception:  # noqa: BLE001 - the client may already be gone
+            pass
+
+    def _serve_connection(self, ws) -> None:
+        from websockets.exceptions import ConnectionClosed
+
+        try:
+            policy = self.make_policy()
+            if hasattr(policy, "reset"):
+                policy.reset()
+        except Exception as err:  # noqa: BLE001 - reported to the client (without paths) and logged
+            log.exception("building the policy failed")
+            self._fail(ws, "policy error", err, 1011)
+            return
+        try:
+            ws.send(packb(self.metadata))
+            while True:
+                try:
+                    message = ws.recv(timeout=self.idle_timeout_s)
+                except TimeoutError:
+                    ws.close(1000, "idle time-out")
+                    return
+                if isinstance(message, str):
+                    self._fail(ws, "bad request", MessageError("text frame; send msgpack (binary) frames"),
+                               1003)
+                    return
                 t0 = time.perf_counter()
-                obs = unpackb(message)
-                actions = _predict(policy, obs)
+                try:
+                    obs = unpackb(message)
+                    if not isinstance(obs, dict):
+                        raise MessageError(f"an observation must be a map, got {type(obs).__name__}")
+                except MessageError as err:
+                    self._fail(ws, "bad request", err, 1003)
+                    return
+                try:
+                    actions = _predict(policy, obs)
+                except Exception as err:  # noqa: BLE001 - reported to the client, which raises PolicyError
+                    log.exception("policy failed on a request")
+                    self._fail(ws, "policy error", err, 1011)
+                    return
                 self.n_requests += 1
                 timing = {"infer_ms": 1e3 * (time.perf_counter() - t0)}
                 ws.send(packb({"actions": actions, "server_timing": timing}))
-            except Exception:  # noqa: BLE001 - reported to the client, which raises PolicyError
-                ws.send(traceback.format_exc())
-                ws.close(1011, "policy error")
-                return
+        except ConnectionClosed:
+            return  # client left, or sent a message over max_message_bytes (closed with 1009)
 
     def serve_forever(self) -> None:
         self._server.serve_forever()
@@ -91,8 +199,12 @@ class ServeConfig:
     task: str = "point-reach"
     policy: str = "expert"
     host: str = "127.0.0.1"
+    """interface to bind; 127.0.0.1 (loopback) keeps the server private to this machine"""
     port: int = 8000
     seed: int = 0
+    max_message_bytes: int = DEFAULT_MAX_MESSAGE_BYTES
+    max_connections: int = DEFAULT_MAX_CONNECTIONS
+    idle_timeout_s: float = DEFAULT_IDLE_TIMEOUT_S
 
 
 def main(cfg: ServeConfig) -> int:
@@ -105,8 +217,14 @@ def main(cfg: ServeConfig) -> int:
         raise ValueError("--policy: the server serves local policies (expert, expert@LEVEL, lerobot:PATH)")
     env = task.make_env()
     server = PolicyServer(lambda: make_policy(spec, task, env, seed=cfg.seed), host=cfg.host, port=cfg.port,
-                          metadata={"task": cfg.task, "policy": cfg.policy})
-    print(f"serving {cfg.policy} for {cfg.task} on {server.url}", flush=True)
+                          metadata={"task": cfg.task, "policy": cfg.policy},
+                          max_message_bytes=cfg.max_message_bytes, max_connections=cfg.max_connections,
+                          idle_timeout_s=cfg.idle_timeout_s)
+    key = f" (API key required, from {API_KEY_ENV})" if server.requires_api_key else ""
+    if cfg.host not in ("127.0.0.1", "localhost", "::1") and not server.requires_api_key:
+        print(f"warning: serving on {cfg.host} without an API key: anyone who can reach this port can use "
+              f"the policy; set {API_KEY_ENV}", file=sys.stderr, flush=True)
+    print(f"serving {cfg.policy} for {cfg.task}{key} on {server.url}", flush=True)
     try:
         server.serve_forever()
     except KeyboardInterrupt:

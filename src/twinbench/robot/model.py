@@ -16,10 +16,12 @@ from xml.etree import ElementTree
 import numpy as np
 import trimesh
 
+from twinbench.errors import InputError
+
 _MOVING = ("revolute", "continuous", "prismatic")
 
 
-class URDFError(ValueError):
+class URDFError(InputError):
     """A URDF that cannot be turned into a RobotModel (message names the file and the fix)."""
 
 
@@ -283,20 +285,100 @@ class RobotModel:
 
 
 # ===================================================================== loading
+def _check_finite(urdf_path: Path, what: str, values) -> None:
+    """URDFError naming the element when any value is NaN or infinite."""
+    if not np.all(np.isfinite(np.asarray(values, dtype=np.float64))):
+        raise URDFError(f"{urdf_path}: {what} holds NaN or inf; give finite numbers")
+
+
+def _tree_order(urdf_path: Path, links: list[str], joints) -> tuple[list[str], list, dict[str, int]]:
+    """Links root first (breadth-first), the joints in that order and each link's depth.
+
+    Refuses, before any traversal, every joint graph that is not a tree: duplicate names, unknown links,
+    a link with two parent joints, a joint from a link to itself, no single root, a cycle, a link not
+    connected to the root."""
+    dupes = sorted({n for n in links if links.count(n) > 1}) if len(set(links)) != len(links) else []
+    if dupes:
+        raise URDFError(f"{urdf_path}: link name(s) {dupes} defined more than once; rename them")
+    if not links:
+        raise URDFError(f"{urdf_path}: no <link> elements; a robot needs at least one link")
+    known = set(links)
+    parent_of: dict[str, str] = {}
+    for j in joints:
+        for end in (j.parent, j.child):
+            if end not in known:
+                raise URDFError(f"{urdf_path}: joint {j.name!r} refers to unknown link {end!r}")
+        if j.parent == j.child:
+            raise URDFError(f"{urdf_path}: joint {j.name!r} connects link {j.child!r} to itself")
+        if j.child in parent_of:
+            raise URDFError(
+                f"{urdf_path}: link {j.child!r} is the child of two joints (from {parent_of[j.child]!r} and "
+                f"{j.parent!r}); a URDF's joints must form a tree (no loops)"
+            )
+        parent_of[j.child] = j.parent
+    roots = [name for name in links if name not in parent_of]
+    if len(roots) != 1:
+        what = "a cycle (every link has a parent)" if not roots else f"several: {roots}"
+        raise URDFError(f"{urdf_path}: expected exactly one root link, found {what}; the joints must "
+                        "form a tree")
+    by_parent: dict[str, list] = {}
+    for j in joints:
+        by_parent.setdefault(j.parent, []).append(j)
+    order, joints_sorted, queue, depth = [roots[0]], [], [roots[0]], {roots[0]: 0}
+    while queue:  # each link has at most one parent, so each is queued at most once
+        parent = queue.pop(0)
+        for j in by_parent.get(parent, []):
+            if j.child in depth:  # unreachable with one parent per link; kept as a hard stop
+                raise URDFError(f"{urdf_path}: joint {j.name!r} closes a loop at link {j.child!r}")
+            joints_sorted.append(j)
+            order.append(j.child)
+            depth[j.child] = depth[parent] + 1
+            queue.append(j.child)
+    if len(order) != len(links):
+        raise URDFError(
+            f"{urdf_path}: links not connected to the root {roots[0]!r} (a loop among them?): "
+            f"{sorted(set(links) - set(order))}; the joints must form a tree"
+        )
+    return order, joints_sorted, depth
+
+
+def _inside(path: Path, root: Path) -> bool:
+    """Whether `path` (symlinks resolved) lies in the directory tree of `root`."""
+    try:
+        return path.resolve().is_relative_to(root.resolve())
+    except (OSError, RuntimeError, ValueError):  # symlink loop, bad name
+        return False
+
+
 def _resolve_filename(
     filename: str, urdf_dir: Path, package_dirs: Sequence[Path]
 ) -> tuple[Path | None, list[Path]]:
-    """Resolve a mesh filename (package://, file://, relative, absolute) -> (path or None, tried)."""
+    """Resolve a mesh filename (package://, file://, relative, absolute) -> (path or None, tried).
+
+    A path is only ever looked at (is_file) once it is known to lie inside its allowed tree: a
+    package:// path inside its package folder, any other path inside the URDF's folder or one of
+    `package_dirs`. Anything else raises URDFError without touching the file."""
     tried: list[Path] = []
+    if not filename:
+        raise URDFError("<mesh> has no filename attribute")
+    if "\x00" in filename:
+        raise URDFError(f"mesh filename {filename!r} holds a NUL character")
     if filename.startswith("package://"):
         rest = filename[len("package://") :]
         pkg, _, rel = rest.partition("/")
+        if not pkg or pkg in (".", "..") or ".." in Path(rel).parts or Path(rel).is_absolute():
+            raise URDFError(
+                f"mesh {filename!r} leaves its package folder ('..' or an absolute path); "
+                "give a path inside the package"
+            )
         roots = list(package_dirs)
         roots += [Path(p) for p in os.environ.get("ROS_PACKAGE_PATH", "").split(os.pathsep) if p]
         roots += [urdf_dir, *urdf_dir.parents]
         for root in roots:
-            cands = [root / pkg / rel] + ([root / rel] if root.name == pkg else [])
-            for c in cands:
+            cands = [(root / pkg, root / pkg / rel)] + ([(root, root / rel)] if root.name == pkg else [])
+            for pkg_dir, c in cands:
+                if not _inside(c, pkg_dir):  # e.g. a symlink in the package pointing elsewhere
+                    continue
                 tried.append(c)
                 if c.is_file():
                     return c, tried
@@ -305,8 +387,25 @@ def _resolve_filename(
         filename = filename[len("file://") :]
     p = Path(filename)
     p = p if p.is_absolute() else urdf_dir / p
+    allowed = [urdf_dir, *package_dirs]
+    if not any(_inside(p, root) for root in allowed):
+        raise URDFError(
+            f"mesh {filename!r} lies outside the URDF's folder {urdf_dir}; refusing to read it. Move the "
+            "mesh into that folder (or pass its folder in package_dirs)"
+        )
     tried.append(p)
     return (p if p.is_file() else None), tried
+
+
+def _check_size(urdf_path: Path, link: str, what: str, values, n: int) -> np.ndarray:
+    try:
+        arr = np.asarray(values, dtype=np.float64).reshape(-1)
+    except (TypeError, ValueError):
+        arr = np.array([])
+    if arr.size != n or not np.all(np.isfinite(arr)) or np.any(arr <= 0):
+        raise URDFError(f"{urdf_path}: link {link!r}: {what} must be {n} finite value(s) > 0, "
+                        f"got {arr.tolist()}")
+    return arr
 
 
 def _geometry_mesh(
@@ -315,31 +414,48 @@ def _geometry_mesh(
     if geometry is None:
         return None
     if geometry.mesh is not None:
-        path, tried = _resolve_filename(geometry.mesh.filename, urdf_path.parent, package_dirs)
+        try:
+            path, tried = _resolve_filename(geometry.mesh.filename, urdf_path.parent, package_dirs)
+        except URDFError as exc:
+            raise URDFError(f"{urdf_path}: link {link!r}: {exc}") from None
         if path is None:
             shown = ", ".join(str(t) for t in tried[:6]) + (" ..." if len(tried) > 6 else "")
             raise FileNotFoundError(
                 f"{urdf_path}: link {link!r}: mesh {geometry.mesh.filename!r} not found (tried {shown}); "
                 "fix the path or pass package_dirs=[folder containing the package]"
             )
+        scale = None
+        if geometry.mesh.scale is not None:
+            scale = np.asarray(geometry.mesh.scale, dtype=np.float64).reshape(-1)
+            if scale.size not in (1, 3):
+                raise URDFError(f"{urdf_path}: link {link!r}: mesh scale needs 1 or 3 values, got "
+                                f"{scale.tolist()}")
+            scale = np.broadcast_to(scale, (3,))
+            if not np.all(np.isfinite(scale)) or np.any(scale == 0):
+                raise URDFError(f"{urdf_path}: link {link!r}: mesh scale {scale.tolist()} must be finite "
+                                "and non-zero")
         try:
             mesh = trimesh.load(path, force="mesh", process=False)
+            vertices, faces = np.asarray(mesh.vertices, dtype=np.float64), np.asarray(mesh.faces)
         except Exception as exc:  # trimesh raises many types for bad files
             raise URDFError(f"{urdf_path}: link {link!r}: cannot read mesh {path}: {exc}") from exc
+        if not np.all(np.isfinite(vertices)):
+            raise URDFError(f"{urdf_path}: link {link!r}: mesh {path} has NaN or inf vertices; clean it")
         # process=True merges duplicate vertices (STL stores each triangle separately), so closed meshes
         # are watertight: the physics engine's signed-distance queries rely on it.
-        mesh = trimesh.Trimesh(vertices=np.asarray(mesh.vertices), faces=np.asarray(mesh.faces), process=True)
-        if geometry.mesh.scale is not None:
-            mesh.apply_scale(np.broadcast_to(np.asarray(geometry.mesh.scale, dtype=np.float64), (3,)))
+        mesh = trimesh.Trimesh(vertices=vertices, faces=faces, process=True)
+        if scale is not None:
+            mesh.apply_scale(scale)
         return mesh
     if geometry.box is not None:
-        return trimesh.creation.box(extents=np.asarray(geometry.box.size, dtype=np.float64))
+        return trimesh.creation.box(extents=_check_size(urdf_path, link, "box size", geometry.box.size, 3))
     if geometry.cylinder is not None:
-        return trimesh.creation.cylinder(
-            radius=geometry.cylinder.radius, height=geometry.cylinder.length, sections=24
-        )
+        r, h = _check_size(urdf_path, link, "cylinder radius and length",
+                           [geometry.cylinder.radius, geometry.cylinder.length], 2)
+        return trimesh.creation.cylinder(radius=r, height=h, sections=24)
     if geometry.sphere is not None:
-        return trimesh.creation.icosphere(subdivisions=2, radius=geometry.sphere.radius)
+        (r,) = _check_size(urdf_path, link, "sphere radius", [geometry.sphere.radius], 1)
+        return trimesh.creation.icosphere(subdivisions=2, radius=r)
     return None
 
 
@@ -350,6 +466,7 @@ def _link_mesh(elements, link: str, urdf_path: Path, package_dirs: Sequence[Path
         if m is None:
             continue
         if el.origin is not None:
+            _check_finite(urdf_path, f"link {link!r} geometry <origin xyz rpy>", el.origin)
             m.apply_transform(np.asarray(el.origin, dtype=np.float64))
         parts.append(m)
     if not parts:
@@ -382,8 +499,12 @@ def load_robot(
     urdf_path = Path(urdf_path).expanduser().resolve()
     if not urdf_path.is_file():
         raise FileNotFoundError(f"URDF file not found: {urdf_path}")
+    head = urdf_path.read_bytes()
+    if b"<!DOCTYPE" in head or b"<!ENTITY" in head:  # entity expansion / external entities: never needed
+        raise URDFError(f"{urdf_path}: holds a <!DOCTYPE>/<!ENTITY> declaration, which a URDF never needs "
+                        "(entities can expand without bound or read other files); remove it")
     try:  # strict XML check first: yourdfpy silently recovers from malformed XML
-        root = ElementTree.parse(urdf_path).getroot()
+        root = ElementTree.fromstring(head)
     except ElementTree.ParseError as exc:
         raise URDFError(f"{urdf_path}: malformed XML ({exc}); fix the file") from exc
     if root.tag != "robot":
@@ -402,32 +523,7 @@ def load_robot(
     pdirs = [Path(p).expanduser().resolve() for p in package_dirs]
 
     all_links = [link.name for link in robot.links]
-    children = {j.child for j in robot.joints}
-    roots = [name for name in all_links if name not in children]
-    if len(roots) != 1:
-        raise URDFError(f"{urdf_path}: expected exactly one root link, found {roots}")
-    for j in robot.joints:
-        for end in (j.parent, j.child):
-            if end not in all_links:
-                raise URDFError(f"{urdf_path}: joint {j.name!r} refers to unknown link {end!r}")
-
-    # Breadth-first order from the root: parents before children.
-    by_parent: dict[str, list] = {}
-    for j in robot.joints:
-        by_parent.setdefault(j.parent, []).append(j)
-    order, joints_sorted, queue = [roots[0]], [], [roots[0]]
-    depth = {roots[0]: 0}
-    while queue:
-        parent = queue.pop(0)
-        for j in by_parent.get(parent, []):
-            joints_sorted.append(j)
-            order.append(j.child)
-            depth[j.child] = depth[parent] + 1
-            queue.append(j.child)
-    if len(order) != len(all_links):
-        raise URDFError(
-            f"{urdf_path}: links not connected to the root: {sorted(set(all_links) - set(order))}"
-        )
+    order, joints_sorted, depth = _tree_order(urdf_path, all_links, robot.joints)
 
     specs: list[JointSpec] = []
     joint_names: list[str] = []
@@ -440,6 +536,9 @@ def load_robot(
                 "continuous, prismatic or fixed)"
             )
         axis = np.array([1.0, 0.0, 0.0]) if j.axis is None else np.asarray(j.axis, dtype=np.float64)
+        if axis.shape != (3,):
+            raise URDFError(f"{urdf_path}: joint {j.name!r}: <axis xyz> needs 3 values, got {axis.tolist()}")
+        _check_finite(urdf_path, f"joint {j.name!r} <axis xyz>", axis)
         if jtype != "fixed":
             n = np.linalg.norm(axis)
             if n < 1e-9:
@@ -452,6 +551,10 @@ def load_robot(
             if j.limit is None or j.limit.lower is None or j.limit.upper is None:
                 raise URDFError(f"{urdf_path}: joint {j.name!r} ({jtype}) has no <limit lower upper>")
             lo, hi = float(j.limit.lower), float(j.limit.upper)
+            _check_finite(urdf_path, f"joint {j.name!r} <limit lower upper>", np.array([lo, hi]))
+            if lo > hi:
+                raise URDFError(f"{urdf_path}: joint {j.name!r}: <limit> lower {lo:g} > upper {hi:g}; "
+                                "swap them")
         mimic = None
         q_index = None
         if jtype != "fixed" and j.mimic is not None:
@@ -460,12 +563,14 @@ def load_robot(
                 1.0 if j.mimic.multiplier is None else float(j.mimic.multiplier),
                 0.0 if j.mimic.offset is None else float(j.mimic.offset),
             )
+            _check_finite(urdf_path, f"joint {j.name!r} <mimic multiplier offset>", np.array(mimic[1:]))
         elif jtype != "fixed":
             q_index = len(joint_names)
             joint_names.append(j.name)
             lower.append(lo)
             upper.append(hi)
         origin = np.eye(4) if j.origin is None else np.asarray(j.origin, dtype=np.float64)
+        _check_finite(urdf_path, f"joint {j.name!r} <origin xyz rpy>", origin)
         specs.append(JointSpec(j.name, jtype, j.parent, j.child, origin, axis, lo, hi, q_index, mimic))
     for s in specs:
         if s.mimic is not None and s.mimic[0] not in joint_names:
@@ -482,7 +587,11 @@ def load_robot(
             if mat is not None and mat.color is None and mat.name in materials:
                 mat = materials[mat.name]
             if mat is not None and mat.color is not None and mat.color.rgba is not None:
-                colors[link.name] = np.asarray(mat.color.rgba, dtype=np.float64)[:3]
+                rgba = np.asarray(mat.color.rgba, dtype=np.float64).reshape(-1)
+                if rgba.size != 4 or not np.all(np.isfinite(rgba)):
+                    raise URDFError(f"{urdf_path}: link {link.name!r}: material <color rgba> needs 4 finite "
+                                    f"values, got {rgba.tolist()}")
+                colors[link.name] = np.clip(rgba[:3], 0.0, 1.0)
                 break
         if load_meshes:
             v = _link_mesh(link.visuals, link.name, urdf_path, pdirs)
