@@ -29,13 +29,17 @@ class RopeExpert:
         carry_height: float = 0.12,
         beyond: float = 0.07,
         close_steps: int = 20,
-        settle_steps: int = 15,
+        settle_steps: int = 25,
         holding_speed: float = 0.006,
+        squeeze: float = 0.92,
     ):
         self.channel_length, self.channel_depth = channel_length, channel_depth
         self.grip_inset, self.carry_height, self.beyond = grip_inset, carry_height, beyond
         self.close_steps, self.settle_steps = close_steps, settle_steps
-        self.holding_speed = holding_speed  # m per step while the rope is held (friction grasp: no jerks)
+        self.holding_speed = holding_speed
+        # gripper command while holding: fingers 6.8 mm apart, pressing into the 8-10 mm rope (closing
+        # fully would push particles into the finger meshes, where they stay trapped)
+        self.squeeze = squeeze  # m per step while the rope is held (friction grasp: no jerks)
         self.reset()
 
     def reset(self) -> None:
@@ -80,27 +84,27 @@ class RopeExpert:
             if np.linalg.norm(ee - self._grip) < 0.006 or self._t > 60:
                 self._next("close")
         if self.phase == "close":
-            target, g = self._grip, 1.0
+            target, g = self._grip, self.squeeze
             if self._t > self.close_steps:
                 self._next("lift")
         if self.phase == "lift":
-            target, g = np.r_[self._grip[:2], self.carry_height], 1.0
+            target, g = np.r_[self._grip[:2], self.carry_height], self.squeeze
             if abs(ee[2] - self.carry_height) < 0.01 or self._t > 90:
                 self._next("carry")
         if self.phase == "carry":  # over the channel's axis, before the near opening
-            target, g = near_high, 1.0
+            target, g = near_high, self.squeeze
             if np.linalg.norm(ee - near_high) < 0.01 or self._t > 150:
                 self._next("skim")
         if self.phase == "skim":
-            target, g = near_low, 1.0
+            target, g = near_low, self.squeeze
             if np.linalg.norm(ee - near_low) < 0.008 or self._t > 60:
                 self._next("drag")
         if self.phase == "drag":  # along the axis over the clip: the hanging rope trails into the channel
-            target, g = goal_skim, 1.0
+            target, g = goal_skim, self.squeeze
             if np.linalg.norm(ee - goal_skim) < 0.008 or self._t > 120:
                 self._next("lower")
         if self.phase == "lower":
-            target, g = goal_low, 1.0
+            target, g = goal_low, self.squeeze
             if np.linalg.norm(ee - goal_low) < 0.008 or self._t > 60:
                 self._next("release")
         if self.phase == "release":
