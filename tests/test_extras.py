@@ -61,7 +61,7 @@ def test_extra_imports(extra):
     if extra == "lerobot" and sys.version_info < (3, 12):
         pytest.skip("the lerobot extra needs Python >= 3.12 (LeRobot 0.6)")
     missing = [m for m in EXTRA_MODULES[extra] if importlib.util.find_spec(m.split(".")[0]) is None]
-    missing += [r.name for r in _requirements(extra) if not _installed(r.name)]
+    missing += [r.name for r in _requirements(extra) if not _installed(r.name) and r.name not in missing]
     if missing:
         pytest.skip(f"extra {extra!r} not installed ({missing} missing): make install EXTRAS='dev {extra}'")
     _check_installed_versions(_requirements(extra))
