@@ -93,6 +93,7 @@ class ServeConfig:
     host: str = "127.0.0.1"
     port: int = 8000
     seed: int = 0
+    env_kwargs: str = ""  # JSON object of env constructor arguments, as `twinbench eval --env-kwargs`
 
 
 def main(cfg: ServeConfig) -> int:
@@ -103,9 +104,14 @@ def main(cfg: ServeConfig) -> int:
     spec = parse_policy_spec(cfg.policy)
     if spec.kind == "remote":
         raise ValueError("--policy: the server serves local policies (expert, expert@LEVEL, lerobot:PATH)")
-    env = task.make_env()
+    from twinbench.evaluation.runner import parse_env_kwargs
+
+    env = task.make_env(**parse_env_kwargs(cfg.env_kwargs))
+    # A scripted expert acts from the environment_state it is sent (the metadata tells the client).
+    uses_state = bool(getattr(make_policy(spec, task, env, seed=cfg.seed), "uses_environment_state", False))
     server = PolicyServer(lambda: make_policy(spec, task, env, seed=cfg.seed), host=cfg.host, port=cfg.port,
-                          metadata={"task": cfg.task, "policy": cfg.policy})
+                          metadata={"task": cfg.task, "policy": cfg.policy,
+                                    "uses_environment_state": uses_state})
     print(f"serving {cfg.policy} for {cfg.task} on {server.url}", flush=True)
     try:
         server.serve_forever()
