@@ -44,6 +44,9 @@ def main(argv: list[str] | None = None) -> int:
         print(f"twinbench: unknown command {name!r}\n\n{_usage()}", file=sys.stderr)
         return 2
     module_name, config_name, func_name, _ = COMMANDS[name]
+    import warp as wp
+
+    wp.config.quiet = True  # no Warp banner or per-module load lines in the command's output
     module = importlib.import_module(module_name)
     config = tyro.cli(getattr(module, config_name), args=rest, prog=f"twinbench {name}")
     result = getattr(module, func_name)(config)
