@@ -184,6 +184,9 @@ _CACHE: dict = {}  # per process: envs by (task, env_kwargs), policies by (task,
 def _worker_init() -> None:
     """Workers ignore SIGINT: the parent decides what to do (commit finished episodes, stop the rest)."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)
+    from twinbench.cli import quiet_warp
+
+    quiet_warp()  # workers print no Warp banner or module-load lines either
 
 
 def run_job(job: EpisodeJob) -> EpisodeRecord:
