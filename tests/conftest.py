@@ -42,3 +42,38 @@ def fast_env():
     env = TwinEnv("push-t", preset="fast", success_rule="early")
     env.reset(seed=0, options={"init_state": 0})
     return env
+
+
+@pytest.fixture(scope="session")
+def tiny_act_checkpoint(tmp_path_factory):
+    """A random, small LeRobot ACT policy for the push-T env's spaces (front + wrist 240x240, state and
+    action [x, y]), saved with its processors (normalisation stats given) as lerobot-train would.
+    Skips without the lerobot extra; nothing is downloaded (random backbone)."""
+    pytest.importorskip("lerobot", reason="needs the lerobot extra (make install EXTRAS='dev lerobot')")
+    import torch
+    from lerobot.configs.types import FeatureType, PolicyFeature
+    from lerobot.policies.act.configuration_act import ACTConfig
+    from lerobot.policies.act.modeling_act import ACTPolicy
+    from lerobot.policies.factory import make_pre_post_processors
+
+    out = tmp_path_factory.mktemp("act") / "pretrained_model"
+    cams = ("front", "wrist")
+    inputs = {f"observation.images.{c}": PolicyFeature(FeatureType.VISUAL, (3, 240, 240)) for c in cams}
+    inputs["observation.state"] = PolicyFeature(FeatureType.STATE, (2,))
+    torch.manual_seed(0)
+    action = {"action": PolicyFeature(FeatureType.ACTION, (2,))}
+    cfg = ACTConfig(input_features=inputs, output_features=action,
+                    chunk_size=4, n_action_steps=2, dim_model=32, n_heads=2, dim_feedforward=64,
+                    n_encoder_layers=1, n_decoder_layers=1, use_vae=False, pretrained_backbone_weights=None,
+                    device="cpu")
+    policy = ACTPolicy(cfg)
+    stats = {"observation.state": {"mean": torch.tensor([0.5, 0.0]), "std": torch.tensor([0.1, 0.1])},
+             "action": {"mean": torch.tensor([0.5, 0.0]), "std": torch.tensor([0.05, 0.05])}}
+    for c in cams:
+        stats[f"observation.images.{c}"] = {"mean": torch.full((3, 1, 1), 0.5),
+                                            "std": torch.full((3, 1, 1), 0.25)}
+    pre, post = make_pre_post_processors(cfg, dataset_stats=stats)
+    policy.save_pretrained(out)
+    pre.save_pretrained(out)
+    post.save_pretrained(out)
+    return out

@@ -41,6 +41,17 @@ COMMANDS: dict[str, tuple[str, str, str, str]] = {
 }
 
 
+def quiet_warp() -> None:
+    """Keep Warp's init banner and per-module load lines out of stdout (warnings still show): Warp >= 1.19
+    reads `config.log_level`; older releases read `config.quiet`."""
+    import warp as wp
+
+    if hasattr(wp.config, "log_level") and hasattr(wp, "LOG_WARNING"):
+        wp.config.log_level = wp.LOG_WARNING
+    else:
+        wp.config.quiet = True
+
+
 def _usage() -> str:
     lines = ["usage: twinbench <command> [--help] [--debug] [options]", "",
              "--debug: show the full traceback of an error (else one line; exit code 2 for bad input)", "",
@@ -63,6 +74,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"twinbench: unknown command {name!r}\n\n{_usage()}", file=sys.stderr)
         return 2
     module_name, config_name, func_name, _ = COMMANDS[name]
+    quiet_warp()  # no Warp banner or per-module load lines in the command's output
     module = importlib.import_module(module_name)
     config = tyro.cli(getattr(module, config_name), args=rest, prog=f"twinbench {name}")
     if debug:

@@ -15,7 +15,7 @@ def test_spec_strings():
     s = parse_policy_spec("expert@0.3")
     assert (s.name, s.checkpoint, s.train_step, s.level) == ("expert", "step_70000", 70000, 0.3)
     s = parse_policy_spec("remote:ws://127.0.0.1:8000")
-    assert (s.kind, s.target, s.checkpoint) == ("remote", "ws://127.0.0.1:8000", "127.0.0.1:8000")
+    assert (s.kind, s.target, s.checkpoint) == ("remote", "ws://127.0.0.1:8000", "127.0.0.1")
     s = parse_policy_spec("act=lerobot:out/train/act/checkpoints/020000/pretrained_model")
     assert (s.kind, s.name, s.checkpoint, s.train_step) == ("lerobot", "act", "step_20000", 20000)
     s = parse_policy_spec("lerobot:models/my_act")

@@ -650,6 +650,9 @@ def _worker_main(conn) -> None:
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     signal.signal(signal.SIGTERM, signal.SIG_IGN)
     _watch_parent()
+    from twinbench.cli import quiet_warp
+
+    quiet_warp()  # workers print no Warp banner or module-load lines either
     try:
         while True:
             try:

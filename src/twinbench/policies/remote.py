@@ -27,7 +27,13 @@ from twinbench.policies.server import API_KEY_ENV, DEFAULT_MAX_MESSAGE_BYTES
 
 
 class RemotePolicy(ChunkedPolicy):
-    """A policy behind `ws://HOST:PORT`; executes `n_action_steps` of each returned chunk (all if None)."""
+    """A policy behind `ws://HOST:PORT`; executes `n_action_steps` of each returned chunk (all if None).
+
+    `io` (a `policies.io.PolicyIO`, set by `make_policy`): what the server is sent and how its reply
+    becomes actions; None sends the observation as is (+ `prompt`) and executes the reply's `actions`.
+    """
+
+    io = None
 
     def __init__(self, url: str, *, timeout_s: float = 30.0, open_timeout_s: float = 5.0, retries: int = 3,
                  backoff_s: float = 0.5, n_action_steps: int | None = None, prompt: str | None = None,
@@ -133,7 +139,25 @@ class RemotePolicy(ChunkedPolicy):
         raise PolicyError(f"policy server {self.url} unreachable after {self.retries + 1} attempts "
                           f"(time-out {self.timeout_s} s): {type(last).__name__}: {last}")
 
+    @property
+    def uses_environment_state(self) -> bool:
+        """Whether the served policy acts from the privileged `environment_state` (a scripted expert's
+        server says so in its metadata): the runner then sends it with each observation."""
+        if self.metadata is None:
+            try:
+                self._connect()
+            except Exception:  # noqa: BLE001 - the failure is reported by the first select_action
+                self._drop()
+                return False
+        return bool(self.metadata.get("uses_environment_state", False))
+
     def predict_chunk(self, obs: dict) -> np.ndarray:
+        if self.io is not None:  # per-policy observation mapping and action handling (policies.io)
+            reply = self.infer(self.io.request(obs, self.prompt))
+            if self.io.action.key not in reply:
+                raise PolicyError(f"policy server {self.url} replied without {self.io.action.key!r}: "
+                                  f"{sorted(reply)}")
+            return self.io.actions(reply[self.io.action.key], obs)
         request = dict(obs)
         if self.prompt is not None:
             request.setdefault("prompt", self.prompt)

@@ -205,6 +205,7 @@ class ServeConfig:
     max_message_bytes: int = DEFAULT_MAX_MESSAGE_BYTES
     max_connections: int = DEFAULT_MAX_CONNECTIONS
     idle_timeout_s: float = DEFAULT_IDLE_TIMEOUT_S
+    env_kwargs: str = ""  # JSON object of env constructor arguments, as `twinbench eval --env-kwargs`
 
 
 def main(cfg: ServeConfig) -> int:
@@ -215,9 +216,17 @@ def main(cfg: ServeConfig) -> int:
     spec = parse_policy_spec(cfg.policy)
     if spec.kind == "remote":
         raise ValueError("--policy: the server serves local policies (expert, expert@LEVEL, lerobot:PATH)")
-    env = task.make_env()
+    from twinbench.cli import quiet_warp
+    from twinbench.evaluation.runner import parse_env_kwargs
+
+    quiet_warp()  # the printed url is the first stdout line
+
+    env = task.make_env(**parse_env_kwargs(cfg.env_kwargs))
+    # A scripted expert acts from the environment_state it is sent (the metadata tells the client).
+    uses_state = bool(getattr(make_policy(spec, task, env, seed=cfg.seed), "uses_environment_state", False))
     server = PolicyServer(lambda: make_policy(spec, task, env, seed=cfg.seed), host=cfg.host, port=cfg.port,
-                          metadata={"task": cfg.task, "policy": cfg.policy},
+                          metadata={"task": cfg.task, "policy": cfg.policy,
+                                    "uses_environment_state": uses_state},
                           max_message_bytes=cfg.max_message_bytes, max_connections=cfg.max_connections,
                           idle_timeout_s=cfg.idle_timeout_s)
     key = f" (API key required, from {API_KEY_ENV})" if server.requires_api_key else ""

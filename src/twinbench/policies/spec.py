@@ -4,10 +4,14 @@ Grammar: `[NAME=]SPEC` with SPEC one of
 - `expert`: the task's scripted expert (policy "expert", checkpoint "", train_step None);
 - `expert@LEVEL`: `DegradedPolicy` of the expert at LEVEL in [0, 1] (checkpoint "step_<train_step>",
   train_step = round((1 - LEVEL) * 100000), see `twinbench.policies.degraded`);
-- `remote:ws://HOST:PORT`: a websocket policy server (policy "remote", checkpoint "HOST:PORT");
+- `remote:ws://HOST:PORT`: a websocket policy server (policy "remote", checkpoint "HOST": the port is
+  where it runs today, not which policy it is; name served policies with `NAME=`);
 - `lerobot:PATH`: a LeRobot `pretrained_model` folder (policy "lerobot"; checkpoint "step_N" and
   train_step N when PATH contains `checkpoints/<N>/`, else the folder name).
 `NAME=` overrides the policy name stored with the episodes, e.g. `act=lerobot:outputs/.../pretrained_model`.
+`remote:` and `lerobot:` take options after `?`: `io=PRESET_OR_JSON_FILE` (observation mapping and action
+handling, `twinbench.policies.io`) and `n_action_steps=N`, e.g.
+`pi05=remote:ws://127.0.0.1:8000?io=openpi-libero&n_action_steps=5`.
 """
 
 from __future__ import annotations
@@ -32,6 +36,27 @@ class PolicySpec:
     train_step: int | None
     level: float | None = None  # degradation level (expert@LEVEL)
     target: str = ""  # url (remote) or path (lerobot)
+    io: str = ""  # policies.io preset name or JSON file ("" = the kind's default)
+    n_action_steps: int | None = None
+
+
+def _split_options(spec: str, body: str) -> tuple[str, dict]:
+    """`TARGET?io=X&n_action_steps=N` -> (TARGET, {"io": X, "n_action_steps": N})."""
+    target, sep, query = body.partition("?")
+    if not sep:
+        return body, {}
+    opts: dict = {}
+    for item in query.split("&"):
+        key, eq, value = item.partition("=")
+        if not eq or key not in ("io", "n_action_steps") or not value:
+            raise ValueError(f"policy spec {spec!r}: options after '?' are io=PRESET_OR_FILE and "
+                             f"n_action_steps=N, got {item!r}")
+        if key == "n_action_steps":
+            if not value.isdigit() or int(value) < 1:
+                raise ValueError(f"policy spec {spec!r}: n_action_steps must be an integer >= 1")
+            value = int(value)
+        opts[key] = value
+    return target, opts
 
 
 def parse_policy_spec(spec: str) -> PolicySpec:
@@ -56,19 +81,19 @@ def parse_policy_spec(spec: str) -> PolicySpec:
         step = level_to_train_step(level)
         return PolicySpec(spec, "expert", name or "expert", f"step_{step}", step, level)
     if body.startswith("remote:"):
-        url = body[len("remote:"):]
-        m = re.match(r"^wss?://([^/]+)", url)
+        url, opts = _split_options(spec, body[len("remote:"):])
+        m = re.match(r"^wss?://(\[[^]]+\]|[^/:]+)(:\d+)?(/|$)", url)
         if not m:
             raise ValueError(f"policy spec {spec!r}: expected remote:ws://HOST:PORT")
-        return PolicySpec(spec, "remote", name or "remote", m.group(1), None, None, url)
+        return PolicySpec(spec, "remote", name or "remote", m.group(1), None, None, url, **opts)
     if body.startswith("lerobot:"):
-        path = body[len("lerobot:"):]
+        path, opts = _split_options(spec, body[len("lerobot:"):])
         if not path:
             raise ValueError(f"policy spec {spec!r}: expected lerobot:PATH to a pretrained_model folder")
         m = re.search(r"checkpoints/0*(\d+)(/|$)", Path(path).as_posix())
         step = int(m.group(1)) if m else None
         ckpt = f"step_{step}" if m else Path(path).name
-        return PolicySpec(spec, "lerobot", name or "lerobot", ckpt, step, None, path)
+        return PolicySpec(spec, "lerobot", name or "lerobot", ckpt, step, None, path, **opts)
     raise ValueError(f"unknown policy spec {spec!r}; accepted forms: {forms}")
 
 
@@ -83,11 +108,16 @@ def make_policy(spec: PolicySpec | str, task, env, *, seed: int = 0):
             return base
         return DegradedPolicy(base, spec.level, seed, env.action_space.low, env.action_space.high)
     if spec.kind == "remote":
+        from twinbench.policies.io import load_policy_io
         from twinbench.policies.remote import RemotePolicy
 
-        return RemotePolicy(spec.target, prompt=description)
+        io = load_policy_io(spec.io).with_n_action_steps(spec.n_action_steps)
+        policy = RemotePolicy(spec.target, prompt=description, n_action_steps=io.action.n_action_steps)
+        policy.io = io
+        return policy
     if spec.kind == "lerobot":
         from twinbench.policies.lerobot_adapter import LeRobotPolicy
 
-        return LeRobotPolicy(spec.target, task_description=description or "")
+        return LeRobotPolicy(spec.target, task_description=description or "", io=spec.io or None,
+                             n_action_steps=spec.n_action_steps)
     raise ValueError(f"unknown policy kind {spec.kind!r}")

@@ -38,7 +38,7 @@ def grid_state(i: int) -> np.ndarray:
 
 class PointReachEnv(gymnasium.Env):
     metadata = {"render_modes": ["rgb_array"], "render_fps": 10}
-    task_description = "move the point into the yellow goal disk and hold it there"
+    task_description = task = "move the point into the yellow goal disk and hold it there"  # `task`: LeRobot
 
     def __init__(self, render_mode: str | None = "rgb_array", fail_mode: str | None = None,
                  fail_step: int = 5, step_delay_s: float = 0.0):
@@ -66,7 +66,7 @@ class PointReachEnv(gymnasium.Env):
     def reset(self, *, seed=None, options=None):
         super().reset(seed=seed)
         options = options or {}
-        i = int(options.get("init_state", 0))
+        i = int(options.get("init_state", 0 if seed is None else int(seed) % N_GRID))  # tasks/__init__
         if i < 0:
             raise ValueError(f"options['init_state'] must be >= 0, got {i}")
         if options.get("sampled", False) or i >= N_GRID:

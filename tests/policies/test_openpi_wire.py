@@ -1,0 +1,136 @@
+"""openpi's websocket protocol, both ways, against an independent implementation written here from the
+protocol (not twinbench's): the server speaks first with its metadata, messages are msgpack with numpy
+arrays as {b"__ndarray__": True, b"data", b"dtype", b"shape"}, and an error is a text frame holding the
+traceback followed by close code 1011."""
+
+import threading
+import traceback
+
+import msgpack
+import numpy as np
+import pytest
+from websockets.exceptions import ConnectionClosed
+from websockets.sync.client import connect
+from websockets.sync.server import serve
+
+from twinbench.policies import PolicyError, make_policy
+from twinbench.policies.server import PolicyServer
+from twinbench.tasks import get_task
+
+
+def _pack(obj):
+    def default(o):
+        if isinstance(o, np.ndarray):
+            return {b"__ndarray__": True, b"data": o.tobytes(), b"dtype": o.dtype.str, b"shape": o.shape}
+        if isinstance(o, np.generic):
+            return {b"__npgeneric__": True, b"data": o.item(), b"dtype": o.dtype.str}
+        raise TypeError(type(o))
+
+    return msgpack.packb(obj, default=default)
+
+
+def _unpack(data):
+    def hook(d):
+        if b"__ndarray__" in d:
+            return np.ndarray(buffer=d[b"data"], dtype=np.dtype(d[b"dtype"]), shape=d[b"shape"])
+        return d
+
+    return msgpack.unpackb(data, object_hook=hook)
+
+
+CHUNK = np.linspace(-1, 1, 70, dtype=np.float32).reshape(10, 7)
+
+
+class OpenpiStyleServer:
+    """A LIBERO-like openpi server: checks the request's keys and shapes, answers CHUNK."""
+
+    def __init__(self):
+        self.requests = []
+        self._server = serve(self._handle, "127.0.0.1", 0, compression=None, max_size=None)
+        self.url = f"ws://127.0.0.1:{self._server.socket.getsockname()[1]}"
+        threading.Thread(target=self._server.serve_forever, daemon=True).start()
+
+    def _handle(self, ws):
+        ws.send(_pack({"server": "openpi-style"}))
+        while True:
+            try:
+                obs = _unpack(ws.recv())
+            except ConnectionClosed:
+                return
+            try:
+                self.requests.append(obs)
+                if obs["prompt"] == "crash":
+                    raise RuntimeError("model exploded")
+                assert obs["observation/image"].shape == (224, 224, 3)
+                assert obs["observation/state"].shape == (8,)
+                ws.send(_pack({"actions": CHUNK, "server_timing": {"infer_ms": 1.0}}))
+            except Exception:
+                ws.send(traceback.format_exc())
+                ws.close(1011, "Internal server error. Traceback included in previous frame.")
+                return
+
+    def close(self):
+        self._server.shutdown()
+
+
+class _Env:
+    """What make_policy reads from an env: the task text."""
+
+    class unwrapped:  # noqa: N801
+        task_description = "put the bowl on the plate"
+
+
+def _libero_obs():
+    rng = np.random.default_rng(0)
+    return {"pixels": {c: rng.integers(0, 255, (240, 320, 3), dtype=np.uint8) for c in ("front", "wrist")},
+            "agent_pos": np.array([0.4, 0, 0.2, 1, 0, 0, 0, 0.0], np.float32)}
+
+
+def test_twinbench_client_against_openpi_style_server():
+    server = OpenpiStyleServer()
+    try:
+        spec = f"pi05=remote:{server.url}?io=openpi-libero"
+        pol = make_policy(spec, get_task("point-reach"), _Env())
+        obs = _libero_obs()
+        got = np.array([pol.select_action(obs) for _ in range(7)])
+        assert len(server.requests) == 2  # 5 of each 10-action chunk executed (openpi's replan_steps)
+        req = server.requests[0]
+        assert set(req) == {"observation/image", "observation/wrist_image", "observation/state", "prompt"}
+        assert req["prompt"] == "put the bowl on the plate" and req["observation/image"].dtype == np.uint8
+        expected = CHUNK * np.r_[[0.05] * 3, [0.5] * 3, 1.0]
+        expected[:, 6] = (CHUNK[:, 6] + 1) / 2  # gripper [-1, 1] -> [0, 1]
+        assert np.allclose(got, np.r_[expected[:5], expected[:2]], atol=1e-6)
+        pol.close()
+        pol = make_policy(f"remote:{server.url}?io=openpi-libero", get_task("point-reach"), _Env())
+        pol.prompt = "crash"
+        with pytest.raises(PolicyError, match="model exploded"):
+            pol.select_action(obs)
+        pol.close()
+    finally:
+        server.close()
+
+
+class Doubler:
+    def reset(self):
+        pass
+
+    def select_action(self, obs):
+        if obs.get("prompt") == "crash":
+            raise ValueError("bad observation")
+        return 2 * np.asarray(obs["agent_pos"], np.float32)
+
+
+def test_openpi_style_client_against_twinbench_server():
+    with PolicyServer(Doubler, metadata={"policy": "doubler"}) as server:
+        with connect(server.url, compression=None, max_size=None) as ws:
+            meta = ws.recv()
+            assert isinstance(meta, bytes) and _unpack(meta) == {"policy": "doubler"}  # metadata first
+            ws.send(_pack({"agent_pos": np.array([0.25, -1.5], np.float32), "prompt": "go"}))
+            reply = _unpack(ws.recv())
+            assert reply["actions"].dtype == np.float32 and reply["actions"].tolist() == [[0.5, -3.0]]
+            ws.send(_pack({"agent_pos": np.zeros(2, np.float32), "prompt": "crash"}))
+            err = ws.recv()
+            assert isinstance(err, str) and "ValueError: bad observation" in err
+            with pytest.raises(ConnectionClosed) as closed:
+                ws.recv()
+            assert closed.value.rcvd.code == 1011
