@@ -218,8 +218,42 @@ def lerobot_dataset(tmp) -> Target:
     return Target(files, ".", load_recorded, (InputError,), _check_episodes, mutable=tuple(files))
 
 
+def twin_dir(tmp) -> Target:
+    """A small twin directory: twin.json, background and object Gaussians, object arrays with explicit
+    springs and per-spring stiffness, a collider mesh."""
+    from twinbench.twin import (
+        ColliderSpec,
+        ObjectSpec,
+        RobotSpec,
+        TwinFormatError,
+        TwinSpec,
+        load_twin,
+        save_twin,
+    )
+    from twinbench.twin.cells import front_camera
+
+    pts = np.random.default_rng(0).uniform(-0.02, 0.02, (12, 3))
+    springs = np.array([[i, (i + 1) % 12] for i in range(12)], np.int32)
+    box = trimesh.creation.box(extents=(0.05, 0.05, 0.02))
+    obj = ObjectSpec("obj", pts, springs=springs, spring_Y=np.full(12, 1e4), gaussians=_cloud())
+    spec = TwinSpec("fuzz", RobotSpec("builtin:xarm7_pusher"), objects=(obj,),
+                    colliders=(ColliderSpec("box", box.vertices, box.faces),), cameras=(front_camera(),),
+                    background=_cloud(16, 0))
+    root = tmp / "twin-seed"
+    save_twin(spec, root)
+    files = {p.relative_to(root).as_posix(): p.read_bytes() for p in sorted(root.rglob("*")) if p.is_file()}
+
+    def check(loaded) -> None:
+        assert isinstance(loaded, TwinSpec) and len(loaded.objects) == 1
+
+    return Target(files, ".", load_twin, (TwinFormatError,), check,
+                  mutable=("twin.json", "twin.json", "twin.json", "objects/obj.npz", "objects/obj.ply",
+                           "colliders/box.obj", "background.ply"),
+                  codecs={"objects/obj.npz": _npz_member_codec("springs.npy")})
+
+
 FORMATS = [ply_binary, ply_ascii, splat, spz_v2, spz_v3, urdf, real_csv, replay_json, replay_npz,
-           replay_npz_actions, lerobot_dataset]
+           replay_npz_actions, lerobot_dataset, twin_dir]
 
 
 @pytest.fixture(scope="module")

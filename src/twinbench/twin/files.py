@@ -19,6 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
+from twinbench.errors import InputError
 from twinbench.gaussians.cloud import GaussianCloud
 from twinbench.gaussians.io import load_gaussians, save_gaussians
 from twinbench.physics import SimParams
@@ -36,7 +37,7 @@ from twinbench.twin.spec import (
 TWIN_FORMAT, OBJECT_FORMAT, VERSION = "twinbench-twin", "twinbench-object", 1
 
 
-class TwinFormatError(ValueError):
+class TwinFormatError(InputError):
     """A twin or object directory that cannot be loaded; the message names the file, the field and the fix."""
 
 
