@@ -138,7 +138,8 @@ class TwinTask:
         self.check_twin(twin)
 
     def reset(self, twin, state, offsets: dict[str, np.ndarray]) -> None:
-        raise NotImplementedError
+        """Robot at `self.q_start` (set by `setup`), the roles' objects moved by `offsets`."""
+        twin.reset(state, self.q_start, self.object_poses(twin, offsets))
 
     def frame(self, twin, state) -> tuple[bool, dict]:
         raise NotImplementedError
@@ -190,7 +191,31 @@ class TwinTask:
             return twin.spec.object(name).rest_pose
         return next(c.pose for c in twin.spec.colliders if c.name == name)
 
-    def grasp_action_bounds(self, workspace) -> tuple[np.ndarray, np.ndarray]:
-        """Bounds of [x, y, z, qw, qx, qy, qz, gripper] actions in the box `workspace` = (lo xyz, hi xyz)."""
-        lo, hi = workspace
-        return (np.array([*lo, -1, -1, -1, -1, 0], np.float32), np.array([*hi, 1, 1, 1, 1, 1], np.float32))
+    def start_configuration(self, twin, position, quat) -> np.ndarray:
+        """The robot configuration (IK from home) with its end-effector at `position`, `quat` (wxyz)."""
+        from twinbench.robot.ik import solve_ik
+        from twinbench.transforms import pose_matrix
+
+        target = pose_matrix(np.asarray(position, np.float64), np.asarray(quat, np.float64))
+        res = solve_ik(twin.robot, target, twin.robot.home_q)
+        if not res.converged:
+            raise ValueError(f"{self.name}: start position {tuple(position)} is not reachable by "
+                             f"{twin.robot.name}")
+        return res.q
+
+
+class GraspTask(TwinTask):
+    """A task for the gripper arm: absolute `[x, y, z, qw, qx, qy, qz, gripper]` actions within the
+    settings' `workspace` box, starting at the settings' `start_position`, pointing down, gripper open."""
+
+    def controller_overrides(self) -> dict:
+        return {"action_mode": "absolute"}
+
+    def action_bounds(self, twin) -> tuple[np.ndarray, np.ndarray]:
+        lo, hi = self.settings.workspace
+        return np.array([*lo, -1, -1, -1, -1, 0], np.float32), np.array([*hi, 1, 1, 1, 1, 1], np.float32)
+
+    def setup(self, twin, state) -> None:
+        super().setup(twin, state)
+        q = self.start_configuration(twin, self.settings.start_position, (0.0, 1.0, 0.0, 0.0))
+        self.q_start = twin.robot.set_gripper(q, 0.0)

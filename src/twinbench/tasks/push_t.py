@@ -19,7 +19,6 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from twinbench.robot.ik import solve_ik
 from twinbench.tasks import register_task
 from twinbench.tasks.base import InitialStates, TwinTask
 from twinbench.tasks.push_t_geometry import (
@@ -27,7 +26,7 @@ from twinbench.tasks.push_t_geometry import (
     grid_initial_states,
     mean_squared_distance,
 )
-from twinbench.transforms import planar_pose, pose_matrix, transform_points
+from twinbench.transforms import planar_pose, transform_points
 
 ENV_ID = "twinbench/PushT-v0"
 GOAL_RGBA = (1.0, 0.85, 0.1, 0.4)  # translucent yellow goal overlay
@@ -98,11 +97,7 @@ class PushTTask(TwinTask):
         cells = np.c_[gx.ravel(), gy.ravel(), np.full(gx.size, 0.5 * self.shape.height)]
         self._cover_local = cells[self.shape.contains(cells)]
         ctrl = twin.controller.config
-        target = pose_matrix(np.array([*s.pusher_start, ctrl.planar_height]), np.asarray(ctrl.planar_quat))
-        res = solve_ik(twin.robot, target, twin.robot.home_q)
-        if not res.converged:
-            raise ValueError(f"push-t: pusher start {s.pusher_start} is not reachable by {twin.robot.name}")
-        self.q_start = res.q
+        self.q_start = self.start_configuration(twin, (*s.pusher_start, ctrl.planar_height), ctrl.planar_quat)
         self.overlay_camera = "front" if "front" in twin.cameras else next(iter(twin.cameras))
         self._overlay = self._overlay_mask(twin.camera(state, self.overlay_camera))
 
@@ -118,9 +113,6 @@ class PushTTask(TwinTask):
         return inside.reshape(cam.height, cam.width)
 
     # ------------------------------------------------------------------ episode
-    def reset(self, twin, state, offsets) -> None:
-        twin.reset(state, self.q_start, self.object_poses(twin, offsets))
-
     def goal_msd(self, twin, state) -> float:
         """Mean squared distance (m^2) of the block's particles to their goal positions."""
         return mean_squared_distance(twin.particles(state, self.roles["block"]), self.goal_particles)

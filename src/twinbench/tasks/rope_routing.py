@@ -29,7 +29,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from twinbench.tasks import register_task
-from twinbench.tasks.base import InitialStates, TwinTask
+from twinbench.tasks.base import GraspTask, InitialStates
 from twinbench.transforms import invert_pose, transform_points
 
 ENV_ID = "twinbench/RopeRouting-v0"
@@ -67,7 +67,7 @@ def count_crossings(
     return int(np.sum(inside))
 
 
-class RopeRoutingTask(TwinTask):
+class RopeRoutingTask(GraspTask):
     name = "rope-routing"
     description = "pick up the rope by its red end and route it into the green clip"
     default_roles = {"rope": "rope", "clip": "clip"}
@@ -95,12 +95,6 @@ class RopeRoutingTask(TwinTask):
 
         return rope_routing_cell(preset, **cell_settings)
 
-    def controller_overrides(self) -> dict:
-        return {"action_mode": "absolute"}
-
-    def action_bounds(self, twin):
-        return self.grasp_action_bounds(self.settings.workspace)
-
     def setup(self, twin, state) -> None:
         super().setup(twin, state)
         rope = self.roles["rope"]
@@ -116,18 +110,6 @@ class RopeRoutingTask(TwinTask):
         )
         near = rest[:, 0] < rest[self.marked, 0] - 0.04
         self.along = int(np.flatnonzero(near)[np.argmax(rest[near, 0] - 1e-3 * np.abs(rest[near, 1]))])
-        robot = twin.robot
-        from twinbench.robot.ik import solve_ik
-        from twinbench.transforms import pose_matrix
-
-        target = pose_matrix(np.asarray(self.settings.start_position), np.array([0.0, 1.0, 0.0, 0.0]))
-        res = solve_ik(robot, target, robot.home_q)
-        if not res.converged:
-            raise ValueError(f"rope-routing: start position {self.settings.start_position} is not reachable")
-        self.q_start = robot.set_gripper(res.q, 0.0)
-
-    def reset(self, twin, state, offsets) -> None:
-        twin.reset(state, self.q_start, self.object_poses(twin, offsets))
 
     def crossings(self, twin, state) -> tuple[int, int]:
         s = self.settings

@@ -19,7 +19,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from twinbench.tasks import register_task
-from twinbench.tasks.base import InitialStates, TwinTask
+from twinbench.tasks.base import GraspTask, InitialStates
 from twinbench.tasks.push_t import pose_xytheta
 from twinbench.transforms import invert_pose, transform_points
 
@@ -42,7 +42,7 @@ class ToyPackingSettings:
     start_position: tuple[float, float, float] = (0.35, 0.0, 0.25)
 
 
-class ToyPackingTask(TwinTask):
+class ToyPackingTask(GraspTask):
     name = "toy-packing"
     description = "pick up the plush toy and pack it into the box"
     default_roles = {"toy": "toy", "box": "box"}
@@ -70,30 +70,12 @@ class ToyPackingTask(TwinTask):
 
         return toy_packing_cell(preset, **cell_settings)
 
-    def controller_overrides(self) -> dict:
-        return {"action_mode": "absolute"}
-
-    def action_bounds(self, twin):
-        return self.grasp_action_bounds(self.settings.workspace)
-
     def setup(self, twin, state) -> None:
         super().setup(twin, state)
-        from twinbench.robot.ik import solve_ik
-        from twinbench.transforms import pose_matrix
-
         box = next(c for c in twin.spec.colliders if c.name == self.roles["box"])
         lo, hi = box.vertices.min(0), box.vertices.max(0)
         self.box_center = (lo + hi) / 2  # the box's bounding box in its own frame
         self.box_half = (hi - lo) / 2 * self.settings.box_scale
-        robot = twin.robot
-        target = pose_matrix(np.asarray(self.settings.start_position), np.array([0.0, 1.0, 0.0, 0.0]))
-        res = solve_ik(robot, target, robot.home_q)
-        if not res.converged:
-            raise ValueError(f"toy-packing: start position {self.settings.start_position} is not reachable")
-        self.q_start = robot.set_gripper(res.q, 0.0)
-
-    def reset(self, twin, state, offsets) -> None:
-        twin.reset(state, self.q_start, self.object_poses(twin, offsets))
 
     def inside(self, twin, state) -> float:
         """Fraction of the toy's particles inside the box's scaled oriented bounding box."""
