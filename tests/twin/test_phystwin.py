@@ -254,3 +254,20 @@ def test_import_export_commands_round_trip_a_case(tmp_path):
     assert again.optimal_params == pytest.approx(original.optimal_params)
     assert again.scalar("collide_fric") == pytest.approx(original.scalar("collide_fric"))
     assert again.sources["checkpoint"].endswith("best_7.pth")
+
+
+def test_final_data_becomes_sysid_input_in_the_z_up_frame(tmp_path):
+    """A case's training data read as system-identification input: particles, observed and tracked
+    points and controls in twinbench's z-up frame, the last fifth held out; `sysid` reads the folder."""
+    from twinbench.physics.sysid import load_input
+    from twinbench.twin.phystwin import sysid_data_from_final_data
+
+    case, frames = _make_case(tmp_path)
+    data = sysid_data_from_final_data(case / "final_data.pkl")
+    np.testing.assert_allclose(data.particles, frames[0], atol=1e-6)
+    np.testing.assert_allclose(data.observed, frames, atol=1e-6)
+    np.testing.assert_allclose(data.tracked, frames, atol=1e-6)
+    np.testing.assert_array_equal(data.tracked_indices, np.arange(frames.shape[1]))
+    assert data.controls[:, :, 2].max() > data.controls[0, :, 2].max()  # lifted: z grows upwards
+    assert data.validation_frames == max(1, (FRAMES + 1) // 5)
+    np.testing.assert_array_equal(load_input(case).observed, data.observed)  # the folder works too

@@ -50,6 +50,19 @@ from .params import SimParams
 from .solver import SimulationDiverged, SpringMassSolver, check_divergence
 from .sysid_data import SysIdData, SysIdFormatError, load_sysid_data
 
+
+def load_input(path) -> SysIdData:
+    """A sysid directory (sysid.json + npz), or a PhysTwin case's `final_data.pkl` (or a folder holding
+    one and no sysid.json), read through twinbench.twin.phystwin's restricted loader."""
+    path = Path(path)
+    pkl = path if path.suffix == ".pkl" else path / "final_data.pkl"
+    if pkl.is_file() and not (path.is_dir() and (path / "sysid.json").is_file()):
+        from twinbench.twin.phystwin import sysid_data_from_final_data
+
+        return sysid_data_from_final_data(pkl)
+    return load_sysid_data(path)
+
+
 # ----------------------------------------------------------------------------------------------
 # parameters and search space
 
@@ -214,7 +227,8 @@ class SysIdConfig:
     input directory). Writes ``<out_dir>/<name>/`` (object.json + npz) and ``sysid_report.{json,png}``."""
 
     data: Path
-    """sysid input directory (sysid.json + npz, see twinbench.physics.sysid_data)"""
+    """sysid input directory (sysid.json + npz, see twinbench.physics.sysid_data), or a PhysTwin case
+    folder / its final_data.pkl (read with the restricted loader of twinbench.twin.phystwin)"""
     out_dir: Path = Path("outputs/sysid")
     device: str = "cpu"
     stage1: bool = True
@@ -790,7 +804,7 @@ def main(cfg: SysIdConfig) -> int:
         console.print(msg, markup=False, soft_wrap=True, highlight=False)
 
     try:
-        data = load_sysid_data(cfg.data)
+        data = load_input(cfg.data)
         result = identify(data, cfg, log=say)
     except (SysIdFormatError, ValueError) as exc:
         say(f"twinbench sysid: {exc}")

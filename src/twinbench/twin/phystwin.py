@@ -593,3 +593,45 @@ def case_from_arrays(arrays: dict, meta: dict) -> tuple[dict, dict, dict, int]:
 
 def dumps_json(obj) -> str:
     return json.dumps(obj, indent=1)
+
+
+def sysid_data_from_final_data(path, *, reverse_z: bool = True, validation_frames: int | None = None):
+    """System-identification input (`twinbench.physics.sysid_data.SysIdData`) from a PhysTwin case's
+    training data `final_data.pkl`, read through the restricted loader.
+
+    Particles are PhysTwin's structure points (tracked points of frame 0, then the surface and interior
+    completions); the tracked points are the first N particles, observed in every frame where visible
+    and trusted where `object_motions_valid`; the Chamfer term matches the observed surface only (not the
+    interior completions); control points are `controller_points`. `reverse_z` turns PhysTwin's frame
+    z up, as `import_case` does. `validation_frames` defaults to the last fifth of the frames."""
+    from twinbench.physics.sysid_data import SysIdData
+
+    path = Path(path)
+    if path.is_dir():
+        path = path / "final_data.pkl"
+    fd = load_pickle(path)
+    keys = ("object_points", "object_visibilities", "object_motions_valid", "controller_points",
+            "surface_points", "interior_points")
+    _require(fd, keys, str(path))
+    rot = (FLIP_Z if reverse_z else np.eye(4))[:3, :3]
+
+    def points(key):
+        arr = np.asarray(fd[key], dtype=np.float64)
+        if key in ("surface_points", "interior_points") and arr.size == 0:
+            arr = arr.reshape(0, 3)
+        if arr.shape[-1:] != (3,):
+            raise PhysTwinFormatError(f"{path}: {key} must hold 3D points, got shape {arr.shape}")
+        return arr @ rot.T
+
+    obs, surface, interior = points("object_points"), points("surface_points"), points("interior_points")
+    if obs.ndim != 3:
+        raise PhysTwinFormatError(f"{path}: object_points must have shape (F, N, 3), got {obs.shape}")
+    n_frames, n = obs.shape[:2]
+    return SysIdData(
+        particles=np.concatenate([obs[0], surface, interior]), observed=obs,
+        visibility=np.asarray(fd["object_visibilities"]).astype(bool), tracked_indices=np.arange(n),
+        tracked=obs, motion_valid=np.asarray(fd["object_motions_valid"]).astype(bool),
+        controls=points("controller_points"),
+        validation_frames=max(1, n_frames // 5) if validation_frames is None else int(validation_frames),
+        name=path.parent.name or "phystwin", surface_indices=np.arange(n + len(surface)), source=str(path),
+    )
