@@ -3,10 +3,10 @@ states, gymnasium conformance, determinism, the expert."""
 
 import numpy as np
 import pytest
+from episode_helpers import expert_episode, place
 from gymnasium.utils.env_checker import check_env
 
 from twinbench.env import TwinEnv
-from twinbench.evaluation.runner import policy_observation
 from twinbench.tasks.gripper_expert import TCP_ABOVE_TIPS, grasp_quat
 from twinbench.tasks.rope_expert import RopeExpert
 from twinbench.tasks.rope_routing import count_crossings
@@ -75,10 +75,6 @@ def test_closing_on_air_is_reported(env):
     assert info["grasp"] == "closed_on_air"
 
 
-def _place(env, particles):
-    env.state.physics.x.assign(particles.astype(np.float32))
-    return env.rules.frame(env.twin, env.state)
-
 
 def test_success_rule_on_a_routed_rope_and_a_near_miss(env):
     env.reset(seed=0, options={"init_state": 13})
@@ -87,14 +83,14 @@ def test_success_rule_on_a_routed_rope_and_a_near_miss(env):
     clip = twin.collider_pose(env.state, "clip")
     # routed: the rope straight along the channel axis (clip y), centred in the clip, on its floor
     routed = clip @ planar_pose(0.0, 0.0, np.pi / 2)
-    hit, m = _place(env, transform_points(routed, rest))
+    hit, m = place(env, transform_points(routed, rest))
     assert hit and min(m["crossings"]) >= rules.crossing_threshold
     # near miss: the same rope 2 cm to the side, outside the channel's openings
-    hit, m = _place(env, transform_points(clip @ planar_pose(0.02 + 0.01, 0.0, np.pi / 2), rest))
+    hit, m = place(env, transform_points(clip @ planar_pose(0.02 + 0.01, 0.0, np.pi / 2), rest))
     assert not hit and m["crossings"] == [0, 0]
     # through one opening only: the rope's end stops in the middle of the channel
     half = transform_points(clip @ planar_pose(0.0, -0.16, np.pi / 2), rest)
-    hit, m = _place(env, half)
+    hit, m = place(env, half)
     assert not hit and m["crossings"][0] >= rules.crossing_threshold and m["crossings"][1] == 0
 
 
@@ -120,20 +116,12 @@ def test_conforms_to_gymnasium_and_is_deterministic(env):
     assert env.observation_space["agent_pos"].shape == (8,) and len(env.rules.initial_states) == 27
 
 
-def _expert_episode(env, state: int) -> bool:
-    obs, info = env.reset(seed=0, options={"init_state": state})
-    expert = RopeExpert()
-    while True:
-        obs, _, term, trunc, info = env.step(expert.select_action(policy_observation(expert, obs, info)))
-        if term or trunc:
-            return bool(info["is_success"])
-
 
 def test_expert_routes_the_centre_state(env):
-    assert _expert_episode(env, 13)
+    assert expert_episode(env, RopeExpert(), 13)
 
 
 @pytest.mark.slow
 def test_expert_routes_at_least_70_percent_of_the_grid(env):
-    results = [_expert_episode(env, i) for i in range(27)]
+    results = [expert_episode(env, RopeExpert(), i) for i in range(27)]
     assert sum(results) >= 0.7 * 27, results

@@ -3,10 +3,10 @@ gymnasium conformance, determinism, the expert."""
 
 import numpy as np
 import pytest
+from episode_helpers import expert_episode, place
 from gymnasium.utils.env_checker import check_env
 
 from twinbench.env import TwinEnv
-from twinbench.evaluation.runner import policy_observation
 from twinbench.tasks.gripper_expert import grasp_quat
 from twinbench.tasks.toy_expert import ToyExpert
 from twinbench.transforms import transform_points
@@ -29,10 +29,6 @@ def test_toy_has_softer_limbs_and_the_grid_pairs_toy_and_box_offsets(env):
     np.testing.assert_allclose(box[:2, 3] - rest[:2, 3], states.grid["box"][19][:2], atol=1e-12)
 
 
-def _place(env, particles):
-    env.state.physics.x.assign(particles.astype(np.float32))
-    return env.rules.frame(env.twin, env.state)
-
 
 def test_success_rule_on_a_packed_toy_and_a_near_miss(env):
     env.reset(seed=0, options={"init_state": 0})
@@ -41,14 +37,14 @@ def test_success_rule_on_a_packed_toy_and_a_near_miss(env):
     box = twin.collider_pose(env.state, "box")
     # packed: limbs tucked (the toy squeezed to 60 % of its footprint) and set on the box floor
     packed = rest * [0.6, 0.5, 1.0]
-    hit, m = _place(env, transform_points(box, packed))
+    hit, m = place(env, transform_points(box, packed))
     assert hit and m["inside_fraction"] == 1.0
     # near miss: the same toy 4.5 cm too high -- its top pokes out above the walls (scaled height 7.35 cm)
     lifted = transform_points(box, packed + [0, 0, 0.045])
-    hit, m = _place(env, lifted)
+    hit, m = place(env, lifted)
     assert not hit and 0.5 < m["inside_fraction"] < rules.settings.inside_fraction
     # the toy as it is (limbs spread) centred in the box: the limbs stick out
-    hit, m = _place(env, transform_points(box, rest))
+    hit, m = place(env, transform_points(box, rest))
     assert not hit
 
 
@@ -66,16 +62,8 @@ def test_conforms_to_gymnasium_and_is_deterministic(env):
         np.testing.assert_array_equal(a, b)
 
 
-def _expert_episode(env, state: int) -> bool:
-    obs, info = env.reset(seed=0, options={"init_state": state})
-    expert = ToyExpert()
-    while True:
-        obs, _, term, trunc, info = env.step(expert.select_action(policy_observation(expert, obs, info)))
-        if term or trunc:
-            return bool(info["is_success"])
-
 
 @pytest.mark.slow
 def test_expert_packs_at_least_70_percent_of_the_grid(env):
-    results = [_expert_episode(env, i) for i in range(20)]
+    results = [expert_episode(env, ToyExpert(), i) for i in range(20)]
     assert sum(results) >= 0.7 * 20, results

@@ -62,6 +62,13 @@ class _Reader:
             self.fail(field, f"missing field(s) {missing}")
         return value
 
+    def name(self, d: dict, field: str) -> tuple[str, str]:
+        """An entry's non-empty `name`, and the field label that names it in later errors."""
+        name = d["name"]
+        if not isinstance(name, str) or not name:
+            self.fail(f"{field}.name", f"expected a non-empty string, got {name!r}")
+        return name, f"{field}({name})"
+
     def number(self, value, field: str, *, integer: bool = False) -> float:
         ok = isinstance(value, int | float) and not isinstance(value, bool) and math.isfinite(value)
         if not ok or (integer and int(value) != value):
@@ -195,10 +202,7 @@ _OBJECT_FIELDS = (
 
 def _read_object(r: _Reader, d, field: str) -> ObjectSpec:
     d = r.section(d, field, *_OBJECT_FIELDS)
-    name = d["name"]
-    if not isinstance(name, str) or not name:
-        r.fail(f"{field}.name", f"expected a non-empty string, got {name!r}")
-    field = f"{field}({name})"
+    name, field = r.name(d, field)
     springs = d["springs"]
     explicit = springs == "explicit"
     arrays = r.npz(
@@ -372,10 +376,7 @@ def _read_robot(r: _Reader, d) -> RobotSpec:
 
 def _read_camera(r: _Reader, d, field: str) -> CameraSpec:
     d = r.section(d, field, *_CAMERA_FIELDS)
-    name = d["name"]
-    if not isinstance(name, str) or not name:
-        r.fail(f"{field}.name", f"expected a non-empty string, got {name!r}")
-    field = f"{field}({name})"
+    name, field = r.name(d, field)
     kw: dict = {
         "intrinsics": tuple(r.array(d["intrinsics"], f"{field}.intrinsics", (4,)).tolist()),
         "pose": r.array(d["pose"], f"{field}.pose", (4, 4)),
@@ -399,10 +400,7 @@ def _read_camera(r: _Reader, d, field: str) -> CameraSpec:
 
 def _read_collider(r: _Reader, d, field: str) -> ColliderSpec:
     d = r.section(d, field, *_COLLIDER_FIELDS)
-    name = d["name"]
-    if not isinstance(name, str) or not name:
-        r.fail(f"{field}.name", f"expected a non-empty string, got {name!r}")
-    field = f"{field}({name})"
+    name, field = r.name(d, field)
     vertices, faces = r.mesh(d["mesh"], f"{field}.mesh")
     contact = r.build(
         lambda: ContactSpec(
