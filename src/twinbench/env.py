@@ -34,6 +34,7 @@ import numpy as np
 from gymnasium import spaces
 
 from twinbench.physics import SimulationDiverged
+from twinbench.tasks.base import SuccessWindow
 
 RESET_OPTIONS = ("init_state", "sampled")
 SUCCESS_RULES = ("final", "early")
@@ -125,8 +126,6 @@ class TwinEnv(gymnasium.Env):
             d = self.rules.environment_state_dim
             obs_space["environment_state"] = spaces.Box(-np.inf, np.inf, (d,), np.float32)
         self.observation_space = spaces.Dict(obs_space)
-        from twinbench.tasks.base import SuccessWindow
-
         self._success = SuccessWindow(self.rules.success_window, self.rules.success_min_hits)
         self._steps = 0
         self._status = "ok"
