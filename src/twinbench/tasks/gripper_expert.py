@@ -1,10 +1,18 @@
-"""What the gripper experts (rope routing, toy packing) share: the grasp orientation and a rate-limited
-waypoint, so that held deformable objects move without jerks (the grasp is friction only)."""
+"""What the gripper experts (rope routing, toy packing) share: the grasp orientation, a rate-limited
+waypoint (held deformable objects move without jerks: the grasp is friction only) and a plan runner.
+
+An expert plans once, from the first `environment_state` of an episode, a list of `Leg`s (go to a pose
+with a gripper command until the end-effector is within `tol` of it, or for a number of steps), and
+`GripperExpert.select_action` walks through it.
+"""
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 
+from twinbench.policies.base import PolicyError
 from twinbench.transforms import quat_multiply
 
 DOWN = np.array([0.0, 1.0, 0.0, 0.0])  # tcp z down, tcp x = world x (wxyz)
@@ -38,3 +46,61 @@ class Waypoint:
             dist = float(np.linalg.norm(step))
             self.position = target.copy() if dist <= speed else self.position + step * (speed / dist)
         return self.position
+
+
+@dataclass(frozen=True)
+class Leg:
+    """Command (`position`, `quat`, `gripper`) until the end-effector is within `tol` of `position` (or,
+    with `tol` None, for `steps` steps); give up after `steps` steps. `slow`: the rate-limited waypoint
+    (while holding). A last leg with `steps` None lasts for the rest of the episode."""
+
+    name: str
+    position: np.ndarray
+    quat: np.ndarray
+    gripper: float
+    tol: float | None = None
+    steps: int | None = None
+    slow: bool = False
+
+    def done(self, ee: np.ndarray, t: int) -> bool:
+        if self.tol is not None and np.linalg.norm(ee - self.position) < self.tol:
+            return True
+        return self.steps is not None and t > self.steps
+
+
+class GripperExpert:
+    """Walks a plan of Legs made by `plan(environment_state)` (a subclass's). `phase` names the leg."""
+
+    uses_environment_state = True
+
+    def __init__(self, holding_speed: float):
+        self.holding_speed = holding_speed
+        self.reset()
+
+    def reset(self) -> None:
+        self._plan: list[Leg] | None = None
+        self._leg, self._t = 0, 0
+        self._wp = Waypoint()
+
+    @property
+    def phase(self) -> str:
+        return "plan" if self._plan is None else self._plan[self._leg].name
+
+    def plan(self, state: np.ndarray) -> list[Leg]:
+        raise NotImplementedError
+
+    def select_action(self, obs) -> np.ndarray:
+        if "environment_state" not in obs:
+            raise PolicyError(
+                f"{type(self).__name__} needs obs['environment_state'] (make the env with "
+                "environment_state=True, or let the evaluation runner add it)"
+            )
+        if self._plan is None:
+            self._plan = self.plan(np.asarray(obs["environment_state"], dtype=np.float64))
+        ee = np.asarray(obs["agent_pos"], dtype=np.float64)[:3]
+        self._t += 1
+        while self._leg < len(self._plan) - 1 and self._plan[self._leg].done(ee, self._t):
+            self._leg, self._t = self._leg + 1, 0
+        leg = self._plan[self._leg]
+        target = self._wp.toward(leg.position, self.holding_speed, leg.slow)
+        return np.r_[target, leg.quat, leg.gripper].astype(np.float32)
