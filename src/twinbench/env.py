@@ -107,7 +107,7 @@ class TwinEnv(gymnasium.Env):
             raise ValueError(f"render_views: unknown camera(s) {unknown}; cameras: {list(self.twin.cameras)}")
         fps = int(round(self.twin.controller.config.control_hz))
         self.metadata = {**self.metadata, "render_fps": fps}
-        self._max_episode_steps = int(round(self.rules.episode_seconds * fps))
+        self._max_episode_steps = int(round(self.rules.settings.episode_seconds * fps))
         self.task_description = self.task = self.rules.description  # `task`: the name LeRobot's loop reads
         self.environment_state = bool(environment_state)
 
@@ -126,7 +126,8 @@ class TwinEnv(gymnasium.Env):
             d = self.rules.environment_state_dim
             obs_space["environment_state"] = spaces.Box(-np.inf, np.inf, (d,), np.float32)
         self.observation_space = spaces.Dict(obs_space)
-        self._success = SuccessWindow(self.rules.success_window, self.rules.success_min_hits)
+        rules = self.rules.settings
+        self._success = SuccessWindow(rules.success_window, rules.success_min_hits)
         self._steps = 0
         self._status = "ok"
         self._done = False

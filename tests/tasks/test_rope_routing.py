@@ -3,7 +3,7 @@ states, gymnasium conformance, determinism, the expert."""
 
 import numpy as np
 import pytest
-from episode_helpers import expert_episode, place
+from episode_helpers import assert_seeded_episode_repeats, expert_episode, place
 from gymnasium.utils.env_checker import check_env
 
 from twinbench.env import TwinEnv
@@ -98,21 +98,7 @@ def test_conforms_to_gymnasium_and_is_deterministic(env):
     check_env(env, skip_render_check=True)
     actions = np.random.default_rng(0).uniform(env.action_space.low, env.action_space.high, (8, 8))
     actions[:, 3:7] = grasp_quat((1.0, 0.0))
-    runs = []
-    for _ in range(2):
-        obs, _ = env.reset(seed=2, options={"init_state": 5})
-        for a in actions.astype(np.float32):
-            obs, *_ = env.step(a)
-        runs.append(
-            [
-                obs["pixels"]["front"],
-                obs["pixels"]["wrist"],
-                obs["agent_pos"],
-                env.twin.particles(env.state, "rope"),
-            ]
-        )
-    for a, b in zip(*runs, strict=True):
-        np.testing.assert_array_equal(a, b)
+    assert_seeded_episode_repeats(env, actions, 5, 2, "rope")
     assert env.observation_space["agent_pos"].shape == (8,) and len(env.rules.initial_states) == 27
 
 

@@ -3,7 +3,7 @@ gymnasium conformance, determinism, the expert."""
 
 import numpy as np
 import pytest
-from episode_helpers import expert_episode, place
+from episode_helpers import assert_seeded_episode_repeats, expert_episode, place
 from gymnasium.utils.env_checker import check_env
 
 from twinbench.env import TwinEnv
@@ -52,14 +52,7 @@ def test_conforms_to_gymnasium_and_is_deterministic(env):
     check_env(env, skip_render_check=True)
     actions = np.random.default_rng(1).uniform(env.action_space.low, env.action_space.high, (6, 8))
     actions[:, 3:7] = grasp_quat((0.0, 1.0))
-    runs = []
-    for _ in range(2):
-        obs, _ = env.reset(seed=1, options={"init_state": 7})
-        for a in actions.astype(np.float32):
-            obs, *_ = env.step(a)
-        runs.append([obs["pixels"]["front"], obs["agent_pos"], env.twin.particles(env.state, "toy")])
-    for a, b in zip(*runs, strict=True):
-        np.testing.assert_array_equal(a, b)
+    assert_seeded_episode_repeats(env, actions, 7, 1, "toy")
 
 
 

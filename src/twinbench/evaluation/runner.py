@@ -34,6 +34,7 @@ from twinbench.evaluation.export import policy_folder, write_eval_infos
 from twinbench.evaluation.store import DEFAULT_DB, EpisodeRecord, ResultsStore, check_run_id
 from twinbench.policies.base import PolicyError
 from twinbench.policies.spec import make_policy, parse_policy_spec
+from twinbench.progress import progress_bar
 
 RAY_HINT = "pip install 'twinbench[ray]'"
 
@@ -317,20 +318,6 @@ def _versions() -> dict:
             "warp": warp.config.version}
 
 
-def _progress(total: int, enabled: bool):
-    from rich.progress import (
-        BarColumn,
-        MofNCompleteColumn,
-        Progress,
-        TextColumn,
-        TimeElapsedColumn,
-        TimeRemainingColumn,
-    )
-
-    return Progress(TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(),
-                    TimeElapsedColumn(), TextColumn("ETA"), TimeRemainingColumn(), disable=not enabled)
-
-
 def _run_local(jobs: list[EpisodeJob], workers: int, on_done) -> None:
     if workers == 0:
         try:
@@ -424,7 +411,7 @@ def evaluate(task: str, policies: Sequence[str], episodes: str | int = "grid", w
     results = {k: existing[k] for k in skip}
     done_count = [len(jobs) - len(todo)]
 
-    with _progress(len(jobs), progress) as bar:
+    with progress_bar(progress) as bar:
         bar_task = bar.add_task(f"eval {run_id}", total=len(jobs), completed=done_count[0])
 
         def on_done(rec: EpisodeRecord) -> None:

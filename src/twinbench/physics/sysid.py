@@ -404,18 +404,9 @@ def evaluate(model: SpringMassModel, data: SysIdData, loss: SequenceLoss, *, fra
 
 
 def _progress(enabled: bool):
-    from rich.progress import (
-        BarColumn,
-        MofNCompleteColumn,
-        Progress,
-        TextColumn,
-        TimeElapsedColumn,
-        TimeRemainingColumn,
-    )
+    from twinbench.progress import progress_bar
 
-    return Progress(TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(),
-                    TimeElapsedColumn(), TextColumn("ETA"), TimeRemainingColumn(),
-                    TextColumn("{task.fields[info]}"), disable=not enabled)
+    return progress_bar(enabled, "{task.fields[info]}")
 
 
 # ----------------------------------------------------------------------------------------------

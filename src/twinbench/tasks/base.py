@@ -110,18 +110,18 @@ class TwinTask:
     name: str = ""
     description: str = ""
     default_roles: dict[str, str] = {}
-    episode_seconds: float = 60.0
-    success_window: int = 100
-    success_min_hits: int = 30
     environment_state_dim: int = 0
-    settings_cls: type  # a frozen dataclass of the task's settings (TwinEnv routes kwargs by its fields)
+    # A frozen dataclass of the task's settings, with at least `episode_seconds`, `success_window` and
+    # `success_min_hits` (TwinEnv routes keyword arguments to it by its fields).
+    settings_cls: type
 
-    def __init__(self, roles: dict[str, str] | None = None):
+    def __init__(self, roles: dict[str, str] | None = None, **settings):
         self.roles = dict(self.default_roles)
         unknown = sorted(set(roles or {}) - set(self.roles))
         if unknown:
             raise ValueError(f"task {self.name!r}: unknown role(s) {unknown}; roles: {sorted(self.roles)}")
         self.roles.update(roles or {})
+        self.settings = self.settings_cls(**settings)
 
     # --- to implement ---------------------------------------------------------------------------------
     initial_states: InitialStates

@@ -59,10 +59,8 @@ class PushTTask(TwinTask):
     settings_cls = PushTSettings
 
     def __init__(self, roles=None, **settings):
-        super().__init__(roles)
-        self.settings = s = PushTSettings(**settings)
-        self.episode_seconds = s.episode_seconds
-        self.success_window, self.success_min_hits = s.success_window, s.success_min_hits
+        super().__init__(roles, **settings)
+        s = self.settings
         self.shape = TBlockShape()
         h = s.sample_half_range
         self.initial_states = InitialStates(

@@ -75,10 +75,7 @@ class RopeRoutingTask(GraspTask):
     settings_cls = RopeRoutingSettings
 
     def __init__(self, roles=None, **settings):
-        super().__init__(roles)
-        self.settings = s = RopeRoutingSettings(**settings)
-        self.episode_seconds = s.episode_seconds
-        self.success_window, self.success_min_hits = s.success_window, s.success_min_hits
+        super().__init__(roles, **settings)
         grid = np.array(
             [
                 (dx, dy, np.deg2rad(th))

@@ -50,10 +50,7 @@ class ToyPackingTask(GraspTask):
     settings_cls = ToyPackingSettings
 
     def __init__(self, roles=None, **settings):
-        super().__init__(roles)
-        self.settings = s = ToyPackingSettings(**settings)
-        self.episode_seconds = s.episode_seconds
-        self.success_window, self.success_min_hits = s.success_window, s.success_min_hits
+        super().__init__(roles, **settings)
         d = np.deg2rad(5.0)
         toy = np.array(
             [(-0.05, -0.05, -d), (0.05, -0.05, d), (-0.05, 0.03, d), (0.05, 0.03, -d), (0.0, -0.01, 0.0)]

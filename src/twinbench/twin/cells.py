@@ -81,13 +81,7 @@ class PushTCell:
     @staticmethod
     def preset(name: str, **overrides) -> PushTCell:
         presets = {"reference": PushTCell(), "fast": PushTCell(particle_spacing=0.015, substeps=100)}
-        if name not in presets:
-            raise ValueError(f"push-t preset must be one of {sorted(presets)}, got {name!r}")
-        known = {f.name for f in fields(PushTCell)}
-        unknown = sorted(set(overrides) - known)
-        if unknown:
-            raise ValueError(f"push-t cell: unknown setting(s) {unknown}; known: {sorted(known)}")
-        return replace(presets[name], **overrides)
+        return _check_settings(PushTCell, "push-t", presets, name, overrides)
 
 
 def push_t_cell(preset: str = "reference", **overrides) -> TwinSpec:
@@ -131,6 +125,7 @@ def push_t_cell(preset: str = "reference", **overrides) -> TwinSpec:
 
 
 def _check_settings(cls, name: str, presets: dict, preset: str, overrides: dict):
+    """The named preset of a cell's settings with `overrides` applied; errors name what is allowed."""
     if preset not in presets:
         raise ValueError(f"{name} preset must be one of {sorted(presets)}, got {preset!r}")
     known = {f.name for f in fields(cls)}
