@@ -159,6 +159,8 @@ def mesh_contacts(
     xp: wp.vec3,
     vp: wp.vec3,
     mp: float,
+    first: int,
+    last: int,
     mesh_ids: wp.array(dtype=wp.uint64),
     mesh_elas: wp.array(dtype=float),
     mesh_fric: wp.array(dtype=float),
@@ -168,9 +170,10 @@ def mesh_contacts(
     mesh_force: wp.array(dtype=wp.vec3),
     face_force: wp.array(dtype=wp.vec3),
 ):
-    """Velocity response against every triangle mesh, relative to the mesh point velocity."""
+    """Velocity response against the triangle meshes ``[first, last)`` (the particle's world), relative
+    to the mesh point velocity."""
     v = vp
-    for k in range(mesh_ids.shape[0]):
+    for k in range(first, last):
         mid = mesh_ids[k]
         q = wp.mesh_query_point_sign_normal(mid, xp, margin)
         if q.result:
@@ -213,6 +216,8 @@ class ContactParams:
     margin: float
     mesh_force: wp.array(dtype=wp.vec3)
     face_force: wp.array(dtype=wp.vec3)
+    particle_world: wp.array(dtype=int)
+    world_mesh_start: wp.array(dtype=int)
     ground: int
     ground_elas: float
     ground_fric: float
@@ -225,7 +230,8 @@ def finish_particle(
 ):
     v1 = v
     if cp.mesh_ids.shape[0] > 0:
-        v1 = mesh_contacts(x0, v1, m, cp.mesh_ids, cp.mesh_elas, cp.mesh_fric, cp.face_offsets,
+        w = cp.particle_world[tid]
+        v1 = mesh_contacts(x0, v1, m, cp.world_mesh_start[w], cp.world_mesh_start[w + 1], cp.mesh_ids, cp.mesh_elas, cp.mesh_fric, cp.face_offsets,
                            cp.margin, dt, cp.mesh_force, cp.face_force)
     xn, vn = ground_integrate(x0, v1, cp.ground_elas, cp.ground_fric, dt, cp.ground)
     x_out[tid] = xn
@@ -346,12 +352,14 @@ def build_candidates(
     nbr: wp.array(dtype=int),
     cand_radius: float,
     query_radius: float,
+    base: int,
     cand: wp.array2d(dtype=int),
     cand_count: wp.array(dtype=int),
 ):
     """Once per frame: other-mask particles strictly closer than ``cand_radius`` (max cand width),
-    excluding spring neighbours."""
-    tid = wp.tid()
+    excluding spring neighbours. ``grid`` holds one world's particles ``x[base:]``: thread ``i`` serves
+    particle ``base + i`` and grid index ``j`` is particle ``base + j``."""
+    tid = base + wp.tid()
     p = x[tid]
     mask = masks[tid]
     max_c = cand.shape[1]
@@ -359,10 +367,11 @@ def build_candidates(
     idx = int(0)  # noqa: UP018 (Warp needs a typed dynamic variable)
     c = int(0)  # noqa: UP018 (Warp needs a typed dynamic variable)
     while wp.hash_grid_query_next(q, idx):
-        if idx != tid and masks[idx] != mask and c < max_c:
-            if wp.length(x[idx] - p) < cand_radius:
-                if not is_spring_neighbour(nbr_offsets, nbr, tid, idx):
-                    cand[tid, c] = idx
+        j = base + idx
+        if j != tid and masks[j] != mask and c < max_c:
+            if wp.length(x[j] - p) < cand_radius:
+                if not is_spring_neighbour(nbr_offsets, nbr, tid, j):
+                    cand[tid, c] = j
                     c += 1
     cand_count[tid] = c
 

@@ -133,12 +133,14 @@ class Control:
     """Kinematic inputs of one frame: control-point targets and kinematic-mesh vertex targets.
 
     ``ctrl_from``/``ctrl_to`` are the control positions at the frame start / end (linearly
-    interpolated over the substeps, zero velocity); ``mesh_from``/``mesh_to`` hold the same for every
-    kinematic mesh (keyed by mesh id).
+    interpolated over the substeps, zero velocity); ``kin_from``/``kin_to`` hold the same for the vertices
+    of every kinematic mesh, and ``mesh_from``/``mesh_to`` are their per-mesh views (keyed by mesh id).
     """
 
     ctrl_from: wp.array
     ctrl_to: wp.array
+    kin_from: wp.array | None = None
+    kin_to: wp.array | None = None
     mesh_from: dict[int, wp.array] = field(default_factory=dict)
     mesh_to: dict[int, wp.array] = field(default_factory=dict)
     mesh_version: int = 0
@@ -180,6 +182,7 @@ class MeshInfo:
     friction: float
     kinematic: bool
     face_offset: int
+    vertex_offset: int = -1  # kinematic meshes: first vertex in the model's `kin_points` (else -1)
 
 
 @dataclass
@@ -214,6 +217,23 @@ class SpringMassModel:
     nbr: wp.array
     meshes: list[MeshInfo]
     requires_grad: bool = False
+    num_worlds: int = 1
+    kin_points: wp.array | None = None  # every kinematic mesh's vertices (each mesh holds a view)
+    kin_velocities: wp.array | None = None
+    particle_world: wp.array | None = None  # world of each particle
+    world_mesh_start: wp.array | None = None  # meshes of world w: [start[w], start[w + 1])
+
+    @property
+    def particles_per_world(self) -> int:
+        return self.num_particles // self.num_worlds
+
+    @property
+    def meshes_per_world(self) -> int:
+        return len(self.meshes) // self.num_worlds
+
+    @property
+    def control_points_per_world(self) -> int:
+        return self.num_control_points // self.num_worlds
 
     @property
     def num_springs(self) -> int:
@@ -240,14 +260,19 @@ class SpringMassModel:
     def control(self) -> Control:
         """A new control with every target at its initial position (no motion)."""
         c0 = self.control_x0_np
+        kin = [info for info in self.meshes if info.kinematic]
+        k0 = np.concatenate([info.vertices for info in kin]) if kin else np.zeros((0, 3), np.float32)
         ctl = Control(
             ctrl_from=wp.array(c0, dtype=wp.vec3, device=self.device),
             ctrl_to=wp.array(c0, dtype=wp.vec3, device=self.device),
+            kin_from=wp.array(k0, dtype=wp.vec3, device=self.device),
+            kin_to=wp.array(k0, dtype=wp.vec3, device=self.device),
         )
         for mid, info in enumerate(self.meshes):
             if info.kinematic:
-                ctl.mesh_from[mid] = wp.array(info.vertices, dtype=wp.vec3, device=self.device)
-                ctl.mesh_to[mid] = wp.array(info.vertices, dtype=wp.vec3, device=self.device)
+                span = slice(info.vertex_offset, info.vertex_offset + info.vertices.shape[0])
+                ctl.mesh_from[mid] = ctl.kin_from[span]
+                ctl.mesh_to[mid] = ctl.kin_to[span]
         return ctl
 
     def set_spring_log_y(self, log_y) -> None:
@@ -394,21 +419,35 @@ class ModelBuilder:
         :meth:`Control.set_kinematic_mesh` (gripper finger, pusher). Returns its mesh id."""
         return self._add_mesh(vertices, faces, restitution, friction, kinematic=True)
 
-    def finalize(self, device: str = "cpu", *, requires_grad: bool = False) -> SpringMassModel:
-        """Build the model's device arrays."""
+    def finalize(self, device: str = "cpu", *, requires_grad: bool = False,
+                 num_worlds: int = 1) -> SpringMassModel:
+        """Build the model's device arrays.
+
+        ``num_worlds`` > 1 replicates everything added (particles, springs, control points, meshes) into
+        independent worlds laid out world-major: world ``w`` owns particles ``[w*n, (w+1)*n)``, its own
+        control points and meshes, and never touches another world (springs, contacts and collision
+        candidates stay inside it). Within a world the order of particles, springs and meshes is the
+        single-world order, so each world computes bit-identically to a model built with one world.
+        """
         if self._n == 0:
             raise ValueError("the builder has no particles: call add_body first")
-        n = self._n
-        obj_springs = np.concatenate(self._springs).astype(np.int32)
-        ctrl = np.concatenate(self._ctrl_springs) if self._ctrl_springs else np.zeros((0, 2), np.int32)
-        ctrl_enc = np.stack([ctrl[:, 0] + n, ctrl[:, 1]], axis=1).astype(np.int32).reshape(-1, 2)
+        worlds = _count("num_worlds", num_worlds)
+        nw, cw = self._n, self._nc
+        n = nw * worlds
+        obj_w = np.concatenate(self._springs).astype(np.int64)
+        ctrl_w = np.concatenate(self._ctrl_springs) if self._ctrl_springs else np.zeros((0, 2), np.int32)
+        obj_springs = np.concatenate([obj_w + w * nw for w in range(worlds)]).astype(np.int32).reshape(-1, 2)
+        ctrl_enc = np.concatenate([
+            np.stack([ctrl_w[:, 0].astype(np.int64) + n + w * cw, ctrl_w[:, 1].astype(np.int64) + w * nw], axis=1)
+            for w in range(worlds)
+        ]).astype(np.int32).reshape(-1, 2)
         springs = np.concatenate([obj_springs, ctrl_enc]).astype(np.int32)
-        rest = np.concatenate(self._rest + self._ctrl_rest).astype(np.float32)
-        logy = np.concatenate(self._logy + self._ctrl_logy).astype(np.float32)
-        masses = np.concatenate(self._mass)
-        body = np.concatenate(self._body)
+        rest = np.concatenate(self._rest * worlds + self._ctrl_rest * worlds).astype(np.float32)
+        logy = np.concatenate(self._logy * worlds + self._ctrl_logy * worlds).astype(np.float32)
+        masses = np.tile(np.concatenate(self._mass), worlds)
+        body = np.tile(np.concatenate(self._body), worlds)
         masks = np.arange(n, dtype=np.int32) if self.params.self_collision else body
-        ctrl_x0 = np.concatenate(self._ctrl) if self._ctrl else np.zeros((0, 3), np.float32)
+        ctrl_x0 = np.tile(np.concatenate(self._ctrl), (worlds, 1)) if self._ctrl else np.zeros((0, 3), np.float32)
 
         # incident springs per particle in spring order: +(s+1) first end, -(s+1) second end
         s_idx = np.arange(springs.shape[0], dtype=np.int64)
@@ -434,16 +473,30 @@ class ModelBuilder:
         np.cumsum(np.bincount(key // n, minlength=n), out=nbr_off[1:])
 
         dev = device
+        # Every kinematic mesh's vertices and velocities are views into one array each, so a substep
+        # moves all of them (every world's fingers) in one launch.
+        all_meshes = self._meshes * worlds
+        kin_verts = [m[0] for m in all_meshes if m[4]]
+        kin_count = sum(v.shape[0] for v in kin_verts)
+        kin_points = wp.array(np.concatenate(kin_verts) if kin_verts else np.zeros((0, 3), np.float32),
+                              dtype=wp.vec3, device=dev)
+        kin_velocities = wp.zeros(kin_count, dtype=wp.vec3, device=dev)
         meshes: list[MeshInfo] = []
-        face_offset = 0
-        for verts, faces, e, mu, kin in self._meshes:
-            mesh = wp.Mesh(
-                points=wp.array(verts, dtype=wp.vec3, device=dev),
-                indices=wp.array(faces.reshape(-1), dtype=wp.int32, device=dev),
-                velocities=wp.zeros(verts.shape[0], dtype=wp.vec3, device=dev),
-            )
-            meshes.append(MeshInfo(mesh, faces, verts, e, mu, kin, face_offset))
+        face_offset = kin_offset = 0
+        for verts, faces, e, mu, kin in all_meshes:
+            nv = verts.shape[0]
+            if kin:
+                points = kin_points[kin_offset: kin_offset + nv]
+                velocities = kin_velocities[kin_offset: kin_offset + nv]
+            else:
+                points = wp.array(verts, dtype=wp.vec3, device=dev)
+                velocities = wp.zeros(nv, dtype=wp.vec3, device=dev)
+            mesh = wp.Mesh(points=points, indices=wp.array(faces.reshape(-1), dtype=wp.int32, device=dev),
+                           velocities=velocities)
+            meshes.append(MeshInfo(mesh, faces, verts, e, mu, kin, face_offset, kin_offset if kin else -1))
             face_offset += faces.shape[0]
+            kin_offset += nv if kin else 0
+        nm = len(self._meshes)
 
         def arr(a, dtype, grad=False):
             return wp.array(a, dtype=dtype, device=dev, requires_grad=grad)
@@ -452,15 +505,15 @@ class ModelBuilder:
             params=self.params,
             device=str(dev),
             num_particles=n,
-            num_control_points=self._nc,
+            num_control_points=cw * worlds,
             num_object_springs=int(obj_springs.shape[0]),
             springs_np=springs,
             rest_lengths_np=rest,
             log_y_np=logy,
             masses_np=masses,
             body_id_np=body,
-            x0_np=np.concatenate(self._x),
-            v0_np=np.concatenate(self._v),
+            x0_np=np.tile(np.concatenate(self._x), (worlds, 1)),
+            v0_np=np.tile(np.concatenate(self._v), (worlds, 1)),
             control_x0_np=ctrl_x0.astype(np.float32),
             springs=arr(springs, wp.vec2i),
             rest_lengths=arr(rest, float),
@@ -473,4 +526,9 @@ class ModelBuilder:
             nbr=arr(nbr, int),
             meshes=meshes,
             requires_grad=requires_grad,
+            num_worlds=worlds,
+            kin_points=kin_points,
+            kin_velocities=kin_velocities,
+            particle_world=arr(np.repeat(np.arange(worlds, dtype=np.int32), nw), int),
+            world_mesh_start=arr(np.arange(worlds + 1, dtype=np.int32) * nm, int),
         )

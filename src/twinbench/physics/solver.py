@@ -55,7 +55,8 @@ class SpringMassSolver:
         width = p.max_collision_candidates if self._collide else 1
         self._cand = wp.zeros((n, width), dtype=int, device=dev)
         self._cand_count = wp.zeros(n, dtype=int, device=dev)
-        self._grid = wp.HashGrid(64, 64, 64, device=dev) if self._collide else None
+        # one hash grid per world: a query never sees another world's particles
+        self._grids = [wp.HashGrid(64, 64, 64, device=dev) for _ in range(model.num_worlds)] if self._collide else []
         nm = len(model.meshes)
         nfaces = sum(m.faces.shape[0] for m in model.meshes)
         self._mesh_force = wp.zeros(max(nm, 1), dtype=wp.vec3, device=dev)
@@ -70,6 +71,8 @@ class SpringMassSolver:
         cp.margin = float(p.mesh_margin)
         cp.mesh_force = self._mesh_force
         cp.face_force = self._face_force
+        cp.particle_world = model.particle_world
+        cp.world_mesh_start = model.world_mesh_start
         cp.ground = int(p.ground)
         cp.ground_elas = float(p.ground_restitution)
         cp.ground_fric = float(p.ground_friction)
@@ -95,23 +98,22 @@ class SpringMassSolver:
                                  record_cmd=True).launch)
 
     def _update_kinematic_meshes(self, control: Control, substep_index: int, ops: list | None = None) -> None:
-        t = self._t(substep_index)
+        """Every kinematic mesh's vertices at this substep (one launch), then each mesh's BVH refit."""
+        m = self.model
+        self._go(K.interpolate_points, m.kin_points.shape[0],
+                 [control.kin_from, control.kin_to, self._t(substep_index)], [m.kin_points], ops)
         for mid in self._kinematic:
-            mesh = self.model.meshes[mid].mesh
-            self._go(K.interpolate_points, mesh.points.shape[0],
-                     [control.mesh_from[mid], control.mesh_to[mid], t], [mesh.points], ops)
+            mesh = m.meshes[mid].mesh
             if ops is None:
                 mesh.refit()
             else:
                 ops.append(mesh.refit)
 
     def _set_mesh_velocities(self, control: Control) -> None:
-        inv_t = float(1.0 / self._frame_t)
-        for mid in self._kinematic:
-            mesh = self.model.meshes[mid].mesh
-            wp.launch(K.vertex_velocities, dim=mesh.points.shape[0],
-                      inputs=[control.mesh_from[mid], control.mesh_to[mid], inv_t], outputs=[mesh.velocities],
-                      device=self.device)
+        m = self.model
+        wp.launch(K.vertex_velocities, dim=m.kin_points.shape[0],
+                  inputs=[control.kin_from, control.kin_to, float(1.0 / self._frame_t)],
+                  outputs=[m.kin_velocities], device=self.device)
 
     def rebuild_collision_candidates(self, state: State) -> None:
         """Rebuild the particle-particle candidate lists from ``state.x`` (done once per frame)."""
@@ -121,10 +123,13 @@ class SpringMassSolver:
         cd = float(m.params.collision_dist)
         cand_r = cd * float(m.params.candidate_radius_scale)
         query_r = max(cd * 5.0, cand_r)  # PhysTwin: hash cell and query radius 5 * collision_dist
-        self._grid.build(state.x, query_r)
-        wp.launch(K.build_candidates, dim=m.num_particles,
-                  inputs=[self._grid.id, state.x, m.masks, m.nbr_offsets, m.nbr, cand_r, query_r],
-                  outputs=[self._cand, self._cand_count], device=self.device)
+        nw = m.particles_per_world
+        for w, grid in enumerate(self._grids):
+            base = w * nw
+            grid.build(state.x[base: base + nw], query_r)
+            wp.launch(K.build_candidates, dim=nw,
+                      inputs=[grid.id, state.x, m.masks, m.nbr_offsets, m.nbr, cand_r, query_r, base],
+                      outputs=[self._cand, self._cand_count], device=self.device)
 
     def _update_stiffness(self, ops: list | None = None) -> None:
         m = self.model
