@@ -36,7 +36,7 @@ def _drive(model, solver, state, ctl, mids, starts, pusher, frames: int, speeds)
     state.x.assign(x)
     out = []
     for f in range(frames):
-        for w, (mid, speed) in enumerate(zip(mids, speeds, strict=True)):
+        for mid, speed in zip(mids, speeds, strict=True):
             ctl.set_kinematic_mesh(mid, pusher + [speed * f, 0, 0], pusher + [speed * (f + 1), 0, 0])
         ctl.set_control_points(np.tile([[-0.05, 0.0, 0.16]], (len(mids), 1)) + [0, 0, 0.001 * f],
                                np.tile([[-0.05, 0.0, 0.16]], (len(mids), 1)) + [0, 0, 0.001 * (f + 1)])

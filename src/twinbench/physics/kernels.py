@@ -231,8 +231,9 @@ def finish_particle(
     v1 = v
     if cp.mesh_ids.shape[0] > 0:
         w = cp.particle_world[tid]
-        v1 = mesh_contacts(x0, v1, m, cp.world_mesh_start[w], cp.world_mesh_start[w + 1], cp.mesh_ids, cp.mesh_elas, cp.mesh_fric, cp.face_offsets,
-                           cp.margin, dt, cp.mesh_force, cp.face_force)
+        v1 = mesh_contacts(x0, v1, m, cp.world_mesh_start[w], cp.world_mesh_start[w + 1], cp.mesh_ids,
+                           cp.mesh_elas, cp.mesh_fric, cp.face_offsets, cp.margin, dt, cp.mesh_force,
+                           cp.face_force)
     xn, vn = ground_integrate(x0, v1, cp.ground_elas, cp.ground_fric, dt, cp.ground)
     x_out[tid] = xn
     v_out[tid] = vn

@@ -435,12 +435,12 @@ class ModelBuilder:
         nw, cw = self._n, self._nc
         n = nw * worlds
         obj_w = np.concatenate(self._springs).astype(np.int64)
-        ctrl_w = np.concatenate(self._ctrl_springs) if self._ctrl_springs else np.zeros((0, 2), np.int32)
+        ctrl_w = (np.concatenate(self._ctrl_springs) if self._ctrl_springs else np.zeros((0, 2))).astype(np.int64)
         obj_springs = np.concatenate([obj_w + w * nw for w in range(worlds)]).astype(np.int32).reshape(-1, 2)
-        ctrl_enc = np.concatenate([
-            np.stack([ctrl_w[:, 0].astype(np.int64) + n + w * cw, ctrl_w[:, 1].astype(np.int64) + w * nw], axis=1)
-            for w in range(worlds)
-        ]).astype(np.int32).reshape(-1, 2)
+        # control point c of world w is index n + w * cw + c; its particle is shifted into world w
+        ctrl_enc = np.concatenate(
+            [ctrl_w + np.array([n + w * cw, w * nw]) for w in range(worlds)]
+        ).astype(np.int32).reshape(-1, 2)
         springs = np.concatenate([obj_springs, ctrl_enc]).astype(np.int32)
         rest = np.concatenate(self._rest * worlds + self._ctrl_rest * worlds).astype(np.float32)
         logy = np.concatenate(self._logy * worlds + self._ctrl_logy * worlds).astype(np.float32)
