@@ -435,7 +435,7 @@ class ModelBuilder:
         nw, cw = self._n, self._nc
         n = nw * worlds
         obj_w = np.concatenate(self._springs).astype(np.int64)
-        ctrl_w = (np.concatenate(self._ctrl_springs) if self._ctrl_springs else np.zeros((0, 2))).astype(np.int64)
+        ctrl_w = np.concatenate(self._ctrl_springs or [np.zeros((0, 2))]).astype(np.int64)
         obj_springs = np.concatenate([obj_w + w * nw for w in range(worlds)]).astype(np.int32).reshape(-1, 2)
         # control point c of world w is index n + w * cw + c; its particle is shifted into world w
         ctrl_enc = np.concatenate(
@@ -447,7 +447,7 @@ class ModelBuilder:
         masses = np.tile(np.concatenate(self._mass), worlds)
         body = np.tile(np.concatenate(self._body), worlds)
         masks = np.arange(n, dtype=np.int32) if self.params.self_collision else body
-        ctrl_x0 = np.tile(np.concatenate(self._ctrl), (worlds, 1)) if self._ctrl else np.zeros((0, 3), np.float32)
+        ctrl_x0 = np.tile(np.concatenate(self._ctrl or [np.zeros((0, 3), np.float32)]), (worlds, 1))
 
         # incident springs per particle in spring order: +(s+1) first end, -(s+1) second end
         s_idx = np.arange(springs.shape[0], dtype=np.int64)
