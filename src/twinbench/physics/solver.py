@@ -56,7 +56,8 @@ class SpringMassSolver:
         self._cand = wp.zeros((n, width), dtype=int, device=dev)
         self._cand_count = wp.zeros(n, dtype=int, device=dev)
         # one hash grid per world: a query never sees another world's particles
-        self._grids = [wp.HashGrid(64, 64, 64, device=dev) for _ in range(model.num_worlds if self._collide else 0)]
+        n_grids = model.num_worlds if self._collide else 0
+        self._grids = [wp.HashGrid(64, 64, 64, device=dev) for _ in range(n_grids)]
         nm = len(model.meshes)
         nfaces = sum(m.faces.shape[0] for m in model.meshes)
         self._mesh_force = wp.zeros(max(nm, 1), dtype=wp.vec3, device=dev)
