@@ -22,8 +22,9 @@ def register_envs() -> None:
 
     for env_id, (entry_point, kwargs, max_steps) in ENV_IDS.items():
         if env_id not in gymnasium.registry:
-            gymnasium.register(id=env_id, entry_point=entry_point, kwargs=dict(kwargs),
-                               max_episode_steps=max_steps)
+            vector = "twinbench.env:TwinVectorEnv" if entry_point == "twinbench.env:TwinEnv" else None
+            gymnasium.register(id=env_id, entry_point=entry_point, vector_entry_point=vector,
+                               kwargs=dict(kwargs), max_episode_steps=max_steps)
 
 
 register_envs()

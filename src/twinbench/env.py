@@ -47,6 +47,38 @@ def _split_settings(task_cls, settings: dict) -> tuple[dict, dict]:
     }
 
 
+def resolve_task_twin(task, twin, preset: str, roles: dict | None, settings: dict):
+    """(rules, TwinSpec) of an env's arguments: the task's rules with its settings, and the twin (the
+    task's built-in cell at `preset` with the cell's settings, a twin directory or a TwinSpec) with the
+    controller fields the task requires."""
+    from twinbench.tasks import get_task
+    from twinbench.twin import TwinSpec, load_twin
+
+    if isinstance(task, str):
+        spec = get_task(task)
+        if spec.task_cls is None:
+            raise ValueError(f"task {task!r} has its own env ({spec.env_id}), not a TwinEnv")
+        task_cls = spec.task_cls
+    else:
+        task_cls = type(task)
+    task_settings, cell_settings = _split_settings(task_cls, settings)
+    rules = task if not isinstance(task, str) else task_cls(roles, **task_settings)
+    if twin is None:
+        twin_spec = rules.default_twin(preset, **cell_settings)
+    else:
+        if cell_settings:
+            raise ValueError(
+                f"unknown setting(s) {sorted(cell_settings)} for task {rules.name!r} "
+                f"with a twin from disk; task settings: "
+                f"{sorted(f.name for f in dataclasses.fields(task_cls.settings_cls))}"
+            )
+        twin_spec = twin if isinstance(twin, TwinSpec) else load_twin(Path(twin))
+    overrides = rules.controller_overrides()
+    if overrides:
+        twin_spec = replace(twin_spec, controller=replace(twin_spec.controller, **overrides))
+    return rules, twin_spec
+
+
 class TwinEnv(gymnasium.Env):
     """Gymnasium env = a built twin (`twin`, `state`) + a task's rules (`rules`, a TwinTask); see the
     module docstring. `task` / `task_description` hold the task's text."""
@@ -67,36 +99,24 @@ class TwinEnv(gymnasium.Env):
         roles: dict | None = None,
         **settings,
     ):
-        from twinbench.tasks import get_task
-        from twinbench.twin import TwinSpec, build_twin, load_twin
+        from twinbench.twin import build_twin
 
+        rules, twin_spec = resolve_task_twin(task, twin, preset, roles, settings)
+        built, state = build_twin(twin_spec, device)
+        self._attach(rules, built, state, render_mode, render_views, environment_state, success_rule)
+
+    @classmethod
+    def _world(cls, rules, twin, state, *args) -> TwinEnv:
+        """The env of one world of a many-world twin (see TwinVectorEnv)."""
+        env = cls.__new__(cls)
+        env._attach(rules, twin, state, *args)
+        return env
+
+    def _attach(self, rules, twin, state, render_mode, render_views, environment_state, success_rule) -> None:
         if success_rule not in SUCCESS_RULES:
             raise ValueError(f"success_rule must be one of {SUCCESS_RULES}, got {success_rule!r}")
         self.success_rule = success_rule
-
-        if isinstance(task, str):
-            spec = get_task(task)
-            if spec.task_cls is None:
-                raise ValueError(f"task {task!r} has its own env ({spec.env_id}), not a TwinEnv")
-            task_cls = spec.task_cls
-        else:
-            task_cls = type(task)
-        task_settings, cell_settings = _split_settings(task_cls, settings)
-        self.rules = task if not isinstance(task, str) else task_cls(roles, **task_settings)
-        if twin is None:
-            twin_spec = self.rules.default_twin(preset, **cell_settings)
-        else:
-            if cell_settings:
-                raise ValueError(
-                    f"unknown setting(s) {sorted(cell_settings)} for task {self.rules.name!r} "
-                    f"with a twin from disk; task settings: "
-                    f"{sorted(f.name for f in dataclasses.fields(task_cls.settings_cls))}"
-                )
-            twin_spec = twin if isinstance(twin, TwinSpec) else load_twin(Path(twin))
-        overrides = self.rules.controller_overrides()
-        if overrides:
-            twin_spec = replace(twin_spec, controller=replace(twin_spec.controller, **overrides))
-        self.twin, self.state = build_twin(twin_spec, device)
+        self.rules, self.twin, self.state = rules, twin, state
         self.rules.setup(self.twin, self.state)
 
         self.render_mode = render_mode
@@ -168,6 +188,15 @@ class TwinEnv(gymnasium.Env):
         return obs, info
 
     def step(self, action):
+        a = self._begin_step(action)
+        try:
+            self.twin.step(self.state, a)
+        except SimulationDiverged as err:
+            return self._end_step(err)
+        return self._end_step(None)
+
+    def _begin_step(self, action) -> np.ndarray:
+        """Check and clip the action (errors before anything moves); count the step."""
         if self._status != "ok":
             raise RuntimeError(f"{self.rules.name}: the episode ended with a simulation error; call reset()")
         if self._done:
@@ -179,16 +208,17 @@ class TwinEnv(gymnasium.Env):
             raise ValueError(f"action: expected shape {self.action_space.shape}, got {a.shape}")
         if not np.all(np.isfinite(a)):
             raise ValueError(f"action: contains NaN or inf: {a}")
-        a = np.clip(a, self.action_space.low, self.action_space.high)
         self._steps += 1
-        try:
-            self.twin.step(self.state, a)
-        except SimulationDiverged as err:
+        return np.clip(a, self.action_space.low, self.action_space.high)
+
+    def _end_step(self, error: SimulationDiverged | None):
+        """The step's (obs, reward, terminated, truncated, info) once the twin has advanced."""
+        if error is not None:
             self._status = "sim_error"
             info = {
                 "is_success": False,
                 "status": "sim_error",
-                "error": str(err),
+                "error": str(error),
                 "success_rule": self.success_rule,
             }
             return self._last_obs, 0.0, True, False, info
@@ -230,3 +260,130 @@ class TwinEnv(gymnasium.Env):
             obs["environment_state"] = self._privileged["environment_state"]
         self._last_obs = obs
         return obs
+
+
+class TwinVectorEnv(gymnasium.vector.VectorEnv):
+    """`num_envs` worlds of one twin stepped together: one physics launch per kernel for all worlds, each
+    world's episode bit-identical to the same episode in a `TwinEnv` (CPU).
+
+        envs = gymnasium.make_vec("twinbench/PushT-v0", num_envs=16, vectorization_mode="vector_entry_point",
+                                  preset="fast")
+        obs, infos = envs.reset(seed=0, options={"init_state": list(range(16))})
+        obs, rewards, terminated, truncated, infos = envs.step(actions)      # actions: (16, action_dim)
+
+    Takes TwinEnv's keyword arguments. Autoreset follows gymnasium's NEXT_STEP mode: the step after a
+    world's episode ends resets that world (its action is ignored, its robot held) as `TwinEnv.reset()`
+    would. `reset(seed, options)`: `seed` an int (world i gets seed + i) or one per world; `options` as
+    TwinEnv's, where `init_state` may be one index per world, plus `reset_mask` (bool per world) to reset
+    only some worlds. A world that diverges ends its own episode with `info["status"] == "sim_error"`;
+    the others go on. `envs.envs[i]` is world i's TwinEnv view (rules, twin, state).
+    """
+
+    metadata = {
+        "render_modes": ["rgb_array"],
+        "render_fps": 30,
+        "autoreset_mode": gymnasium.vector.AutoresetMode.NEXT_STEP,
+    }
+
+    def __init__(
+        self,
+        task="push-t",
+        num_envs: int = 1,
+        *,
+        twin=None,
+        preset: str = "reference",
+        device: str = "cpu",
+        render_mode: str | None = "rgb_array",
+        render_views: str | None = None,
+        environment_state: bool = False,
+        success_rule: str = "final",
+        roles: dict | None = None,
+        **settings,
+    ):
+        import copy
+
+        from gymnasium.vector.utils import batch_space
+
+        from twinbench.twin import build_twin
+
+        if isinstance(num_envs, bool) or not isinstance(num_envs, int | np.integer) or num_envs < 1:
+            raise ValueError(f"num_envs must be a positive integer, got {num_envs!r}")
+        rules, twin_spec = resolve_task_twin(task, twin, preset, roles, settings)
+        self.twin, states = build_twin(twin_spec, device, num_worlds=int(num_envs))
+        states = states if isinstance(states, list) else [states]
+        args = (render_mode, render_views, environment_state, success_rule)
+        self.envs = [
+            TwinEnv._world(rules if i == 0 else copy.deepcopy(rules), self.twin, st, *args)
+            for i, st in enumerate(states)
+        ]
+        first = self.envs[0]
+        self.num_envs = len(self.envs)
+        self.render_mode = render_mode
+        self.metadata = {**self.metadata, "render_fps": first.metadata["render_fps"]}
+        self.single_observation_space = first.observation_space
+        self.single_action_space = first.action_space
+        self.observation_space = batch_space(self.single_observation_space, self.num_envs)
+        self.action_space = batch_space(self.single_action_space, self.num_envs)
+        self._autoreset = np.zeros(self.num_envs, dtype=bool)
+        self._obs: list = [None] * self.num_envs
+
+    def _per_world(self, name: str, value) -> list:
+        if isinstance(value, list | tuple | np.ndarray):
+            if len(value) != self.num_envs:
+                raise ValueError(f"{name}: {len(value)} values for {self.num_envs} worlds")
+            return list(value)
+        return [value] * self.num_envs
+
+    def reset(self, *, seed=None, options=None):
+        super().reset(seed=seed)
+        options = dict(options or {})
+        mask = np.asarray(options.pop("reset_mask", np.ones(self.num_envs, bool)), dtype=bool)
+        if mask.shape != (self.num_envs,):
+            raise ValueError(
+                f"options['reset_mask']: expected {self.num_envs} booleans, got shape {mask.shape}"
+            )
+        if isinstance(seed, int | np.integer) and not isinstance(seed, bool):
+            seeds = [int(seed) + i for i in range(self.num_envs)]
+        else:
+            seeds = self._per_world("seed", seed)
+        per_world = {k: self._per_world(f"options[{k!r}]", v) for k, v in options.items()}
+        infos: dict = {}
+        for i in np.flatnonzero(mask):
+            env = self.envs[i]
+            opts = {k: v[i] for k, v in per_world.items()}
+            self._obs[i], info = env.reset(seed=seeds[i], options=opts)
+            self._autoreset[i] = False
+            infos = self._add_info(infos, info, i)
+        return self._batch(), infos
+
+    def step(self, actions):
+        actions = np.asarray(actions)
+        if actions.shape != self.action_space.shape:
+            raise ValueError(f"actions: expected shape {self.action_space.shape}, got {actions.shape}")
+        clipped = [
+            None if self._autoreset[i] else env._begin_step(actions[i]) for i, env in enumerate(self.envs)
+        ]
+        results = self.twin.step_worlds([env.state for env in self.envs], clipped)
+        rewards = np.zeros(self.num_envs, dtype=np.float64)
+        terminated = np.zeros(self.num_envs, dtype=bool)
+        truncated = np.zeros(self.num_envs, dtype=bool)
+        infos: dict = {}
+        for i, env in enumerate(self.envs):
+            if self._autoreset[i]:
+                self._obs[i], info = env.reset()
+                self._autoreset[i] = False
+            else:
+                error = results[i] if isinstance(results[i], SimulationDiverged) else None
+                self._obs[i], rewards[i], terminated[i], truncated[i], info = env._end_step(error)
+                self._autoreset[i] = terminated[i] or truncated[i]
+            infos = self._add_info(infos, info, i)
+        return self._batch(), rewards, terminated, truncated, infos
+
+    def _batch(self):
+        from gymnasium.vector.utils import concatenate, create_empty_array
+
+        out = create_empty_array(self.single_observation_space, self.num_envs)
+        return concatenate(self.single_observation_space, self._obs, out)
+
+    def render(self):
+        return tuple(env.render() for env in self.envs)

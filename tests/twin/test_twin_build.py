@@ -131,10 +131,17 @@ def test_two_states_of_one_twin_are_independent(setup):
     assert twin.particles(other, "soft")[:, 2].min() > 0.04  # fell less than 1 cm in one frame
 
 
-def test_num_worlds_other_than_one_is_refused(setup):
+def test_num_worlds_gives_one_state_per_world_and_bad_counts_are_refused(setup):
     twin, _ = setup
-    with pytest.raises(ValueError, match="num_worlds"):
-        build_twin(twin.spec, num_worlds=4)
+    many, states = build_twin(twin.spec, num_worlds=3)
+    assert [s.world for s in states] == [0, 1, 2] and many.num_worlds == 3
+    with pytest.raises(ValueError, match="step_worlds"):
+        many.step(states[0], np.zeros(2))
+    with pytest.raises(ValueError, match="in order"):
+        many.step_worlds(states[::-1], [None] * 3)
+    for bad in (0, -1, 1.5, True):
+        with pytest.raises(ValueError, match="num_worlds"):
+            build_twin(twin.spec, num_worlds=bad)
 
 
 def test_gripper_latches_on_finger_forces_and_lifts_by_friction():

@@ -7,6 +7,14 @@ velocities, kinematic-mesh targets, controller state, posed Gaussians).
     twin.step(state, action)                      # controller -> tool meshes swept over the substeps -> frame
     frames = twin.render(state)                   # {camera: RenderOutput}, Gaussians posed first
 
+    twin, states = build_twin(spec, num_worlds=16)   # one TwinState per world, physics in one launch
+    results = twin.step_worlds(states, actions)       # per world: RobotCommand or SimulationDiverged
+
+Worlds: the model holds `num_worlds` independent copies of the objects and tool meshes (world-major),
+so every kernel of a frame runs all worlds in one launch; each world's `TwinState` is a view of world
+`state.world` of the shared physics buffers plus its own robot, poses and Gaussians. A world computes bit
+for bit what a one-world twin computes, and a world that diverges ends alone (its result is the error).
+
 Per step: the controller turns the action into joint targets (IK + velocity-control mimic + gripper
 latch, DESIGN §5), the tool meshes' vertices are interpolated over the physics substeps, one spring-mass
 frame runs, and the fingers' contact forces feed the latch on the next step. Rendering poses the
@@ -24,7 +32,15 @@ from twinbench.gaussians.camera import Camera
 from twinbench.gaussians.cloud import DeviceGaussians, GaussianCloud
 from twinbench.gaussians.render import RenderOutput, render
 from twinbench.gaussians.skinning import LabelRigidPoser, LBSSkinner, bind
-from twinbench.physics import Control, ModelBuilder, SpringMassModel, SpringMassSolver, State
+from twinbench.physics import (
+    Control,
+    ModelBuilder,
+    SimulationDiverged,
+    SpringMassModel,
+    SpringMassSolver,
+    State,
+    check_divergence,
+)
 from twinbench.robot.controller import ControllerState, RobotCommand, RobotController
 from twinbench.robot.gaussians import RobotGaussians, sample_robot_scan
 from twinbench.robot.model import RobotModel
@@ -37,10 +53,11 @@ class TwinState:
     """Everything of one world that changes while a twin runs. Read it through the Twin's accessors
     (`particles`, `object_pose`, `ee_state`, ...) so task code does not depend on its layout."""
 
-    physics: State  # particle positions and velocities
-    control: Control  # this frame's kinematic-mesh vertex targets (robot tools)
+    physics: State  # particle positions and velocities (of every world; this one is `world`)
+    control: Control  # this frame's kinematic-mesh vertex targets (robot tools), every world
     robot: ControllerState  # joint configuration, gripper command, latch
-    gaussians: DeviceGaussians  # the scene's Gaussians, posed by Twin.pose_gaussians
+    gaussians: DeviceGaussians | None = None  # the scene's Gaussians, posed (made on first use)
+    world: int = 0
     object_poses: dict[str, np.ndarray] = field(default_factory=dict)  # best-fit rigid pose per object
     collider_poses: dict[str, np.ndarray] = field(default_factory=dict)  # this episode's collider poses
     finger_forces: tuple[float, float] | None = None  # last frame's contact force per finger (N)
@@ -125,7 +142,7 @@ class Twin:
     """A built twin (see the module docstring). Immutable after `build_twin`; all per-world quantities
     live in a `TwinState` (`new_state()`)."""
 
-    def __init__(self, spec: TwinSpec, device: str = "cpu"):
+    def __init__(self, spec: TwinSpec, device: str = "cpu", num_worlds: int = 1):
         self.spec = spec
         self.device = device
         self.robot: RobotModel = load_spec_robot(spec.robot)
@@ -172,8 +189,11 @@ class Twin:
                 restitution=col.contact.restitution,
                 friction=col.contact.friction,
             )
-        self.model: SpringMassModel = builder.finalize(device)
+        self.model: SpringMassModel = builder.finalize(device, num_worlds=num_worlds)
         self.solver = SpringMassSolver(self.model)
+        self.num_worlds = self.model.num_worlds
+        self._nw = self.model.particles_per_world
+        self._mw = self.model.meshes_per_world
         self._latch = self.robot.gripper_joint is not None and len(self._tool_mesh) == 2
 
         # Gaussians: [background | robot | objects... | colliders...] in one buffer per state.
@@ -226,15 +246,28 @@ class Twin:
         return [c.name for c in self.spec.colliders]
 
     def new_state(self) -> TwinState:
-        """A state with the robot at home and every object at its rest pose."""
-        state = TwinState(
-            physics=self.model.state(),
-            control=self.model.control(),
-            robot=self.controller.initial_state(),
-            gaussians=self._rest_gaussians.to_device(self.device),
-        )
-        self.reset(state)
-        return state
+        """A state with the robot at home and every object at its rest pose (a one-world twin)."""
+        if self.num_worlds != 1:
+            raise ValueError(f"this twin has {self.num_worlds} worlds: use new_states()")
+        return self.new_states()[0]
+
+    def new_states(self) -> list[TwinState]:
+        """One state per world over fresh shared physics buffers, each world reset to home and rest."""
+        physics, control = self.model.state(), self.model.control()
+        states = [
+            TwinState(physics=physics, control=control, robot=self.controller.initial_state(), world=w)
+            for w in range(self.num_worlds)
+        ]
+        for state in states:
+            self.reset(state)
+        return states
+
+    def _mesh(self, state: TwinState, mid: int) -> int:
+        return mid + state.world * self._mw
+
+    def _span(self, state: TwinState, start: int = 0, count: int | None = None) -> slice:
+        base = state.world * self._nw + start
+        return slice(base, base + (self._nw if count is None else count))
 
     def reset(
         self,
@@ -252,7 +285,7 @@ class Twin:
                 f"object_poses: unknown objects {sorted(unknown)}; objects: {self.object_names}, "
                 f"colliders: {self.collider_names}"
             )
-        x = self.model.x0_np.copy()
+        x = self.model.x0_np[: self._nw].copy()
         state.object_poses = {}
         for name, slot in self._objects.items():
             pose = np.asarray(poses.get(name, slot.rest_pose), dtype=np.float64)
@@ -262,11 +295,10 @@ class Twin:
                 )
             x[slot.start : slot.start + slot.count] = transform_points(pose, slot.rest_particles)
             state.object_poses[name] = pose.copy()
-        state.physics.x.assign(x.astype(np.float32))
-        state.physics.v.zero_()
-        for link, mid in self._tool_mesh.items():
-            verts = self.robot.contact_vertices(state.robot.q, link)
-            state.control.set_kinematic_mesh(mid, verts, verts)
+        span = self._span(state)
+        state.physics.x[span].assign(x.astype(np.float32))
+        state.physics.v[span].zero_()
+        self._hold_tools(state)
         for col in self.spec.colliders:
             pose = np.asarray(poses.get(col.name, col.pose), dtype=np.float64)
             if pose.shape != (4, 4) or not np.all(np.isfinite(pose)):
@@ -274,7 +306,7 @@ class Twin:
                     f"object_poses[{col.name!r}]: expected a finite 4x4 pose, got shape {pose.shape}"
                 )
             verts = transform_points(pose, col.vertices)
-            state.control.set_kinematic_mesh(self._collider_mesh[col.name], verts, verts)
+            state.control.set_kinematic_mesh(self._mesh(state, self._collider_mesh[col.name]), verts, verts)
             state.collider_poses[col.name] = pose.copy()
         state.frame = 0
         state.finger_forces = None
@@ -283,25 +315,71 @@ class Twin:
 
     # ------------------------------------------------------------------ dynamics
     def step(self, state: TwinState, action) -> RobotCommand:
-        """One control step (30 Hz frame). Raises `SimulationDiverged` when the simulation blows up,
-        `ValueError` for a malformed action."""
-        cmd = self.controller.advance(state.robot, action, state.finger_forces)
-        frames = self.robot.contact_mesh_frames(cmd.q_prev, cmd.q)
-        for link, mid in self._tool_mesh.items():
-            state.control.set_kinematic_mesh(mid, *frames[link])
-        self.solver.simulate_frame(state.physics, state.control)
-        if self._latch:  # the fingers' contact force magnitudes, for the latch on the next step
-            left, right = (
-                float(np.linalg.norm(self.solver.mesh_contact_force(m))) for m in self._tool_mesh.values()
-            )
-            state.finger_forces = (left, right)
-        state.command = cmd
-        state.frame += 1
-        self._fit_poses(state)
-        return cmd
+        """One control step (30 Hz frame) of a one-world twin. Raises `SimulationDiverged` when the
+        simulation blows up, `ValueError` for a malformed action."""
+        if self.num_worlds != 1:
+            raise ValueError(f"this twin has {self.num_worlds} worlds: use step_worlds(states, actions)")
+        (result,) = self.step_worlds([state], [action])
+        if isinstance(result, SimulationDiverged):
+            raise result
+        return result
 
-    def _fit_poses(self, state: TwinState) -> None:
-        x = state.physics.x.numpy()
+    def step_worlds(self, states: list[TwinState], actions: list) -> list[RobotCommand | SimulationDiverged]:
+        """One control step of every world in one physics frame. `states` are this twin's worlds in order
+        (`new_states()`); `actions[w]` is world w's action, or None to hold its robot still (an idle
+        world). Returns per world its RobotCommand, None when held, or the `SimulationDiverged` that
+        ended it (the other worlds go on; a diverged world stays diverged until it is reset). A malformed
+        action raises `ValueError` before anything moves."""
+        if [s.world for s in states] != list(range(self.num_worlds)) or any(
+            s.physics is not states[0].physics for s in states
+        ):
+            raise ValueError(f"step_worlds needs this twin's {self.num_worlds} world states in order "
+                             "(from new_states())")
+        if len(actions) != len(states):
+            raise ValueError(f"step_worlds: {len(actions)} actions for {len(states)} worlds")
+        cmds = [
+            None if a is None else self.controller.advance(s.robot, a, s.finger_forces)
+            for s, a in zip(states, actions, strict=True)
+        ]
+        for state, cmd in zip(states, cmds, strict=True):
+            if cmd is None:
+                self._hold_tools(state)
+            else:
+                frames = self.robot.contact_mesh_frames(cmd.q_prev, cmd.q)
+                for link, mid in self._tool_mesh.items():
+                    state.control.set_kinematic_mesh(self._mesh(state, mid), *frames[link])
+        self.solver.simulate_frame(states[0].physics, states[0].control, check=False)
+        bad = check_divergence(states[0].physics, self.solver.max_speed)
+        bad_world = bad // self._nw
+        x = states[0].physics.x.numpy()
+        results: list = []
+        for state, cmd in zip(states, cmds, strict=True):
+            mine = bad[bad_world == state.world]
+            if mine.size:
+                results.append(SimulationDiverged(mine - state.world * self._nw))
+                continue
+            results.append(cmd)
+            if cmd is None:
+                continue
+            if self._latch:  # the fingers' contact force magnitudes, for the latch on the next step
+                left, right = (
+                    float(np.linalg.norm(self.solver.mesh_contact_force(self._mesh(state, m))))
+                    for m in self._tool_mesh.values()
+                )
+                state.finger_forces = (left, right)
+            state.command = cmd
+            state.frame += 1
+            self._fit_poses(state, x)
+        return results
+
+    def _hold_tools(self, state: TwinState) -> None:
+        """Tool meshes still at the state's robot configuration for the next frame."""
+        for link, mid in self._tool_mesh.items():
+            verts = self.robot.contact_vertices(state.robot.q, link)
+            state.control.set_kinematic_mesh(self._mesh(state, mid), verts, verts)
+
+    def _fit_poses(self, state: TwinState, x: np.ndarray | None = None) -> None:
+        x = (state.physics.x.numpy() if x is None else x)[self._span(state)]
         for name, slot in self._objects.items():
             state.object_poses[name] = fit_rigid_transform(
                 slot.rest_particles, x[slot.start : slot.start + slot.count]
@@ -311,12 +389,12 @@ class Twin:
     def particles(self, state: TwinState, name: str) -> np.ndarray:
         """Current world positions (P, 3) of an object's particles (a copy)."""
         slot = self._slot(name)
-        return state.physics.x.numpy()[slot.start : slot.start + slot.count].copy()
+        return state.physics.x[self._span(state, slot.start, slot.count)].numpy().copy()
 
     def object_springs(self, name: str) -> np.ndarray:
         """(M, 2) springs of an object, as indices into its own particles."""
         slot = self._slot(name)
-        s = self.model.springs_np[: self.model.num_object_springs]
+        s = self.model.springs_np[: self.model.num_object_springs // self.num_worlds]  # world 0's
         mine = (s[:, 0] >= slot.start) & (s[:, 0] < slot.start + slot.count)
         return (s[mine] - slot.start).astype(np.int64)
 
@@ -371,6 +449,8 @@ class Twin:
 
     def pose_gaussians(self, state: TwinState) -> DeviceGaussians:
         """Pose the state's Gaussians: robot links by FK, objects by rigid fit or LBS. Returns them."""
+        if state.gaussians is None:
+            state.gaussians = self._rest_gaussians.to_device(self.device)
         g = state.gaussians
         self._robot_poser.update(self.robot.fk(state.robot.q), out=self._segment(g, *self._robot_range))
         for name, poser in self._posers.items():
@@ -382,7 +462,7 @@ class Twin:
             if isinstance(poser, LabelRigidPoser):
                 poser.update(state.object_poses[name][None], out=seg)
             else:
-                particles = state.physics.x[slot.start : slot.start + slot.count]  # a device view
+                particles = state.physics.x[self._span(state, slot.start, slot.count)]  # a device view
                 poser.update(particles, out_means=seg.means, out_quats=seg.quats)
         return g
 
@@ -407,12 +487,13 @@ class Twin:
         return dict(zip(names, outs, strict=True))
 
 
-def build_twin(spec: TwinSpec, device: str = "cpu", num_worlds: int = 1) -> tuple[Twin, TwinState]:
-    """Build `spec` on `device` -> (Twin, its first TwinState at rest). One world per state for now."""
-    if num_worlds != 1:
-        raise ValueError(
-            f"num_worlds={num_worlds}: batching several worlds in one launch is not built yet; "
-            "use one twin per world (or worker processes)"
-        )
-    twin = Twin(spec, device)
-    return twin, twin.new_state()
+def build_twin(
+    spec: TwinSpec, device: str = "cpu", num_worlds: int = 1
+) -> tuple[Twin, TwinState] | tuple[Twin, list[TwinState]]:
+    """Build `spec` on `device` -> (Twin, its TwinState at rest), or with `num_worlds` > 1 (Twin, one
+    TwinState per world) for `Twin.step_worlds`."""
+    if isinstance(num_worlds, bool) or not isinstance(num_worlds, int | np.integer) or num_worlds < 1:
+        raise ValueError(f"num_worlds must be a positive integer, got {num_worlds!r}")
+    twin = Twin(spec, device, int(num_worlds))
+    states = twin.new_states()
+    return (twin, states[0]) if num_worlds == 1 else (twin, states)
