@@ -196,7 +196,13 @@ class TwinEnv(gymnasium.Env):
         return self._end_step(None)
 
     def _begin_step(self, action) -> np.ndarray:
-        """Check and clip the action (errors before anything moves); count the step."""
+        """Check and clip the action, then count the step."""
+        a = self._check_action(action)
+        self._steps += 1
+        return a
+
+    def _check_action(self, action) -> np.ndarray:
+        """The clipped action; raises (changing nothing) for a finished episode or a malformed action."""
         if self._status != "ok":
             raise RuntimeError(f"{self.rules.name}: the episode ended with a simulation error; call reset()")
         if self._done:
@@ -208,7 +214,6 @@ class TwinEnv(gymnasium.Env):
             raise ValueError(f"action: expected shape {self.action_space.shape}, got {a.shape}")
         if not np.all(np.isfinite(a)):
             raise ValueError(f"action: contains NaN or inf: {a}")
-        self._steps += 1
         return np.clip(a, self.action_space.low, self.action_space.high)
 
     def _end_step(self, error: SimulationDiverged | None):
@@ -360,24 +365,45 @@ class TwinVectorEnv(gymnasium.vector.VectorEnv):
         actions = np.asarray(actions)
         if actions.shape != self.action_space.shape:
             raise ValueError(f"actions: expected shape {self.action_space.shape}, got {actions.shape}")
-        clipped = [
-            None if self._autoreset[i] else env._begin_step(actions[i]) for i, env in enumerate(self.envs)
-        ]
-        results = self.twin.step_worlds([env.state for env in self.envs], clipped)
+        for i, env in enumerate(self.envs):  # every action checked before any world moves
+            if not self._autoreset[i]:
+                env._check_action(actions[i])
+        results = self.step_worlds([None if self._autoreset[i] else actions[i] for i in range(self.num_envs)])
         rewards = np.zeros(self.num_envs, dtype=np.float64)
         terminated = np.zeros(self.num_envs, dtype=bool)
         truncated = np.zeros(self.num_envs, dtype=bool)
         infos: dict = {}
         for i, env in enumerate(self.envs):
-            if self._autoreset[i]:
+            if results[i] is None:  # NEXT_STEP autoreset of a world whose episode ended last step
                 self._obs[i], info = env.reset()
-                self._autoreset[i] = False
             else:
-                error = results[i] if isinstance(results[i], SimulationDiverged) else None
-                self._obs[i], rewards[i], terminated[i], truncated[i], info = env._end_step(error)
-                self._autoreset[i] = terminated[i] or truncated[i]
+                self._obs[i], rewards[i], terminated[i], truncated[i], info = results[i]
+            self._autoreset[i] = terminated[i] or truncated[i]
             infos = self._add_info(infos, info, i)
         return self._batch(), rewards, terminated, truncated, infos
+
+    def step_worlds(self, actions: list) -> list:
+        """Step the worlds whose action is given and hold the others (None) in one physics frame, without
+        autoreset: per world its TwinEnv-style (obs, reward, terminated, truncated, info), None when held,
+        or the exception its action raised (that world held). For drivers that reset worlds themselves
+        (`envs.envs[i].reset(...)`), such as the evaluation runner."""
+        if len(actions) != self.num_envs:
+            raise ValueError(f"step_worlds: {len(actions)} actions for {self.num_envs} worlds")
+        clipped: list = []
+        for env, action in zip(self.envs, actions, strict=True):
+            try:
+                clipped.append(None if action is None else env._begin_step(action))
+            except Exception as err:  # noqa: BLE001 - reported as that world's result
+                clipped.append(err)
+        moves = [a if isinstance(a, np.ndarray) else None for a in clipped]
+        results = self.twin.step_worlds([env.state for env in self.envs], moves)
+        out: list = []
+        for env, a, result in zip(self.envs, clipped, results, strict=True):
+            if a is None or isinstance(a, Exception):
+                out.append(a)
+            else:
+                out.append(env._end_step(result if isinstance(result, SimulationDiverged) else None))
+        return out
 
     def _batch(self):
         from gymnasium.vector.utils import concatenate, create_empty_array

@@ -176,68 +176,137 @@ def policy_observation(policy, obs: dict, info: dict) -> dict:
     return {**obs, "environment_state": privileged["environment_state"]}
 
 
-def run_episode(env, policy, *, init_state: int, seed: int, max_steps: int | None = None,
-                video_path: str | Path | None = None) -> EpisodeOutcome:
-    """Roll `policy` out in `env` from `init_state`; never raises for env or policy failures."""
-    t0, started = time.perf_counter(), time.time()
-    rewards: list[float] = []
-    video = _VideoWriter(video_path, env) if video_path is not None else None
-    success, status, error, steps, rule = False, "ok", None, 0, None
-    limit = int(max_steps or getattr(env.unwrapped, "_max_episode_steps", 0) or 0)
-    if limit <= 0:
-        raise ValueError("run_episode: env has no _max_episode_steps; pass max_steps")
-    try:
-        obs, info = env.reset(seed=int(seed), options={"init_state": int(init_state)})
-        if video is not None:
-            video.add(env.render())
-    except Exception as err:  # noqa: BLE001 - any env failure is a sim_error, reported with its text
-        status, error = "sim_error", f"reset: {_error_text(err)}"
-    if status == "ok":
+class _Rollout:
+    """One episode's bookkeeping, driven step by step by `run_episode` (one env) or `run_worlds` (the worlds
+    of a vector env): policy calls and their checks, env failures, rewards, the video, the outcome."""
+
+    def __init__(self, env, policy, *, init_state: int, seed: int, max_steps: int | None = None,
+                 video_path: str | Path | None = None):
+        self.env, self.policy, self.init_state, self.seed = env, policy, int(init_state), int(seed)
+        self.t0, self.started = time.perf_counter(), time.time()
+        self.rewards: list[float] = []
+        self.video_path = video_path
+        self.video = _VideoWriter(video_path, env) if video_path is not None else None
+        self.success, self.status, self.error, self.steps, self.rule = False, "ok", None, 0, None
+        self.limit = int(max_steps or getattr(env.unwrapped, "_max_episode_steps", 0) or 0)
+        if self.limit <= 0:
+            raise ValueError("run_episode: env has no _max_episode_steps; pass max_steps")
+        self.ended = False
+
+    def start(self) -> None:
+        """Reset the env to this episode's initial state and the policy to its seed."""
         try:
-            if hasattr(policy, "reseed"):
-                policy.reseed(int(seed))
+            self.obs, self.info = self.env.reset(seed=self.seed, options={"init_state": self.init_state})
+            if self.video is not None:
+                self.video.add(self.env.render())
+        except Exception as err:  # noqa: BLE001 - any env failure is a sim_error, reported with its text
+            self._end("sim_error", f"reset: {_error_text(err)}")
+            return
+        try:
+            if hasattr(self.policy, "reseed"):
+                self.policy.reseed(self.seed)
             else:
-                policy.reset()
+                self.policy.reset()
         except Exception as err:  # noqa: BLE001
-            status, error = "policy_error", f"reset: {_error_text(err)}"
-    shape = env.action_space.shape
-    while status == "ok" and steps < limit:
+            self._end("policy_error", f"reset: {_error_text(err)}")
+
+    def action(self) -> np.ndarray | None:
+        """The policy's next action, or None once the episode has ended (a policy failure ends it)."""
+        if self.ended:
+            return None
+        if self.steps >= self.limit:
+            self.ended = True
+            return None
+        shape = self.env.action_space.shape
         try:
-            action = np.asarray(policy.select_action(policy_observation(policy, obs, info)), dtype=np.float64)
+            obs = policy_observation(self.policy, self.obs, self.info)
+            action = np.asarray(self.policy.select_action(obs), dtype=np.float64)
             if action.shape != shape or not np.all(np.isfinite(action)):
                 raise PolicyError(f"action of shape {action.shape} (expected {shape}) "
                                   f"or non-finite: {action}")
         except Exception as err:  # noqa: BLE001
-            status, error = "policy_error", _error_text(err)
+            self._end("policy_error", _error_text(err))
+            return None
+        return action.astype(self.env.action_space.dtype)
+
+    def observe(self, result) -> None:
+        """Take the env's step result (obs, reward, terminated, truncated, info) or the error it raised."""
+        if isinstance(result, BaseException):
+            self._end("sim_error", _error_text(result))
+            return
+        self.obs, reward, terminated, truncated, self.info = result
+        self.steps += 1
+        self.rewards.append(float(reward))
+        env_status = self.info.get("status", "ok")
+        if env_status != "ok":
+            self._end("sim_error", f"env status {env_status!r} at step {self.steps}")
+            return
+        if not np.all(np.isfinite(np.asarray(self.obs["agent_pos"], dtype=np.float64))):
+            self._end("sim_error", f"non-finite agent_pos at step {self.steps}")
+            return
+        self.success = bool(self.info.get("is_success", False))  # the final frame's judgement
+        self.rule = self.info.get("success_rule", self.rule)
+        if self.video is not None:
+            self.video.add(self.env.render())
+        if terminated or truncated or self.steps >= self.limit:
+            self.ended = True
+
+    def _end(self, status: str, error: str) -> None:
+        self.status, self.error, self.ended = status, error, True
+
+    def outcome(self) -> EpisodeOutcome:
+        written, video_error = self.video.close() if self.video is not None else (False, None)
+        r = self.rewards
+        return EpisodeOutcome(
+            success=self.success and self.status == "ok", status=self.status, steps=self.steps,
+            wall_time_s=time.perf_counter() - self.t0, sum_reward=float(np.sum(r)) if r else 0.0,
+            max_reward=float(np.max(r)) if r else 0.0, error=self.error,
+            video_path=str(self.video_path) if written else None, started_at=self.started,
+            success_rule=self.rule, video_error=video_error,
+        )
+
+
+def run_episode(env, policy, *, init_state: int, seed: int, max_steps: int | None = None,
+                video_path: str | Path | None = None) -> EpisodeOutcome:
+    """Roll `policy` out in `env` from `init_state`; never raises for env or policy failures."""
+    r = _Rollout(env, policy, init_state=init_state, seed=seed, max_steps=max_steps, video_path=video_path)
+    r.start()
+    while (action := r.action()) is not None:
+        try:
+            result = env.step(action)
+        except Exception as err:  # noqa: BLE001 - any env failure is a sim_error, reported with its text
+            result = err
+        r.observe(result)
+    return r.outcome()
+
+
+def run_worlds(vec_env, policies: list, episodes: list[tuple[int, int, str | None]]) -> list[EpisodeOutcome]:
+    """Roll out `episodes` [(init_state, seed, video_path)] in the worlds of `vec_env` (a TwinVectorEnv),
+    world i with `policies[i]`, all worlds in one physics frame per step. Each episode's outcome is the
+    one `run_episode` gives in a one-world env (same steps, rewards and judgement, bit for bit on CPU);
+    a world whose episode ends waits, held, until every episode has ended. Never raises for env or
+    policy failures."""
+    if len(episodes) > vec_env.num_envs or len(policies) < len(episodes):
+        raise ValueError(f"run_worlds: {len(episodes)} episodes for {vec_env.num_envs} worlds and "
+                         f"{len(policies)} policies")
+    rollouts = [
+        _Rollout(vec_env.envs[i], policies[i], init_state=s, seed=seed, video_path=video)
+        for i, (s, seed, video) in enumerate(episodes)
+    ]
+    for r in rollouts:
+        r.start()
+    while True:
+        actions = [r.action() for r in rollouts]
+        if all(a is None for a in actions):
             break
         try:
-            obs, reward, terminated, truncated, info = env.step(action.astype(env.action_space.dtype))
-        except Exception as err:  # noqa: BLE001
-            status, error = "sim_error", _error_text(err)
-            break
-        steps += 1
-        rewards.append(float(reward))
-        env_status = info.get("status", "ok")
-        if env_status != "ok":
-            status, error = "sim_error", f"env status {env_status!r} at step {steps}"
-            break
-        if not np.all(np.isfinite(np.asarray(obs["agent_pos"], dtype=np.float64))):
-            status, error = "sim_error", f"non-finite agent_pos at step {steps}"
-            break
-        success = bool(info.get("is_success", False))  # the final frame's judgement
-        rule = info.get("success_rule", rule)
-        if video is not None:
-            video.add(env.render())
-        if terminated or truncated:
-            break
-    written, video_error = video.close() if video is not None else (False, None)
-    return EpisodeOutcome(
-        success=success and status == "ok", status=status, steps=steps,
-        wall_time_s=time.perf_counter() - t0, sum_reward=float(np.sum(rewards)) if rewards else 0.0,
-        max_reward=float(np.max(rewards)) if rewards else 0.0, error=error,
-        video_path=str(video_path) if written else None, started_at=started, success_rule=rule,
-        video_error=video_error,
-    )
+            results = vec_env.step_worlds(actions + [None] * (vec_env.num_envs - len(rollouts)))
+        except Exception as err:  # noqa: BLE001 - a failure of the shared frame ends every running episode
+            results = [err] * len(rollouts)
+        for r, a, result in zip(rollouts, actions, results, strict=False):
+            if a is not None:
+                r.observe(result)
+    return [r.outcome() for r in rollouts]
 
 
 # ---- worker side -----------------------------------------------------------------------------------
