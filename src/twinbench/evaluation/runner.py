@@ -88,6 +88,15 @@ class EpisodeJob:
     video_path: str | None = None
 
 
+@dataclass(frozen=True)
+class EpisodeBatch:
+    """Episode jobs of one policy that one process runs together: one at a time in a TwinEnv when
+    `worlds` is 1, else as the worlds of one `worlds`-world TwinVectorEnv (picklable, like EpisodeJob)."""
+
+    jobs: tuple[EpisodeJob, ...]
+    worlds: int = 1
+
+
 def _error_text(err: BaseException) -> str:
     return "".join(traceback.format_exception_only(type(err), err)).strip()
 
@@ -339,12 +348,53 @@ def run_job(job: EpisodeJob) -> EpisodeRecord:
         out = EpisodeOutcome(False, "policy_error", 0, 0.0, error=build_error, started_at=time.time())
     else:
         out = run_episode(env, policy, init_state=job.init_state, seed=job.seed, video_path=job.video_path)
+    return _record(job, out)
+
+
+def _record(job: EpisodeJob, out: EpisodeOutcome) -> EpisodeRecord:
+    spec = parse_policy_spec(job.policy)
     return EpisodeRecord(
         run_id=job.run_id, task=job.task, policy=spec.name, checkpoint=spec.checkpoint,
         train_step=spec.train_step, init_state=job.init_state, seed=job.seed, domain="sim",
         success=out.success, status=out.status, steps=out.steps, wall_time_s=out.wall_time_s,
         video_path=out.video_path, metrics=out.metrics(started_at=out.started_at),
     )
+
+
+def run_batch(batch: EpisodeBatch) -> list[EpisodeRecord]:
+    """Run a batch (in a worker or in-process): one job at a time, or its jobs as the worlds of one
+    many-world env (this process keeps the env and one policy per world for the next batch)."""
+    from twinbench.tasks import get_task
+
+    if batch.worlds == 1:
+        return [run_job(job) for job in batch.jobs]
+    first = batch.jobs[0]
+    if len(batch.jobs) > batch.worlds or any(
+        (j.task, j.policy, j.env_kwargs) != (first.task, first.policy, first.env_kwargs) for j in batch.jobs
+    ):
+        raise ValueError("an EpisodeBatch holds at most `worlds` jobs of one task, policy and env kwargs")
+    task = get_task(first.task)
+    env_key = (first.task, json.dumps(first.env_kwargs, sort_keys=True), "worlds", batch.worlds)
+    if env_key not in _CACHE:
+        try:
+            _CACHE[env_key] = task.make_vector_env(batch.worlds, **first.env_kwargs)
+        except TypeError as err:  # an unknown keyword in --env-kwargs
+            raise InputError(f"--env-kwargs {json.dumps(first.env_kwargs)}: the {first.task!r} env does not "
+                             f"accept them ({err})") from None
+    vec = _CACHE[env_key]
+    policies = []
+    for i, job in enumerate(batch.jobs):
+        key = (job.task, job.policy, "world", i)
+        if key not in _CACHE:
+            try:
+                _CACHE[key] = make_policy(parse_policy_spec(job.policy), task, vec.envs[i], seed=job.seed)
+            except Exception as err:  # noqa: BLE001 - a policy that cannot be built is a policy_error
+                error = f"building policy {job.policy!r}: {_error_text(err)}"
+                return [_record(j, EpisodeOutcome(False, "policy_error", 0, 0.0, error=error,
+                                                  started_at=time.time())) for j in batch.jobs]
+        policies.append(_CACHE[key])
+    outs = run_worlds(vec, policies, [(j.init_state, j.seed, j.video_path) for j in batch.jobs])
+    return [_record(j, out) for j, out in zip(batch.jobs, outs, strict=True)]
 
 
 # ---- parent side -----------------------------------------------------------------------------------
@@ -387,15 +437,16 @@ def _versions() -> dict:
             "warp": warp.config.version}
 
 
-def _run_local(jobs: list[EpisodeJob], workers: int, on_done) -> None:
+def _run_local(batches: list[EpisodeBatch], workers: int, on_done) -> None:
     if workers == 0:
         try:
-            for job in jobs:
-                on_done(run_job(job))
+            for batch in batches:
+                for rec in run_batch(batch):
+                    on_done(rec)
         finally:
             close_cached_policies()
         return
-    _run_pool(jobs, workers, on_done)
+    _run_pool(batches, workers, on_done)
 
 
 def _import_ray():
@@ -406,21 +457,23 @@ def _import_ray():
     return ray
 
 
-def _run_ray(jobs: list[EpisodeJob], workers: int, on_done) -> None:
+def _run_ray(batches: list[EpisodeBatch], workers: int, on_done) -> None:
     ray = _import_ray()
     if not ray.is_initialized():
         ray.init(num_cpus=workers if workers > 0 else None, include_dashboard=False)
-    remote_job = ray.remote(num_cpus=1, max_retries=0)(run_job)
-    by_ref = {remote_job.remote(job): job for job in jobs}
+    remote_batch = ray.remote(num_cpus=1, max_retries=0)(run_batch)
+    by_ref = {remote_batch.remote(batch): batch for batch in batches}
     pending = list(by_ref)
     try:
         while pending:
             done, pending = ray.wait(pending, num_returns=1)
             try:
-                rec = ray.get(done[0])
+                recs = ray.get(done[0])
             except (ray.exceptions.WorkerCrashedError, ray.exceptions.NodeDiedError) as err:
-                rec = crash_record(by_ref[done[0]], f"the Ray worker died during the episode ({err})")
-            on_done(rec)
+                recs = [crash_record(job, f"the Ray worker died during the episode ({err})")
+                        for job in by_ref[done[0]].jobs]
+            for rec in recs:
+                on_done(rec)
     except BaseException:
         for ref in pending:
             ray.cancel(ref, force=True)
@@ -431,8 +484,11 @@ def evaluate(task: str, policies: Sequence[str], episodes: str | int = "grid", w
              run_id: str = "eval", store: ResultsStore | str | Path = DEFAULT_DB, *, seed: int = 0,
              video: bool = False, backend: str = "local", output_dir: str | Path = "outputs",
              env_kwargs: dict | None = None, retry_errors: bool = False, progress: bool = False,
-             write_eval_info: bool = True, log=None) -> list[EpisodeRecord]:
+             write_eval_info: bool = True, log=None, worlds: int = 1) -> list[EpisodeRecord]:
     """Evaluate `policies` (spec strings) on `task`; returns the run's records (old and new) in job order.
+
+    `worlds` > 1 runs each policy's episodes `worlds` at a time as the worlds of one many-world env
+    (same outcomes as one at a time), in each of the `workers` processes.
 
     Finished episodes of `run_id` already in `store` are skipped (episodes that ended in an error
     too, unless `retry_errors`). On SIGINT raises `EvaluationInterrupted` after committing every
@@ -444,6 +500,10 @@ def evaluate(task: str, policies: Sequence[str], episodes: str | int = "grid", w
     if backend not in ("local", "ray"):
         raise ValueError(f"backend must be 'local' or 'ray', got {backend!r}")
     _check_counts(workers, seed)
+    if isinstance(worlds, bool) or not isinstance(worlds, int) or not 1 <= worlds <= MAX_WORLDS:
+        raise InputError(f"--worlds {worlds}: must be an integer between 1 and {MAX_WORLDS}")
+    if worlds > 1 and spec_task.task_cls is None:
+        raise InputError(f"--worlds {worlds}: task {task!r} has its own env, not a twin; use --worlds 1")
     if not policies:
         raise ValueError("give at least one policy spec (e.g. 'expert')")
     check_run_id(run_id)  # a name, never a path: it names folders under output_dir
@@ -475,8 +535,16 @@ def evaluate(task: str, policies: Sequence[str], episodes: str | int = "grid", w
     skip = {k for k, r in existing.items() if r.status == "ok" or not retry_errors}
     todo = [j for k, j in jobs.items() if k not in skip]
     log = log or (lambda msg: None)
+    batches: list[EpisodeBatch] = []
+    for job in todo:  # todo is grouped by policy: consecutive jobs of one policy share a batch
+        last = batches[-1] if batches else None
+        if last is not None and len(last.jobs) < worlds and last.jobs[0].policy == job.policy:
+            batches[-1] = EpisodeBatch((*last.jobs, job), worlds)
+        else:
+            batches.append(EpisodeBatch((job,), worlds))
     log(f"run {run_id!r}: {len(jobs)} episodes, {len(jobs) - len(todo)} already finished, {len(todo)} to run "
-        f"({backend}, {workers} worker{'s' if workers != 1 else ''})")
+        f"({backend}, {workers} worker{'s' if workers != 1 else ''}"
+        f"{f', {worlds} worlds per env' if worlds > 1 else ''})")
     results = {k: existing[k] for k in skip}
     done_count = [len(jobs) - len(todo)]
 
@@ -492,9 +560,9 @@ def evaluate(task: str, policies: Sequence[str], episodes: str | int = "grid", w
         try:
             with _sigterm_as_interrupt():
                 if backend == "ray":
-                    _run_ray(todo, int(workers), on_done)
+                    _run_ray(batches, int(workers), on_done)
                 else:
-                    _run_local(todo, int(workers), on_done)
+                    _run_local(batches, int(workers), on_done)
         except KeyboardInterrupt as err:
             left = len(jobs) - done_count[0]
             what, exc = ("terminated (SIGTERM)", EvaluationTerminated) if isinstance(err, _SigTerm) else (
@@ -561,6 +629,8 @@ class EvalConfig:
     """JSON dict of extra gymnasium.make keyword arguments for the task's env"""
     twin: Path | None = None
     """a twin directory to evaluate in (default: the task's built-in cell)"""
+    worlds: int = 1
+    """episodes run together as worlds of one many-world env (one physics launch for all), per worker"""
     retry_errors: bool = False
     """re-run episodes that ended in sim_error/policy_error"""
     progress: bool = True
@@ -582,7 +652,7 @@ def main(cfg: EvalConfig) -> int:
         records = evaluate(cfg.task, list(cfg.policy), cfg.episodes, cfg.workers, cfg.run_id, cfg.db,
                            seed=cfg.seed, video=cfg.video, backend=cfg.backend, output_dir=cfg.output_dir,
                            env_kwargs=env_kwargs, retry_errors=cfg.retry_errors, progress=cfg.progress,
-                           log=say)
+                           log=say, worlds=cfg.worlds)
     except EvaluationInterrupted as err:
         say(err.message)
         return 143 if isinstance(err, EvaluationTerminated) else 130
@@ -601,6 +671,7 @@ def main(cfg: EvalConfig) -> int:
 # ---- hardening: worker processes that die with their parent, crashes recorded, SIGTERM like Ctrl-C -----
 MAX_EPISODES = 100_000  # per policy and run; more is refused before anything is allocated
 MAX_WORKERS = 256
+MAX_WORLDS = 1024
 
 
 def _check_counts(workers, seed) -> None:
@@ -697,7 +768,8 @@ def _watch_parent(poll_s: float = 0.5) -> None:
 
 
 def _worker_main(conn) -> None:
-    """A worker process: runs one job at a time from `conn`, replies ("ok", record) or ("error", exc).
+    """A worker process: runs one EpisodeBatch at a time from `conn`, replies ("ok", records) or
+    ("error", exc).
 
     Ignores SIGINT and SIGTERM (the parent decides: commit finished episodes, kill the rest) and exits
     as soon as the parent dies."""
@@ -718,7 +790,7 @@ def _worker_main(conn) -> None:
             if job is None:
                 return
             try:
-                reply = ("ok", run_job(job))
+                reply = ("ok", run_batch(job))
             except BaseException as err:  # noqa: BLE001 - sent to the parent, which raises it
                 try:
                     pickle.dumps(err)
@@ -736,7 +808,7 @@ class _Worker:
         self.process = ctx.Process(target=_worker_main, args=(child,), daemon=True, name="twinbench-worker")
         self.process.start()
         child.close()
-        self.job: EpisodeJob | None = None
+        self.job: EpisodeBatch | None = None
 
     def stop(self, graceful: bool) -> None:
         if graceful and self.job is None and self.process.is_alive():
@@ -751,11 +823,11 @@ class _Worker:
         self.conn.close()
 
 
-def _run_pool(jobs: list[EpisodeJob], workers: int, on_done) -> None:
-    """Run `jobs` on `workers` spawned processes, one job per process at a time, so that a process that
-    dies (segfault, os._exit, OOM kill) is known to have died in its job: that episode is recorded as
-    sim_error with the reason, a fresh process takes its place and the run goes on. An exception raised
-    by run_job itself (bad input) stops the run and is re-raised here."""
+def _run_pool(jobs: list[EpisodeBatch], workers: int, on_done) -> None:
+    """Run the batches `jobs` on `workers` spawned processes, one batch per process at a time, so that a
+    process that dies (segfault, os._exit, OOM kill) is known to have died in its batch: its episodes are
+    recorded as sim_error with the reason, a fresh process takes its place and the run goes on. An
+    exception raised by run_batch itself (bad input) stops the run and is re-raised here."""
     import multiprocessing as mp
     from collections import deque
     from multiprocessing.connection import wait
@@ -786,17 +858,19 @@ def _run_pool(jobs: list[EpisodeJob], workers: int, on_done) -> None:
                     reply = None
                 if reply is None:  # the process died inside the episode
                     w.process.join(timeout=5)
-                    job = w.job
+                    batch = w.job
                     w.job = None
                     w.stop(graceful=False)
-                    on_done(crash_record(job, f"worker process died during the episode "
-                                              f"({_exit_reason(w.process.exitcode)})"))
+                    for job in batch.jobs:
+                        on_done(crash_record(job, f"worker process died during the episode "
+                                                  f"({_exit_reason(w.process.exitcode)})"))
                     continue  # replaced at the top of the loop
                 w.job = None
                 kind, value = reply
                 if kind == "error":
                     raise value
-                on_done(value)
+                for rec in value:
+                    on_done(rec)
         ok = True
     finally:
         for w in pool:

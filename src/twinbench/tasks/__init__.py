@@ -24,6 +24,8 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
+from twinbench.errors import InputError
+
 
 class SimulationError(RuntimeError):
     """Raised by an env whose simulation diverged (NaN, exploding energy): the episode is a sim_error."""
@@ -45,6 +47,16 @@ class TaskSpec:
         import gymnasium
 
         return gymnasium.make(self.env_id, disable_env_checker=True, **kwargs)
+
+    def make_vector_env(self, num_envs: int, **kwargs):
+        """`num_envs` worlds of the task's twin in one TwinVectorEnv (twin tasks only)."""
+        if self.task_cls is None:
+            raise InputError(f"task {self.name!r} has its own env ({self.env_id}), not a twin: it cannot run "
+                             "several worlds in one env; use --worlds 1")
+        import gymnasium
+
+        return gymnasium.make_vec(self.env_id, num_envs=num_envs, vectorization_mode="vector_entry_point",
+                                  **kwargs)
 
 
 _TASKS: dict[str, TaskSpec] = {}
