@@ -45,7 +45,9 @@ def _drive(model, solver, state, ctl, mids, starts, pusher, frames: int, speeds)
     return out
 
 
-def test_each_world_of_a_batch_is_bit_identical_to_the_same_run_alone():
+@pytest.mark.parametrize("threads", [1, 2, 3])
+def test_each_world_of_a_batch_is_bit_identical_to_the_same_run_alone(threads):
+    """On one thread, or with groups of worlds on their own threads."""
     starts = [(0.0, 0.0, 0.0), (0.004, -0.01, 0.01), (-0.01, 0.02, 0.0)]
     speeds = [0.004, 0.006, 0.0]
     b, mid, nv = _builder()
@@ -54,8 +56,8 @@ def test_each_world_of_a_batch_is_bit_identical_to_the_same_run_alone():
     assert batch.meshes_per_world == 2 and batch.control_points_per_world == 1
     pusher = batch.meshes[mid].vertices.astype(np.float64)
     mids = [mid + w * batch.meshes_per_world for w in range(3)]
-    solver = SpringMassSolver(batch)
-    assert solver._collide
+    solver = SpringMassSolver(batch, threads=threads)
+    assert solver._collide and len(solver._groups) == threads
     got = _drive(batch, solver, batch.state(), batch.control(), mids, starts, pusher, 12, speeds)
     nw = batch.particles_per_world
     moved = np.abs(got[-1] - batch.x0_np).max()

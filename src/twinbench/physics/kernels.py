@@ -254,13 +254,14 @@ def particle_update(
     drag: float,
     finish: int,
     cp: ContactParams,
+    base: int,
     v_star: wp.array(dtype=wp.vec3),
     x_out: wp.array(dtype=wp.vec3),
     v_out: wp.array(dtype=wp.vec3),
 ):
     """Spring-force gather (incident springs in spring order), gravity, drag; then contacts when
-    ``finish`` (no particle-particle collision stage this substep)."""
-    tid = wp.tid()
+    ``finish`` (no particle-particle collision stage this substep). Thread i serves particle base + i."""
+    tid = base + wp.tid()
     f = wp.vec3(0.0, 0.0, 0.0)
     if use_gather != 0:
         for k in range(inc_offsets[tid], inc_offsets[tid + 1]):
@@ -292,11 +293,13 @@ def collide_and_finish(
     cand_count: wp.array(dtype=int),
     dt: float,
     cp: ContactParams,
+    base: int,
     x_out: wp.array(dtype=wp.vec3),
     v_out: wp.array(dtype=wp.vec3),
 ):
-    """Particle-particle impulses averaged over the counted pairs (PhysTwin), then meshes, ground, x."""
-    tid = wp.tid()
+    """Particle-particle impulses averaged over the counted pairs (PhysTwin), then meshes, ground, x.
+    Thread i serves particle base + i."""
+    tid = base + wp.tid()
     x1 = x[tid]
     v1 = v_star[tid]
     m1 = masses[tid]

@@ -2,6 +2,10 @@
 
 from __future__ import annotations
 
+import os
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass
+
 import numpy as np
 import warp as wp
 
@@ -30,6 +34,51 @@ def check_divergence(state: State, max_speed: float = 100.0) -> np.ndarray:
     return np.flatnonzero(bad)
 
 
+@dataclass(frozen=True)
+class _Worlds:
+    """The index ranges of the worlds ``[w0, w1)`` of a model (worlds are laid out world-major)."""
+
+    w0: int
+    w1: int
+    particles: tuple[int, int]
+    springs: tuple[tuple[int, int], ...]  # object springs, then control springs (merged when adjacent)
+    kin_vertices: tuple[int, int]
+    kinematic: tuple[int, ...]  # kinematic mesh ids
+
+
+def _worlds(model: SpringMassModel, w0: int, w1: int) -> _Worlds:
+    nw, W = model.particles_per_world, model.num_worlds
+    so = model.num_object_springs // W
+    sc = (model.num_springs - model.num_object_springs) // W
+    ranges = [(w0 * so, w1 * so), (W * so + w0 * sc, W * so + w1 * sc)]
+    if ranges[0][1] == ranges[1][0]:
+        ranges = [(ranges[0][0], ranges[1][1])]
+    ranges = [r for r in ranges if r[1] > r[0]]
+    mw = model.meshes_per_world
+    mine = range(w0 * mw, w1 * mw)
+    kin = tuple(i for i in mine if model.meshes[i].kinematic)
+    ends = [(model.meshes[i].vertex_offset, model.meshes[i].vertex_offset + model.meshes[i].vertices.shape[0])
+            for i in kin]
+    kv = (ends[0][0], ends[-1][1]) if ends else (0, 0)
+    return _Worlds(w0, w1, (w0 * nw, w1 * nw), tuple(ranges), kv, kin)
+
+
+def default_threads(model: SpringMassModel) -> int:
+    """CPU threads a many-world model uses: $TWINBENCH_CPU_THREADS, else one per core (at most one per
+    world); 1 on CUDA or for one world."""
+    if model.num_worlds == 1 or not str(model.device).startswith("cpu"):
+        return 1
+    env = os.environ.get("TWINBENCH_CPU_THREADS")
+    if env:
+        try:
+            cores = int(env)
+        except ValueError:
+            raise ValueError(f"TWINBENCH_CPU_THREADS={env!r}: give a positive integer") from None
+    else:
+        cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+    return max(1, min(cores, model.num_worlds))
+
+
 class SpringMassSolver:
     """Advances a :class:`SpringMassModel`; one :meth:`step` is one substep, :meth:`simulate_frame`
     all ``params.substeps`` of one frame (graph-captured when possible).
@@ -39,7 +88,8 @@ class SpringMassSolver:
     rebuilt once per frame), mesh contacts (relative to the mesh velocity), ground with time of impact.
     """
 
-    def __init__(self, model: SpringMassModel, *, use_graph: bool = True, max_speed: float = 100.0):
+    def __init__(self, model: SpringMassModel, *, use_graph: bool = True, max_speed: float = 100.0,
+                 threads: int | None = None):
         self.model = model
         self.max_speed = float(max_speed)
         p = model.params
@@ -84,6 +134,15 @@ class SpringMassSolver:
         self._graph_key = None
         self._buf = (model.state(requires_grad=False), model.state(requires_grad=False))
         self._frame_t = np.float32(p.dt) * np.float32(p.substeps)
+        # Many worlds on CPU: contiguous groups of worlds, each group's frame on its own thread (worlds never
+        # interact, so each array element is written by one thread exactly as with one thread).
+        self.threads = default_threads(model) if threads is None else int(threads)
+        if self.threads < 1:
+            raise ValueError(f"threads must be >= 1, got {threads}")
+        self._all = _worlds(model, 0, model.num_worlds)
+        cuts = np.linspace(0, model.num_worlds, min(self.threads, model.num_worlds) + 1).round().astype(int)
+        self._groups = [_worlds(model, int(a), int(b)) for a, b in zip(cuts[:-1], cuts[1:], strict=True)]
+        self._pool = ThreadPoolExecutor(len(self._groups) - 1) if len(self._groups) > 1 else None
 
     # ------------------------------------------------------------------ one substep
     def _t(self, substep_index: int) -> float:
@@ -98,12 +157,16 @@ class SpringMassSolver:
             ops.append(wp.launch(kernel, dim=dim, inputs=inputs, outputs=outputs, device=self.device,
                                  record_cmd=True).launch)
 
-    def _update_kinematic_meshes(self, control: Control, substep_index: int, ops: list | None = None) -> None:
-        """Every kinematic mesh's vertices at this substep (one launch), then each mesh's BVH refit."""
+    def _update_kinematic_meshes(self, control: Control, substep_index: int, ops: list | None = None,
+                                 wr: _Worlds | None = None) -> None:
+        """The worlds' kinematic mesh vertices at this substep (one launch), then each mesh's BVH refit."""
         m = self.model
-        self._go(K.interpolate_points, m.kin_points.shape[0],
-                 [control.kin_from, control.kin_to, self._t(substep_index)], [m.kin_points], ops)
-        for mid in self._kinematic:
+        wr = wr or self._all
+        a, b = wr.kin_vertices
+        t = self._t(substep_index)
+        self._go(K.interpolate_points, b - a, [control.kin_from[a:b], control.kin_to[a:b], t],
+                 [m.kin_points[a:b]], ops)
+        for mid in wr.kinematic:
             mesh = m.meshes[mid].mesh
             if ops is None:
                 mesh.refit()
@@ -116,38 +179,45 @@ class SpringMassSolver:
                   inputs=[control.kin_from, control.kin_to, float(1.0 / self._frame_t)],
                   outputs=[m.kin_velocities], device=self.device)
 
-    def rebuild_collision_candidates(self, state: State) -> None:
+    def rebuild_collision_candidates(self, state: State, wr: _Worlds | None = None) -> None:
         """Rebuild the particle-particle candidate lists from ``state.x`` (done once per frame)."""
         m = self.model
         if not self._collide:
             return
+        wr = wr or self._all
         cd = float(m.params.collision_dist)
         cand_r = cd * float(m.params.candidate_radius_scale)
         query_r = max(cd * 5.0, cand_r)  # PhysTwin: hash cell and query radius 5 * collision_dist
         nw = m.particles_per_world
-        for w, grid in enumerate(self._grids):
+        for w in range(wr.w0, wr.w1):
             base = w * nw
+            grid = self._grids[w]
             grid.build(state.x[base: base + nw], query_r)
             wp.launch(K.build_candidates, dim=nw,
                       inputs=[grid.id, state.x, m.masks, m.nbr_offsets, m.nbr, cand_r, query_r, base],
                       outputs=[self._cand, self._cand_count], device=self.device)
 
-    def _update_stiffness(self, ops: list | None = None) -> None:
+    def _update_stiffness(self, ops: list | None = None, wr: _Worlds | None = None) -> None:
         m = self.model
-        if m.num_springs:
-            self._go(K.effective_stiffness, m.num_springs,
-                     [m.log_y, float(m.params.spring_Y_min), float(m.params.spring_Y_max)],
-                     [self._y_eff], ops)
+        for a, b in (wr or self._all).springs:
+            self._go(K.effective_stiffness, b - a,
+                     [m.log_y[a:b], float(m.params.spring_Y_min), float(m.params.spring_Y_max)],
+                     [self._y_eff[a:b]], ops)
 
     def _launch_substep(self, state_in: State, state_out: State, control: Control, dt: float,
-                        substep_index: int, grad: bool, ops: list | None = None) -> None:
+                        substep_index: int, grad: bool, ops: list | None = None,
+                        wr: _Worlds | None = None) -> None:
         m = self.model
         p = m.params
         n = m.num_particles
+        wr = wr or self._all
+        p0, p1 = wr.particles
         t = self._t(substep_index)
         tail = [float(p.dashpot_damping), control.ctrl_from, control.ctrl_to, t, n]
         spring_f = self._spring_f  # per-spring forces (gather path); unused by the atomic path
         if grad:
+            if wr is not self._all:
+                raise ValueError("the differentiable path runs every world in one launch")
             f = wp.zeros(n, dtype=wp.vec3, device=self.device, requires_grad=True)
             wp.launch(K.accumulate_spring_forces, dim=m.num_springs,
                       inputs=[state_in.x, state_in.v, m.springs, m.rest_lengths, m.log_y,
@@ -157,20 +227,19 @@ class SpringMassSolver:
         else:
             f = self._f
             v_star = self._v_star
-            if m.num_springs:
-                self._go(K.eval_spring_forces, m.num_springs,
-                         [state_in.x, state_in.v, m.springs, m.rest_lengths, self._y_eff, *tail],
-                         [spring_f], ops)
+            for a, b in wr.springs:
+                inputs = [state_in.x, state_in.v, m.springs[a:b], m.rest_lengths[a:b], self._y_eff[a:b]]
+                self._go(K.eval_spring_forces, b - a, [*inputs, *tail], [spring_f[a:b]], ops)
         collide = self._collide
-        self._go(K.particle_update, n,
+        self._go(K.particle_update, p1 - p0,
                  [state_in.x, state_in.v, spring_f, m.inc_offsets, m.inc_springs, f, int(not grad),
-                  m.masses, self._gravity, float(dt), float(p.drag_damping), int(not collide), self._cp],
+                  m.masses, self._gravity, float(dt), float(p.drag_damping), int(not collide), self._cp, p0],
                  [v_star, state_out.x, state_out.v], ops)
         if collide:
-            self._go(K.collide_and_finish, n,
+            self._go(K.collide_and_finish, p1 - p0,
                      [state_in.x, v_star, m.masses, m.masks, float(p.object_restitution),
                       float(p.object_friction), float(p.collision_dist), self._cand, self._cand_count,
-                      float(dt), self._cp],
+                      float(dt), self._cp, p0],
                      [state_out.x, state_out.v], ops)
 
     def step(self, state_in: State, state_out: State, control: Control, dt: float | None = None,
@@ -194,16 +263,38 @@ class SpringMassSolver:
         self._launch_substep(state_in, state_out, control, dt, substep_index, grad=self.model.requires_grad)
 
     # ------------------------------------------------------------------ one frame
-    def _frame_launches(self, control: Control, ops: list | None = None) -> State:
+    def _frame_launches(self, control: Control, ops: list | None = None, wr: _Worlds | None = None) -> State:
         a, b = self._buf
         p = self.model.params
-        self._update_stiffness(ops)  # once per frame; a replay reads the current log Y (it may change)
+        self._update_stiffness(ops, wr)  # once per frame; a replay reads the current log Y (it may change)
         for s in range(p.substeps):
             src, dst = (a, b) if s % 2 == 0 else (b, a)
             if self._kinematic:
-                self._update_kinematic_meshes(control, s, ops)
-            self._launch_substep(src, dst, control, p.dt, s, grad=False, ops=ops)
+                self._update_kinematic_meshes(control, s, ops, wr)
+            self._launch_substep(src, dst, control, p.dt, s, grad=False, ops=ops, wr=wr)
         return b if p.substeps % 2 == 1 else a
+
+    def _threaded_frame(self, control: Control) -> State:
+        """One frame with each group of worlds on its own thread (recorded launches, replayed)."""
+        a, _ = self._buf
+        if self._graph is None or self._graph_key is not control:
+            plans = []
+            for wr in self._groups:
+                ops: list = []
+                out = self._frame_launches(control, ops, wr)
+                plans.append(ops)
+            self._graph, self._graph_key, self._graph_out = plans, control, out
+
+        def run(group: int) -> None:
+            self.rebuild_collision_candidates(a, self._groups[group])
+            for op in self._graph[group]:
+                op()
+
+        futures = [self._pool.submit(run, g) for g in range(1, len(self._groups))]
+        run(0)
+        for fut in futures:
+            fut.result()
+        return self._graph_out
 
     def simulate_frame_tape(self, state: State, control: Control) -> list[State]:
         """Differentiable frame: every substep writes a new State (nothing overwritten), so an active
@@ -231,11 +322,15 @@ class SpringMassSolver:
         """
         a, _ = self._buf
         a.assign(state)
-        self.rebuild_collision_candidates(a)
         self._mesh_force.zero_()
         self._face_force.zero_()
         if self._kinematic:
             self._set_mesh_velocities(control)
+        if self._pool is not None:
+            out = self._threaded_frame(control)
+            state.assign(out)
+            return self._frame_end(state, check)
+        self.rebuild_collision_candidates(a)
         key = control  # compared by identity; holding it keeps its arrays (baked into the graph) alive
         if not self._use_graph:
             out = self._frame_launches(control)
@@ -256,6 +351,9 @@ class SpringMassSolver:
                 op()
             out = self._graph_out
         state.assign(out)
+        return self._frame_end(state, check)
+
+    def _frame_end(self, state: State, check: bool) -> State:
         nm = len(self.model.meshes)
         if nm:  # no meshes: the force buffers stay empty, no device->host copies
             scale = 1.0 / self.model.params.substeps
