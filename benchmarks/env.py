@@ -2,6 +2,11 @@
 frame) and rendering (Gaussian posing + both cameras), for the `fast` and `reference` built-in cells of
 push-T, rope routing and toy packing (scripted-expert actions), on CPU and on CUDA when present.
 
+Many worlds (`--worlds`, default 1 4 16 64): `fast` push-T as the worlds of one TwinVectorEnv, the
+pusher of world i sweeping a circle from its own grid state; world-steps per second for physics only
+(`Twin.step_worlds`: controllers + one spring-mass frame for all worlds, on every core) and for whole env
+steps with both cameras of every world rendered.
+
 Prints `name value unit` lines (medians over the timed steps, after warm-up steps).
 """
 
@@ -13,7 +18,7 @@ import time
 import numpy as np
 import warp as wp
 
-from twinbench.env import TwinEnv
+from twinbench.env import TwinEnv, TwinVectorEnv
 from twinbench.evaluation.runner import policy_observation
 from twinbench.tasks import get_task
 
@@ -47,11 +52,43 @@ def bench(task: str, preset: str, device: str, steps: int, warmup: int = 5) -> N
     print(f"{tag}_particles {twin.model.num_particles} particles")
 
 
+def bench_worlds(device: str, counts: list[int], steps: int, render_steps: int = 3) -> None:
+    for n in counts:
+        envs = TwinVectorEnv("push-t", n, preset="fast", device=device)
+        obs, _ = envs.reset(seed=0, options={"init_state": [i % 16 for i in range(n)]})
+        start = obs["agent_pos"].astype(np.float64)
+        phase = np.arange(n)[:, None] * 0.7
+
+        def actions(k: int, start=start, phase=phase) -> np.ndarray:
+            angle = 0.15 * k + phase
+            return (start + 0.02 * np.concatenate([np.cos(angle), np.sin(angle)], axis=1)).astype(np.float32)
+
+        states = [env.state for env in envs.envs]
+        physics = []
+        for k in range(3 + steps):
+            t0 = time.perf_counter()
+            envs.twin.step_worlds(states, list(actions(k)))
+            if k >= 3:
+                physics.append(time.perf_counter() - t0)
+        full = []
+        for k in range(1 + render_steps):
+            t0 = time.perf_counter()
+            envs.step(actions(k))
+            if k >= 1:
+                full.append(time.perf_counter() - t0)
+        tag = f"pusht_fast_{device.replace(':', '')}_{n}worlds"
+        print(f"{tag}_physics_world_steps_per_s {n / np.median(physics):.0f} world-steps/s")
+        print(f"{tag}_env_world_steps_per_s {n / np.median(full):.1f} world-steps/s")
+        print(f"{tag}_threads {envs.twin.solver.threads} threads")
+        envs.close()
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--steps", type=int, default=30)
     parser.add_argument("--presets", nargs="+", default=["fast", "reference"])
     parser.add_argument("--tasks", nargs="+", default=list(TASKS), choices=list(TASKS))
+    parser.add_argument("--worlds", nargs="*", type=int, default=[1, 4, 16, 64])
     args = parser.parse_args()
     wp.config.log_level = wp.LOG_WARNING  # no per-module load lines
     devices = ["cpu"] + (["cuda:0"] if wp.get_cuda_device_count() > 0 else [])
@@ -59,6 +96,7 @@ def main() -> None:
         for task in args.tasks:
             for preset in args.presets:
                 bench(task, preset, device, args.steps if preset == "fast" else max(args.steps // 3, 5))
+        bench_worlds(device, args.worlds, args.steps)
 
 
 if __name__ == "__main__":

@@ -5,7 +5,9 @@ Prints `name value unit` lines, per device (`cpu`, and `cuda:0` when present) an
   with self-collision on (two bodies, candidates rebuilt every frame);
 - the same with one kinematic mesh (a finger pushing into the body: per-substep vertex
   interpolation and BVH refit, no graph capture);
-- peak resident memory of the process (MiB) after the model's runs.
+- peak resident memory of the process (MiB) after the model's runs;
+- both CPU cores: the same model as two worlds of one model on 1 and on 2 threads (ms per world-frame;
+  one world alone always runs on one thread: see BENCHMARKS.md).
 
 Usage: python benchmarks/physics.py [--device cpu|cuda:0|all] [--frames N]
 """
@@ -31,7 +33,7 @@ MODELS = {
 }
 
 
-def _build(name: str, device: str, with_mesh: bool):
+def _build(name: str, device: str, with_mesh: bool, num_worlds: int = 1):
     spec = MODELS[name]
     s = spec["spacing"]
     body = lattice(*spec["shape"], s, (0.0, 0.0, 0.0))
@@ -45,12 +47,12 @@ def _build(name: str, device: str, with_mesh: bool):
         box = trimesh.creation.box(extents=(0.02, 0.02, 0.02))
         verts = np.asarray(box.vertices) + (-0.0105 - 0.002, 0.01, 0.01)
         mesh = (b.add_kinematic_mesh(verts, box.faces, restitution=0.0, friction=0.5), verts)
-    model = b.finalize(device)
+    model = b.finalize(device, num_worlds=num_worlds)
     return model, mesh
 
 
-def _time_frames(model, mesh, frames: int) -> list[float]:
-    solver = SpringMassSolver(model)
+def _time_frames(model, mesh, frames: int, threads: int | None = None) -> list[float]:
+    solver = SpringMassSolver(model, threads=threads)
     state, ctl = model.state(), model.control()
     times = []
     verts = mesh[1] if mesh else None
@@ -92,6 +94,12 @@ def main() -> None:
                 print(f"physics_{name}_{tag}{suffix}_substeps_per_s {sub / med:.0f} substeps/s")
             rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
             print(f"physics_{name}_{tag}_peak_rss {rss:.0f} MiB")
+            if dev == "cpu":
+                model, _ = _build(name, dev, False, num_worlds=2)
+                for threads in (1, 2):
+                    med = statistics.median(_time_frames(model, None, args.frames, threads=threads))
+                    tag = f"physics_{name}_cpu_2worlds_{threads}threads"
+                    print(f"{tag}_ms_per_world_frame {med * 1e3 / 2:.1f} ms")
 
 
 if __name__ == "__main__":
