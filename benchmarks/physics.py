@@ -6,8 +6,8 @@ Prints `name value unit` lines, per device (`cpu`, and `cuda:0` when present) an
 - the same with one kinematic mesh (a finger pushing into the body: per-substep vertex
   interpolation and BVH refit, no graph capture);
 - peak resident memory of the process (MiB) after the model's runs;
-- both CPU cores: the same model as two worlds of one model on 1 and on 2 threads (ms per world-frame;
-  one world alone always runs on one thread: see BENCHMARKS.md).
+- one world on two CPU cores (each frame split with a helper process, bit-identical): ms per frame
+  (the lines above are one core), and two worlds of one model on 1 and 2 threads (ms per world-frame).
 
 Usage: python benchmarks/physics.py [--device cpu|cuda:0|all] [--frames N]
 """
@@ -52,7 +52,7 @@ def _build(name: str, device: str, with_mesh: bool, num_worlds: int = 1):
 
 
 def _time_frames(model, mesh, frames: int, threads: int | None = None) -> list[float]:
-    solver = SpringMassSolver(model, threads=threads)
+    solver = SpringMassSolver(model, threads=1 if threads is None else threads)
     state, ctl = model.state(), model.control()
     times = []
     verts = mesh[1] if mesh else None
@@ -95,12 +95,16 @@ def main() -> None:
             rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
             print(f"physics_{name}_{tag}_peak_rss {rss:.0f} MiB")
             if dev == "cpu":
+                for with_mesh in (False, True):
+                    model, mesh = _build(name, dev, with_mesh)
+                    med = statistics.median(_time_frames(model, mesh, args.frames, threads=2))
+                    suffix = "_kinematic_mesh" if with_mesh else ""
+                    print(f"physics_{name}_cpu{suffix}_2cores_ms_per_frame {med * 1e3:.1f} ms")
                 model, _ = _build(name, dev, False, num_worlds=2)
                 for threads in (1, 2):
                     med = statistics.median(_time_frames(model, None, args.frames, threads=threads))
-                    tag = f"physics_{name}_cpu_2worlds_{threads}threads"
-                    print(f"{tag}_ms_per_world_frame {med * 1e3 / 2:.1f} ms")
-
+                    label = f"physics_{name}_cpu_2worlds_{threads}threads"
+                    print(f"{label}_ms_per_world_frame {med * 1e3 / 2:.1f} ms")
 
 if __name__ == "__main__":
     main()

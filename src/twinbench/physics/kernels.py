@@ -169,11 +169,20 @@ def mesh_contacts(
     dt: float,
     mesh_force: wp.array(dtype=wp.vec3),
     face_force: wp.array(dtype=wp.vec3),
+    tid: int,
+    per_particle: int,
+    pm_force: wp.array(dtype=wp.vec3),
+    pm_face: wp.array(dtype=int),
 ):
     """Velocity response against the triangle meshes ``[first, last)`` (the particle's world), relative
-    to the mesh point velocity."""
+    to the mesh point velocity. The contact force is added to its mesh and face, or with ``per_particle``
+    stored in the particle's own slots (``pm_force``/``pm_face``, face -1 = no contact) for
+    `reduce_mesh_forces` to add in particle order (so that two processes can share a frame)."""
     v = vp
     for k in range(first, last):
+        slot = tid * (last - first) + k - first
+        if per_particle != 0:
+            pm_face[slot] = -1
         mid = mesh_ids[k]
         q = wp.mesh_query_point_sign_normal(mid, xp, margin)
         if q.result:
@@ -188,8 +197,12 @@ def mesh_contacts(
             if wp.dot(vrel, normal) < 0.0:
                 v_new = vm + contact_velocity(vrel, normal, mesh_elas[k], mesh_fric[k])
                 force = mp * (v_new - v) / dt
-                wp.atomic_add(mesh_force, k, force)
-                wp.atomic_add(face_force, face_offsets[k] + q.face, force)
+                if per_particle != 0:
+                    pm_force[slot] = force
+                    pm_face[slot] = q.face
+                else:
+                    wp.atomic_add(mesh_force, k, force)
+                    wp.atomic_add(face_force, face_offsets[k] + q.face, force)
                 v = v_new
     return v
 
@@ -218,6 +231,9 @@ class ContactParams:
     face_force: wp.array(dtype=wp.vec3)
     particle_world: wp.array(dtype=int)
     world_mesh_start: wp.array(dtype=int)
+    per_particle: int  # 1: contact forces go to pm_force/pm_face (see mesh_contacts)
+    pm_force: wp.array(dtype=wp.vec3)
+    pm_face: wp.array(dtype=int)
     ground: int
     ground_elas: float
     ground_fric: float
@@ -233,7 +249,7 @@ def finish_particle(
         w = cp.particle_world[tid]
         v1 = mesh_contacts(x0, v1, m, cp.world_mesh_start[w], cp.world_mesh_start[w + 1], cp.mesh_ids,
                            cp.mesh_elas, cp.mesh_fric, cp.face_offsets, cp.margin, dt, cp.mesh_force,
-                           cp.face_force)
+                           cp.face_force, tid, cp.per_particle, cp.pm_force, cp.pm_face)
     xn, vn = ground_integrate(x0, v1, cp.ground_elas, cp.ground_fric, dt, cp.ground)
     x_out[tid] = xn
     v_out[tid] = vn
@@ -329,6 +345,23 @@ def collide_and_finish(
     if valid > 0.0:
         v1 = v1 - (j_sum / valid) / m1
     finish_particle(tid, x1, v1, m1, dt, cp, x_out, v_out)
+
+
+@wp.kernel(enable_backward=False)
+def reduce_mesh_forces(cp: ContactParams, p0: int, p1: int):
+    """One thread: add the per-particle contact forces of particles [p0, p1) to their meshes and faces in
+    particle order, mesh order within a particle (the order of the direct atomic path on CPU)."""
+    for p in range(p0, p1):
+        w = cp.particle_world[p]
+        first = cp.world_mesh_start[w]
+        count = cp.world_mesh_start[w + 1] - first
+        for j in range(count):
+            slot = p * count + j
+            face = cp.pm_face[slot]
+            if face >= 0:
+                k = first + j
+                wp.atomic_add(cp.mesh_force, k, cp.pm_force[slot])
+                wp.atomic_add(cp.face_force, cp.face_offsets[k] + face, cp.pm_force[slot])
 
 
 @wp.func

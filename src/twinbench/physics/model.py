@@ -284,6 +284,33 @@ class SpringMassModel:
         self.log_y.assign(arr)
 
 
+def device_meshes(specs: list, device) -> tuple[list[MeshInfo], wp.array, wp.array]:
+    """Warp meshes of `specs` [(vertices, faces, restitution, friction, kinematic)] -> (MeshInfo list,
+    kinematic vertices, their velocities). Every kinematic mesh's vertices and velocities are views into
+    one array each, so a substep moves all of them (every world's fingers) in one launch."""
+    kin_verts = [m[0] for m in specs if m[4]]
+    kin_count = sum(v.shape[0] for v in kin_verts)
+    kin_points = wp.array(np.concatenate(kin_verts) if kin_verts else np.zeros((0, 3), np.float32),
+                          dtype=wp.vec3, device=device)
+    kin_velocities = wp.zeros(kin_count, dtype=wp.vec3, device=device)
+    meshes: list[MeshInfo] = []
+    face_offset = kin_offset = 0
+    for verts, faces, e, mu, kin in specs:
+        nv = verts.shape[0]
+        if kin:
+            points = kin_points[kin_offset: kin_offset + nv]
+            velocities = kin_velocities[kin_offset: kin_offset + nv]
+        else:
+            points = wp.array(verts, dtype=wp.vec3, device=device)
+            velocities = wp.zeros(nv, dtype=wp.vec3, device=device)
+        mesh = wp.Mesh(points=points, indices=wp.array(faces.reshape(-1), dtype=wp.int32, device=device),
+                       velocities=velocities)
+        meshes.append(MeshInfo(mesh, faces, verts, e, mu, kin, face_offset, kin_offset if kin else -1))
+        face_offset += faces.shape[0]
+        kin_offset += nv if kin else 0
+    return meshes, kin_points, kin_velocities
+
+
 class ModelBuilder:
     """Collects bodies, control points and meshes, then :meth:`finalize` makes a model."""
 
@@ -473,29 +500,8 @@ class ModelBuilder:
         np.cumsum(np.bincount(key // n, minlength=n), out=nbr_off[1:])
 
         dev = device
-        # Every kinematic mesh's vertices and velocities are views into one array each, so a substep
-        # moves all of them (every world's fingers) in one launch.
-        all_meshes = self._meshes * worlds
-        kin_verts = [m[0] for m in all_meshes if m[4]]
-        kin_count = sum(v.shape[0] for v in kin_verts)
-        kin_points = wp.array(np.concatenate(kin_verts) if kin_verts else np.zeros((0, 3), np.float32),
-                              dtype=wp.vec3, device=dev)
-        kin_velocities = wp.zeros(kin_count, dtype=wp.vec3, device=dev)
-        meshes: list[MeshInfo] = []
-        face_offset = kin_offset = 0
-        for verts, faces, e, mu, kin in all_meshes:
-            nv = verts.shape[0]
-            if kin:
-                points = kin_points[kin_offset: kin_offset + nv]
-                velocities = kin_velocities[kin_offset: kin_offset + nv]
-            else:
-                points = wp.array(verts, dtype=wp.vec3, device=dev)
-                velocities = wp.zeros(nv, dtype=wp.vec3, device=dev)
-            mesh = wp.Mesh(points=points, indices=wp.array(faces.reshape(-1), dtype=wp.int32, device=dev),
-                           velocities=velocities)
-            meshes.append(MeshInfo(mesh, faces, verts, e, mu, kin, face_offset, kin_offset if kin else -1))
-            face_offset += faces.shape[0]
-            kin_offset += nv if kin else 0
+        meshes, kin_points, kin_velocities = device_meshes(self._meshes * worlds, dev)
+        nm = len(self._meshes)
         nm = len(self._meshes)
 
         def arr(a, dtype, grad=False):

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import warnings
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
@@ -11,6 +12,7 @@ import warp as wp
 
 from . import kernels as K
 from .model import Control, SpringMassModel, State
+from .split import SplitFailed, SplitFrame, wants_split
 
 
 class SimulationDiverged(RuntimeError):
@@ -63,20 +65,24 @@ def _worlds(model: SpringMassModel, w0: int, w1: int) -> _Worlds:
     return _Worlds(w0, w1, (w0 * nw, w1 * nw), tuple(ranges), kv, kin)
 
 
-def default_threads(model: SpringMassModel) -> int:
-    """CPU threads a many-world model uses: $TWINBENCH_CPU_THREADS, else one per core (at most one per
-    world); 1 on CUDA or for one world."""
-    if model.num_worlds == 1 or not str(model.device).startswith("cpu"):
-        return 1
+def cpu_cores() -> int:
+    """CPU cores the physics may use: $TWINBENCH_CPU_THREADS, else the cores this process may run on."""
     env = os.environ.get("TWINBENCH_CPU_THREADS")
     if env:
         try:
             cores = int(env)
         except ValueError:
             raise ValueError(f"TWINBENCH_CPU_THREADS={env!r}: give a positive integer") from None
-    else:
-        cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
-    return max(1, min(cores, model.num_worlds))
+        return max(1, cores)
+    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+
+
+def default_threads(model: SpringMassModel) -> int:
+    """Threads of a many-world model on CPU: one per core, at most one per world (1 on CUDA or for one
+    world, which splits its frames over two processes instead when it is large enough: physics.split)."""
+    if model.num_worlds == 1 or not str(model.device).startswith("cpu"):
+        return 1
+    return max(1, min(cpu_cores(), model.num_worlds))
 
 
 class SpringMassSolver:
@@ -124,6 +130,9 @@ class SpringMassSolver:
         cp.face_force = self._face_force
         cp.particle_world = model.particle_world
         cp.world_mesh_start = model.world_mesh_start
+        cp.per_particle = 0
+        cp.pm_force = wp.zeros(0, dtype=wp.vec3, device=dev)
+        cp.pm_face = wp.zeros(0, dtype=int, device=dev)
         cp.ground = int(p.ground)
         cp.ground_elas = float(p.ground_restitution)
         cp.ground_fric = float(p.ground_friction)
@@ -143,6 +152,9 @@ class SpringMassSolver:
         cuts = np.linspace(0, model.num_worlds, min(self.threads, model.num_worlds) + 1).round().astype(int)
         self._groups = [_worlds(model, int(a), int(b)) for a, b in zip(cuts[:-1], cuts[1:], strict=True)]
         self._pool = ThreadPoolExecutor(len(self._groups) - 1) if len(self._groups) > 1 else None
+        # One world on several cores: half of every substep in a helper process (see physics.split).
+        self._split_wanted = wants_split(model, self.threads if threads is not None else cpu_cores())
+        self._split: SplitFrame | None = None
 
     # ------------------------------------------------------------------ one substep
     def _t(self, substep_index: int) -> float:
@@ -206,7 +218,9 @@ class SpringMassSolver:
 
     def _launch_substep(self, state_in: State, state_out: State, control: Control, dt: float,
                         substep_index: int, grad: bool, ops: list | None = None,
-                        wr: _Worlds | None = None) -> None:
+                        wr: _Worlds | None = None, sync=None) -> None:
+        """One substep's launches over the part `wr` of the model. `sync` (recorded mode): a barrier with the
+        process that runs the other part, recorded wherever one stage reads what the other part wrote."""
         m = self.model
         p = m.params
         n = m.num_particles
@@ -230,17 +244,23 @@ class SpringMassSolver:
             for a, b in wr.springs:
                 inputs = [state_in.x, state_in.v, m.springs[a:b], m.rest_lengths[a:b], self._y_eff[a:b]]
                 self._go(K.eval_spring_forces, b - a, [*inputs, *tail], [spring_f[a:b]], ops)
+        if sync is not None:
+            ops.append(sync)  # the gather reads the other part's springs
         collide = self._collide
         self._go(K.particle_update, p1 - p0,
                  [state_in.x, state_in.v, spring_f, m.inc_offsets, m.inc_springs, f, int(not grad),
                   m.masses, self._gravity, float(dt), float(p.drag_damping), int(not collide), self._cp, p0],
                  [v_star, state_out.x, state_out.v], ops)
         if collide:
+            if sync is not None:
+                ops.append(sync)  # impulses read the other part's v_star
             self._go(K.collide_and_finish, p1 - p0,
                      [state_in.x, v_star, m.masses, m.masks, float(p.object_restitution),
                       float(p.object_friction), float(p.collision_dist), self._cand, self._cand_count,
                       float(dt), self._cp, p0],
                      [state_out.x, state_out.v], ops)
+        if sync is not None:
+            ops.append(sync)  # the next substep reads every particle
 
     def step(self, state_in: State, state_out: State, control: Control, dt: float | None = None,
              substep_index: int = 0) -> None:
@@ -263,15 +283,19 @@ class SpringMassSolver:
         self._launch_substep(state_in, state_out, control, dt, substep_index, grad=self.model.requires_grad)
 
     # ------------------------------------------------------------------ one frame
-    def _frame_launches(self, control: Control, ops: list | None = None, wr: _Worlds | None = None) -> State:
+    def _frame_launches(self, control: Control, ops: list | None = None, wr: _Worlds | None = None,
+                        sync=None, after_substep=None) -> State:
         a, b = self._buf
         p = self.model.params
-        self._update_stiffness(ops, wr)  # once per frame; a replay reads the current log Y (it may change)
+        if sync is None:  # (a split frame updates the stiffness before it starts)
+            self._update_stiffness(ops, wr)  # once per frame; a replay reads the current log Y
         for s in range(p.substeps):
             src, dst = (a, b) if s % 2 == 0 else (b, a)
             if self._kinematic:
                 self._update_kinematic_meshes(control, s, ops, wr)
-            self._launch_substep(src, dst, control, p.dt, s, grad=False, ops=ops, wr=wr)
+            self._launch_substep(src, dst, control, p.dt, s, grad=False, ops=ops, wr=wr, sync=sync)
+            if after_substep is not None:
+                ops.append(after_substep)
         return b if p.substeps % 2 == 1 else a
 
     def _threaded_frame(self, control: Control) -> State:
@@ -320,6 +344,16 @@ class SpringMassSolver:
         when possible (no kinematic meshes), records the mean contact force per mesh, and raises
         :class:`SimulationDiverged` when ``check`` and a particle became non-finite or too fast.
         """
+        if self._split_wanted:
+            split = self._split_frame()
+            if split is not None:
+                self._mesh_force.zero_()
+                self._face_force.zero_()
+                try:
+                    state.assign(split.frame(state, control))
+                    return self._frame_end(state, check)
+                except SplitFailed as err:
+                    self._leave_split(err)
         a, _ = self._buf
         a.assign(state)
         self._mesh_force.zero_()
@@ -352,6 +386,30 @@ class SpringMassSolver:
             out = self._graph_out
         state.assign(out)
         return self._frame_end(state, check)
+
+    def _split_frame(self):
+        """The helper process of split frames, started on first use (None if it cannot start)."""
+        if self._split is None:
+            try:
+                self._split = SplitFrame(self)
+            except Exception as err:  # noqa: BLE001 - one core still works
+                self._leave_split(err)
+        return self._split
+
+    def _leave_split(self, err: BaseException) -> None:
+        warnings.warn(f"physics: running one world on one core from now on ({err})", stacklevel=3)
+        if self._split is not None:
+            self._split.close()
+        self._split, self._split_wanted = None, False
+        self._cp.per_particle = 0  # contact forces added directly again
+        self._graph = None
+
+    def close(self) -> None:
+        """Stop the helper process of split frames, if any (also done at exit)."""
+        if self._split is not None:
+            self._split.close()
+            self._split = None
+        self._split_wanted = False
 
     def _frame_end(self, state: State, check: bool) -> State:
         nm = len(self.model.meshes)

@@ -1,0 +1,307 @@
+"""One world on two CPU cores: a helper process runs the second half of every per-substep kernel.
+
+Warp runs a CPU kernel on one core, and handing work between Python threads costs more (tens of us per
+hand-off, the GIL) than half of a substep's kernel saves. So a frame is split between this process and a
+spawned helper process instead: the arrays the substeps write (particle buffers, spring forces, collision
+candidates, per-particle contact forces) and the frame's controls live in one shared file mapping; each
+process replays its own recorded launches (particles [0, n/2) and springs [0, S/2) here, the rest there)
+and the two meet at spin barriers on shared counters (a few us) wherever a stage reads what the other half
+wrote. Each array element is written by exactly one process with the same arithmetic, and the mesh contact
+forces are added in particle order by `reduce_mesh_forces`, so a split frame is bit-identical to a frame on
+one core. Between frames the helper blocks on a pipe (no spinning). If the helper dies, the frame is run
+on one core and the solver stays there.
+
+Spin barriers rely on x86's ordered stores (TSO): the split is only used on x86-64.
+"""
+
+from __future__ import annotations
+
+import os
+import pickle
+import platform
+import signal
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+import weakref
+from dataclasses import fields
+
+import numpy as np
+import warp as wp
+
+from . import kernels as K
+from .model import Control, SpringMassModel, State, device_meshes
+
+SPLIT_MIN_WORK = 8000  # springs + 2 * particles below which one core is faster than a split frame
+_ALIGN = 64
+_WP_FIELDS = {  # SpringMassModel array fields the helper rebuilds, with their Warp dtypes
+    "springs": wp.vec2i, "rest_lengths": float, "log_y": float, "masses": float, "masks": int,
+    "inc_offsets": int, "inc_springs": int, "nbr_offsets": int, "nbr": int, "particle_world": int,
+    "world_mesh_start": int,
+}
+
+
+class SplitFailed(RuntimeError):
+    """The helper process of a split frame died or failed."""
+
+
+def split_supported() -> bool:
+    return platform.machine().lower() in ("x86_64", "amd64")
+
+
+def wants_split(model: SpringMassModel, threads: int) -> bool:
+    """Whether one world's frames should be split over two processes."""
+    return (
+        threads >= 2 and model.num_worlds == 1 and str(model.device).startswith("cpu")
+        and not model.requires_grad and split_supported()
+        and model.num_springs + 2 * model.num_particles >= SPLIT_MIN_WORK
+    )
+
+
+class SharedArrays:
+    """Named numpy arrays in one file-backed mapping (`create` here, the constructor in the other process)."""
+
+    def __init__(self, layout: dict, path: str, create: bool):
+        self.layout, self.path = layout, path
+        size = max(off + int(np.prod(shape)) * np.dtype(dt).itemsize for off, shape, dt in layout.values())
+        self.mm = np.memmap(path, dtype=np.uint8, mode="w+" if create else "r+", shape=(max(size, 1),))
+        self.np = {k: np.ndarray(shape, np.dtype(dt), buffer=self.mm, offset=off)
+                   for k, (off, shape, dt) in layout.items()}
+
+    @classmethod
+    def create(cls, specs: dict) -> SharedArrays:
+        layout, off = {}, 0
+        for name, (shape, dt) in specs.items():
+            layout[name] = (off, tuple(shape), np.dtype(dt).str)
+            off += -(-max(int(np.prod(shape)) * np.dtype(dt).itemsize, 1) // _ALIGN) * _ALIGN
+        folder = "/dev/shm" if os.path.isdir("/dev/shm") else tempfile.gettempdir()
+        fd, path = tempfile.mkstemp(prefix="twinbench-split-", dir=folder)
+        os.close(fd)
+        return cls(layout, path, create=True)
+
+    def wp(self, name: str, dtype) -> wp.array:
+        return wp.array(self.np[name], dtype=dtype, device="cpu", copy=False)
+
+
+def _specs(model: SpringMassModel, cand_width: int) -> dict:
+    n, s = model.num_particles, model.num_springs
+    kv = int(model.kin_points.shape[0])
+    pm = n * len(model.meshes)
+    f32, i32 = np.float32, np.int32
+    return {
+        "xa": ((n, 3), f32), "va": ((n, 3), f32), "xb": ((n, 3), f32), "vb": ((n, 3), f32),
+        "spring_f": ((s, 3), f32), "y_eff": ((s,), f32), "v_star": ((n, 3), f32),
+        "cand": ((n, cand_width), i32), "cand_count": ((n,), i32),
+        "ctrl_from": ((model.num_control_points, 3), f32), "ctrl_to": ((model.num_control_points, 3), f32),
+        "kin_from": ((kv, 3), f32), "kin_to": ((kv, 3), f32),
+        "pm_force": ((pm, 3), f32), "pm_face": ((pm,), i32),
+        "sync": ((8,), np.int64),  # 0: main phase, 1: helper phase, 2: helper ready, 3: helper failed
+    }
+
+
+def _share(solver, shared: SharedArrays) -> Control:
+    """Point the solver's frame buffers at the shared arrays; returns the shared Control."""
+    v3 = wp.vec3
+    solver._buf = (State(shared.wp("xa", v3), shared.wp("va", v3)),
+                   State(shared.wp("xb", v3), shared.wp("vb", v3)))
+    solver._spring_f = shared.wp("spring_f", v3)
+    solver._y_eff = shared.wp("y_eff", float)
+    solver._v_star = shared.wp("v_star", v3)
+    solver._cand = shared.wp("cand", int)
+    solver._cand_count = shared.wp("cand_count", int)
+    solver._cp.per_particle = 1
+    solver._cp.pm_force = shared.wp("pm_force", v3)
+    solver._cp.pm_face = shared.wp("pm_face", int)
+    ctl = Control(ctrl_from=shared.wp("ctrl_from", v3), ctrl_to=shared.wp("ctrl_to", v3),
+                  kin_from=shared.wp("kin_from", v3), kin_to=shared.wp("kin_to", v3))
+    for mid, info in enumerate(solver.model.meshes):
+        if info.kinematic:
+            span = slice(info.vertex_offset, info.vertex_offset + info.vertices.shape[0])
+            ctl.mesh_from[mid], ctl.mesh_to[mid] = ctl.kin_from[span], ctl.kin_to[span]
+    return ctl
+
+
+def _payload(model: SpringMassModel) -> dict:
+    out = {}
+    for f in fields(model):
+        value = getattr(model, f.name)
+        if f.name in _WP_FIELDS:
+            out[f.name] = value.numpy()
+        elif f.name == "meshes":
+            out[f.name] = [(m.vertices, m.faces, m.restitution, m.friction, m.kinematic) for m in value]
+        elif f.name not in ("kin_points", "kin_velocities"):
+            out[f.name] = value
+    return out
+
+
+def _model_from_payload(payload: dict) -> SpringMassModel:
+    kw = dict(payload)
+    for name, dtype in _WP_FIELDS.items():
+        kw[name] = wp.array(payload[name], dtype=dtype, device="cpu")
+    kw["meshes"], kw["kin_points"], kw["kin_velocities"] = device_meshes(payload["meshes"], "cpu")
+    return SpringMassModel(**kw)
+
+
+def _half(model: SpringMassModel, second: bool, parts) -> object:
+    """The solver's part (see solver._Worlds) for one half of a one-world model."""
+    n, s = model.num_particles, model.num_springs
+    h, hs = n // 2, s // 2
+    kin = tuple(i for i, m in enumerate(model.meshes) if m.kinematic)
+    kv = (0, int(model.kin_points.shape[0]))
+    springs = (((hs, s),) if second else ((0, hs),)) if s else ()
+    return parts(0, 0, (h, n) if second else (0, h), springs, kv, kin)
+
+
+class _Barrier:
+    """Spin barrier of two processes on shared counters: `mine` counts this side's arrivals."""
+
+    def __init__(self, sync: np.ndarray, mine: int, other: int, alive):
+        self.sync, self.mine, self.other, self.alive = sync, mine, other, alive
+        self.phase = int(sync[mine])
+
+    def __call__(self) -> None:
+        self.phase += 1
+        sync, other, phase = self.sync, self.other, self.phase
+        sync[self.mine] = phase
+        spins = 0
+        while sync[other] < phase:
+            spins += 1
+            if spins & 0x3FFF == 0:
+                self.alive()
+
+
+class SplitFrame:
+    """The main side of split frames for `solver` (see the module docstring)."""
+
+    def __init__(self, solver, startup_timeout_s: float = 120.0):
+        from .solver import _Worlds
+
+        m = solver.model
+        self.solver = solver
+        self.shared = SharedArrays.create(_specs(m, solver._cand.shape[1]))
+        self.proc = None
+        try:
+            self.control = _share(solver, self.shared)
+            # A plain interpreter running this module (not multiprocessing's spawn, which would re-run the
+            # user's __main__ script in the helper); the setup travels on its stdin.
+            env = {**os.environ, "PYTHONPATH": os.pathsep.join(p for p in sys.path if p)}
+            self.proc = subprocess.Popen(
+                [sys.executable, "-c", "from twinbench.physics.split import _helper_main; _helper_main()"],
+                stdin=subprocess.PIPE, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, env=env,
+            )
+            pickle.dump((self.shared.path, self.shared.layout, _payload(m)), self.proc.stdin)
+            self.proc.stdin.flush()
+            sync = self.shared.np["sync"]
+            t0 = time.monotonic()
+            while sync[2] != 1:
+                self._alive()
+                if time.monotonic() - t0 > startup_timeout_s:
+                    raise SplitFailed(f"the physics helper did not start in {startup_timeout_s:.0f} s")
+                time.sleep(0.005)
+        except BaseException:
+            self.close()
+            raise
+        finally:
+            os.unlink(self.shared.path)  # both processes hold the mapping; the file is not needed any more
+        self._finalizer = weakref.finalize(self, _stop, self.proc)
+        self.barrier = _Barrier(self.shared.np["sync"], 0, 1, self._alive)
+        reduce = None
+        if m.meshes:
+            reduce = wp.launch(K.reduce_mesh_forces, dim=1, inputs=[solver._cp, 0, m.num_particles],
+                               device="cpu", record_cmd=True).launch
+        self.ops: list = []
+        self.out = solver._frame_launches(self.control, self.ops, _half(m, False, _Worlds), sync=self.barrier,
+                                          after_substep=reduce)
+
+    def _alive(self) -> None:
+        if self.shared.np["sync"][3] or self.proc.poll() is not None:
+            self.proc.kill()
+            err = self.proc.stderr.read().decode(errors="replace").strip().splitlines()
+            detail = f": {err[-1]}" if err else ""
+            raise SplitFailed(f"the physics helper process failed (exit code {self.proc.wait()}){detail}")
+
+    def frame(self, state: State, control: Control) -> State:
+        """One frame from `state` under `control`, split over the two processes; returns the out buffer."""
+        s = self.solver
+        s._buf[0].assign(state)
+        wp.copy(self.control.ctrl_from, control.ctrl_from)
+        wp.copy(self.control.ctrl_to, control.ctrl_to)
+        if s._kinematic:
+            wp.copy(self.control.kin_from, control.kin_from)
+            wp.copy(self.control.kin_to, control.kin_to)
+            s._set_mesh_velocities(self.control)
+        s._update_stiffness()
+        s.rebuild_collision_candidates(s._buf[0])
+        try:
+            self.proc.stdin.write(b"F")
+            self.proc.stdin.flush()
+        except OSError as err:
+            raise SplitFailed(f"the physics helper process is gone ({err})") from None
+        for op in self.ops:
+            op()
+        return self.out
+
+    def close(self) -> None:
+        if self.proc is not None:
+            _stop(self.proc)
+
+
+def _stop(proc: subprocess.Popen) -> None:
+    """End the helper: closing its stdin ends its loop."""
+    try:
+        proc.stdin.close()
+        proc.wait(timeout=2)
+    except (OSError, subprocess.TimeoutExpired):
+        proc.kill()
+        proc.wait()
+    proc.stderr.close()
+
+
+def _watch_parent() -> None:
+    ppid = os.getppid()
+
+    def run() -> None:
+        while os.getppid() == ppid:
+            time.sleep(0.5)
+        os._exit(75)
+
+    threading.Thread(target=run, daemon=True).start()
+
+
+def _helper_main() -> None:
+    """The helper process: builds its copy of the model, then runs its half of a frame per byte on stdin."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    _watch_parent()
+    wp.config.log_level = wp.LOG_WARNING
+    stdin = sys.stdin.buffer
+    path, layout, payload = pickle.load(stdin)  # written by our own parent process, never a file
+    shared = SharedArrays(layout, path, create=False)
+    sync = shared.np["sync"]
+    try:
+        from .solver import SpringMassSolver, _Worlds
+
+        model = _model_from_payload(payload)
+        solver = SpringMassSolver(model, use_graph=False, threads=1)
+        control = _share(solver, shared)
+
+        def parent_alive() -> None:
+            if os.getppid() == 1:
+                os._exit(75)
+
+        barrier = _Barrier(sync, 1, 0, parent_alive)
+        ops: list = []
+        solver._frame_launches(control, ops, _half(model, True, _Worlds), sync=barrier)
+        sync[2] = 1
+        while stdin.read(1) == b"F":
+            if solver._kinematic:
+                solver._set_mesh_velocities(control)
+            for op in ops:
+                op()
+    except BaseException:
+        sync[3] = 1
+        raise
+
+
+__all__ = ["SplitFailed", "SplitFrame", "split_supported", "wants_split"]

@@ -1,0 +1,89 @@
+"""One world on two CPU cores: frames split with a helper process are bit-identical to frames on one core,
+contact forces included, and a helper that dies leaves the run on one core with the same results."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scenes import pusher_scene as _builder
+from scenes import run_pushed as _drive
+
+from twinbench.physics import SpringMassSolver
+from twinbench.physics import split as S
+
+pytestmark = pytest.mark.skipif(not S.split_supported(), reason="split frames need x86-64")
+
+
+def _run(threads: int, frames: int = 10, kill_after: int | None = None):
+    b, mid, _ = _builder()
+    model = b.finalize()
+    solver = SpringMassSolver(model, threads=threads)
+    pusher = model.meshes[mid].vertices.astype(np.float64)
+    state, ctl = model.state(), model.control()
+    out, forces = [], []
+    for f in range(frames):
+        out += _drive(model, solver, state, ctl, [mid], [(0.0, 0.0, 0.0)] if f == 0 else [(0, 0, 0)],
+                      pusher + [0.006 * f, 0, 0], 1, [0.006])
+        forces.append([solver.mesh_contact_force(k, per_face=True) for k in range(2)])
+        if kill_after is not None and f == kill_after:
+            assert solver._split is not None
+            solver._split.proc.kill()
+            solver._split.proc.wait()
+    split_used = solver._split is not None
+    solver.close()
+    return out, forces, split_used
+
+
+def test_split_frames_are_bit_identical_to_one_core(monkeypatch):
+    monkeypatch.setattr(S, "SPLIT_MIN_WORK", 0)  # split even this small model
+    one, f1, used1 = _run(1)
+    two, f2, used2 = _run(2)
+    assert not used1 and used2
+    assert np.abs(one[-1] - one[0]).max() > 0.01  # falling, pushed, colliding: a real trajectory
+    for a, b in zip(one, two, strict=True):
+        assert np.array_equal(a, b)
+    for a, b in zip(f1, f2, strict=True):
+        for x, y in zip(a, b, strict=True):
+            assert np.array_equal(x, y)
+    assert max(np.abs(f[1]).max() for f in f1) > 0  # the pusher pushed
+
+
+def test_a_dead_helper_falls_back_to_one_core_with_the_same_results(monkeypatch):
+    monkeypatch.setattr(S, "SPLIT_MIN_WORK", 0)
+    one, f1, _ = _run(1)
+    with pytest.warns(UserWarning, match="one core"):
+        two, f2, used = _run(2, kill_after=3)
+    assert not used
+    for a, b in zip(one, two, strict=True):
+        assert np.array_equal(a, b)
+
+
+def test_small_models_and_many_worlds_do_not_split():
+    b, _, _ = _builder()
+    assert not S.wants_split(b.finalize(), 2)  # too little work per substep
+    b, _, _ = _builder()
+    assert not S.wants_split(b.finalize(num_worlds=2), 2)  # worlds use threads instead
+
+
+def test_a_twin_env_on_two_cores_matches_one_core(monkeypatch):
+    """Rope routing (gripper latch, clip collider): the env's own solver splits its frames."""
+    from twinbench.env import TwinEnv
+
+    monkeypatch.setattr(S, "SPLIT_MIN_WORK", 0)
+    runs = []
+    for cores in ("1", "2"):
+        monkeypatch.setenv("TWINBENCH_CPU_THREADS", cores)
+        env = TwinEnv("rope-routing", preset="fast")
+        obs, _ = env.reset(options={"init_state": 4})
+        a = obs["agent_pos"].astype(np.float64)
+        frames = []
+        for k in range(8):
+            a[2] -= 0.01
+            a[7] = 1.0 if k >= 5 else 0.0
+            obs, _, _, _, info = env.step(a)
+            frames.append((obs["pixels"]["front"], env.twin.particles(env.state, "rope"), info["grasp"]))
+        runs.append(frames)
+        assert (env.twin.solver._split is not None) == (cores == "2")
+        env.twin.solver.close()
+    for (p1, x1, g1), (p2, x2, g2) in zip(*runs, strict=True):
+        assert np.array_equal(p1, p2) and np.array_equal(x1, x2) and g1 == g2
