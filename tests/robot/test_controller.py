@@ -176,3 +176,24 @@ def test_unreachable_target_moves_toward_it_without_nan(arm):
     end = ctrl.ee_pose()[:3, 3]
     assert end[0] > start[0] + 0.15  # stretched toward x = 1.5 m
     assert np.all(ctrl.q >= arm.lower) and np.all(ctrl.q <= arm.upper)
+
+
+def test_advance_worlds_gives_each_world_its_own_advance_bit_for_bit(arm):
+    """One batched IK solve for many worlds: far, near, unreachable targets and gripper latches mixed."""
+    ctrl = RobotController(arm)
+    rng = np.random.default_rng(4)
+    goals = [arm.ee_pose(arm.home_q + np.r_[rng.normal(0, 0.4, 7), 0.0]) for _ in range(5)]
+    actions = [_absolute(g, gripper=float(i % 2)) for i, g in enumerate(goals)]
+    actions.append(np.array([1.5, 0.0, 0.2, 0.0, 1.0, 0.0, 0.0, 1.0]))  # unreachable: restarts, cached
+    forces = [None, (5e4, 5e4), (1.0, 2.0), None, (4e4, [3e4, 0, 0]), None]
+    batch = [ctrl.initial_state() for _ in actions]
+    alone = [ctrl.initial_state() for _ in actions]
+    for _ in range(25):
+        cmds = ctrl.advance_worlds(batch, actions, forces)
+        for state, a, f, cmd in zip(alone, actions, forces, cmds, strict=True):
+            ref = ctrl.advance(state, a, f)
+            assert np.array_equal(ref.q, cmd.q) and np.array_equal(ref.joint_velocity, cmd.joint_velocity)
+            flags = (cmd.gripper, cmd.latched, cmd.ik_converged)
+            assert (ref.gripper, ref.latched, ref.ik_converged) == flags
+    assert len({tuple(s.q.round(6)) for s in batch}) == len(actions)  # the worlds went different ways
+    assert any(s.latched for s in batch) and batch[-1].restart_cache is not None

@@ -14,7 +14,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from twinbench.robot.ik import solve_ik, weighted_error
+from twinbench.robot.ik import IKResult, solve_ik, weighted_error
 from twinbench.robot.model import RobotModel
 from twinbench.transforms import matrix_to_quat, pose_matrix, rotvec_to_matrix
 
@@ -162,11 +162,31 @@ class RobotController:
     def advance(self, state: ControllerState, action: np.ndarray, finger_forces=None) -> RobotCommand:
         """Advance `state` (in place) by one frame. `finger_forces`: (f_left, f_right) contact forces
         (scalars or 3-vectors) of the previous frame."""
+        return self.advance_worlds([state], [action], [finger_forces])[0]
+
+    def advance_worlds(
+        self, states: list[ControllerState], actions: list, finger_forces: list
+    ) -> list[RobotCommand]:
+        """`advance` every world's state, with one batched IK solve for all of them (each world's command
+        is the one `advance` alone gives)."""
         cfg = self.config
         model = self.model
-        target, g_cmd = self.target_from_action(action, state)
+        goals = [self.target_from_action(a, s) for s, a in zip(states, actions, strict=True)]
+        batch = solve_ik(model, np.stack([t for t, _ in goals]), np.stack([s.q for s in states]),
+                         max_iters=cfg.ik_max_iters, restarts=0)
+        cmds = []
+        for i, (state, (target, g_cmd), forces) in enumerate(zip(states, goals, finger_forces, strict=True)):
+            warm = IKResult(batch.q[i], bool(batch.converged[i]), batch.pos_err[i], batch.rot_err[i],
+                            batch.iterations)
+            cmds.append(self._command(state, target, g_cmd, self._solve(state, target, warm), forces))
+        return cmds
+
+    def _command(self, state: ControllerState, target: np.ndarray, g_cmd: float, ik: IKResult,
+                 finger_forces) -> RobotCommand:
+        """Velocity-control mimic toward the IK solution and the gripper latch; updates `state`."""
+        cfg = self.config
+        model = self.model
         q_prev = state.q.copy()
-        ik = self._solve(state, target)
         arm = model.arm_q_indices
         dq = ik.q[arm] - state.q[arm]
         norm = float(np.linalg.norm(dq))
@@ -195,15 +215,15 @@ class RobotController:
             ik_converged=bool(ik.converged),
         )
 
-    def _solve(self, state: ControllerState, target: np.ndarray):
-        """IK warm-started at the current q; random restarts only for a new target the warm start misses.
+    def _solve(self, state: ControllerState, target: np.ndarray, ik: IKResult) -> IKResult:
+        """The warm-started IK result `ik` (at the current q), or, for a new target it misses, the random
+        restarts' result when better.
 
         The restart result for the latest such target is cached in the state: a policy holding an
         unreachable (or hard) target does not pay for restarts every frame, and the choice stays
         deterministic.
         """
         cfg = self.config
-        ik = solve_ik(self.model, target, state.q, max_iters=cfg.ik_max_iters, restarts=0)
         if ik.converged or cfg.ik_restarts == 0:
             return ik
         cached = state.restart_cache

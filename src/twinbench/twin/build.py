@@ -337,10 +337,15 @@ class Twin:
                              "(from new_states())")
         if len(actions) != len(states):
             raise ValueError(f"step_worlds: {len(actions)} actions for {len(states)} worlds")
-        cmds = [
-            None if a is None else self.controller.advance(s.robot, a, s.finger_forces)
-            for s, a in zip(states, actions, strict=True)
-        ]
+        moving = [i for i, a in enumerate(actions) if a is not None]
+        cmds: list = [None] * len(states)
+        if moving:  # one batched IK solve for every moving world
+            done = self.controller.advance_worlds(
+                [states[i].robot for i in moving], [actions[i] for i in moving],
+                [states[i].finger_forces for i in moving],
+            )
+            for i, cmd in zip(moving, done, strict=True):
+                cmds[i] = cmd
         for state, cmd in zip(states, cmds, strict=True):
             if cmd is None:
                 self._hold_tools(state)
