@@ -1,6 +1,7 @@
 """Env speed: env steps per second with two 240x240 cameras, split into physics (controller + spring-mass
 frame) and rendering (Gaussian posing + both cameras), for the `fast` and `reference` built-in cells of
-push-T, rope routing and toy packing (scripted-expert actions), on CPU and on CUDA when present.
+push-T, rope routing and toy packing (scripted-expert actions), on CPU and on CUDA when present; the
+`reference` cells on CPU run twice, on one core and split over two (TWINBENCH_CPU_THREADS=1 / 2).
 
 Many worlds (`--worlds`, default 1 4 16 64): `fast` push-T as the worlds of one TwinVectorEnv, the
 pusher of world i sweeping a circle from its own grid state; world-steps per second for physics only
@@ -13,6 +14,7 @@ Prints `name value unit` lines (medians over the timed steps, after warm-up step
 from __future__ import annotations
 
 import argparse
+import os
 import time
 
 import numpy as np
@@ -25,8 +27,11 @@ from twinbench.tasks import get_task
 TASKS = {"push-t": "pusht", "rope-routing": "rope", "toy-packing": "toy"}
 
 
-def bench(task: str, preset: str, device: str, steps: int, warmup: int = 5) -> None:
+def bench(task: str, preset: str, device: str, steps: int, warmup: int = 5, cores: int | None = None) -> None:
+    if cores is not None:  # the solver reads it when the env is built
+        os.environ["TWINBENCH_CPU_THREADS"] = str(cores)
     env = TwinEnv(task, preset=preset, device=device)
+    os.environ.pop("TWINBENCH_CPU_THREADS", None)
     obs, info = env.reset(seed=0, options={"init_state": 0})
     expert = get_task(task).make_expert(env)
     twin, state = env.twin, env.state
@@ -45,7 +50,7 @@ def bench(task: str, preset: str, device: str, steps: int, warmup: int = 5) -> N
             total.append(t1 - t0)
             physics.append(t2 - t1)
             render.append(t3 - t2)
-    tag = f"{TASKS[task]}_{preset}_{device.replace(':', '')}"
+    tag = f"{TASKS[task]}_{preset}_{device.replace(':', '')}" + (f"_{cores}cores" if cores else "")
     print(f"{tag}_env_steps_per_s {1.0 / np.median(total):.2f} steps/s")
     print(f"{tag}_physics_ms {1e3 * np.median(physics):.1f} ms")
     print(f"{tag}_render_2cams_240_ms {1e3 * np.median(render):.1f} ms")
@@ -95,7 +100,12 @@ def main() -> None:
     for device in devices:
         for task in args.tasks:
             for preset in args.presets:
-                bench(task, preset, device, args.steps if preset == "fast" else max(args.steps // 3, 5))
+                steps = args.steps if preset == "fast" else max(args.steps // 3, 5)
+                if device == "cpu" and preset == "reference":  # one world on one core, then split over two
+                    for cores in (1, 2):
+                        bench(task, preset, device, steps, cores=cores)
+                else:
+                    bench(task, preset, device, steps)
         bench_worlds(device, args.worlds, args.steps)
 
 
