@@ -1,8 +1,9 @@
 """twinbench: evaluate robot manipulation policies in photorealistic digital twins.
 
 Importing twinbench registers its gymnasium env ids (entry points as strings: nothing heavy is
-imported until an env is made), so `gymnasium.make("twinbench/PushT-v0")` works after `import twinbench`;
-in a fresh interpreter `gymnasium.make("twinbench:twinbench/PushT-v0")` imports it for you.
+imported until an env is made). An installed twinbench also registers them whenever gymnasium is imported
+(the `twinbench-gym.pth` startup hook, see `_twinbench_gym_hook`; off with TWINBENCH_NO_GYM_HOOK=1), so
+`gymnasium.make("twinbench/PushT-v0")` works in any interpreter without `import twinbench`.
 """
 
 __version__ = "0.1.0"
