@@ -54,7 +54,7 @@ def _seconds_per_iteration(data, truth, substeps: int, device: str, frames: int)
     for k in range(1, frames + 3):  # 2 warm-up frames
         ctl.set_control_points(data.controls[k - 1], data.controls[k])
         t0 = time.perf_counter()
-        _, g, x, v = frame_gradient(model, solver, state, ctl, loss, k, prev_v, prev_acc)
+        _, g, x, v, _ = frame_gradient(model, solver, state, ctl, loss, k, prev_v, prev_acc)
         model.set_spring_log_y(model.log_y_np - 1e-3 * np.sign(g))  # the Adam step's cost is negligible
         state = model.state()
         state.x.assign(x)

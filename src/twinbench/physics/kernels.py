@@ -235,8 +235,7 @@ class ContactParams:
     pm_force: wp.array(dtype=wp.vec3)
     pm_face: wp.array(dtype=int)
     ground: int
-    ground_elas: float
-    ground_fric: float
+    coeffs: wp.array(dtype=float)  # ground restitution, ground friction, object restitution, object friction
 
 
 @wp.func
@@ -250,7 +249,7 @@ def finish_particle(
         v1 = mesh_contacts(x0, v1, m, cp.world_mesh_start[w], cp.world_mesh_start[w + 1], cp.mesh_ids,
                            cp.mesh_elas, cp.mesh_fric, cp.face_offsets, cp.margin, dt, cp.mesh_force,
                            cp.face_force, tid, cp.per_particle, cp.pm_force, cp.pm_face)
-    xn, vn = ground_integrate(x0, v1, cp.ground_elas, cp.ground_fric, dt, cp.ground)
+    xn, vn = ground_integrate(x0, v1, cp.coeffs[0], cp.coeffs[1], dt, cp.ground)
     x_out[tid] = xn
     v_out[tid] = vn
 
@@ -302,8 +301,6 @@ def collide_and_finish(
     v_star: wp.array(dtype=wp.vec3),
     masses: wp.array(dtype=float),
     masks: wp.array(dtype=int),
-    elas: float,
-    fric: float,
     collision_dist: float,
     cand: wp.array2d(dtype=int),
     cand_count: wp.array(dtype=int),
@@ -322,8 +319,8 @@ def collide_and_finish(
     mask1 = masks[tid]
     valid = float(0.0)  # noqa: UP018 (Warp needs a typed dynamic variable)
     j_sum = wp.vec3(0.0, 0.0, 0.0)
-    e = wp.clamp(elas, 0.0, 1.0)
-    mu = wp.clamp(fric, 0.0, 2.0)
+    e = wp.clamp(cp.coeffs[2], 0.0, 1.0)
+    mu = wp.clamp(cp.coeffs[3], 0.0, 2.0)
     for k in range(cand_count[tid]):
         idx = cand[tid, k]
         x2 = x[idx]

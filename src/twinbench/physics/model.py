@@ -222,6 +222,9 @@ class SpringMassModel:
     kin_velocities: wp.array | None = None
     particle_world: wp.array | None = None  # world of each particle
     world_mesh_start: wp.array | None = None  # meshes of world w: [start[w], start[w + 1])
+    # ground restitution, ground friction, object restitution, object friction (from params; trainable
+    # like log_y: the kernels read them from here)
+    contact_coeffs: wp.array | None = None
 
     @property
     def particles_per_world(self) -> int:
@@ -274,6 +277,13 @@ class SpringMassModel:
                 ctl.mesh_from[mid] = ctl.kin_from[span]
                 ctl.mesh_to[mid] = ctl.kin_to[span]
         return ctl
+
+    def set_contact_coeffs(self, coeffs) -> None:
+        """Overwrite (ground restitution, ground friction, object restitution, object friction)."""
+        arr = np.asarray(coeffs, dtype=np.float32)
+        if arr.shape != (4,) or not np.all(np.isfinite(arr)):
+            raise ValueError(f"contact coefficients must be 4 finite values, got {arr}")
+        self.contact_coeffs.assign(arr)
 
     def set_spring_log_y(self, log_y) -> None:
         """Overwrite the per-spring float32 log stiffness (e.g. after system identification)."""
@@ -536,5 +546,8 @@ class ModelBuilder:
             kin_points=kin_points,
             kin_velocities=kin_velocities,
             particle_world=arr(np.repeat(np.arange(worlds, dtype=np.int32), nw), int),
+            contact_coeffs=arr(np.array([self.params.ground_restitution, self.params.ground_friction,
+                                         self.params.object_restitution, self.params.object_friction],
+                                        np.float32), float, requires_grad),
             world_mesh_start=arr(np.arange(worlds + 1, dtype=np.int32) * nm, int),
         )

@@ -134,8 +134,7 @@ class SpringMassSolver:
         cp.pm_force = wp.zeros(0, dtype=wp.vec3, device=dev)
         cp.pm_face = wp.zeros(0, dtype=int, device=dev)
         cp.ground = int(p.ground)
-        cp.ground_elas = float(p.ground_restitution)
-        cp.ground_fric = float(p.ground_friction)
+        cp.coeffs = model.contact_coeffs  # read each launch: changing them needs no recapture
         self._cp = cp
         self._kinematic = [i for i, m in enumerate(model.meshes) if m.kinematic]
         self._use_graph = use_graph
@@ -255,9 +254,8 @@ class SpringMassSolver:
             if sync is not None:
                 ops.append(sync)  # impulses read the other part's v_star
             self._go(K.collide_and_finish, p1 - p0,
-                     [state_in.x, v_star, m.masses, m.masks, float(p.object_restitution),
-                      float(p.object_friction), float(p.collision_dist), self._cand, self._cand_count,
-                      float(dt), self._cp, p0],
+                     [state_in.x, v_star, m.masses, m.masks, float(p.collision_dist), self._cand,
+                      self._cand_count, float(dt), self._cp, p0],
                      [state_out.x, state_out.v], ops)
         if sync is not None:
             ops.append(sync)  # the next substep reads every particle

@@ -39,7 +39,7 @@ _ALIGN = 64
 _WP_FIELDS = {  # SpringMassModel array fields the helper rebuilds, with their Warp dtypes
     "springs": wp.vec2i, "rest_lengths": float, "log_y": float, "masses": float, "masks": int,
     "inc_offsets": int, "inc_springs": int, "nbr_offsets": int, "nbr": int, "particle_world": int,
-    "world_mesh_start": int,
+    "world_mesh_start": int, "contact_coeffs": float,
 }
 
 

@@ -219,6 +219,12 @@ class AdamConfig:
     """per-spring stiffness bounds (projected after each step); keep y_max within the solver's
     stable range for the chosen dt"""
     y_max: float = 1e5
+    fit_contact: bool = True
+    """also fit the ground's restitution and friction (with the ground on; object-object contact stays
+    with stage 1); off: keep them from stage 1 or as given"""
+    contact_lr: float = 0.05
+    """Adam step for the contact parameters, in logit space (restitution = sigmoid(u), friction =
+    2 sigmoid(u)): bounded, and a step moves a mid-range value by about lr / 4 of its range"""
 
 
 @dataclass(frozen=True)
@@ -511,12 +517,25 @@ class Adam:
         return self.x
 
 
+CONTACT_NAMES = ("ground_restitution", "ground_friction", "object_restitution", "object_friction")
+CONTACT_MAX = np.array([1.0, 2.0, 1.0, 2.0])  # the kernels clamp restitution to [0, 1], friction to [0, 2]
+
+
+def fitted_contacts(model: SpringMassModel) -> list[int]:
+    """Indices (into CONTACT_NAMES) of the contact parameters stage 2 fits: ground restitution and
+    friction when the ground is on. The object-object ones stay with stage 1: the collision kernel sums
+    impulses over a per-particle candidate loop, which Warp's adjoint does not differentiate (their tape
+    gradient is zero), so only CMA-ES can fit them."""
+    return [0, 1] if model.params.ground else []
+
+
 def frame_gradient(model: SpringMassModel, solver: SpringMassSolver, state, control, loss: SequenceLoss,
                    k: int, prev_v=None, prev_acc=None):
     """Simulate frame ``k`` from ``state`` under ``wp.Tape`` and backpropagate the frame loss.
 
-    Returns (loss terms, d loss / d log_y (per spring, float64), final x, final v). The loss gradient
-    w.r.t. the final positions and velocities is the adjoint injected into the tape.
+    Returns (loss terms, d loss / d log_y (per spring, float64), final x, final v, d loss / d contact
+    coefficients (4, float64: CONTACT_NAMES order)). The loss gradient w.r.t. the final positions and
+    velocities is the adjoint injected into the tape.
     """
     tape = wp.Tape()
     with tape:
@@ -529,22 +548,27 @@ def frame_gradient(model: SpringMassModel, solver: SpringMassSolver, state, cont
     x, v = last.numpy()
     terms, gx, gv = loss.frame(k, x, v, prev_v, prev_acc, grad=True)
     dev = model.device
+    model.log_y.grad.zero_()
+    model.contact_coeffs.grad.zero_()
     tape.backward(grads={last.x: wp.array(gx.astype(np.float32), dtype=wp.vec3, device=dev),
                          last.v: wp.array(gv.astype(np.float32), dtype=wp.vec3, device=dev)})
     g = model.log_y.grad.numpy().astype(np.float64)
+    gc = model.contact_coeffs.grad.numpy().astype(np.float64)
     tape.zero()
     tape.reset()
-    return terms, g, x, v
+    return terms, g, x, v, gc
 
 
 def stage2_adam(model: SpringMassModel, data: SysIdData, cfg: AdamConfig,
                 weights: LossWeights = LossWeights(), progress: bool = False,
                 log: Callable[[str], None] = print) -> tuple[np.ndarray, list[dict]]:
-    """Adam on ``model.log_y`` (finalized with ``requires_grad=True``), one step per training frame.
+    """Adam on ``model.log_y`` (finalized with ``requires_grad=True``) and, with ``cfg.fit_contact``, on
+    the ground contact coefficients (``fitted_contacts``, in logit space), one step per training frame.
 
     After each epoch the whole sequence is rolled out (fast path) and the parameters with the lowest
     training loss are kept (the validation frames only report). Stops early, keeping the best
-    parameters, when a taped frame diverges. Returns (best log_y, history rows per epoch)."""
+    parameters, when a taped frame diverges. Returns (best log_y, history rows per epoch); the best
+    contact coefficients are left in ``model.contact_coeffs``."""
     if not model.requires_grad:
         raise ValueError("stage2_adam needs a model finalized with requires_grad=True")
     if cfg.epochs < 0 or not (0 < cfg.y_min < cfg.y_max):
@@ -556,11 +580,26 @@ def stage2_adam(model: SpringMassModel, data: SysIdData, cfg: AdamConfig,
     lo, hi = math.log(cfg.y_min), math.log(cfg.y_max)
     opt = Adam(np.clip(model.log_y_np.astype(np.float64), lo, hi), cfg.lr, cfg.betas, cfg.eps, lo, hi)
     model.set_spring_log_y(opt.x)
+    fit = fitted_contacts(model) if cfg.fit_contact else []
+    coeffs = model.contact_coeffs.numpy().astype(np.float64)
+    frac = np.clip(coeffs[fit] / CONTACT_MAX[fit], 1e-4, 1.0 - 1e-4)
+    opt_c = Adam(np.log(frac / (1.0 - frac)), cfg.contact_lr, cfg.betas, 1e-8)
+
+    def set_contacts(u: np.ndarray) -> None:
+        coeffs[fit] = CONTACT_MAX[fit] / (1.0 + np.exp(-u))
+        model.set_contact_coeffs(coeffs)
+
+    if fit:
+        set_contacts(opt_c.x)
     ev = evaluate(model, data, loss, solver=eval_solver)
-    best = (ev.train_loss, opt.x.copy())
-    history = [{"epoch": 0, "taped_loss": float("nan"), "train_loss": ev.train_loss,
-                "train_error": ev.train_error, "val_error": ev.val_error,
-                "seconds_per_iteration": float("nan")}]
+    best = (ev.train_loss, opt.x.copy(), opt_c.x.copy())
+
+    def row(epoch: int, taped: float, ev, per_iter: float) -> dict:
+        out = {"epoch": epoch, "taped_loss": taped, "train_loss": ev.train_loss,
+               "train_error": ev.train_error, "val_error": ev.val_error, "seconds_per_iteration": per_iter}
+        return out | {CONTACT_NAMES[i]: float(coeffs[i]) for i in fit}
+
+    history = [row(0, float("nan"), ev, float("nan"))]
     train = list(data.train_frames)
     with _progress(progress) as bar:
         task = bar.add_task("stage 2 (Adam)", total=cfg.epochs * len(train), info="")
@@ -572,9 +611,12 @@ def stage2_adam(model: SpringMassModel, data: SysIdData, cfg: AdamConfig,
                 for k in train:
                     if data.num_controls:
                         ctl.set_control_points(data.controls[k - 1], data.controls[k])
-                    terms, g, x, v = frame_gradient(model, solver, state, ctl, loss, k, prev_v, prev_acc)
+                    terms, g, x, v, gc = frame_gradient(model, solver, state, ctl, loss, k, prev_v, prev_acc)
                     total += terms["total"]
                     model.set_spring_log_y(opt.step(g))
+                    if fit:  # chain rule through c = max * sigmoid(u)
+                        sig = coeffs[fit] / CONTACT_MAX[fit]
+                        set_contacts(opt_c.step(gc[fit] * CONTACT_MAX[fit] * sig * (1.0 - sig)))
                     state = model.state()
                     state.x.assign(x)
                     state.v.assign(v)
@@ -589,11 +631,11 @@ def stage2_adam(model: SpringMassModel, data: SysIdData, cfg: AdamConfig,
             per_iter = (time.perf_counter() - t0) / len(train)
             ev = evaluate(model, data, loss, solver=eval_solver)
             if ev.train_loss < best[0]:
-                best = (ev.train_loss, opt.x.copy())
-            history.append({"epoch": epoch, "taped_loss": total / len(train), "train_loss": ev.train_loss,
-                            "train_error": ev.train_error, "val_error": ev.val_error,
-                            "seconds_per_iteration": per_iter})
+                best = (ev.train_loss, opt.x.copy(), opt_c.x.copy())
+            history.append(row(epoch, total / len(train), ev, per_iter))
     model.set_spring_log_y(best[1])
+    if fit:
+        set_contacts(best[2])
     log(f"stage 2: {len(history) - 1} epochs, best training loss {best[0]:.4e}")
     return best[1].astype(np.float32), history
 
@@ -650,6 +692,9 @@ def identify(data: SysIdData, cfg: SysIdConfig, *, base: SimParams | None = None
         t0 = time.perf_counter()
         _, history2 = stage2_adam(model, data, cfg.adam, cfg.weights, cfg.progress, log)
         seconds["stage2"] = time.perf_counter() - t0
+        c = model.contact_coeffs.numpy().astype(np.float64)
+        params = replace(params, **{CONTACT_NAMES[i]: float(c[i]) for i in fitted_contacts(model)
+                                    if cfg.adam.fit_contact})
     evals["final"] = evaluate(model, data, loss)
     return SysIdResult(params, params.sim_params(base), model.log_y_np.copy(), model, evals, history1,
                        history2, seconds, cfg)
