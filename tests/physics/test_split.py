@@ -14,6 +14,12 @@ from twinbench.physics import split as S
 pytestmark = pytest.mark.skipif(not S.split_supported(), reason="split frames need x86-64")
 
 
+@pytest.fixture(autouse=True)
+def _split_small_models_and_stay_split(monkeypatch):
+    monkeypatch.setattr(S, "SPLIT_MIN_WORK", 0)  # split even these small models
+    monkeypatch.setattr(S, "CONTENDED_FRAMES", 10**9)  # a busy CI machine must not end the split
+
+
 def _run(threads: int, frames: int = 10, kill_after: int | None = None):
     b, mid, _ = _builder()
     model = b.finalize()
@@ -34,8 +40,7 @@ def _run(threads: int, frames: int = 10, kill_after: int | None = None):
     return out, forces, split_used
 
 
-def test_split_frames_are_bit_identical_to_one_core(monkeypatch):
-    monkeypatch.setattr(S, "SPLIT_MIN_WORK", 0)  # split even this small model
+def test_split_frames_are_bit_identical_to_one_core():
     one, f1, used1 = _run(1)
     two, f2, used2 = _run(2)
     assert not used1 and used2
@@ -48,8 +53,7 @@ def test_split_frames_are_bit_identical_to_one_core(monkeypatch):
     assert max(np.abs(f[1]).max() for f in f1) > 0  # the pusher pushed
 
 
-def test_a_dead_helper_falls_back_to_one_core_with_the_same_results(monkeypatch):
-    monkeypatch.setattr(S, "SPLIT_MIN_WORK", 0)
+def test_a_dead_helper_falls_back_to_one_core_with_the_same_results():
     one, f1, _ = _run(1)
     with pytest.warns(UserWarning, match="one core"):
         two, f2, used = _run(2, kill_after=3)
@@ -58,7 +62,8 @@ def test_a_dead_helper_falls_back_to_one_core_with_the_same_results(monkeypatch)
         assert np.array_equal(a, b)
 
 
-def test_small_models_and_many_worlds_do_not_split():
+def test_small_models_and_many_worlds_do_not_split(monkeypatch):
+    monkeypatch.setattr(S, "SPLIT_MIN_WORK", 8000)
     b, _, _ = _builder()
     assert not S.wants_split(b.finalize(), 2)  # too little work per substep
     b, _, _ = _builder()
@@ -69,7 +74,6 @@ def test_a_twin_env_on_two_cores_matches_one_core(monkeypatch):
     """Rope routing (gripper latch, clip collider): the env's own solver splits its frames."""
     from twinbench.env import TwinEnv
 
-    monkeypatch.setattr(S, "SPLIT_MIN_WORK", 0)
     runs = []
     for cores in ("1", "2"):
         monkeypatch.setenv("TWINBENCH_CPU_THREADS", cores)

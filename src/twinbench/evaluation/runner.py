@@ -17,6 +17,7 @@ Seeds: grid episodes use init_state i with seed `seed + i`; `episodes=N` samples
 from __future__ import annotations
 
 import json
+import os
 import signal
 import time
 import traceback
@@ -461,7 +462,9 @@ def _run_ray(batches: list[EpisodeBatch], workers: int, on_done) -> None:
     ray = _import_ray()
     if not ray.is_initialized():
         ray.init(num_cpus=workers if workers > 0 else None, include_dashboard=False)
-    remote_batch = ray.remote(num_cpus=1, max_retries=0)(run_batch)
+    # one CPU per task: a task's physics stays on one core (no split frames competing for cores)
+    env_vars = {"TWINBENCH_CPU_THREADS": os.environ.get("TWINBENCH_CPU_THREADS", "1")}
+    remote_batch = ray.remote(num_cpus=1, max_retries=0, runtime_env={"env_vars": env_vars})(run_batch)
     by_ref = {remote_batch.remote(batch): batch for batch in batches}
     pending = list(by_ref)
     try:
@@ -767,7 +770,15 @@ def _watch_parent(poll_s: float = 0.5) -> None:
     threading.Thread(target=run, name="twinbench-parent-watchdog", daemon=True).start()
 
 
-def _worker_main(conn) -> None:
+def worker_cores(workers: int) -> str:
+    """TWINBENCH_CPU_THREADS for each of `workers` worker processes: the cores shared out (a user's own
+    setting wins), so that a large twin's split frames never oversubscribe the machine."""
+    from twinbench.physics.solver import cpu_cores
+
+    return os.environ.get("TWINBENCH_CPU_THREADS") or str(max(1, cpu_cores() // max(1, workers)))
+
+
+def _worker_main(conn, cores: str = "1") -> None:
     """A worker process: runs one EpisodeBatch at a time from `conn`, replies ("ok", records) or
     ("error", exc).
 
@@ -777,6 +788,7 @@ def _worker_main(conn) -> None:
 
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     signal.signal(signal.SIGTERM, signal.SIG_IGN)
+    os.environ["TWINBENCH_CPU_THREADS"] = cores  # this worker's share of the cores (see worker_cores)
     _watch_parent()
     from twinbench.cli import quiet_warp
 
@@ -803,9 +815,10 @@ def _worker_main(conn) -> None:
 
 
 class _Worker:
-    def __init__(self, ctx):
+    def __init__(self, ctx, cores: str):
         self.conn, child = ctx.Pipe(duplex=True)
-        self.process = ctx.Process(target=_worker_main, args=(child,), daemon=True, name="twinbench-worker")
+        self.process = ctx.Process(target=_worker_main, args=(child, cores), daemon=True,
+                                   name="twinbench-worker")
         self.process.start()
         child.close()
         self.job: EpisodeBatch | None = None
@@ -833,6 +846,7 @@ def _run_pool(jobs: list[EpisodeBatch], workers: int, on_done) -> None:
     from multiprocessing.connection import wait
 
     ctx = mp.get_context("spawn")
+    cores = worker_cores(workers)
     todo = deque(jobs)
     pool: list[_Worker] = []
     ok = False
@@ -840,7 +854,7 @@ def _run_pool(jobs: list[EpisodeBatch], workers: int, on_done) -> None:
         while todo or any(w.job is not None for w in pool):
             pool = [w for w in pool if w.job is not None or w.process.is_alive()]
             while todo and len(pool) < workers and sum(w.job is None for w in pool) < len(todo):
-                pool.append(_Worker(ctx))
+                pool.append(_Worker(ctx, cores))
             for w in pool:
                 if w.job is None and todo:
                     w.job = todo.popleft()

@@ -349,6 +349,8 @@ class SpringMassSolver:
                 self._face_force.zero_()
                 try:
                     state.assign(split.frame(state, control))
+                    if split.oversubscribed:
+                        self._leave_split("other processes keep the CPU cores busy")
                     return self._frame_end(state, check)
                 except SplitFailed as err:
                     self._leave_split(err)
@@ -394,7 +396,7 @@ class SpringMassSolver:
                 self._leave_split(err)
         return self._split
 
-    def _leave_split(self, err: BaseException) -> None:
+    def _leave_split(self, err: BaseException | str) -> None:
         warnings.warn(f"physics: running one world on one core from now on ({err})", stacklevel=3)
         if self._split is not None:
             self._split.close()

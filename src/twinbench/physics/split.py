@@ -35,6 +35,7 @@ from . import kernels as K
 from .model import Control, SpringMassModel, State, device_meshes
 
 SPLIT_MIN_WORK = 8000  # springs + 2 * particles below which one core is faster than a split frame
+CONTENDED_FRAMES = 3  # frames in a row with over 10 % of barriers waiting for a descheduled process
 _ALIGN = 64
 _WP_FIELDS = {  # SpringMassModel array fields the helper rebuilds, with their Warp dtypes
     "springs": wp.vec2i, "rest_lengths": float, "log_y": float, "masses": float, "masks": int,
@@ -160,6 +161,7 @@ class _Barrier:
     def __init__(self, sync: np.ndarray, mine: int, other: int, alive):
         self.sync, self.mine, self.other, self.alive = sync, mine, other, alive
         self.phase = int(sync[mine])
+        self.slow = 0  # waits long enough to yield the core (the other side was not running)
 
     def __call__(self) -> None:
         self.phase += 1
@@ -168,6 +170,10 @@ class _Barrier:
         spins = 0
         while sync[other] < phase:
             spins += 1
+            if spins > 2000:  # the other side is not running (more busy processes than cores): let it
+                if spins == 2001:
+                    self.slow += 1
+                time.sleep(0)
             if spins & 0x3FFF == 0:
                 self.alive()
 
@@ -206,6 +212,7 @@ class SplitFrame:
         finally:
             os.unlink(self.shared.path)  # both processes hold the mapping; the file is not needed any more
         self._finalizer = weakref.finalize(self, _stop, self.proc)
+        self.strikes = 0
         self.barrier = _Barrier(self.shared.np["sync"], 0, 1, self._alive)
         reduce = None
         if m.meshes:
@@ -239,9 +246,19 @@ class SplitFrame:
             self.proc.stdin.flush()
         except OSError as err:
             raise SplitFailed(f"the physics helper process is gone ({err})") from None
+        start_phase, self.barrier.slow = self.barrier.phase, 0
         for op in self.ops:
             op()
+        # Spin barriers need a core each: if other processes keep taking them, one core is faster.
+        contended = self.barrier.slow > 0.1 * (self.barrier.phase - start_phase)
+        self.strikes = self.strikes + 1 if contended else 0
         return self.out
+
+    @property
+    def oversubscribed(self) -> bool:
+        """CONTENDED_FRAMES frames in a row where over 10 % of the barriers waited for a descheduled process
+        (then the solver goes back to one core)."""
+        return self.strikes >= CONTENDED_FRAMES
 
     def close(self) -> None:
         if self.proc is not None:
