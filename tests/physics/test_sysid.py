@@ -133,22 +133,40 @@ def test_taped_frame_gradient_matches_finite_differences():
         assert grad[s] == pytest.approx(fd, rel=1e-2)
 
 
-def test_taped_gradient_of_ground_contact_parameters_matches_finite_differences():
-    """d(loss)/d(ground restitution, friction) through wp.Tape: a block thrown onto the ground (bouncing
-    and sliding within the frame), loss = w . x_final for a fixed random w, against central differences.
-    (Object-object contact gets no tape gradient: see fitted_contacts.)"""
-    import warp as wp
-
+def _thrown(kind: str):
+    """A block thrown onto the ground (bouncing and sliding), or two blocks thrown at each other."""
     from twinbench.physics import ModelBuilder
     from twinbench.physics.model import lattice
+
+    if kind == "ground":
+        b = ModelBuilder(SimParams(substeps=100, dt=1 / 3000, drag_damping=0.0))
+        b.add_body(lattice(3, 3, 2, 0.01, (0, 0, 0.002)), spring_Y=3e3)
+        v0 = np.tile(np.float32([0.5, 0.2, -0.6]), (18, 1))
+        return b, v0
+    b = ModelBuilder(SimParams(substeps=100, dt=1 / 3000, ground=False, gravity=(0.0, 0.0, 0.0),
+                               collision_dist=0.012, drag_damping=0.0))
+    b.add_body(lattice(2, 2, 2, 0.01, (0, 0, 0)), spring_Y=3e3)
+    b.add_body(lattice(2, 2, 2, 0.01, (0.016, 0.004, 0.0)), spring_Y=3e3)
+    v0 = np.concatenate([np.tile([0.3, 0.1, 0], (8, 1)), np.tile([-0.3, -0.1, 0], (8, 1))]).astype(np.float32)
+    return b, v0
+
+
+@pytest.mark.parametrize("kind, fitted", [("ground", [0, 1]), ("object", [2, 3])])
+def test_taped_gradient_of_contact_parameters_matches_finite_differences(kind, fitted):
+    """d(loss)/d(restitution, friction) of the ground or between two bodies through wp.Tape, loss =
+    w . x_final for a fixed random w, against central differences; the taped frame itself is
+    bit-identical to the fast one."""
+    import warp as wp
+
     from twinbench.physics.sysid import fitted_contacts
 
-    b = ModelBuilder(SimParams(substeps=100, dt=1 / 3000, ground_restitution=0.5, ground_friction=0.3,
-                               drag_damping=0.0))
-    b.add_body(lattice(3, 3, 2, 0.01, (0, 0, 0.002)), spring_Y=3e3)
+    b, v0 = _thrown(kind)
     model = b.finalize(requires_grad=True)
-    assert fitted_contacts(model) == [0, 1]
-    v0 = np.tile(np.float32([0.5, 0.2, -0.6]), (model.num_particles, 1))
+    assert fitted_contacts(model) == fitted
+    fast = b.finalize()
+    st = fast.state()
+    st.v.assign(v0)
+    SpringMassSolver(fast).simulate_frame(st, fast.control())
     w = np.random.default_rng(0).normal(size=(model.num_particles, 3)).astype(np.float32)
 
     def run(coeffs, grad=False):
@@ -166,9 +184,14 @@ def test_taped_gradient_of_ground_contact_parameters_matches_finite_differences(
         tape.reset()
         return value, g
 
-    c0 = np.array([0.5, 0.3, 0.7, 0.3])
+    c0 = model.contact_coeffs.numpy().astype(np.float64)
     _, g = run(c0, grad=True)
-    for i in (0, 1):
+    model.set_contact_coeffs(c0)
+    taped = model.state()
+    taped.v.assign(v0)
+    assert np.array_equal(SpringMassSolver(model).simulate_frame_tape(taped, model.control())[-1].x.numpy(),
+                          st.x.numpy())
+    for i in fitted:
         e = np.zeros(4)
         e[i] = 2e-3
         fd = (run(c0 + e)[0] - run(c0 - e)[0]) / 4e-3

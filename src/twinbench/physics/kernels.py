@@ -295,6 +295,41 @@ def particle_update(
         v_star[tid] = vs
 
 
+@wp.func
+def pair_impulse(
+    x: wp.array(dtype=wp.vec3),
+    v_star: wp.array(dtype=wp.vec3),
+    masses: wp.array(dtype=float),
+    masks: wp.array(dtype=int),
+    collision_dist: float,
+    e: float,
+    mu: float,
+    tid: int,
+    idx: int,
+):
+    """PhysTwin's impulse on particle ``tid`` from candidate ``idx``: (counted, normal part, tangential
+    part); zero and not counted unless the pair is of different masks, closer than the collision
+    distance and approaching."""
+    x1 = x[tid]
+    v1 = v_star[tid]
+    dis = x[idx] - x1
+    dis_len = wp.length(dis)
+    rel_v = v_star[idx] - v1
+    hit = float(0.0)  # noqa: UP018 (Warp needs a typed dynamic variable)
+    j_n = wp.vec3(0.0, 0.0, 0.0)
+    j_t = wp.vec3(0.0, 0.0, 0.0)
+    if masks[idx] != masks[tid] and dis_len < collision_dist and wp.dot(dis, rel_v) < -1.0e-4:
+        hit = 1.0
+        n = dis / wp.max(dis_len, 1e-6)
+        v_n = wp.dot(rel_v, n) * n
+        v_t = rel_v - v_n
+        inv_m = 1.0 / masses[tid] + 1.0 / masses[idx]
+        j_n = -(1.0 + e) * v_n / inv_m
+        a = wp.max(0.0, 1.0 - mu * (1.0 + e) * wp.length(v_n) / wp.max(wp.length(v_t), 1e-6))
+        j_t = (a - 1.0) * v_t / inv_m
+    return hit, j_n, j_t
+
+
 @wp.kernel
 def collide_and_finish(
     x: wp.array(dtype=wp.vec3),
@@ -311,37 +346,70 @@ def collide_and_finish(
     v_out: wp.array(dtype=wp.vec3),
 ):
     """Particle-particle impulses averaged over the counted pairs (PhysTwin), then meshes, ground, x.
-    Thread i serves particle base + i."""
+    Thread i serves particle base + i. (Not differentiable: the loop carries its sums; the taped path
+    uses `pair_impulses` + `apply_impulses`, which add in the same order.)"""
     tid = base + wp.tid()
-    x1 = x[tid]
     v1 = v_star[tid]
     m1 = masses[tid]
-    mask1 = masks[tid]
     valid = float(0.0)  # noqa: UP018 (Warp needs a typed dynamic variable)
     j_sum = wp.vec3(0.0, 0.0, 0.0)
     e = wp.clamp(cp.coeffs[2], 0.0, 1.0)
     mu = wp.clamp(cp.coeffs[3], 0.0, 2.0)
     for k in range(cand_count[tid]):
-        idx = cand[tid, k]
-        x2 = x[idx]
-        v2 = v_star[idx]
-        m2 = masses[idx]
-        dis = x2 - x1
-        dis_len = wp.length(dis)
-        rel_v = v2 - v1
-        if masks[idx] != mask1 and dis_len < collision_dist and wp.dot(dis, rel_v) < -1.0e-4:
+        hit, j_n, j_t = pair_impulse(x, v_star, masses, masks, collision_dist, e, mu, tid, cand[tid, k])
+        if hit > 0.0:
             valid = valid + 1.0
-            n = dis / wp.max(dis_len, 1e-6)
-            v_n = wp.dot(rel_v, n) * n
-            v_t = rel_v - v_n
-            inv_m = 1.0 / m1 + 1.0 / m2
-            j_n = -(1.0 + e) * v_n / inv_m
-            a = wp.max(0.0, 1.0 - mu * (1.0 + e) * wp.length(v_n) / wp.max(wp.length(v_t), 1e-6))
-            j_t = (a - 1.0) * v_t / inv_m
             j_sum = j_sum + j_n + j_t
     if valid > 0.0:
         v1 = v1 - (j_sum / valid) / m1
-    finish_particle(tid, x1, v1, m1, dt, cp, x_out, v_out)
+    finish_particle(tid, x[tid], v1, m1, dt, cp, x_out, v_out)
+
+
+@wp.kernel
+def pair_impulses(
+    x: wp.array(dtype=wp.vec3),
+    v_star: wp.array(dtype=wp.vec3),
+    masses: wp.array(dtype=float),
+    masks: wp.array(dtype=int),
+    collision_dist: float,
+    cand: wp.array2d(dtype=int),
+    cand_count: wp.array(dtype=int),
+    cp: ContactParams,
+    j_sum: wp.array(dtype=wp.vec3),
+    valid: wp.array(dtype=float),
+):
+    """Differentiable form of collide_and_finish's candidate loop, one thread per (particle, candidate):
+    on CPU the threads run candidate-fastest, so each particle's sum grows in the loop's order."""
+    tid, k = wp.tid()
+    if k < cand_count[tid]:
+        e = wp.clamp(cp.coeffs[2], 0.0, 1.0)
+        mu = wp.clamp(cp.coeffs[3], 0.0, 2.0)
+        hit, j_n, j_t = pair_impulse(x, v_star, masses, masks, collision_dist, e, mu, tid, cand[tid, k])
+        if hit > 0.0:
+            wp.atomic_add(valid, tid, 1.0)
+            wp.atomic_add(j_sum, tid, j_n)  # (j_sum + j_n) + j_t, as the loop adds them
+            wp.atomic_add(j_sum, tid, j_t)
+
+
+@wp.kernel
+def apply_impulses(
+    x: wp.array(dtype=wp.vec3),
+    v_star: wp.array(dtype=wp.vec3),
+    masses: wp.array(dtype=float),
+    j_sum: wp.array(dtype=wp.vec3),
+    valid: wp.array(dtype=float),
+    dt: float,
+    cp: ContactParams,
+    x_out: wp.array(dtype=wp.vec3),
+    v_out: wp.array(dtype=wp.vec3),
+):
+    """The averaged impulse of `pair_impulses`, then meshes, ground and the position update."""
+    tid = wp.tid()
+    v1 = v_star[tid]
+    m1 = masses[tid]
+    if valid[tid] > 0.0:
+        v1 = v1 - (j_sum[tid] / valid[tid]) / m1
+    finish_particle(tid, x[tid], v1, m1, dt, cp, x_out, v_out)
 
 
 @wp.kernel(enable_backward=False)

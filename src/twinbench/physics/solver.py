@@ -250,7 +250,16 @@ class SpringMassSolver:
                  [state_in.x, state_in.v, spring_f, m.inc_offsets, m.inc_springs, f, int(not grad),
                   m.masses, self._gravity, float(dt), float(p.drag_damping), int(not collide), self._cp, p0],
                  [v_star, state_out.x, state_out.v], ops)
-        if collide:
+        if collide and grad:  # the differentiable form (same sums in the same order)
+            j_sum = wp.zeros(n, dtype=wp.vec3, device=self.device, requires_grad=True)
+            valid = wp.zeros(n, dtype=float, device=self.device, requires_grad=True)
+            wp.launch(K.pair_impulses, dim=(n, self._cand.shape[1]),
+                      inputs=[state_in.x, v_star, m.masses, m.masks, float(p.collision_dist), self._cand,
+                              self._cand_count, self._cp], outputs=[j_sum, valid], device=self.device)
+            wp.launch(K.apply_impulses, dim=n,
+                      inputs=[state_in.x, v_star, m.masses, j_sum, valid, float(dt), self._cp],
+                      outputs=[state_out.x, state_out.v], device=self.device)
+        elif collide:
             if sync is not None:
                 ops.append(sync)  # impulses read the other part's v_star
             self._go(K.collide_and_finish, p1 - p0,

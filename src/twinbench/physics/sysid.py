@@ -220,8 +220,8 @@ class AdamConfig:
     stable range for the chosen dt"""
     y_max: float = 1e5
     fit_contact: bool = True
-    """also fit the ground's restitution and friction (with the ground on; object-object contact stays
-    with stage 1); off: keep them from stage 1 or as given"""
+    """also fit the contact parameters that act (ground restitution and friction with the ground on,
+    object-object ones with self-collision); off: keep them from stage 1 or as given"""
     contact_lr: float = 0.05
     """Adam step for the contact parameters, in logit space (restitution = sigmoid(u), friction =
     2 sigmoid(u)): bounded, and a step moves a mid-range value by about lr / 4 of its range"""
@@ -522,11 +522,9 @@ CONTACT_MAX = np.array([1.0, 2.0, 1.0, 2.0])  # the kernels clamp restitution to
 
 
 def fitted_contacts(model: SpringMassModel) -> list[int]:
-    """Indices (into CONTACT_NAMES) of the contact parameters stage 2 fits: ground restitution and
-    friction when the ground is on. The object-object ones stay with stage 1: the collision kernel sums
-    impulses over a per-particle candidate loop, which Warp's adjoint does not differentiate (their tape
-    gradient is zero), so only CMA-ES can fit them."""
-    return [0, 1] if model.params.ground else []
+    """Indices (into CONTACT_NAMES) of the contact parameters that act on this model: the ground's with
+    the ground on, the object-object ones with particle collisions (self-collision or several bodies)."""
+    return ([0, 1] if model.params.ground else []) + ([2, 3] if model.particle_collisions else [])
 
 
 def frame_gradient(model: SpringMassModel, solver: SpringMassSolver, state, control, loss: SequenceLoss,
@@ -563,7 +561,7 @@ def stage2_adam(model: SpringMassModel, data: SysIdData, cfg: AdamConfig,
                 weights: LossWeights = LossWeights(), progress: bool = False,
                 log: Callable[[str], None] = print) -> tuple[np.ndarray, list[dict]]:
     """Adam on ``model.log_y`` (finalized with ``requires_grad=True``) and, with ``cfg.fit_contact``, on
-    the ground contact coefficients (``fitted_contacts``, in logit space), one step per training frame.
+    the contact coefficients that act (``fitted_contacts``, in logit space), one step per training frame.
 
     After each epoch the whole sequence is rolled out (fast path) and the parameters with the lowest
     training loss are kept (the validation frames only report). Stops early, keeping the best
