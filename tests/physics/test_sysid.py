@@ -498,3 +498,26 @@ def test_stage2_gradient_on_cuda_matches_cpu():
         solver = SpringMassSolver(model)
         grads.append(frame_gradient(model, solver, st, ctl, SequenceLoss(data), 10, pv, pa)[1])
     np.testing.assert_allclose(grads[1], grads[0], rtol=1e-3, atol=1e-3 * np.abs(grads[0]).max())
+
+
+def test_new_contact_coefficients_reach_a_captured_frame():
+    """set_contact_coeffs between frames changes what an existing solver's captured frame computes: the
+    same as a model built with those values (and model.params follows)."""
+    b, v0 = _thrown("ground")
+    model = b.finalize()
+    solver = SpringMassSolver(model)
+
+    def frame(m, s):
+        st = m.state()
+        st.v.assign(v0)
+        return s.simulate_frame(st, m.control()).x.numpy()
+
+    before = frame(model, solver)  # captures the frame
+    model.set_contact_coeffs([0.1, 1.2, 0.7, 0.3])
+    after = frame(model, solver)
+    assert (model.params.ground_friction, model.params.ground_restitution) == pytest.approx((1.2, 0.1))
+    b2 = type(b)(replace(b.params, ground_restitution=0.1, ground_friction=1.2))
+    b2.add_body(model.x0_np, spring_Y=3e3, springs=model.springs_np, rest_lengths=model.rest_lengths_np)
+    fresh = b2.finalize()
+    assert not np.array_equal(before, after)
+    assert np.array_equal(after, frame(fresh, SpringMassSolver(fresh)))

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 import warp as wp
@@ -279,11 +279,14 @@ class SpringMassModel:
         return ctl
 
     def set_contact_coeffs(self, coeffs) -> None:
-        """Overwrite (ground restitution, ground friction, object restitution, object friction)."""
+        """Overwrite (ground restitution, ground friction, object restitution, object friction), in the
+        kernels' array (existing solvers and captured frames read it) and in ``params``."""
         arr = np.asarray(coeffs, dtype=np.float32)
         if arr.shape != (4,) or not np.all(np.isfinite(arr)):
             raise ValueError(f"contact coefficients must be 4 finite values, got {arr}")
         self.contact_coeffs.assign(arr)
+        names = ("ground_restitution", "ground_friction", "object_restitution", "object_friction")
+        self.params = replace(self.params, **{k: float(v) for k, v in zip(names, arr, strict=True)})
 
     def set_spring_log_y(self, log_y) -> None:
         """Overwrite the per-spring float32 log stiffness (e.g. after system identification)."""
