@@ -6,7 +6,8 @@ push-T, rope routing and toy packing (scripted-expert actions), on CPU and on CU
 Many worlds (`--worlds`, default 1 4 16 64): `fast` push-T as the worlds of one TwinVectorEnv, the
 pusher of world i sweeping a circle from its own grid state; world-steps per second for physics only
 (`Twin.step_worlds`: controllers + one spring-mass frame for all worlds, on every core) and for whole env
-steps with both cameras of every world rendered.
+steps with both cameras of every world rendered; and rendering alone, ms per world, for all worlds'
+cameras in one `Twin.render_worlds` call against one `Twin.render` call per world.
 
 Prints `name value unit` lines (medians over the timed steps, after warm-up steps).
 """
@@ -77,6 +78,16 @@ def bench_worlds(device: str, counts: list[int], steps: int, render_steps: int =
             envs.twin.step_worlds(states, list(actions(k)))
             if k >= 3:
                 physics.append(time.perf_counter() - t0)
+        batched, one_by_one = [], []  # every world's two cameras: one render_worlds call / a call per world
+        for k in range(1 + render_steps):
+            t0 = time.perf_counter()
+            envs.twin.render_worlds(states)
+            t1 = time.perf_counter()
+            for state in states:
+                envs.twin.render(state)
+            if k >= 1:
+                batched.append(t1 - t0)
+                one_by_one.append(time.perf_counter() - t1)
         full = []
         for k in range(1 + render_steps):
             t0 = time.perf_counter()
@@ -85,6 +96,8 @@ def bench_worlds(device: str, counts: list[int], steps: int, render_steps: int =
                 full.append(time.perf_counter() - t0)
         tag = f"pusht_fast_{device.replace(':', '')}_{n}worlds"
         print(f"{tag}_physics_world_steps_per_s {n / np.median(physics):.0f} world-steps/s")
+        print(f"{tag}_render_ms_per_world {1e3 * np.median(batched) / n:.1f} ms")
+        print(f"{tag}_render_ms_per_world_one_call_each {1e3 * np.median(one_by_one) / n:.1f} ms")
         print(f"{tag}_env_world_steps_per_s {n / np.median(full):.1f} world-steps/s")
         print(f"{tag}_threads {envs.twin.solver.threads} threads")
         envs.close()

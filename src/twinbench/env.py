@@ -216,8 +216,9 @@ class TwinEnv(gymnasium.Env):
             raise ValueError(f"action: contains NaN or inf: {a}")
         return np.clip(a, self.action_space.low, self.action_space.high)
 
-    def _end_step(self, error: SimulationDiverged | None):
-        """The step's (obs, reward, terminated, truncated, info) once the twin has advanced."""
+    def _end_step(self, error: SimulationDiverged | None, images: dict | None = None):
+        """The step's (obs, reward, terminated, truncated, info) once the twin has advanced (`images`: the
+        state's renders when the caller made them, as TwinVectorEnv does for all worlds at once)."""
         if error is not None:
             self._status = "sim_error"
             info = {
@@ -229,7 +230,7 @@ class TwinEnv(gymnasium.Env):
             return self._last_obs, 0.0, True, False, info
         hit, metrics = self.rules.frame(self.twin, self.state)
         success = self._success.update(hit)
-        obs = self._observe(metrics)
+        obs = self._observe(metrics, images)
         terminated = success and self.success_rule == "early"
         truncated = self._steps >= self._max_episode_steps and not terminated
         self._done = terminated or truncated
@@ -251,8 +252,8 @@ class TwinEnv(gymnasium.Env):
         frames = [self._frames[v] for v in self.render_views]
         return frames[0] if len(frames) == 1 else np.concatenate(frames, axis=1)
 
-    def _observe(self, metrics: dict) -> dict:
-        outs = self.twin.render(self.state)
+    def _observe(self, metrics: dict, images: dict | None = None) -> dict:
+        outs = self.twin.render(self.state) if images is None else images
         frames = {name: out.rgb_uint8() for name, out in outs.items()}
         self.rules.decorate(frames)
         self._frames = frames
@@ -397,12 +398,17 @@ class TwinVectorEnv(gymnasium.vector.VectorEnv):
                 clipped.append(err)
         moves = [a if isinstance(a, np.ndarray) else None for a in clipped]
         results = self.twin.step_worlds([env.state for env in self.envs], moves)
+        # the worlds that moved and are healthy: every camera of all of them rendered in one call
+        shown = [i for i, r in enumerate(results) if moves[i] is not None and not isinstance(r, SimulationDiverged)]
+        images = dict(zip(shown, self.twin.render_worlds([self.envs[i].state for i in shown]), strict=True))
         out: list = []
-        for env, a, result in zip(self.envs, clipped, results, strict=True):
+        for i, (env, a, result) in enumerate(zip(self.envs, clipped, results, strict=True)):
             if a is None or isinstance(a, Exception):
                 out.append(a)
+            elif isinstance(result, SimulationDiverged):
+                out.append(env._end_step(result))
             else:
-                out.append(env._end_step(result if isinstance(result, SimulationDiverged) else None))
+                out.append(env._end_step(None, images[i]))
         return out
 
     def _batch(self):

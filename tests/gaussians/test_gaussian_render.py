@@ -171,3 +171,25 @@ def test_gsplat_close_to_warp(make_cloud):
     out = render(cloud, cam, backend="gsplat", device="cuda:0")
     # gsplat's footprint is a 3-sigma radius, ours the alpha >= 1/255 ellipse: tiny differences at edges
     assert np.abs(out.rgb - ref.rgb).mean() < 2e-3
+
+
+def test_render_batch_of_several_clouds_and_cameras_equals_each_view_alone(make_cloud, ref_render):
+    """Many worlds' views in one call: dealt over threads, each image the same as rendering it alone."""
+    from twinbench.gaussians.render import render_batch
+
+    clouds = [make_cloud(150, degree=1, anisotropic=True, seed=s, spread=0.3) for s in (7, 8, 9)]
+    cams = [_cam(), _cam(width=40, height=64, eye=(0.2, -1.0, 0.5), fx=50.0)]
+    views = [(c, cam) for c in clouds for cam in cams]  # a host cloud, uploaded once for its two views
+    bg = (0.2, 0.1, 0.0)
+    for threads in (1, 2, 3):
+        outs = render_batch(views, background=bg, threads=threads)
+        assert len(outs) == len(views)
+        for (cloud, cam), out in zip(views, outs, strict=True):
+            alone = render(cloud, cam, background=bg, threads=1)
+            np.testing.assert_array_equal(out.rgb, alone.rgb)
+            np.testing.assert_array_equal(out.depth, alone.depth)
+    _assert_matches(outs[3], ref_render(clouds[1], cams[1], bg))  # and right, not only consistent
+    with pytest.raises(ValueError, match="no views"):
+        render_batch([])
+    with pytest.raises(ValueError, match="Camera objects"):
+        render_batch([(clouds[0], "front")])

@@ -144,6 +144,24 @@ def test_num_worlds_gives_one_state_per_world_and_bad_counts_are_refused(setup):
             build_twin(twin.spec, num_worlds=bad)
 
 
+def test_render_worlds_renders_every_world_in_one_call_as_each_alone(setup):
+    """Worlds at different poses: one batched render gives each world's own images, equal to rendering
+    that world by itself, and the worlds' images differ."""
+    twin, _ = setup
+    many, states = build_twin(twin.spec, num_worlds=3)
+    for k, state in enumerate(states):
+        many.reset(state, None, {"block": planar_pose(0.45, -0.1 + 0.1 * k, 0.3 * k)})
+    together = many.render_worlds(states)
+    assert len(together) == 3 and all(set(d) == set(many.cameras) for d in together)
+    for state, images in zip(states, together, strict=True):
+        for name, out in many.render(state).items():
+            np.testing.assert_array_equal(images[name].rgb, out.rgb)
+            np.testing.assert_array_equal(images[name].depth, out.depth)
+    name = next(iter(many.cameras))
+    assert not np.array_equal(together[0][name].rgb, together[2][name].rgb)
+    assert many.render_worlds([]) == []
+
+
 def test_gripper_latches_on_finger_forces_and_lifts_by_friction():
     """The fingers' mesh contact forces reach the controller, which stops closing at the default
     threshold; the cube then rises with the hand (no pinning)."""

@@ -633,7 +633,28 @@ def render(
     cams = [cameras] if single else list(cameras)
     if not cams:
         raise ValueError("render: `cameras` is empty")
-    for c in cams:
+    outs = render_batch(
+        [(cloud, c) for c in cams], background=background, backend=backend, device=device, threads=threads
+    )
+    return outs[0] if single else outs
+
+
+def render_batch(
+    views: Sequence[tuple[GaussianCloud | DeviceGaussians, Camera]],
+    *,
+    background=(0.0, 0.0, 0.0),
+    backend: str = "auto",
+    device: str | None = None,
+    threads: int | None = None,
+) -> list[RenderOutput]:
+    """Render many (cloud, camera) views in one call, e.g. every camera of every world of a many-world
+    twin -> one RenderOutput per view, in order. Arguments as `render`. On CPU the views are dealt to the
+    threads (each thread renders whole views, every stage in parallel); one view alone is split over the
+    threads by Gaussians and tile rows instead. Each view's pixels are the same as rendering it alone."""
+    views = list(views)
+    if not views:
+        raise ValueError("render: no views to render")
+    for _, c in views:
         if not isinstance(c, Camera):
             raise ValueError(f"render: cameras must be Camera objects, got {type(c).__name__}")
     bg = np.asarray(background, dtype=np.float32).reshape(-1)
@@ -641,30 +662,41 @@ def render(
         raise ValueError(f"render: background must be 3 floats, got {background!r}")
     if backend not in ("auto", "warp", "gsplat"):
         raise ValueError(f"render: backend must be 'auto', 'warp' or 'gsplat', got {backend!r}")
+    first = views[0][0]
     if device is None:
-        device = str(cloud.device) if isinstance(cloud, DeviceGaussians) else "cpu"
+        device = str(first.device) if isinstance(first, DeviceGaussians) else "cpu"
     if backend == "auto":
         backend = "gsplat" if (device.startswith("cuda") and gsplat_available()) else "warp"
+    # views of one cloud go together (gsplat renders them in one call; Warp uploads a host cloud once)
+    clouds: dict[int, tuple[GaussianCloud | DeviceGaussians, list[int]]] = {}
+    for i, (cloud, _) in enumerate(views):
+        clouds.setdefault(id(cloud), (cloud, []))[1].append(i)
+    outs: list = [None] * len(views)
     if backend == "gsplat":
-        if isinstance(cloud, DeviceGaussians) and str(cloud.device) != str(device):
-            raise ValueError(f"render: DeviceGaussians live on {cloud.device}, but device={device!r}")
-        outs = _render_gsplat(cloud, cams, bg, device)
-        return outs[0] if single else outs
-    g = cloud if isinstance(cloud, DeviceGaussians) else cloud.to_device(device)
-    if str(g.device) != str(wp.get_device(device)):
-        raise ValueError(f"render: DeviceGaussians live on {g.device}, but device={device!r}")
+        for cloud, idx in clouds.values():
+            if isinstance(cloud, DeviceGaussians) and str(cloud.device) != str(device):
+                raise ValueError(f"render: DeviceGaussians live on {cloud.device}, but device={device!r}")
+            for i, out in zip(idx, _render_gsplat(cloud, [views[i][1] for i in idx], bg, device), strict=True):
+                outs[i] = out
+        return outs
+    jobs: list[tuple[DeviceGaussians, Camera]] = [None] * len(views)  # type: ignore[list-item]
+    for cloud, idx in clouds.values():
+        g = cloud if isinstance(cloud, DeviceGaussians) else cloud.to_device(device)
+        if str(g.device) != str(wp.get_device(device)):
+            raise ValueError(f"render: DeviceGaussians live on {g.device}, but device={device!r}")
+        for i in idx:
+            jobs[i] = (g, views[i][1])
     threads = max(1, min(8, os.cpu_count() or 1) if threads is None else int(threads))
-    if g.device.is_cpu and threads > 1 and len(cams) > 1:
-        # several cameras on CPU: one camera per thread (every stage runs in parallel, not only kernels)
-        wp.load_module(device=g.device)
-        outs: list = [None] * len(cams)
-        groups = [list(range(len(cams)))[k::threads] for k in range(min(threads, len(cams)))]
+    if jobs[0][0].device.is_cpu and threads > 1 and len(jobs) > 1:
+        # several views on CPU: whole views per thread (every stage runs in parallel, not only kernels)
+        wp.load_module(device=jobs[0][0].device)
 
         def work(idx):
             for i in idx:
-                outs[i] = _render_warp_one(g, cams[i], bg, 1)
+                outs[i] = _render_warp_one(*jobs[i], bg, 1)
 
-        _run_threads([(lambda idx=idx: work(idx)) for idx in groups])
+        _run_threads([(lambda idx=idx: work(idx)) for idx in (list(range(len(jobs)))[k::threads]
+                                                             for k in range(min(threads, len(jobs))))])
     else:
-        outs = [_render_warp_one(g, c, bg, threads) for c in cams]
-    return outs[0] if single else outs
+        outs = [_render_warp_one(g, c, bg, threads) for g, c in jobs]
+    return outs

@@ -9,6 +9,7 @@ velocities, kinematic-mesh targets, controller state, posed Gaussians).
 
     twin, states = build_twin(spec, num_worlds=16)   # one TwinState per world, physics in one launch
     results = twin.step_worlds(states, actions)       # per world: RobotCommand or SimulationDiverged
+    frames = twin.render_worlds(states)               # per world {camera: RenderOutput}, one render call
 
 Worlds: the model holds `num_worlds` independent copies of the objects and tool meshes (world-major),
 so every kernel of a frame runs all worlds in one launch; each world's `TwinState` is a view of world
@@ -30,7 +31,7 @@ import numpy as np
 
 from twinbench.gaussians.camera import Camera
 from twinbench.gaussians.cloud import DeviceGaussians, GaussianCloud
-from twinbench.gaussians.render import RenderOutput, render
+from twinbench.gaussians.render import RenderOutput, render_batch
 from twinbench.gaussians.skinning import LabelRigidPoser, LBSSkinner, bind
 from twinbench.physics import (
     Control,
@@ -485,11 +486,22 @@ class Twin:
 
     def render(self, state: TwinState, cameras: list[str] | None = None) -> dict[str, RenderOutput]:
         """Render the named cameras (default: all) -> {name: RenderOutput (rgb, depth, alpha)}."""
+        return self.render_worlds([state], cameras)[0]
+
+    def render_worlds(self, states: list[TwinState], cameras: list[str] | None = None) -> list[dict]:
+        """Render the named cameras (default: all) of several states (e.g. every world) in one call
+        (`render_batch`: on CPU the views are spread over the cores) -> per state {name: RenderOutput}.
+        Each state's images equal `render(state)`."""
         names = list(self.cameras) if cameras is None else list(cameras)
-        cams = [self.camera(state, n) for n in names]
-        g = self.pose_gaussians(state)
-        outs = render(g, cams, background=self.spec.render_background, device=self.device)
-        return dict(zip(names, outs, strict=True))
+        if not states:
+            return []
+        views = []
+        for state in states:
+            g = self.pose_gaussians(state)
+            views += [(g, self.camera(state, n)) for n in names]
+        outs = render_batch(views, background=self.spec.render_background, device=self.device)
+        k = len(names)
+        return [dict(zip(names, outs[i * k : (i + 1) * k], strict=True)) for i in range(len(states))]
 
 
 def build_twin(
