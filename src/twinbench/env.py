@@ -399,7 +399,9 @@ class TwinVectorEnv(gymnasium.vector.VectorEnv):
         moves = [a if isinstance(a, np.ndarray) else None for a in clipped]
         results = self.twin.step_worlds([env.state for env in self.envs], moves)
         # the worlds that moved and are healthy: every camera of all of them rendered in one call
-        shown = [i for i, r in enumerate(results) if moves[i] is not None and not isinstance(r, SimulationDiverged)]
+        shown = [
+            i for i, r in enumerate(results) if moves[i] is not None and not isinstance(r, SimulationDiverged)
+        ]
         images = dict(zip(shown, self.twin.render_worlds([self.envs[i].state for i in shown]), strict=True))
         out: list = []
         for i, (env, a, result) in enumerate(zip(self.envs, clipped, results, strict=True)):

@@ -676,7 +676,8 @@ def render_batch(
         for cloud, idx in clouds.values():
             if isinstance(cloud, DeviceGaussians) and str(cloud.device) != str(device):
                 raise ValueError(f"render: DeviceGaussians live on {cloud.device}, but device={device!r}")
-            for i, out in zip(idx, _render_gsplat(cloud, [views[i][1] for i in idx], bg, device), strict=True):
+            done = _render_gsplat(cloud, [views[i][1] for i in idx], bg, device)
+            for i, out in zip(idx, done, strict=True):
                 outs[i] = out
         return outs
     jobs: list[tuple[DeviceGaussians, Camera]] = [None] * len(views)  # type: ignore[list-item]
