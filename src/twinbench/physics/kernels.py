@@ -101,6 +101,95 @@ def eval_spring_forces(
     out[s] = f
 
 
+@wp.func
+def add_spring(
+    x: wp.array(dtype=wp.vec3),
+    v: wp.array(dtype=wp.vec3),
+    springs: wp.array(dtype=wp.vec2i),
+    rest_lengths: wp.array(dtype=float),
+    y_eff: wp.array(dtype=float),
+    dashpot: float,
+    ctrl_from: wp.array(dtype=wp.vec3),
+    ctrl_to: wp.array(dtype=wp.vec3),
+    t: float,
+    n: int,
+    s: int,
+    p0: int,
+    p1: int,
+    f: wp.array(dtype=wp.vec3),
+):
+    """Spring s's force added to its ends that are particles of [p0, p1) (a control point is never)."""
+    fs = wp.vec3(0.0, 0.0, 0.0)
+    y = y_eff[s]
+    if y >= 0.0:
+        fs = spring_force(x, v, springs, rest_lengths, y, dashpot, ctrl_from, ctrl_to, t, n, s)
+    i = springs[s][0]
+    j = springs[s][1]
+    if i >= p0 and i < p1:
+        f[i] = f[i] + fs
+    if j >= p0 and j < p1:
+        f[j] = f[j] - fs
+
+
+@wp.kernel(enable_backward=False)
+def scatter_spring_forces(
+    x: wp.array(dtype=wp.vec3),
+    v: wp.array(dtype=wp.vec3),
+    springs: wp.array(dtype=wp.vec2i),
+    rest_lengths: wp.array(dtype=float),
+    y_eff: wp.array(dtype=float),
+    dashpot: float,
+    ctrl_from: wp.array(dtype=wp.vec3),
+    ctrl_to: wp.array(dtype=wp.vec3),
+    t: float,
+    n: int,
+    p0: int,
+    p1: int,
+    s0: int,
+    s1: int,
+    s2: int,
+    s3: int,
+    f: wp.array(dtype=wp.vec3),
+):
+    """CPU, one thread: f = 0 on particles [p0, p1), then each spring of [s0, s1) and [s2, s3) added to its
+    ends in spring order: the per-particle gather's sums, without writing and re-reading a per-spring
+    array (the springs must touch only particles of [p0, p1))."""
+    for p in range(p0, p1):
+        f[p] = wp.vec3(0.0, 0.0, 0.0)
+    for s in range(s0, s1):
+        add_spring(x, v, springs, rest_lengths, y_eff, dashpot, ctrl_from, ctrl_to, t, n, s, p0, p1, f)
+    for s in range(s2, s3):
+        add_spring(x, v, springs, rest_lengths, y_eff, dashpot, ctrl_from, ctrl_to, t, n, s, p0, p1, f)
+
+
+@wp.kernel(enable_backward=False)
+def scatter_spring_list(
+    x: wp.array(dtype=wp.vec3),
+    v: wp.array(dtype=wp.vec3),
+    springs: wp.array(dtype=wp.vec2i),
+    rest_lengths: wp.array(dtype=float),
+    y_eff: wp.array(dtype=float),
+    dashpot: float,
+    ctrl_from: wp.array(dtype=wp.vec3),
+    ctrl_to: wp.array(dtype=wp.vec3),
+    t: float,
+    n: int,
+    p0: int,
+    p1: int,
+    touching: wp.array(dtype=int),
+    f: wp.array(dtype=wp.vec3),
+):
+    """`scatter_spring_forces` for one part of a split frame, one thread: the springs `touching` (ascending)
+    the part's particles [p0, p1), each added to its ends in the part, so that two processes sum their
+    particles' forces in spring order without sharing per-spring forces (a spring across the cut is
+    evaluated by both)."""
+    for p in range(p0, p1):
+        f[p] = wp.vec3(0.0, 0.0, 0.0)
+    for k in range(touching.shape[0]):
+        s = touching[k]
+        add_spring(x, v, springs, rest_lengths, y_eff, dashpot, ctrl_from, ctrl_to, t, n, s, p0, p1, f)
+
+
 @wp.kernel
 def accumulate_spring_forces(
     x: wp.array(dtype=wp.vec3),

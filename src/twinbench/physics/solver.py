@@ -46,6 +46,7 @@ class _Worlds:
     springs: tuple[tuple[int, int], ...]  # object springs, then control springs (merged when adjacent)
     kin_vertices: tuple[int, int]
     kinematic: tuple[int, ...]  # kinematic mesh ids
+    touching: wp.array | None = None  # a split frame's part: ascending ids of the springs touching it
 
 
 def _worlds(model: SpringMassModel, w0: int, w1: int) -> _Worlds:
@@ -89,9 +90,10 @@ class SpringMassSolver:
     """Advances a :class:`SpringMassModel`; one :meth:`step` is one substep, :meth:`simulate_frame`
     all ``params.substeps`` of one frame (graph-captured when possible).
 
-    Per substep: spring + dashpot forces (gathered per particle in spring order, or PhysTwin's
-    atomics on the differentiable path), gravity and drag, particle-particle impulses (candidates
-    rebuilt once per frame), mesh contacts (relative to the mesh velocity), ground with time of impact.
+    Per substep: spring + dashpot forces (summed per particle in spring order: scattered in one pass on
+    CPU, gathered per particle on CUDA; PhysTwin's atomics on the differentiable path), gravity and drag,
+    particle-particle impulses (candidates rebuilt once per frame), mesh contacts (relative to the mesh
+    velocity), ground with time of impact.
     """
 
     def __init__(self, model: SpringMassModel, *, use_graph: bool = True, max_speed: float = 100.0,
@@ -108,6 +110,9 @@ class SpringMassSolver:
         self._v_star = wp.zeros(n, dtype=wp.vec3, device=dev)
         self._gravity = wp.vec3(*[float(g) for g in p.gravity])
         self._collide = model.particle_collisions  # fixed topology: decided once, not per substep
+        # CPU: spring forces scattered to their ends in one sequential pass per thread or process (same sums,
+        # same order as the per-particle gather that the parallel CUDA launch uses)
+        self._scatter = str(dev).startswith("cpu")
         width = p.max_collision_candidates if self._collide else 1
         self._cand = wp.zeros((n, width), dtype=int, device=dev)
         self._cand_count = wp.zeros(n, dtype=int, device=dev)
@@ -237,17 +242,28 @@ class SpringMassSolver:
                               float(p.spring_Y_min), float(p.spring_Y_max), *tail],
                       outputs=[f], device=self.device)
             v_star = wp.zeros(n, dtype=wp.vec3, device=self.device, requires_grad=True)
+        elif self._scatter:
+            # CPU, this thread owns its particles: one pass adds each spring to its ends in spring order
+            f = self._f
+            v_star = self._v_star
+            head = [state_in.x, state_in.v, m.springs, m.rest_lengths, self._y_eff, *tail, p0, p1]
+            if wr.touching is not None:
+                self._go(K.scatter_spring_list, 1, [*head, wr.touching], [f], ops)
+            else:
+                r = [*wr.springs, (0, 0), (0, 0)]
+                self._go(K.scatter_spring_forces, 1, [*head, r[0][0], r[0][1], r[1][0], r[1][1]], [f], ops)
         else:
             f = self._f
             v_star = self._v_star
             for a, b in wr.springs:
                 inputs = [state_in.x, state_in.v, m.springs[a:b], m.rest_lengths[a:b], self._y_eff[a:b]]
                 self._go(K.eval_spring_forces, b - a, [*inputs, *tail], [spring_f[a:b]], ops)
-        if sync is not None:
+        gather = not grad and not self._scatter
+        if sync is not None and gather:
             ops.append(sync)  # the gather reads the other part's springs
         collide = self._collide
         self._go(K.particle_update, p1 - p0,
-                 [state_in.x, state_in.v, spring_f, m.inc_offsets, m.inc_springs, f, int(not grad),
+                 [state_in.x, state_in.v, spring_f, m.inc_offsets, m.inc_springs, f, int(gather),
                   m.masses, self._gravity, float(dt), float(p.drag_damping), int(not collide), self._cp, p0],
                  [v_star, state_out.x, state_out.v], ops)
         if collide and grad:  # the differentiable form (same sums in the same order)

@@ -2,14 +2,15 @@
 
 Warp runs a CPU kernel on one core, and handing work between Python threads costs more (tens of us per
 hand-off, the GIL) than half of a substep's kernel saves. So a frame is split between this process and a
-spawned helper process instead: the arrays the substeps write (particle buffers, spring forces, collision
-candidates, per-particle contact forces) and the frame's controls live in one shared file mapping; each
-process replays its own recorded launches (particles [0, n/2) and springs [0, S/2) here, the rest there)
-and the two meet at spin barriers on shared counters (a few us) wherever a stage reads what the other half
-wrote. Each array element is written by exactly one process with the same arithmetic, and the mesh contact
-forces are added in particle order by `reduce_mesh_forces`, so a split frame is bit-identical to a frame on
-one core. Between frames the helper blocks on a pipe (no spinning). If the helper dies, the frame is run
-on one core and the solver stays there.
+spawned helper process instead: the arrays the substeps write (particle buffers, collision candidates,
+per-particle contact forces) and the frame's controls live in one shared file mapping; each process
+replays its own recorded launches (particles [0, n/2) here, the rest there; each sums the forces of the
+springs touching its particles in spring order, so a spring across the cut is evaluated by both) and the
+two meet at spin barriers on shared counters (a few us) wherever a stage reads what the other half wrote.
+Each array element is written by exactly one process with the same arithmetic, and the mesh contact forces
+are added in particle order by `reduce_mesh_forces`, so a split frame is bit-identical to a frame on one
+core. Between frames the helper blocks on a pipe (no spinning). If the helper dies, the frame is run on
+one core and the solver stays there.
 
 Spin barriers rely on x86's ordered stores (TSO): the split is only used on x86-64.
 """
@@ -93,7 +94,7 @@ def _specs(model: SpringMassModel, cand_width: int) -> dict:
     f32, i32 = np.float32, np.int32
     return {
         "xa": ((n, 3), f32), "va": ((n, 3), f32), "xb": ((n, 3), f32), "vb": ((n, 3), f32),
-        "spring_f": ((s, 3), f32), "y_eff": ((s,), f32), "v_star": ((n, 3), f32),
+        "y_eff": ((s,), f32), "v_star": ((n, 3), f32),
         "cand": ((n, cand_width), i32), "cand_count": ((n,), i32),
         "ctrl_from": ((model.num_control_points, 3), f32), "ctrl_to": ((model.num_control_points, 3), f32),
         "kin_from": ((kv, 3), f32), "kin_to": ((kv, 3), f32),
@@ -107,7 +108,6 @@ def _share(solver, shared: SharedArrays) -> Control:
     v3 = wp.vec3
     solver._buf = (State(shared.wp("xa", v3), shared.wp("va", v3)),
                    State(shared.wp("xb", v3), shared.wp("vb", v3)))
-    solver._spring_f = shared.wp("spring_f", v3)
     solver._y_eff = shared.wp("y_eff", float)
     solver._v_star = shared.wp("v_star", v3)
     solver._cand = shared.wp("cand", int)
@@ -152,7 +152,10 @@ def _half(model: SpringMassModel, second: bool, parts) -> object:
     kin = tuple(i for i, m in enumerate(model.meshes) if m.kinematic)
     kv = (0, int(model.kin_points.shape[0]))
     springs = (((hs, s),) if second else ((0, hs),)) if s else ()
-    return parts(0, 0, (h, n) if second else (0, h), springs, kv, kin)
+    p0, p1 = (h, n) if second else (0, h)
+    ends = model.springs_np
+    touching = np.flatnonzero(((ends >= p0) & (ends < p1)).any(axis=1)).astype(np.int32)
+    return parts(0, 0, (p0, p1), springs, kv, kin, wp.array(touching, dtype=int, device=model.device))
 
 
 class _Barrier:
