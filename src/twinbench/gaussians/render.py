@@ -105,8 +105,10 @@ def _sh_colour(sh: wp.array2d(dtype=wp.vec3), i: int, k: int, d: wp.vec3):
     return wp.vec3(wp.max(c[0], 0.0), wp.max(c[1], 0.0), wp.max(c[2], 0.0))
 
 
-@wp.kernel
-def _preprocess(
+@wp.func
+def _project(
+    i: int,
+    out: int,
     means: wp.array(dtype=wp.vec3),
     quats: wp.array(dtype=wp.vec4),
     scales: wp.array(dtype=wp.vec3),
@@ -127,16 +129,14 @@ def _preprocess(
     lim_x_pos: float,
     lim_y_neg: float,
     lim_y_pos: float,
-    offset: int,
-    # outputs
     record: wp.array(dtype=vec16),
     depth: wp.array(dtype=wp.float32),
     rect: wp.array(dtype=wp.vec4i),
     n_tiles: wp.array(dtype=wp.int32),
 ):
-    i = wp.tid() + offset
-    n_tiles[i] = 0
-    depth[i] = 3.0e38
+    """Project Gaussian `i` of the cloud into record `out`: packed record, depth, tile rectangle, tiles."""
+    n_tiles[out] = 0
+    depth[out] = 3.0e38
     p = rot_wc * means[i] + t_wc
     z = p[2]
     o = opacities[i]
@@ -193,10 +193,106 @@ def _preprocess(
     rec[11] = o
     rec[12] = d2max
     rec[13] = det / c
-    record[i] = rec
-    depth[i] = z
-    rect[i] = wp.vec4i(tx0, ty0, tx1, ty1)
-    n_tiles[i] = (tx1 - tx0 + 1) * (ty1 - ty0 + 1)
+    record[out] = rec
+    depth[out] = z
+    rect[out] = wp.vec4i(tx0, ty0, tx1, ty1)
+    n_tiles[out] = (tx1 - tx0 + 1) * (ty1 - ty0 + 1)
+
+
+@wp.kernel
+def _preprocess(
+    means: wp.array(dtype=wp.vec3),
+    quats: wp.array(dtype=wp.vec4),
+    scales: wp.array(dtype=wp.vec3),
+    opacities: wp.array(dtype=wp.float32),
+    sh: wp.array2d(dtype=wp.vec3),
+    sh_k: int,
+    rot_wc: wp.mat33,
+    t_wc: wp.vec3,
+    cam_pos: wp.vec3,
+    fx: float,
+    fy: float,
+    cx: float,
+    cy: float,
+    width: int,
+    height: int,
+    near: float,
+    lim_x_neg: float,
+    lim_x_pos: float,
+    lim_y_neg: float,
+    lim_y_pos: float,
+    offset: int,
+    # outputs
+    record: wp.array(dtype=vec16),
+    depth: wp.array(dtype=wp.float32),
+    rect: wp.array(dtype=wp.vec4i),
+    n_tiles: wp.array(dtype=wp.int32),
+):
+    i = wp.tid() + offset
+    _project(i, i, means, quats, scales, opacities, sh, sh_k, rot_wc, t_wc, cam_pos, fx, fy, cx, cy, width,
+             height, near, lim_x_neg, lim_x_pos, lim_y_neg, lim_y_pos, record, depth, rect, n_tiles)
+
+
+@wp.struct
+class _View:
+    """One view of a batch: its camera, and where its Gaussians, records, tiles and pixels start."""
+
+    rot_wc: wp.mat33
+    t_wc: wp.vec3
+    cam_pos: wp.vec3
+    fx: float
+    fy: float
+    cx: float
+    cy: float
+    width: int
+    height: int
+    lim: wp.vec4  # Jacobian clamp: x below, x above, y below, y above (tan units)
+    src: int  # first Gaussian of the view's cloud in the batch's cloud
+    item: int  # first record of the view (records: one per Gaussian per view)
+    tile: int  # first tile of the view
+    tiles_x: int
+    pixel: int  # first pixel of the view's image in the batch's images
+    background: wp.vec3
+
+
+@wp.func
+def _view_of(views: wp.array(dtype=_View), k: int, field: int):
+    """The last view whose first record (field 0) or first tile (field 1) is <= k (binary search)."""
+    lo = int(0)  # noqa: UP018 (a Warp dynamic variable)
+    hi = views.shape[0] - 1
+    while lo < hi:
+        mid = (lo + hi + 1) // 2
+        start = views[mid].item
+        if field == 1:
+            start = views[mid].tile
+        if start <= k:
+            lo = mid
+        else:
+            hi = mid - 1
+    return lo
+
+
+@wp.kernel
+def _preprocess_batch(
+    means: wp.array(dtype=wp.vec3),
+    quats: wp.array(dtype=wp.vec4),
+    scales: wp.array(dtype=wp.vec3),
+    opacities: wp.array(dtype=wp.float32),
+    sh: wp.array2d(dtype=wp.vec3),
+    sh_k: int,
+    views: wp.array(dtype=_View),
+    near: float,
+    record: wp.array(dtype=vec16),
+    depth: wp.array(dtype=wp.float32),
+    rect: wp.array(dtype=wp.vec4i),
+    n_tiles: wp.array(dtype=wp.int32),
+):
+    """Record k: Gaussian k - item of its view's cloud, seen by that view."""
+    k = wp.tid()
+    vw = views[_view_of(views, k, 0)]
+    _project(vw.src + k - vw.item, k, means, quats, scales, opacities, sh, sh_k, vw.rot_wc, vw.t_wc,
+             vw.cam_pos, vw.fx, vw.fy, vw.cx, vw.cy, vw.width, vw.height, near, vw.lim[0], vw.lim[1],
+             vw.lim[2], vw.lim[3], record, depth, rect, n_tiles)
 
 
 @wp.kernel
@@ -220,6 +316,31 @@ def _emit_pairs(
     for ty in range(rc[1], rc[3] + 1):
         for tx in range(rc[0], rc[2] + 1):
             keys[n] = ty * tiles_x + tx
+            values[n] = g
+            n += 1
+
+
+@wp.kernel
+def _emit_pairs_batch(
+    order: wp.array(dtype=wp.int32),
+    offsets: wp.array(dtype=wp.int32),
+    rect: wp.array(dtype=wp.vec4i),
+    n_tiles: wp.array(dtype=wp.int32),
+    views: wp.array(dtype=_View),
+    keys: wp.array(dtype=wp.int32),
+    values: wp.array(dtype=wp.int32),
+):
+    """`_emit_pairs` over the records of all views: tile ids are the batch's (view's first tile + tile)."""
+    r = wp.tid()
+    g = order[r]
+    if n_tiles[g] == 0:
+        return
+    vw = views[_view_of(views, g, 0)]
+    n = offsets[r] - n_tiles[g]
+    rc = rect[g]
+    for ty in range(rc[1], rc[3] + 1):
+        for tx in range(rc[0], rc[2] + 1):
+            keys[n] = vw.tile + ty * vw.tiles_x + tx
             values[n] = g
             n += 1
 
@@ -269,32 +390,33 @@ def _gather_records(
     out[n] = record[values[n]]
 
 
-@wp.kernel
-def _rasterise(
-    tile_list: wp.array(dtype=wp.int32),
+@wp.func
+def _rasterise_tile(
+    tile: int,
+    local: int,
     ranges: wp.array(dtype=wp.vec2i),
     record: wp.array(dtype=vec16),
     width: int,
     height: int,
     tiles_x: int,
     background: wp.vec3,
+    pixel0: int,
     out_rgb: wp.array(dtype=wp.vec3),
     out_depth: wp.array(dtype=wp.float32),
     out_t: wp.array(dtype=wp.float32),
     row_done: wp.array(dtype=wp.int32),
 ):
-    """One thread per tile, Gaussian-major: each Gaussian (records in pair order, by depth within the
-    tile) updates the pixels of its ellipse in the tile."""
-    tile = tile_list[wp.tid()]
-    x0 = (tile % tiles_x) * 16
-    y0 = (tile / tiles_x) * 16
+    """Tile `tile` (the image's tile `local`; pixels from `pixel0`), Gaussian-major: each Gaussian
+    (records in pair order, by depth within the tile) updates the pixels of its ellipse in the tile."""
+    x0 = (local % tiles_x) * 16
+    y0 = (local / tiles_x) * 16
     x1 = wp.min(x0 + 16, width)
     y1 = wp.min(y0 + 16, height)
     for y in range(y0, y1):
         for x in range(x0, x1):
-            out_rgb[y * width + x] = wp.vec3(0.0, 0.0, 0.0)
-            out_depth[y * width + x] = 0.0
-            out_t[y * width + x] = 1.0
+            out_rgb[pixel0 + y * width + x] = wp.vec3(0.0, 0.0, 0.0)
+            out_depth[pixel0 + y * width + x] = 0.0
+            out_t[pixel0 + y * width + x] = 1.0
     # row_done[16 tile + r]: bit j set once pixel (x0 + j, y0 + r) stopped (transmittance < 1e-4);
     # spans whose pixels have all stopped are skipped without visiting them
     for r in range(16):
@@ -334,7 +456,7 @@ def _rasterise(
                 sx0 += 1
             while ((done_bits >> (sx1 - x0)) & 1) == 1:
                 sx1 -= 1
-            row = y * width
+            row = pixel0 + y * width
             # d^2 along the row, updated incrementally: d2(x + 1) = d2(x) + step, step += 2 a
             dx = float(sx0) + 0.5 - m[0]
             d2 = cn[0] * dx * dx + 2.0 * cn[1] * dx * dy + cn[2] * dy * dy
@@ -364,7 +486,7 @@ def _rasterise(
             break
     for y in range(y0, y1):
         for x in range(x0, x1):
-            p = y * width + x
+            p = pixel0 + y * width + x
             t = wp.abs(out_t[p])
             a = 1.0 - t
             c = out_rgb[p] + t * background
@@ -372,6 +494,43 @@ def _rasterise(
             if a > 0.0:
                 out_depth[p] = out_depth[p] / a
             out_t[p] = a
+
+
+@wp.kernel
+def _rasterise(
+    tile_list: wp.array(dtype=wp.int32),
+    ranges: wp.array(dtype=wp.vec2i),
+    record: wp.array(dtype=vec16),
+    width: int,
+    height: int,
+    tiles_x: int,
+    background: wp.vec3,
+    out_rgb: wp.array(dtype=wp.vec3),
+    out_depth: wp.array(dtype=wp.float32),
+    out_t: wp.array(dtype=wp.float32),
+    row_done: wp.array(dtype=wp.int32),
+):
+    """One thread per tile of `tile_list`."""
+    tile = tile_list[wp.tid()]
+    _rasterise_tile(tile, tile, ranges, record, width, height, tiles_x, background, 0, out_rgb, out_depth,
+                    out_t, row_done)
+
+
+@wp.kernel
+def _rasterise_batch(
+    ranges: wp.array(dtype=wp.vec2i),
+    record: wp.array(dtype=vec16),
+    views: wp.array(dtype=_View),
+    out_rgb: wp.array(dtype=wp.vec3),
+    out_depth: wp.array(dtype=wp.float32),
+    out_t: wp.array(dtype=wp.float32),
+    row_done: wp.array(dtype=wp.int32),
+):
+    """One thread per tile of every view of the batch."""
+    tile = wp.tid()
+    vw = views[_view_of(views, tile, 1)]
+    _rasterise_tile(tile, tile - vw.tile, ranges, record, vw.width, vw.height, vw.tiles_x, vw.background,
+                    vw.pixel, out_rgb, out_depth, out_t, row_done)
 
 
 # ----- Warp backend ---------------------------------------------------------------------------------
@@ -535,6 +694,83 @@ def _render_warp_one(
     )
 
 
+def _render_warp_batch(jobs: list[tuple[DeviceGaussians, Camera]], background) -> list[RenderOutput]:
+    """Every view of `jobs` in one launch per stage (render_batch's path on CUDA; it runs on CPU too):
+    the views' clouds in one buffer, a record per (view, Gaussian), one depth sort, pairs keyed by the
+    batch's tile ids (view after view), one stable tile sort, one rasterisation over every view's tiles.
+    Each image equals the view rendered alone with the same (radix) sorts."""
+    device = jobs[0][0].device
+    starts: dict[int, int] = {}
+    clouds: list[DeviceGaussians] = []
+    for g, _ in jobs:
+        if id(g) not in starts:
+            starts[id(g)] = sum(len(c) for c in clouds)
+            clouds.append(g)
+    cloud = clouds[0] if len(clouds) == 1 else DeviceGaussians.concatenate(clouds)
+    views, shapes = [], []
+    item = tile = pixel = 0
+    for g, cam in jobs:
+        w, h = cam.width, cam.height
+        w2c = cam.world_to_cam
+        tan_x, tan_y = 0.5 * w / cam.fx, 0.5 * h / cam.fy
+        v = _View()
+        v.rot_wc = wp.mat33(w2c[:3, :3].astype(np.float32))
+        v.t_wc = wp.vec3(w2c[:3, 3].astype(np.float32))
+        v.cam_pos = wp.vec3(cam.position.astype(np.float32))
+        v.fx, v.fy, v.cx, v.cy = float(cam.fx), float(cam.fy), float(cam.cx), float(cam.cy)
+        v.width, v.height = w, h
+        v.lim = wp.vec4(
+            float(cam.cx / cam.fx + 0.3 * tan_x), float((w - cam.cx) / cam.fx + 0.3 * tan_x),
+            float(cam.cy / cam.fy + 0.3 * tan_y), float((h - cam.cy) / cam.fy + 0.3 * tan_y),
+        )  # fmt: skip
+        tiles_x, tiles_y = (w + TILE - 1) // TILE, (h + TILE - 1) // TILE
+        v.src, v.item, v.tile, v.tiles_x, v.pixel = starts[id(g)], item, tile, tiles_x, pixel
+        v.background = wp.vec3(*[float(c) for c in background])
+        views.append(v)
+        shapes.append((pixel, h, w))
+        item, tile, pixel = item + len(g), tile + tiles_x * tiles_y, pixel + w * h
+    vw = wp.array(views, dtype=_View, device=device)
+    n = item
+    ws = _Workspace(n, device)
+    inputs = [cloud.means, cloud.quats, cloud.scales, cloud.opacities, cloud.sh, cloud.sh.shape[1], vw, NEAR]
+    wp.launch(_preprocess_batch, dim=n, inputs=inputs, outputs=[ws.record, ws.depth, ws.rect, ws.n_tiles],
+              device=device)
+    dkeys = wp.empty(2 * n, dtype=wp.float32, device=device)
+    order = wp.empty(2 * n, dtype=wp.int32, device=device)
+    wp.launch(_init_depth_sort, dim=n, inputs=[ws.depth], outputs=[dkeys, order], device=device)
+    wp.utils.radix_sort_pairs(dkeys, order, n)
+    counts = wp.empty(n, dtype=wp.int32, device=device)
+    wp.launch(_gather_counts, dim=n, inputs=[order, ws.n_tiles], outputs=[counts], device=device)
+    offsets = wp.empty(n, dtype=wp.int32, device=device)
+    wp.utils.array_scan(counts, offsets, inclusive=True)
+    total = int(offsets.numpy()[-1]) if n else 0  # the one device -> host wait before the images
+    if total < 0:  # the int32 scan overflowed
+        raise ValueError("render: the views' Gaussian-tile pairs exceed int32; render fewer views per call")
+    keys = wp.empty(max(2 * total, 2), dtype=wp.int32, device=device)
+    values = wp.empty(max(2 * total, 2), dtype=wp.int32, device=device)
+    ranges = wp.zeros(tile, dtype=wp.vec2i, device=device)
+    pair_records = wp.empty(max(total, 1), dtype=vec16, device=device)
+    if total:
+        wp.launch(_emit_pairs_batch, dim=n, inputs=[order, offsets, ws.rect, ws.n_tiles, vw],
+                  outputs=[keys, values], device=device)
+        wp.utils.radix_sort_pairs(keys, values, total)
+        wp.launch(_tile_ranges, dim=total, inputs=[keys, total], outputs=[ranges], device=device)
+        wp.launch(_gather_records, dim=total, inputs=[values, ws.record, 0], outputs=[pair_records],
+                  device=device)
+    out_rgb = wp.empty(pixel, dtype=wp.vec3, device=device)
+    out_depth = wp.empty(pixel, dtype=wp.float32, device=device)
+    out_t = wp.empty(pixel, dtype=wp.float32, device=device)
+    wp.launch(_rasterise_batch, dim=tile, inputs=[ranges, pair_records, vw],
+              outputs=[out_rgb, out_depth, out_t, wp.empty(tile * 16, dtype=wp.int32, device=device)],
+              device=device)  # fmt: skip
+    rgb, depth, alpha = out_rgb.numpy(), out_depth.numpy(), out_t.numpy()
+    return [
+        RenderOutput(rgb=rgb[p : p + h * w].reshape(h, w, 3), depth=depth[p : p + h * w].reshape(h, w),
+                     alpha=alpha[p : p + h * w].reshape(h, w))
+        for p, h, w in shapes
+    ]  # fmt: skip
+
+
 # ----- gsplat backend -------------------------------------------------------------------------------
 def gsplat_available() -> bool:
     try:
@@ -648,9 +884,10 @@ def render_batch(
     threads: int | None = None,
 ) -> list[RenderOutput]:
     """Render many (cloud, camera) views in one call, e.g. every camera of every world of a many-world
-    twin -> one RenderOutput per view, in order. Arguments as `render`. On CPU the views are dealt to the
-    threads (each thread renders whole views, every stage in parallel); one view alone is split over the
-    threads by Gaussians and tile rows instead. Each view's pixels are the same as rendering it alone."""
+    twin -> one RenderOutput per view, in order. Arguments as `render`. On CUDA (Warp) every stage runs
+    once for all views (`_render_warp_batch`); on CPU the views are dealt to the threads (each thread
+    renders whole views, every stage in parallel), and one view alone is split over the threads by
+    Gaussians and tile rows instead. Each view's pixels are the same as rendering it alone."""
     views = list(views)
     if not views:
         raise ValueError("render: no views to render")
@@ -688,6 +925,8 @@ def render_batch(
         for i in idx:
             jobs[i] = (g, views[i][1])
     threads = max(1, min(8, os.cpu_count() or 1) if threads is None else int(threads))
+    if not jobs[0][0].device.is_cpu and len(jobs) > 1:
+        return _render_warp_batch(jobs, bg)  # one launch per stage for every view
     if jobs[0][0].device.is_cpu and threads > 1 and len(jobs) > 1:
         # several views on CPU: whole views per thread (every stage runs in parallel, not only kernels)
         wp.load_module(device=jobs[0][0].device)
