@@ -37,6 +37,20 @@ def end_velocity(v: wp.array(dtype=wp.vec3), idx: int, n: int):
 
 
 @wp.func
+def spring_force_between(
+    x1: wp.vec3, x2: wp.vec3, v1: wp.vec3, v2: wp.vec3, rest: float, y: float, dashpot: float
+):
+    """Spring + dashpot force on the first end (PhysTwin's expressions)."""
+    dis = x2 - x1
+    dis_len = wp.length(dis)
+    d = dis / wp.max(dis_len, 1e-6)
+    elastic = y * (dis_len / rest - 1.0) * d
+    v_rel = wp.dot(v2 - v1, d)
+    damp = dashpot * v_rel * d
+    return elastic + damp
+
+
+@wp.func
 def spring_force(
     x: wp.array(dtype=wp.vec3),
     v: wp.array(dtype=wp.vec3),
@@ -52,30 +66,50 @@ def spring_force(
 ):
     i = springs[s][0]
     j = springs[s][1]
-    x1 = end_position(x, ctrl_from, ctrl_to, t, i, n)
-    x2 = end_position(x, ctrl_from, ctrl_to, t, j, n)
-    v1 = end_velocity(v, i, n)
-    v2 = end_velocity(v, j, n)
-    dis = x2 - x1
-    dis_len = wp.length(dis)
-    d = dis / wp.max(dis_len, 1e-6)
-    elastic = y * (dis_len / rest_lengths[s] - 1.0) * d
-    v_rel = wp.dot(v2 - v1, d)
-    damp = dashpot * v_rel * d
-    return elastic + damp
+    return spring_force_between(
+        end_position(x, ctrl_from, ctrl_to, t, i, n), end_position(x, ctrl_from, ctrl_to, t, j, n),
+        end_velocity(v, i, n), end_velocity(v, j, n), rest_lengths[s], y, dashpot,
+    )
 
 
 @wp.kernel
 def effective_stiffness(
-    log_y: wp.array(dtype=float), y_min: float, y_max: float, y_eff: wp.array(dtype=float)
+    log_y: wp.array(dtype=float),
+    rest_lengths: wp.array(dtype=float),
+    y_min: float,
+    y_max: float,
+    ry: wp.array(dtype=wp.vec2),
 ):
-    """clamp(exp(log Y)) per spring, or -1 for an inactive spring (exp(log Y) <= y_min)."""
+    """Per spring (rest length, clamp(exp(log Y))), the stiffness -1 for an inactive spring
+    (exp(log Y) <= y_min)."""
     s = wp.tid()
     e = wp.exp(log_y[s])
     y = -1.0
     if e > y_min:
         y = wp.clamp(e, y_min, y_max)
-    y_eff[s] = y
+    ry[s] = wp.vec2(rest_lengths[s], y)
+
+
+@wp.func
+def spring_of(
+    x: wp.array(dtype=wp.vec3),
+    v: wp.array(dtype=wp.vec3),
+    e: wp.vec2i,
+    r: wp.vec2,
+    dashpot: float,
+    ctrl_from: wp.array(dtype=wp.vec3),
+    ctrl_to: wp.array(dtype=wp.vec3),
+    t: float,
+    n: int,
+):
+    """Force on the first end of the spring with ends `e` and (rest length, stiffness) `r` (0 if inactive)."""
+    f = wp.vec3(0.0, 0.0, 0.0)
+    if r[1] >= 0.0:
+        f = spring_force_between(
+            end_position(x, ctrl_from, ctrl_to, t, e[0], n), end_position(x, ctrl_from, ctrl_to, t, e[1], n),
+            end_velocity(v, e[0], n), end_velocity(v, e[1], n), r[0], r[1], dashpot,
+        )
+    return f
 
 
 @wp.kernel
@@ -83,8 +117,7 @@ def eval_spring_forces(
     x: wp.array(dtype=wp.vec3),
     v: wp.array(dtype=wp.vec3),
     springs: wp.array(dtype=wp.vec2i),
-    rest_lengths: wp.array(dtype=float),
-    y_eff: wp.array(dtype=float),
+    ry: wp.array(dtype=wp.vec2),
     dashpot: float,
     ctrl_from: wp.array(dtype=wp.vec3),
     ctrl_to: wp.array(dtype=wp.vec3),
@@ -92,52 +125,53 @@ def eval_spring_forces(
     n: int,
     out: wp.array(dtype=wp.vec3),
 ):
-    """Per-spring force on the first end (the second end gets its negative)."""
+    """Per-spring force on the first end (the second end gets its negative), for the per-particle gather."""
     s = wp.tid()
-    f = wp.vec3(0.0, 0.0, 0.0)
-    y = y_eff[s]
-    if y >= 0.0:
-        f = spring_force(x, v, springs, rest_lengths, y, dashpot, ctrl_from, ctrl_to, t, n, s)
-    out[s] = f
+    out[s] = spring_of(x, v, springs[s], ry[s], dashpot, ctrl_from, ctrl_to, t, n)
 
 
 @wp.func
-def add_spring(
+def add_to_ends(f: wp.array(dtype=wp.vec3), e: wp.vec2i, fs: wp.vec3, p0: int, p1: int):
+    """+fs to the first end, -fs to the second, for the ends that are particles of [p0, p1)."""
+    if e[0] >= p0 and e[0] < p1:
+        f[e[0]] = f[e[0]] + fs
+    if e[1] >= p0 and e[1] < p1:
+        f[e[1]] = f[e[1]] - fs
+
+
+@wp.kernel(enable_backward=False)
+def scatter_object_springs(
     x: wp.array(dtype=wp.vec3),
     v: wp.array(dtype=wp.vec3),
     springs: wp.array(dtype=wp.vec2i),
-    rest_lengths: wp.array(dtype=float),
-    y_eff: wp.array(dtype=float),
+    ry: wp.array(dtype=wp.vec2),
     dashpot: float,
-    ctrl_from: wp.array(dtype=wp.vec3),
-    ctrl_to: wp.array(dtype=wp.vec3),
-    t: float,
-    n: int,
-    s: int,
     p0: int,
     p1: int,
+    first: int,
+    listed: wp.array(dtype=int),
     f: wp.array(dtype=wp.vec3),
 ):
-    """Spring s's force added to its ends that are particles of [p0, p1) (a control point is never)."""
+    """CPU only: object spring `first + k` (or `listed[k]`, ascending) added to its ends in [p0, p1) by
+    thread k. A CPU launch runs its threads one after another in order, so each particle's sum grows in
+    spring order: the per-particle gather's sums, without a per-spring array (`f` must start at zero)."""
+    s = first + wp.tid()
+    if listed.shape[0] > 0:
+        s = listed[s]
+    e = springs[s]
+    r = ry[s]
     fs = wp.vec3(0.0, 0.0, 0.0)
-    y = y_eff[s]
-    if y >= 0.0:
-        fs = spring_force(x, v, springs, rest_lengths, y, dashpot, ctrl_from, ctrl_to, t, n, s)
-    i = springs[s][0]
-    j = springs[s][1]
-    if i >= p0 and i < p1:
-        f[i] = f[i] + fs
-    if j >= p0 and j < p1:
-        f[j] = f[j] - fs
+    if r[1] >= 0.0:
+        fs = spring_force_between(x[e[0]], x[e[1]], v[e[0]], v[e[1]], r[0], r[1], dashpot)
+    add_to_ends(f, e, fs, p0, p1)
 
 
 @wp.kernel(enable_backward=False)
-def scatter_spring_forces(
+def scatter_springs(
     x: wp.array(dtype=wp.vec3),
     v: wp.array(dtype=wp.vec3),
     springs: wp.array(dtype=wp.vec2i),
-    rest_lengths: wp.array(dtype=float),
-    y_eff: wp.array(dtype=float),
+    ry: wp.array(dtype=wp.vec2),
     dashpot: float,
     ctrl_from: wp.array(dtype=wp.vec3),
     ctrl_to: wp.array(dtype=wp.vec3),
@@ -145,49 +179,21 @@ def scatter_spring_forces(
     n: int,
     p0: int,
     p1: int,
-    s0: int,
-    s1: int,
-    s2: int,
-    s3: int,
+    first: int,
+    listed: wp.array(dtype=int),
     f: wp.array(dtype=wp.vec3),
 ):
-    """CPU, one thread: f = 0 on particles [p0, p1), then each spring of [s0, s1) and [s2, s3) added to its
-    ends in spring order: the per-particle gather's sums, without writing and re-reading a per-spring
-    array (the springs must touch only particles of [p0, p1))."""
-    for p in range(p0, p1):
-        f[p] = wp.vec3(0.0, 0.0, 0.0)
-    for s in range(s0, s1):
-        add_spring(x, v, springs, rest_lengths, y_eff, dashpot, ctrl_from, ctrl_to, t, n, s, p0, p1, f)
-    for s in range(s2, s3):
-        add_spring(x, v, springs, rest_lengths, y_eff, dashpot, ctrl_from, ctrl_to, t, n, s, p0, p1, f)
+    """`scatter_object_springs` for springs that may end at a control point (the control springs)."""
+    s = first + wp.tid()
+    if listed.shape[0] > 0:
+        s = listed[s]
+    e = springs[s]
+    add_to_ends(f, e, spring_of(x, v, e, ry[s], dashpot, ctrl_from, ctrl_to, t, n), p0, p1)
 
 
 @wp.kernel(enable_backward=False)
-def scatter_spring_list(
-    x: wp.array(dtype=wp.vec3),
-    v: wp.array(dtype=wp.vec3),
-    springs: wp.array(dtype=wp.vec2i),
-    rest_lengths: wp.array(dtype=float),
-    y_eff: wp.array(dtype=float),
-    dashpot: float,
-    ctrl_from: wp.array(dtype=wp.vec3),
-    ctrl_to: wp.array(dtype=wp.vec3),
-    t: float,
-    n: int,
-    p0: int,
-    p1: int,
-    touching: wp.array(dtype=int),
-    f: wp.array(dtype=wp.vec3),
-):
-    """`scatter_spring_forces` for one part of a split frame, one thread: the springs `touching` (ascending)
-    the part's particles [p0, p1), each added to its ends in the part, so that two processes sum their
-    particles' forces in spring order without sharing per-spring forces (a spring across the cut is
-    evaluated by both)."""
-    for p in range(p0, p1):
-        f[p] = wp.vec3(0.0, 0.0, 0.0)
-    for k in range(touching.shape[0]):
-        s = touching[k]
-        add_spring(x, v, springs, rest_lengths, y_eff, dashpot, ctrl_from, ctrl_to, t, n, s, p0, p1, f)
+def zero_forces(base: int, f: wp.array(dtype=wp.vec3)):
+    f[base + wp.tid()] = wp.vec3(0.0, 0.0, 0.0)
 
 
 @wp.kernel
@@ -352,6 +358,7 @@ def particle_update(
     inc_springs: wp.array(dtype=int),
     f_acc: wp.array(dtype=wp.vec3),
     use_gather: int,
+    clear: int,
     masses: wp.array(dtype=float),
     gravity: wp.vec3,
     dt: float,
@@ -363,8 +370,9 @@ def particle_update(
     x_out: wp.array(dtype=wp.vec3),
     v_out: wp.array(dtype=wp.vec3),
 ):
-    """Spring-force gather (incident springs in spring order), gravity, drag; then contacts when
-    ``finish`` (no particle-particle collision stage this substep). Thread i serves particle base + i."""
+    """Spring forces (gathered from the incident springs in spring order, or read from ``f_acc`` and
+    zeroed there with ``clear``), gravity, drag; then contacts when ``finish`` (no particle-particle
+    collision stage this substep). Thread i serves particle base + i."""
     tid = base + wp.tid()
     f = wp.vec3(0.0, 0.0, 0.0)
     if use_gather != 0:
@@ -376,6 +384,8 @@ def particle_update(
                 f = f - spring_f[-e - 1]
     else:
         f = f_acc[tid]
+        if clear != 0:
+            f_acc[tid] = wp.vec3(0.0, 0.0, 0.0)  # zero again for the next substep's scatter
     m = masses[tid]
     vs = velocity_update(v[tid], f, m, gravity, dt, drag)
     if finish != 0:

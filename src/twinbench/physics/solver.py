@@ -46,7 +46,8 @@ class _Worlds:
     springs: tuple[tuple[int, int], ...]  # object springs, then control springs (merged when adjacent)
     kin_vertices: tuple[int, int]
     kinematic: tuple[int, ...]  # kinematic mesh ids
-    touching: wp.array | None = None  # a split frame's part: ascending ids of the springs touching it
+    # a split frame's part: ascending ids of the object springs and of the control springs touching it
+    touching: tuple[wp.array, wp.array] | None = None
 
 
 def _worlds(model: SpringMassModel, w0: int, w1: int) -> _Worlds:
@@ -105,7 +106,8 @@ class SpringMassSolver:
         self.device = dev
         n = model.num_particles
         self._spring_f = wp.zeros(model.num_springs, dtype=wp.vec3, device=dev)
-        self._y_eff = wp.zeros(model.num_springs, dtype=float, device=dev)
+        self._ry = wp.zeros(model.num_springs, dtype=wp.vec2, device=dev)  # (rest length, stiffness or -1)
+        self._no_list = wp.zeros(0, dtype=int, device=dev)
         self._f = wp.zeros(n, dtype=wp.vec3, device=dev)
         self._v_star = wp.zeros(n, dtype=wp.vec3, device=dev)
         self._gravity = wp.vec3(*[float(g) for g in p.gravity])
@@ -216,9 +218,16 @@ class SpringMassSolver:
     def _update_stiffness(self, ops: list | None = None, wr: _Worlds | None = None) -> None:
         m = self.model
         for a, b in (wr or self._all).springs:
-            self._go(K.effective_stiffness, b - a,
-                     [m.log_y[a:b], float(m.params.spring_Y_min), float(m.params.spring_Y_max)],
-                     [self._y_eff[a:b]], ops)
+            limits = [float(m.params.spring_Y_min), float(m.params.spring_Y_max)]
+            inputs = [m.log_y[a:b], m.rest_lengths[a:b], *limits]
+            self._go(K.effective_stiffness, b - a, inputs, [self._ry[a:b]], ops)
+
+    def _zero_forces(self, ops: list | None = None, wr: _Worlds | None = None) -> None:
+        """Scatter path: the part's particle forces to zero (each substep's integration zeroes them again
+        after reading; this covers a first frame and one cut short)."""
+        if self._scatter:
+            p0, p1 = (wr or self._all).particles
+            self._go(K.zero_forces, p1 - p0, [p0], [self._f], ops)
 
     def _launch_substep(self, state_in: State, state_out: State, control: Control, dt: float,
                         substep_index: int, grad: bool, ops: list | None = None,
@@ -243,27 +252,37 @@ class SpringMassSolver:
                       outputs=[f], device=self.device)
             v_star = wp.zeros(n, dtype=wp.vec3, device=self.device, requires_grad=True)
         elif self._scatter:
-            # CPU, this thread owns its particles: one pass adds each spring to its ends in spring order
+            # CPU: each spring added to its ends in this part, in spring order (f is zero: see zero_forces)
             f = self._f
             v_star = self._v_star
-            head = [state_in.x, state_in.v, m.springs, m.rest_lengths, self._y_eff, *tail, p0, p1]
+            obj = [state_in.x, state_in.v, m.springs, self._ry, float(p.dashpot_damping), p0, p1]
+            ctl = [state_in.x, state_in.v, m.springs, self._ry, *tail, p0, p1]
             if wr.touching is not None:
-                self._go(K.scatter_spring_list, 1, [*head, wr.touching], [f], ops)
+                for head, kernel, ids in zip((obj, ctl), (K.scatter_object_springs, K.scatter_springs),
+                                             wr.touching, strict=True):
+                    if ids.shape[0]:
+                        self._go(kernel, ids.shape[0], [*head, 0, ids], [f], ops)
             else:
-                r = [*wr.springs, (0, 0), (0, 0)]
-                self._go(K.scatter_spring_forces, 1, [*head, r[0][0], r[0][1], r[1][0], r[1][1]], [f], ops)
+                cut, unlisted = m.num_object_springs, self._no_list  # object springs [0, cut), then control
+                for a, b in wr.springs:
+                    if a < cut:
+                        self._go(K.scatter_object_springs, min(b, cut) - a, [*obj, a, unlisted], [f], ops)
+                    if b > cut:
+                        c = max(a, cut)
+                        self._go(K.scatter_springs, b - c, [*ctl, c, unlisted], [f], ops)
         else:
             f = self._f
             v_star = self._v_star
             for a, b in wr.springs:
-                inputs = [state_in.x, state_in.v, m.springs[a:b], m.rest_lengths[a:b], self._y_eff[a:b]]
-                self._go(K.eval_spring_forces, b - a, [*inputs, *tail], [spring_f[a:b]], ops)
+                inputs = [state_in.x, state_in.v, m.springs[a:b], self._ry[a:b], *tail]
+                self._go(K.eval_spring_forces, b - a, inputs, [spring_f[a:b]], ops)
         gather = not grad and not self._scatter
         if sync is not None and gather:
             ops.append(sync)  # the gather reads the other part's springs
         collide = self._collide
         self._go(K.particle_update, p1 - p0,
                  [state_in.x, state_in.v, spring_f, m.inc_offsets, m.inc_springs, f, int(gather),
+                  int(self._scatter and not grad),
                   m.masses, self._gravity, float(dt), float(p.drag_damping), int(not collide), self._cp, p0],
                  [v_star, state_out.x, state_out.v], ops)
         if collide and grad:  # the differentiable form (same sums in the same order)
@@ -303,6 +322,7 @@ class SpringMassSolver:
             self._update_kinematic_meshes(control, substep_index)
         if not self.model.requires_grad:
             self._update_stiffness()
+            self._zero_forces()
         self._launch_substep(state_in, state_out, control, dt, substep_index, grad=self.model.requires_grad)
 
     # ------------------------------------------------------------------ one frame
@@ -312,6 +332,7 @@ class SpringMassSolver:
         p = self.model.params
         if sync is None:  # (a split frame updates the stiffness before it starts)
             self._update_stiffness(ops, wr)  # once per frame; a replay reads the current log Y
+        self._zero_forces(ops, wr)
         for s in range(p.substeps):
             src, dst = (a, b) if s % 2 == 0 else (b, a)
             if self._kinematic:

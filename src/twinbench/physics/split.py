@@ -94,7 +94,7 @@ def _specs(model: SpringMassModel, cand_width: int) -> dict:
     f32, i32 = np.float32, np.int32
     return {
         "xa": ((n, 3), f32), "va": ((n, 3), f32), "xb": ((n, 3), f32), "vb": ((n, 3), f32),
-        "y_eff": ((s,), f32), "v_star": ((n, 3), f32),
+        "ry": ((s, 2), f32), "v_star": ((n, 3), f32),
         "cand": ((n, cand_width), i32), "cand_count": ((n,), i32),
         "ctrl_from": ((model.num_control_points, 3), f32), "ctrl_to": ((model.num_control_points, 3), f32),
         "kin_from": ((kv, 3), f32), "kin_to": ((kv, 3), f32),
@@ -108,7 +108,7 @@ def _share(solver, shared: SharedArrays) -> Control:
     v3 = wp.vec3
     solver._buf = (State(shared.wp("xa", v3), shared.wp("va", v3)),
                    State(shared.wp("xb", v3), shared.wp("vb", v3)))
-    solver._y_eff = shared.wp("y_eff", float)
+    solver._ry = shared.wp("ry", wp.vec2)
     solver._v_star = shared.wp("v_star", v3)
     solver._cand = shared.wp("cand", int)
     solver._cand_count = shared.wp("cand_count", int)
@@ -155,7 +155,10 @@ def _half(model: SpringMassModel, second: bool, parts) -> object:
     p0, p1 = (h, n) if second else (0, h)
     ends = model.springs_np
     touching = np.flatnonzero(((ends >= p0) & (ends < p1)).any(axis=1)).astype(np.int32)
-    return parts(0, 0, (p0, p1), springs, kv, kin, wp.array(touching, dtype=int, device=model.device))
+    cut = model.num_object_springs
+    lists = tuple(wp.array(ids, dtype=int, device=model.device)
+                  for ids in (touching[touching < cut], touching[touching >= cut]))
+    return parts(0, 0, (p0, p1), springs, kv, kin, lists)
 
 
 class _Barrier:
