@@ -268,16 +268,24 @@ def mesh_contacts(
     per_particle: int,
     pm_force: wp.array(dtype=wp.vec3),
     pm_face: wp.array(dtype=int),
+    mesh_lo: wp.array(dtype=wp.vec3),
+    mesh_hi: wp.array(dtype=wp.vec3),
 ):
     """Velocity response against the triangle meshes ``[first, last)`` (the particle's world), relative
     to the mesh point velocity. The contact force is added to its mesh and face, or with ``per_particle``
     stored in the particle's own slots (``pm_force``/``pm_face``, face -1 = no contact) for
-    `reduce_mesh_forces` to add in particle order (so that two processes can share a frame)."""
+    `reduce_mesh_forces` to add in particle order (so that two processes can share a frame). A particle
+    outside a mesh's box ``[mesh_lo, mesh_hi]`` (the mesh over the whole frame, grown past the margin)
+    is too far for a contact and skips the query."""
     v = vp
     for k in range(first, last):
         slot = tid * (last - first) + k - first
         if per_particle != 0:
             pm_face[slot] = -1
+        lo = mesh_lo[k]
+        hi = mesh_hi[k]
+        if xp[0] < lo[0] or xp[1] < lo[1] or xp[2] < lo[2] or xp[0] > hi[0] or xp[1] > hi[1] or xp[2] > hi[2]:
+            continue
         mid = mesh_ids[k]
         q = wp.mesh_query_point_sign_normal(mid, xp, margin)
         if q.result:
@@ -331,6 +339,8 @@ class ContactParams:
     pm_face: wp.array(dtype=int)
     ground: int
     coeffs: wp.array(dtype=float)  # ground restitution, ground friction, object restitution, object friction
+    mesh_lo: wp.array(dtype=wp.vec3)  # per mesh: a box holding it over the frame, grown past the margin
+    mesh_hi: wp.array(dtype=wp.vec3)
 
 
 @wp.func
@@ -343,7 +353,8 @@ def finish_particle(
         w = cp.particle_world[tid]
         v1 = mesh_contacts(x0, v1, m, cp.world_mesh_start[w], cp.world_mesh_start[w + 1], cp.mesh_ids,
                            cp.mesh_elas, cp.mesh_fric, cp.face_offsets, cp.margin, dt, cp.mesh_force,
-                           cp.face_force, tid, cp.per_particle, cp.pm_force, cp.pm_face)
+                           cp.face_force, tid, cp.per_particle, cp.pm_force, cp.pm_face, cp.mesh_lo,
+                           cp.mesh_hi)
     xn, vn = ground_integrate(x0, v1, cp.coeffs[0], cp.coeffs[1], dt, cp.ground)
     x_out[tid] = xn
     v_out[tid] = vn
@@ -584,6 +595,30 @@ def interpolate_points(
     i = wp.tid()
     a = p_from[i]
     out[i] = a + (p_to[i] - a) * t
+
+
+@wp.kernel(enable_backward=False)
+def kinematic_bounds(
+    p_from: wp.array(dtype=wp.vec3),
+    p_to: wp.array(dtype=wp.vec3),
+    first: wp.array(dtype=int),
+    count: wp.array(dtype=int),
+    mesh: wp.array(dtype=int),
+    pad: float,
+    lo: wp.array(dtype=wp.vec3),
+    hi: wp.array(dtype=wp.vec3),
+):
+    """One thread per kinematic mesh: the box of its vertices at the frame's start and end (so at every
+    substep, which interpolates them), grown by `pad`, into slot `mesh[k]`."""
+    k = wp.tid()
+    a = first[k]
+    b = p_from[a]
+    c = p_from[a]
+    for i in range(a, a + count[k]):
+        b = wp.min(b, wp.min(p_from[i], p_to[i]))
+        c = wp.max(c, wp.max(p_from[i], p_to[i]))
+    lo[mesh[k]] = b - wp.vec3(pad, pad, pad)
+    hi[mesh[k]] = c + wp.vec3(pad, pad, pad)
 
 
 @wp.kernel(enable_backward=False)

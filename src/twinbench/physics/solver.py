@@ -142,6 +142,17 @@ class SpringMassSolver:
         cp.pm_face = wp.zeros(0, dtype=int, device=dev)
         cp.ground = int(p.ground)
         cp.coeffs = model.contact_coeffs  # read each launch: changing them needs no recapture
+        # per mesh, a box a particle must be inside to be queried (exactly outside: farther than the margin
+        # from every point of the mesh); kinematic meshes' boxes follow each frame's motion
+        self._pad = 1.01 * float(p.mesh_margin) + 1e-5
+        lo = np.array([m.vertices.min(0) - self._pad for m in model.meshes], np.float32).reshape(-1, 3)
+        hi = np.array([m.vertices.max(0) + self._pad for m in model.meshes], np.float32).reshape(-1, 3)
+        cp.mesh_lo = wp.array(lo, dtype=wp.vec3, device=dev)
+        cp.mesh_hi = wp.array(hi, dtype=wp.vec3, device=dev)
+        kin = [i for i, m in enumerate(model.meshes) if m.kinematic]
+        self._kin_first = wp.array([model.meshes[i].vertex_offset for i in kin], dtype=int, device=dev)
+        self._kin_count = wp.array([model.meshes[i].vertices.shape[0] for i in kin], dtype=int, device=dev)
+        self._kin_mesh = wp.array(kin, dtype=int, device=dev)
         self._cp = cp
         self._kinematic = [i for i, m in enumerate(model.meshes) if m.kinematic]
         self._use_graph = use_graph
@@ -192,10 +203,14 @@ class SpringMassSolver:
                 ops.append(mesh.refit)
 
     def _set_mesh_velocities(self, control: Control) -> None:
+        """The kinematic meshes' vertex velocities and boxes for this frame's motion."""
         m = self.model
         wp.launch(K.vertex_velocities, dim=m.kin_points.shape[0],
                   inputs=[control.kin_from, control.kin_to, float(1.0 / self._frame_t)],
                   outputs=[m.kin_velocities], device=self.device)
+        wp.launch(K.kinematic_bounds, dim=self._kin_mesh.shape[0],
+                  inputs=[control.kin_from, control.kin_to, self._kin_first, self._kin_count, self._kin_mesh,
+                          self._pad], outputs=[self._cp.mesh_lo, self._cp.mesh_hi], device=self.device)
 
     def rebuild_collision_candidates(self, state: State, wr: _Worlds | None = None) -> None:
         """Rebuild the particle-particle candidate lists from ``state.x`` (done once per frame)."""
