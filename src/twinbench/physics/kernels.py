@@ -130,42 +130,6 @@ def eval_spring_forces(
     out[s] = spring_of(x, v, springs[s], ry[s], dashpot, ctrl_from, ctrl_to, t, n)
 
 
-@wp.func
-def add_to_ends(f: wp.array(dtype=wp.vec3), e: wp.vec2i, fs: wp.vec3, p0: int, p1: int):
-    """+fs to the first end, -fs to the second, for the ends that are particles of [p0, p1)."""
-    if e[0] >= p0 and e[0] < p1:
-        f[e[0]] = f[e[0]] + fs
-    if e[1] >= p0 and e[1] < p1:
-        f[e[1]] = f[e[1]] - fs
-
-
-@wp.kernel(enable_backward=False)
-def scatter_object_springs(
-    x: wp.array(dtype=wp.vec3),
-    v: wp.array(dtype=wp.vec3),
-    springs: wp.array(dtype=wp.vec2i),
-    ry: wp.array(dtype=wp.vec2),
-    dashpot: float,
-    p0: int,
-    p1: int,
-    first: int,
-    listed: wp.array(dtype=int),
-    f: wp.array(dtype=wp.vec3),
-):
-    """CPU only: object spring `first + k` (or `listed[k]`, ascending) added to its ends in [p0, p1) by
-    thread k. A CPU launch runs its threads one after another in order, so each particle's sum grows in
-    spring order: the per-particle gather's sums, without a per-spring array (`f` must start at zero)."""
-    s = first + wp.tid()
-    if listed.shape[0] > 0:
-        s = listed[s]
-    e = springs[s]
-    r = ry[s]
-    fs = wp.vec3(0.0, 0.0, 0.0)
-    if r[1] >= 0.0:
-        fs = spring_force_between(x[e[0]], x[e[1]], v[e[0]], v[e[1]], r[0], r[1], dashpot)
-    add_to_ends(f, e, fs, p0, p1)
-
-
 @wp.kernel(enable_backward=False)
 def scatter_springs(
     x: wp.array(dtype=wp.vec3),
@@ -177,18 +141,31 @@ def scatter_springs(
     ctrl_to: wp.array(dtype=wp.vec3),
     t: float,
     n: int,
+    control: int,
     p0: int,
     p1: int,
     first: int,
     listed: wp.array(dtype=int),
     f: wp.array(dtype=wp.vec3),
 ):
-    """`scatter_object_springs` for springs that may end at a control point (the control springs)."""
+    """CPU only: spring `first + k` (or `listed[k]`, ascending) added to its ends in [p0, p1) by thread k.
+    A CPU launch runs its threads one after another in order, so each particle's sum grows in spring
+    order: the per-particle gather's sums, without a per-spring array (`f` must start at zero). With
+    `control` 0 the springs join two particles (object springs: no control-point branches)."""
     s = first + wp.tid()
     if listed.shape[0] > 0:
         s = listed[s]
     e = springs[s]
-    add_to_ends(f, e, spring_of(x, v, e, ry[s], dashpot, ctrl_from, ctrl_to, t, n), p0, p1)
+    r = ry[s]
+    fs = wp.vec3(0.0, 0.0, 0.0)
+    if control != 0:
+        fs = spring_of(x, v, e, r, dashpot, ctrl_from, ctrl_to, t, n)
+    elif r[1] >= 0.0:
+        fs = spring_force_between(x[e[0]], x[e[1]], v[e[0]], v[e[1]], r[0], r[1], dashpot)
+    if e[0] >= p0 and e[0] < p1:
+        f[e[0]] = f[e[0]] + fs
+    if e[1] >= p0 and e[1] < p1:
+        f[e[1]] = f[e[1]] - fs
 
 
 @wp.kernel(enable_backward=False)

@@ -154,7 +154,7 @@ class SpringMassSolver:
         self._kin_count = wp.array([model.meshes[i].vertices.shape[0] for i in kin], dtype=int, device=dev)
         self._kin_mesh = wp.array(kin, dtype=int, device=dev)
         self._cp = cp
-        self._kinematic = [i for i, m in enumerate(model.meshes) if m.kinematic]
+        self._kinematic = kin
         self._use_graph = use_graph
         self._graph = None
         self._graph_key = None
@@ -270,21 +270,18 @@ class SpringMassSolver:
             # CPU: each spring added to its ends in this part, in spring order (f is zero: see zero_forces)
             f = self._f
             v_star = self._v_star
-            obj = [state_in.x, state_in.v, m.springs, self._ry, float(p.dashpot_damping), p0, p1]
-            ctl = [state_in.x, state_in.v, m.springs, self._ry, *tail, p0, p1]
+            head = [state_in.x, state_in.v, m.springs, self._ry, *tail]
             if wr.touching is not None:
-                for head, kernel, ids in zip((obj, ctl), (K.scatter_object_springs, K.scatter_springs),
-                                             wr.touching, strict=True):
+                for control, ids in enumerate(wr.touching):
                     if ids.shape[0]:
-                        self._go(kernel, ids.shape[0], [*head, 0, ids], [f], ops)
+                        self._go(K.scatter_springs, ids.shape[0], [*head, control, p0, p1, 0, ids], [f], ops)
             else:
-                cut, unlisted = m.num_object_springs, self._no_list  # object springs [0, cut), then control
+                cut = m.num_object_springs  # object springs [0, cut), then control springs
                 for a, b in wr.springs:
-                    if a < cut:
-                        self._go(K.scatter_object_springs, min(b, cut) - a, [*obj, a, unlisted], [f], ops)
-                    if b > cut:
-                        c = max(a, cut)
-                        self._go(K.scatter_springs, b - c, [*ctl, c, unlisted], [f], ops)
+                    for control, (lo, hi) in enumerate(((a, min(b, cut)), (max(a, cut), b))):
+                        if hi > lo:
+                            self._go(K.scatter_springs, hi - lo, [*head, control, p0, p1, lo, self._no_list],
+                                     [f], ops)
         else:
             f = self._f
             v_star = self._v_star
