@@ -199,40 +199,6 @@ def _project(
     n_tiles[out] = (tx1 - tx0 + 1) * (ty1 - ty0 + 1)
 
 
-@wp.kernel
-def _preprocess(
-    means: wp.array(dtype=wp.vec3),
-    quats: wp.array(dtype=wp.vec4),
-    scales: wp.array(dtype=wp.vec3),
-    opacities: wp.array(dtype=wp.float32),
-    sh: wp.array2d(dtype=wp.vec3),
-    sh_k: int,
-    rot_wc: wp.mat33,
-    t_wc: wp.vec3,
-    cam_pos: wp.vec3,
-    fx: float,
-    fy: float,
-    cx: float,
-    cy: float,
-    width: int,
-    height: int,
-    near: float,
-    lim_x_neg: float,
-    lim_x_pos: float,
-    lim_y_neg: float,
-    lim_y_pos: float,
-    offset: int,
-    # outputs
-    record: wp.array(dtype=vec16),
-    depth: wp.array(dtype=wp.float32),
-    rect: wp.array(dtype=wp.vec4i),
-    n_tiles: wp.array(dtype=wp.int32),
-):
-    i = wp.tid() + offset
-    _project(i, i, means, quats, scales, opacities, sh, sh_k, rot_wc, t_wc, cam_pos, fx, fy, cx, cy, width,
-             height, near, lim_x_neg, lim_x_pos, lim_y_neg, lim_y_pos, record, depth, rect, n_tiles)
-
-
 @wp.struct
 class _View:
     """One view of a batch: its camera, and where its Gaussians, records, tiles and pixels start."""
@@ -273,7 +239,7 @@ def _view_of(views: wp.array(dtype=_View), k: int, field: int):
 
 
 @wp.kernel
-def _preprocess_batch(
+def _preprocess(
     means: wp.array(dtype=wp.vec3),
     quats: wp.array(dtype=wp.vec4),
     scales: wp.array(dtype=wp.vec3),
@@ -282,13 +248,15 @@ def _preprocess_batch(
     sh_k: int,
     views: wp.array(dtype=_View),
     near: float,
+    offset: int,
     record: wp.array(dtype=vec16),
     depth: wp.array(dtype=wp.float32),
     rect: wp.array(dtype=wp.vec4i),
     n_tiles: wp.array(dtype=wp.int32),
 ):
-    """Record k: Gaussian k - item of its view's cloud, seen by that view."""
-    k = wp.tid()
+    """Record offset + k: Gaussian (record - the view's first record) of its view's cloud, seen by that
+    view."""
+    k = wp.tid() + offset
     vw = views[_view_of(views, k, 0)]
     _project(vw.src + k - vw.item, k, means, quats, scales, opacities, sh, sh_k, vw.rot_wc, vw.t_wc,
              vw.cam_pos, vw.fx, vw.fy, vw.cx, vw.cy, vw.width, vw.height, near, vw.lim[0], vw.lim[1],
@@ -501,39 +469,46 @@ def _rasterise(
     tile_list: wp.array(dtype=wp.int32),
     ranges: wp.array(dtype=wp.vec2i),
     record: wp.array(dtype=vec16),
-    width: int,
-    height: int,
-    tiles_x: int,
-    background: wp.vec3,
-    out_rgb: wp.array(dtype=wp.vec3),
-    out_depth: wp.array(dtype=wp.float32),
-    out_t: wp.array(dtype=wp.float32),
-    row_done: wp.array(dtype=wp.int32),
-):
-    """One thread per tile of `tile_list`."""
-    tile = tile_list[wp.tid()]
-    _rasterise_tile(tile, tile, ranges, record, width, height, tiles_x, background, 0, out_rgb, out_depth,
-                    out_t, row_done)
-
-
-@wp.kernel
-def _rasterise_batch(
-    ranges: wp.array(dtype=wp.vec2i),
-    record: wp.array(dtype=vec16),
     views: wp.array(dtype=_View),
     out_rgb: wp.array(dtype=wp.vec3),
     out_depth: wp.array(dtype=wp.float32),
     out_t: wp.array(dtype=wp.float32),
     row_done: wp.array(dtype=wp.int32),
 ):
-    """One thread per tile of every view of the batch."""
+    """One thread per tile of `tile_list`, or of every view when it is empty."""
     tile = wp.tid()
+    if tile_list.shape[0] > 0:
+        tile = tile_list[tile]
     vw = views[_view_of(views, tile, 1)]
     _rasterise_tile(tile, tile - vw.tile, ranges, record, vw.width, vw.height, vw.tiles_x, vw.background,
                     vw.pixel, out_rgb, out_depth, out_t, row_done)
 
 
 # ----- Warp backend ---------------------------------------------------------------------------------
+def _tile_count(cam: Camera) -> int:
+    return ((cam.width + TILE - 1) // TILE) * ((cam.height + TILE - 1) // TILE)
+
+
+def _view(cam: Camera, background, src: int = 0, item: int = 0, tile: int = 0, pixel: int = 0) -> _View:
+    """The kernels' view of `cam`, whose Gaussians, records, tiles and pixels start at the given slots."""
+    w, h = cam.width, cam.height
+    w2c = cam.world_to_cam
+    tan_x, tan_y = 0.5 * w / cam.fx, 0.5 * h / cam.fy
+    v = _View()
+    v.rot_wc = wp.mat33(w2c[:3, :3].astype(np.float32))
+    v.t_wc = wp.vec3(w2c[:3, 3].astype(np.float32))
+    v.cam_pos = wp.vec3(cam.position.astype(np.float32))
+    v.fx, v.fy, v.cx, v.cy = float(cam.fx), float(cam.fy), float(cam.cx), float(cam.cy)
+    v.width, v.height = w, h
+    v.lim = wp.vec4(
+        float(cam.cx / cam.fx + 0.3 * tan_x), float((w - cam.cx) / cam.fx + 0.3 * tan_x),
+        float(cam.cy / cam.fy + 0.3 * tan_y), float((h - cam.cy) / cam.fy + 0.3 * tan_y),
+    )  # fmt: skip
+    v.src, v.item, v.tile, v.tiles_x, v.pixel = src, item, tile, (w + TILE - 1) // TILE, pixel
+    v.background = wp.vec3(*[float(c) for c in background])
+    return v
+
+
 class _Workspace:
     """Per-call, per-Gaussian buffers (allocated per call, so concurrent renders never share them)."""
 
@@ -596,23 +571,16 @@ def _render_warp_one(
     cpu = device.is_cpu
     n = len(g)
     w, h = cam.width, cam.height
-    tiles_x, tiles_y = (w + TILE - 1) // TILE, (h + TILE - 1) // TILE
-    n_tile_total = tiles_x * tiles_y
-    w2c = cam.world_to_cam
-    tan_x, tan_y = 0.5 * w / cam.fx, 0.5 * h / cam.fy
+    view = _view(cam, background)
+    tiles_x, n_tile_total = view.tiles_x, _tile_count(cam)
+    tiles_y = n_tile_total // tiles_x
+    views = wp.array([view], dtype=_View, device=device)
     ws = _Workspace(n, device)
     if cpu and threads > 1:
         wp.load_module(device=device)  # compile once, not concurrently in the worker threads
 
     # 1. project every Gaussian: packed record, depth, tile rectangle, tile count
-    pre_in = [
-        g.means, g.quats, g.scales, g.opacities, g.sh, g.sh.shape[1],
-        wp.mat33(w2c[:3, :3].astype(np.float32)), wp.vec3(w2c[:3, 3].astype(np.float32)),
-        wp.vec3(cam.position.astype(np.float32)),
-        float(cam.fx), float(cam.fy), float(cam.cx), float(cam.cy), w, h, NEAR,
-        float(cam.cx / cam.fx + 0.3 * tan_x), float((w - cam.cx) / cam.fx + 0.3 * tan_x),
-        float(cam.cy / cam.fy + 0.3 * tan_y), float((h - cam.cy) / cam.fy + 0.3 * tan_y),
-    ]  # fmt: skip
+    pre_in = [g.means, g.quats, g.scales, g.opacities, g.sh, g.sh.shape[1], views, NEAR]
     _launch_split(_preprocess, n, pre_in, [ws.record, ws.depth, ws.rect, ws.n_tiles], device, threads)
 
     # 2. (tile, Gaussian) pairs sorted by tile, then depth: a depth sort, pairs emitted in depth order,
@@ -667,7 +635,7 @@ def _render_warp_one(
     out_rgb = wp.empty(h * w, dtype=wp.vec3, device=device)
     out_depth = wp.empty(h * w, dtype=wp.float32, device=device)
     out_t = wp.empty(h * w, dtype=wp.float32, device=device)
-    raster_in = [ranges, pair_records, w, h, tiles_x, wp.vec3(*[float(c) for c in background])]
+    raster_in = [ranges, pair_records, views]
     raster_out = [out_rgb, out_depth, out_t, wp.empty(n_tile_total * 16, dtype=wp.int32, device=device)]
     parts = threads if (cpu and threads > 1) else 1
     rows = np.arange(tiles_y)
@@ -710,30 +678,15 @@ def _render_warp_batch(jobs: list[tuple[DeviceGaussians, Camera]], background) -
     views, shapes = [], []
     item = tile = pixel = 0
     for g, cam in jobs:
-        w, h = cam.width, cam.height
-        w2c = cam.world_to_cam
-        tan_x, tan_y = 0.5 * w / cam.fx, 0.5 * h / cam.fy
-        v = _View()
-        v.rot_wc = wp.mat33(w2c[:3, :3].astype(np.float32))
-        v.t_wc = wp.vec3(w2c[:3, 3].astype(np.float32))
-        v.cam_pos = wp.vec3(cam.position.astype(np.float32))
-        v.fx, v.fy, v.cx, v.cy = float(cam.fx), float(cam.fy), float(cam.cx), float(cam.cy)
-        v.width, v.height = w, h
-        v.lim = wp.vec4(
-            float(cam.cx / cam.fx + 0.3 * tan_x), float((w - cam.cx) / cam.fx + 0.3 * tan_x),
-            float(cam.cy / cam.fy + 0.3 * tan_y), float((h - cam.cy) / cam.fy + 0.3 * tan_y),
-        )  # fmt: skip
-        tiles_x, tiles_y = (w + TILE - 1) // TILE, (h + TILE - 1) // TILE
-        v.src, v.item, v.tile, v.tiles_x, v.pixel = starts[id(g)], item, tile, tiles_x, pixel
-        v.background = wp.vec3(*[float(c) for c in background])
-        views.append(v)
-        shapes.append((pixel, h, w))
-        item, tile, pixel = item + len(g), tile + tiles_x * tiles_y, pixel + w * h
+        views.append(_view(cam, background, starts[id(g)], item, tile, pixel))
+        shapes.append((pixel, cam.height, cam.width))
+        item, tile, pixel = item + len(g), tile + _tile_count(cam), pixel + cam.width * cam.height
     vw = wp.array(views, dtype=_View, device=device)
     n = item
     ws = _Workspace(n, device)
-    inputs = [cloud.means, cloud.quats, cloud.scales, cloud.opacities, cloud.sh, cloud.sh.shape[1], vw, NEAR]
-    wp.launch(_preprocess_batch, dim=n, inputs=inputs, outputs=[ws.record, ws.depth, ws.rect, ws.n_tiles],
+    g = cloud
+    inputs = [g.means, g.quats, g.scales, g.opacities, g.sh, g.sh.shape[1], vw, NEAR, 0]
+    wp.launch(_preprocess, dim=n, inputs=inputs, outputs=[ws.record, ws.depth, ws.rect, ws.n_tiles],
               device=device)
     dkeys = wp.empty(2 * n, dtype=wp.float32, device=device)
     order = wp.empty(2 * n, dtype=wp.int32, device=device)
@@ -760,7 +713,8 @@ def _render_warp_batch(jobs: list[tuple[DeviceGaussians, Camera]], background) -
     out_rgb = wp.empty(pixel, dtype=wp.vec3, device=device)
     out_depth = wp.empty(pixel, dtype=wp.float32, device=device)
     out_t = wp.empty(pixel, dtype=wp.float32, device=device)
-    wp.launch(_rasterise_batch, dim=tile, inputs=[ranges, pair_records, vw],
+    every_tile = wp.empty(0, dtype=wp.int32, device=device)
+    wp.launch(_rasterise, dim=tile, inputs=[every_tile, ranges, pair_records, vw],
               outputs=[out_rgb, out_depth, out_t, wp.empty(tile * 16, dtype=wp.int32, device=device)],
               device=device)  # fmt: skip
     rgb, depth, alpha = out_rgb.numpy(), out_depth.numpy(), out_t.numpy()
