@@ -11,7 +11,9 @@ max(0, 0.5 + sum c_k Y_k(d)) with d the unit direction from the camera centre; r
 Pipeline: project (packed 64-byte record per Gaussian) -> depth sort -> (tile, Gaussian) pairs in
 depth order -> stable sort by tile -> records gathered into pair order -> one thread per tile walks its
 Gaussians front to back and updates only the pixels of each Gaussian's ellipse, skipping runs of
-stopped pixels (per-row bitmasks) and stopping the tile when every pixel has stopped.
+stopped pixels (per-row bitmasks) and stopping the tile when every pixel has stopped. On CPU the pair
+sorts run in NumPy; on CUDA (`_render_warp_batch`) they are Warp radix sorts, and a batch of views (every
+camera of every world) runs each stage once for all of them.
 """
 
 from __future__ import annotations
@@ -269,37 +271,14 @@ def _emit_pairs(
     offsets: wp.array(dtype=wp.int32),
     rect: wp.array(dtype=wp.vec4i),
     n_tiles: wp.array(dtype=wp.int32),
-    tiles_x: int,
+    views: wp.array(dtype=_View),
     start: int,
     keys: wp.array(dtype=wp.int32),
     values: wp.array(dtype=wp.int32),
 ):
-    """Pair r of the depth-ordered list writes (tile id, Gaussian id) for each tile its box touches."""
+    """Pair r of the depth-ordered list writes (tile id, record id) for each tile its box touches; tile
+    ids count the views' tiles one view after another."""
     r = wp.tid() + start
-    g = order[r]
-    if n_tiles[g] == 0:
-        return
-    n = offsets[r] - n_tiles[g]
-    rc = rect[g]
-    for ty in range(rc[1], rc[3] + 1):
-        for tx in range(rc[0], rc[2] + 1):
-            keys[n] = ty * tiles_x + tx
-            values[n] = g
-            n += 1
-
-
-@wp.kernel
-def _emit_pairs_batch(
-    order: wp.array(dtype=wp.int32),
-    offsets: wp.array(dtype=wp.int32),
-    rect: wp.array(dtype=wp.vec4i),
-    n_tiles: wp.array(dtype=wp.int32),
-    views: wp.array(dtype=_View),
-    keys: wp.array(dtype=wp.int32),
-    values: wp.array(dtype=wp.int32),
-):
-    """`_emit_pairs` over the records of all views: tile ids are the batch's (view's first tile + tile)."""
-    r = wp.tid()
     g = order[r]
     if n_tiles[g] == 0:
         return
@@ -565,10 +544,12 @@ def _launch_split(kernel, dim: int, inputs: list, outputs: list, device, threads
 def _render_warp_one(
     g: DeviceGaussians, cam: Camera, background: np.ndarray, threads: int, host_sort: bool | None = None
 ) -> RenderOutput:
-    """One camera. host_sort (default: on CPU) sorts the pairs with NumPy, else with Warp's radix sort
-    (the CUDA path; the tests also run it on CPU)."""
+    """One camera. host_sort (default: on CPU) sorts the pairs with NumPy, else it is a batch of one view
+    (Warp's radix sorts: the CUDA path; the tests also run it on CPU)."""
     device = g.device
     cpu = device.is_cpu
+    if not (cpu if host_sort is None else host_sort):
+        return _render_warp_batch([(g, cam)], background)[0]
     n = len(g)
     w, h = cam.width, cam.height
     view = _view(cam, background)
@@ -584,48 +565,28 @@ def _render_warp_one(
     _launch_split(_preprocess, n, pre_in, [ws.record, ws.depth, ws.rect, ws.n_tiles], device, threads)
 
     # 2. (tile, Gaussian) pairs sorted by tile, then depth: a depth sort, pairs emitted in depth order,
-    #    then a stable sort by tile id (NumPy on CPU, Warp radix sort on CUDA)
-    if cpu if host_sort is None else host_sort:
-        counts = ws.n_tiles.numpy()
-        visible = np.flatnonzero(counts).astype(np.int32)
-        order = visible[np.argsort(ws.depth.numpy()[visible])].astype(np.int32)
-        offsets = np.cumsum(counts[order], dtype=np.int64)
-        total = int(offsets[-1]) if len(offsets) else 0
-        if total >= 2**31:
-            raise ValueError(f"render: {total} Gaussian-tile pairs exceed int32; downsample the cloud")
-        keys = wp.empty(max(total, 1), dtype=wp.int32, device=device)
-        values = wp.empty(max(total, 1), dtype=wp.int32, device=device)
-        emit_in = [
-            wp.array(order, dtype=wp.int32, device=device),
-            wp.array(offsets.astype(np.int32), dtype=wp.int32, device=device),
-            ws.rect, ws.n_tiles, tiles_x,
-        ]  # fmt: skip
-        _launch_split(_emit_pairs, len(order), emit_in, [keys, values], device, threads)
-        tile_of_pair = keys.numpy()[:total].astype(np.uint16 if n_tile_total < 65536 else np.int32)
-        perm = np.argsort(tile_of_pair, kind="stable")
-        sorted_values = wp.array(values.numpy()[:total][perm], dtype=wp.int32, device=device)
-        bounds = np.searchsorted(tile_of_pair[perm], np.arange(n_tile_total + 1))
-        ranges_np = np.stack([bounds[:-1], bounds[1:]], axis=1).astype(np.int32)
-        ranges = wp.array(ranges_np, dtype=wp.vec2i, device=device)
-    else:
-        # culled Gaussians carry depth 3e38 and 0 tiles
-        dkeys = wp.empty(2 * n, dtype=wp.float32, device=device)
-        order = wp.empty(2 * n, dtype=wp.int32, device=device)
-        wp.launch(_init_depth_sort, dim=n, inputs=[ws.depth], outputs=[dkeys, order], device=device)
-        wp.utils.radix_sort_pairs(dkeys, order, n)
-        counts = wp.empty(n, dtype=wp.int32, device=device)
-        wp.launch(_gather_counts, dim=n, inputs=[order, ws.n_tiles], outputs=[counts], device=device)
-        offsets = wp.empty(n, dtype=wp.int32, device=device)
-        wp.utils.array_scan(counts, offsets, inclusive=True)
-        total = int(offsets.numpy()[-1]) if n else 0
-        keys = wp.empty(max(2 * total, 2), dtype=wp.int32, device=device)
-        sorted_values = wp.empty(max(2 * total, 2), dtype=wp.int32, device=device)
-        ranges = wp.zeros(n_tile_total, dtype=wp.vec2i, device=device)
-        if total:
-            emit_in = [order, offsets, ws.rect, ws.n_tiles, tiles_x, 0]
-            wp.launch(_emit_pairs, dim=n, inputs=emit_in, outputs=[keys, sorted_values], device=device)
-            wp.utils.radix_sort_pairs(keys, sorted_values, total)
-            wp.launch(_tile_ranges, dim=total, inputs=[keys, total], outputs=[ranges], device=device)
+    #    then a stable sort by tile id (NumPy)
+    counts = ws.n_tiles.numpy()
+    visible = np.flatnonzero(counts).astype(np.int32)
+    order = visible[np.argsort(ws.depth.numpy()[visible])].astype(np.int32)
+    offsets = np.cumsum(counts[order], dtype=np.int64)
+    total = int(offsets[-1]) if len(offsets) else 0
+    if total >= 2**31:
+        raise ValueError(f"render: {total} Gaussian-tile pairs exceed int32; downsample the cloud")
+    keys = wp.empty(max(total, 1), dtype=wp.int32, device=device)
+    values = wp.empty(max(total, 1), dtype=wp.int32, device=device)
+    emit_in = [
+        wp.array(order, dtype=wp.int32, device=device),
+        wp.array(offsets.astype(np.int32), dtype=wp.int32, device=device),
+        ws.rect, ws.n_tiles, views,
+    ]  # fmt: skip
+    _launch_split(_emit_pairs, len(order), emit_in, [keys, values], device, threads)
+    tile_of_pair = keys.numpy()[:total].astype(np.uint16 if n_tile_total < 65536 else np.int32)
+    perm = np.argsort(tile_of_pair, kind="stable")
+    sorted_values = wp.array(values.numpy()[:total][perm], dtype=wp.int32, device=device)
+    bounds = np.searchsorted(tile_of_pair[perm], np.arange(n_tile_total + 1))
+    ranges_np = np.stack([bounds[:-1], bounds[1:]], axis=1).astype(np.int32)
+    ranges = wp.array(ranges_np, dtype=wp.vec2i, device=device)
 
     # 3. records copied into pair order, so the rasteriser streams them instead of chasing random ids
     pair_records = wp.empty(max(total, 1), dtype=vec16, device=device)
@@ -704,7 +665,7 @@ def _render_warp_batch(jobs: list[tuple[DeviceGaussians, Camera]], background) -
     ranges = wp.zeros(tile, dtype=wp.vec2i, device=device)
     pair_records = wp.empty(max(total, 1), dtype=vec16, device=device)
     if total:
-        wp.launch(_emit_pairs_batch, dim=n, inputs=[order, offsets, ws.rect, ws.n_tiles, vw],
+        wp.launch(_emit_pairs, dim=n, inputs=[order, offsets, ws.rect, ws.n_tiles, vw, 0],
                   outputs=[keys, values], device=device)
         wp.utils.radix_sort_pairs(keys, values, total)
         wp.launch(_tile_ranges, dim=total, inputs=[keys, total], outputs=[ranges], device=device)
