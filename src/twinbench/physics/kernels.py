@@ -50,28 +50,6 @@ def spring_force_between(
     return elastic + damp
 
 
-@wp.func
-def spring_force(
-    x: wp.array(dtype=wp.vec3),
-    v: wp.array(dtype=wp.vec3),
-    springs: wp.array(dtype=wp.vec2i),
-    rest_lengths: wp.array(dtype=float),
-    y: float,
-    dashpot: float,
-    ctrl_from: wp.array(dtype=wp.vec3),
-    ctrl_to: wp.array(dtype=wp.vec3),
-    t: float,
-    n: int,
-    s: int,
-):
-    i = springs[s][0]
-    j = springs[s][1]
-    return spring_force_between(
-        end_position(x, ctrl_from, ctrl_to, t, i, n), end_position(x, ctrl_from, ctrl_to, t, j, n),
-        end_velocity(v, i, n), end_velocity(v, j, n), rest_lengths[s], y, dashpot,
-    )
-
-
 @wp.kernel
 def effective_stiffness(
     log_y: wp.array(dtype=float),
@@ -193,10 +171,11 @@ def accumulate_spring_forces(
     s = wp.tid()
     e = wp.exp(log_y[s])
     if e > y_min:
-        fs = spring_force(x, v, springs, rest_lengths, wp.clamp(e, y_min, y_max), dashpot,
-                          ctrl_from, ctrl_to, t, n, s)
-        i = springs[s][0]
-        j = springs[s][1]
+        ends = springs[s]
+        r = wp.vec2(rest_lengths[s], wp.clamp(e, y_min, y_max))
+        fs = spring_of(x, v, ends, r, dashpot, ctrl_from, ctrl_to, t, n)
+        i = ends[0]
+        j = ends[1]
         if i < n:
             wp.atomic_add(f, i, fs)
         if j < n:

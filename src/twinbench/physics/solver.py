@@ -289,8 +289,6 @@ class SpringMassSolver:
                 inputs = [state_in.x, state_in.v, m.springs[a:b], self._ry[a:b], *tail]
                 self._go(K.eval_spring_forces, b - a, inputs, [spring_f[a:b]], ops)
         gather = not grad and not self._scatter
-        if sync is not None and gather:
-            ops.append(sync)  # the gather reads the other part's springs
         collide = self._collide
         self._go(K.particle_update, p1 - p0,
                  [state_in.x, state_in.v, spring_f, m.inc_offsets, m.inc_springs, f, int(gather),

@@ -147,18 +147,16 @@ def _model_from_payload(payload: dict) -> SpringMassModel:
 
 def _half(model: SpringMassModel, second: bool, parts) -> object:
     """The solver's part (see solver._Worlds) for one half of a one-world model."""
-    n, s = model.num_particles, model.num_springs
-    h, hs = n // 2, s // 2
+    n = model.num_particles
     kin = tuple(i for i, m in enumerate(model.meshes) if m.kinematic)
     kv = (0, int(model.kin_points.shape[0]))
-    springs = (((hs, s),) if second else ((0, hs),)) if s else ()
-    p0, p1 = (h, n) if second else (0, h)
+    p0, p1 = (n // 2, n) if second else (0, n // 2)
     ends = model.springs_np
     touching = np.flatnonzero(((ends >= p0) & (ends < p1)).any(axis=1)).astype(np.int32)
     cut = model.num_object_springs
     lists = tuple(wp.array(ids, dtype=int, device=model.device)
                   for ids in (touching[touching < cut], touching[touching >= cut]))
-    return parts(0, 0, (p0, p1), springs, kv, kin, lists)
+    return parts(0, 0, (p0, p1), (), kv, kin, lists)  # springs: the lists (the main side sets stiffness)
 
 
 class _Barrier:
