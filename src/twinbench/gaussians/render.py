@@ -107,100 +107,6 @@ def _sh_colour(sh: wp.array2d(dtype=wp.vec3), i: int, k: int, d: wp.vec3):
     return wp.vec3(wp.max(c[0], 0.0), wp.max(c[1], 0.0), wp.max(c[2], 0.0))
 
 
-@wp.func
-def _project(
-    i: int,
-    out: int,
-    means: wp.array(dtype=wp.vec3),
-    quats: wp.array(dtype=wp.vec4),
-    scales: wp.array(dtype=wp.vec3),
-    opacities: wp.array(dtype=wp.float32),
-    sh: wp.array2d(dtype=wp.vec3),
-    sh_k: int,
-    rot_wc: wp.mat33,
-    t_wc: wp.vec3,
-    cam_pos: wp.vec3,
-    fx: float,
-    fy: float,
-    cx: float,
-    cy: float,
-    width: int,
-    height: int,
-    near: float,
-    lim_x_neg: float,
-    lim_x_pos: float,
-    lim_y_neg: float,
-    lim_y_pos: float,
-    record: wp.array(dtype=vec16),
-    depth: wp.array(dtype=wp.float32),
-    rect: wp.array(dtype=wp.vec4i),
-    n_tiles: wp.array(dtype=wp.int32),
-):
-    """Project Gaussian `i` of the cloud into record `out`: packed record, depth, tile rectangle, tiles."""
-    n_tiles[out] = 0
-    depth[out] = 3.0e38
-    p = rot_wc * means[i] + t_wc
-    z = p[2]
-    o = opacities[i]
-    if z < near or o < ALPHA_MIN:
-        return
-    q = quats[i]
-    qn = wp.length(q)
-    if qn > 0.0:
-        q = q / qn
-    r = _quat_wxyz_to_mat(q)
-    s = scales[i]
-    m = r * wp.diag(s)
-    cov_w = m * wp.transpose(m)
-    cov_c = rot_wc * cov_w * wp.transpose(rot_wc)
-    tx = wp.clamp(p[0] / z, -lim_x_neg, lim_x_pos) * z
-    ty = wp.clamp(p[1] / z, -lim_y_neg, lim_y_pos) * z
-    j = wp.mat33(fx / z, 0.0, -fx * tx / (z * z), 0.0, fy / z, -fy * ty / (z * z), 0.0, 0.0, 0.0)
-    c2 = j * cov_c * wp.transpose(j)
-    a = c2[0, 0] + LOW_PASS
-    b = c2[0, 1]
-    c = c2[1, 1] + LOW_PASS
-    det = a * c - b * b
-    if det <= 0.0:
-        return
-    u = fx * p[0] / z + cx
-    v = fy * p[1] / z + cy
-    d2max = 2.0 * wp.log(o / ALPHA_MIN)
-    ex = wp.sqrt(d2max * a)
-    ey = wp.sqrt(d2max * c)
-    # pixel centres i + 0.5 inside [u - ex, u + ex]
-    px0 = wp.max(int(wp.ceil(u - ex - 0.5)), 0)
-    px1 = wp.min(int(wp.floor(u + ex - 0.5)), width - 1)
-    py0 = wp.max(int(wp.ceil(v - ey - 0.5)), 0)
-    py1 = wp.min(int(wp.floor(v + ey - 0.5)), height - 1)
-    if px0 > px1 or py0 > py1:
-        return
-    tx0 = px0 / 16
-    tx1 = px1 / 16
-    ty0 = py0 / 16
-    ty1 = py1 / 16
-    col = _sh_colour(sh, i, sh_k, wp.normalize(means[i] - cam_pos))
-    rec = vec16()
-    rec[0] = u
-    rec[1] = v
-    rec[2] = c / det
-    rec[3] = -b / det
-    rec[4] = a / det
-    rec[5] = ex
-    rec[6] = ey
-    rec[7] = col[0]
-    rec[8] = col[1]
-    rec[9] = col[2]
-    rec[10] = z
-    rec[11] = o
-    rec[12] = d2max
-    rec[13] = det / c
-    record[out] = rec
-    depth[out] = z
-    rect[out] = wp.vec4i(tx0, ty0, tx1, ty1)
-    n_tiles[out] = (tx1 - tx0 + 1) * (ty1 - ty0 + 1)
-
-
 @wp.struct
 class _View:
     """One view of a batch: its camera, and where its Gaussians, records, tiles and pixels start."""
@@ -256,13 +162,73 @@ def _preprocess(
     rect: wp.array(dtype=wp.vec4i),
     n_tiles: wp.array(dtype=wp.int32),
 ):
-    """Record offset + k: Gaussian (record - the view's first record) of its view's cloud, seen by that
-    view."""
-    k = wp.tid() + offset
-    vw = views[_view_of(views, k, 0)]
-    _project(vw.src + k - vw.item, k, means, quats, scales, opacities, sh, sh_k, vw.rot_wc, vw.t_wc,
-             vw.cam_pos, vw.fx, vw.fy, vw.cx, vw.cy, vw.width, vw.height, near, vw.lim[0], vw.lim[1],
-             vw.lim[2], vw.lim[3], record, depth, rect, n_tiles)
+    """Record `out` = offset + thread: Gaussian i of its view's cloud seen by that view -> packed record,
+    depth, tile rectangle, tile count."""
+    out = wp.tid() + offset
+    vw = views[_view_of(views, out, 0)]
+    i = vw.src + out - vw.item
+    n_tiles[out] = 0
+    depth[out] = 3.0e38
+    p = vw.rot_wc * means[i] + vw.t_wc
+    z = p[2]
+    o = opacities[i]
+    if z < near or o < ALPHA_MIN:
+        return
+    q = quats[i]
+    qn = wp.length(q)
+    if qn > 0.0:
+        q = q / qn
+    r = _quat_wxyz_to_mat(q)
+    s = scales[i]
+    m = r * wp.diag(s)
+    cov_w = m * wp.transpose(m)
+    cov_c = vw.rot_wc * cov_w * wp.transpose(vw.rot_wc)
+    tx = wp.clamp(p[0] / z, -vw.lim[0], vw.lim[1]) * z
+    ty = wp.clamp(p[1] / z, -vw.lim[2], vw.lim[3]) * z
+    j = wp.mat33(vw.fx / z, 0.0, -vw.fx * tx / (z * z), 0.0, vw.fy / z, -vw.fy * ty / (z * z), 0.0, 0.0, 0.0)
+    c2 = j * cov_c * wp.transpose(j)
+    a = c2[0, 0] + LOW_PASS
+    b = c2[0, 1]
+    c = c2[1, 1] + LOW_PASS
+    det = a * c - b * b
+    if det <= 0.0:
+        return
+    u = vw.fx * p[0] / z + vw.cx
+    v = vw.fy * p[1] / z + vw.cy
+    d2max = 2.0 * wp.log(o / ALPHA_MIN)
+    ex = wp.sqrt(d2max * a)
+    ey = wp.sqrt(d2max * c)
+    # pixel centres i + 0.5 inside [u - ex, u + ex]
+    px0 = wp.max(int(wp.ceil(u - ex - 0.5)), 0)
+    px1 = wp.min(int(wp.floor(u + ex - 0.5)), vw.width - 1)
+    py0 = wp.max(int(wp.ceil(v - ey - 0.5)), 0)
+    py1 = wp.min(int(wp.floor(v + ey - 0.5)), vw.height - 1)
+    if px0 > px1 or py0 > py1:
+        return
+    tx0 = px0 / 16
+    tx1 = px1 / 16
+    ty0 = py0 / 16
+    ty1 = py1 / 16
+    col = _sh_colour(sh, i, sh_k, wp.normalize(means[i] - vw.cam_pos))
+    rec = vec16()
+    rec[0] = u
+    rec[1] = v
+    rec[2] = c / det
+    rec[3] = -b / det
+    rec[4] = a / det
+    rec[5] = ex
+    rec[6] = ey
+    rec[7] = col[0]
+    rec[8] = col[1]
+    rec[9] = col[2]
+    rec[10] = z
+    rec[11] = o
+    rec[12] = d2max
+    rec[13] = det / c
+    record[out] = rec
+    depth[out] = z
+    rect[out] = wp.vec4i(tx0, ty0, tx1, ty1)
+    n_tiles[out] = (tx1 - tx0 + 1) * (ty1 - ty0 + 1)
 
 
 @wp.kernel
@@ -337,33 +303,34 @@ def _gather_records(
     out[n] = record[values[n]]
 
 
-@wp.func
-def _rasterise_tile(
-    tile: int,
-    local: int,
+@wp.kernel
+def _rasterise(
+    tile_list: wp.array(dtype=wp.int32),
     ranges: wp.array(dtype=wp.vec2i),
     record: wp.array(dtype=vec16),
-    width: int,
-    height: int,
-    tiles_x: int,
-    background: wp.vec3,
-    pixel0: int,
+    views: wp.array(dtype=_View),
     out_rgb: wp.array(dtype=wp.vec3),
     out_depth: wp.array(dtype=wp.float32),
     out_t: wp.array(dtype=wp.float32),
     row_done: wp.array(dtype=wp.int32),
 ):
-    """Tile `tile` (the image's tile `local`; pixels from `pixel0`), Gaussian-major: each Gaussian
-    (records in pair order, by depth within the tile) updates the pixels of its ellipse in the tile."""
-    x0 = (local % tiles_x) * 16
-    y0 = (local / tiles_x) * 16
-    x1 = wp.min(x0 + 16, width)
-    y1 = wp.min(y0 + 16, height)
+    """One thread per tile of `tile_list` (every view's tiles when it is empty), Gaussian-major: each
+    Gaussian (records in pair order, by depth within the tile) updates the pixels of its ellipse in the
+    tile."""
+    tile = wp.tid()
+    if tile_list.shape[0] > 0:
+        tile = tile_list[tile]
+    vw = views[_view_of(views, tile, 1)]
+    local = tile - vw.tile
+    x0 = (local % vw.tiles_x) * 16
+    y0 = (local / vw.tiles_x) * 16
+    x1 = wp.min(x0 + 16, vw.width)
+    y1 = wp.min(y0 + 16, vw.height)
     for y in range(y0, y1):
         for x in range(x0, x1):
-            out_rgb[pixel0 + y * width + x] = wp.vec3(0.0, 0.0, 0.0)
-            out_depth[pixel0 + y * width + x] = 0.0
-            out_t[pixel0 + y * width + x] = 1.0
+            out_rgb[vw.pixel + y * vw.width + x] = wp.vec3(0.0, 0.0, 0.0)
+            out_depth[vw.pixel + y * vw.width + x] = 0.0
+            out_t[vw.pixel + y * vw.width + x] = 1.0
     # row_done[16 tile + r]: bit j set once pixel (x0 + j, y0 + r) stopped (transmittance < 1e-4);
     # spans whose pixels have all stopped are skipped without visiting them
     for r in range(16):
@@ -403,7 +370,7 @@ def _rasterise_tile(
                 sx0 += 1
             while ((done_bits >> (sx1 - x0)) & 1) == 1:
                 sx1 -= 1
-            row = pixel0 + y * width
+            row = vw.pixel + y * vw.width
             # d^2 along the row, updated incrementally: d2(x + 1) = d2(x) + step, step += 2 a
             dx = float(sx0) + 0.5 - m[0]
             d2 = cn[0] * dx * dx + 2.0 * cn[1] * dx * dy + cn[2] * dy * dy
@@ -433,37 +400,16 @@ def _rasterise_tile(
             break
     for y in range(y0, y1):
         for x in range(x0, x1):
-            p = pixel0 + y * width + x
+            p = vw.pixel + y * vw.width + x
             t = wp.abs(out_t[p])
             a = 1.0 - t
-            c = out_rgb[p] + t * background
+            c = out_rgb[p] + t * vw.background
             out_rgb[p] = wp.vec3(wp.clamp(c[0], 0.0, 1.0), wp.clamp(c[1], 0.0, 1.0), wp.clamp(c[2], 0.0, 1.0))
             if a > 0.0:
                 out_depth[p] = out_depth[p] / a
             out_t[p] = a
 
 
-@wp.kernel
-def _rasterise(
-    tile_list: wp.array(dtype=wp.int32),
-    ranges: wp.array(dtype=wp.vec2i),
-    record: wp.array(dtype=vec16),
-    views: wp.array(dtype=_View),
-    out_rgb: wp.array(dtype=wp.vec3),
-    out_depth: wp.array(dtype=wp.float32),
-    out_t: wp.array(dtype=wp.float32),
-    row_done: wp.array(dtype=wp.int32),
-):
-    """One thread per tile of `tile_list`, or of every view when it is empty."""
-    tile = wp.tid()
-    if tile_list.shape[0] > 0:
-        tile = tile_list[tile]
-    vw = views[_view_of(views, tile, 1)]
-    _rasterise_tile(tile, tile - vw.tile, ranges, record, vw.width, vw.height, vw.tiles_x, vw.background,
-                    vw.pixel, out_rgb, out_depth, out_t, row_done)
-
-
-# ----- Warp backend ---------------------------------------------------------------------------------
 def _tile_count(cam: Camera) -> int:
     return ((cam.width + TILE - 1) // TILE) * ((cam.height + TILE - 1) // TILE)
 
@@ -552,10 +498,9 @@ def _render_warp_one(
         return _render_warp_batch([(g, cam)], background)[0]
     n = len(g)
     w, h = cam.width, cam.height
-    view = _view(cam, background)
-    tiles_x, n_tile_total = view.tiles_x, _tile_count(cam)
-    tiles_y = n_tile_total // tiles_x
-    views = wp.array([view], dtype=_View, device=device)
+    tiles_x, tiles_y = (w + TILE - 1) // TILE, (h + TILE - 1) // TILE
+    n_tile_total = tiles_x * tiles_y
+    views = wp.array([_view(cam, background)], dtype=_View, device=device)
     ws = _Workspace(n, device)
     if cpu and threads > 1:
         wp.load_module(device=device)  # compile once, not concurrently in the worker threads
