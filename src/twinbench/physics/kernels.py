@@ -516,6 +516,7 @@ def build_candidates(
     grid: wp.uint64,
     x: wp.array(dtype=wp.vec3),
     masks: wp.array(dtype=int),
+    particle_world: wp.array(dtype=int),
     nbr_offsets: wp.array(dtype=int),
     nbr: wp.array(dtype=int),
     cand_radius: float,
@@ -531,7 +532,7 @@ def build_candidates(
     p = x[tid]
     mask = masks[tid]
     max_c = cand.shape[1]
-    q = wp.hash_grid_query(grid, p, query_radius)
+    q = wp.hash_grid_query(grid, p, query_radius, particle_world[tid])
     idx = int(0)  # noqa: UP018 (Warp needs a typed dynamic variable)
     c = int(0)  # noqa: UP018 (Warp needs a typed dynamic variable)
     while wp.hash_grid_query_next(q, idx):

@@ -118,9 +118,8 @@ class SpringMassSolver:
         width = p.max_collision_candidates if self._collide else 1
         self._cand = wp.zeros((n, width), dtype=int, device=dev)
         self._cand_count = wp.zeros(n, dtype=int, device=dev)
-        # one hash grid per world: a query never sees another world's particles
-        n_grids = model.num_worlds if self._collide else 0
-        self._grids = [wp.HashGrid(64, 64, 64, device=dev) for _ in range(n_grids)]
+        # one hash grid per group of worlds (w0, w1), its points grouped by world: a query sees its own world's
+        self._grids: dict[tuple[int, int], wp.HashGrid] = {}
         nm = len(model.meshes)
         nfaces = sum(m.faces.shape[0] for m in model.meshes)
         self._mesh_force = wp.zeros(max(nm, 1), dtype=wp.vec3, device=dev)
@@ -221,14 +220,14 @@ class SpringMassSolver:
         cd = float(m.params.collision_dist)
         cand_r = cd * float(m.params.candidate_radius_scale)
         query_r = max(cd * 5.0, cand_r)  # PhysTwin: hash cell and query radius 5 * collision_dist
-        nw = m.particles_per_world
-        for w in range(wr.w0, wr.w1):
-            base = w * nw
-            grid = self._grids[w]
-            grid.build(state.x[base: base + nw], query_r)
-            wp.launch(K.build_candidates, dim=nw,
-                      inputs=[grid.id, state.x, m.masks, m.nbr_offsets, m.nbr, cand_r, query_r, base],
-                      outputs=[self._cand, self._cand_count], device=self.device)
+        p0, p1 = wr.particles
+        grid = self._grids.get((wr.w0, wr.w1))
+        if grid is None:
+            grid = self._grids[(wr.w0, wr.w1)] = wp.HashGrid(64, 64, 64, device=self.device)
+        grid.build(state.x[p0:p1], query_r, groups=m.particle_world[p0:p1])
+        wp.launch(K.build_candidates, dim=p1 - p0,
+                  inputs=[grid.id, state.x, m.masks, m.particle_world, m.nbr_offsets, m.nbr, cand_r, query_r, p0],
+                  outputs=[self._cand, self._cand_count], device=self.device)
 
     def _update_stiffness(self, ops: list | None = None, wr: _Worlds | None = None) -> None:
         m = self.model
