@@ -199,3 +199,59 @@ def test_label_rigid_poser_writes_into_a_wider_out_buffer(make_cloud):
     )
     with pytest.raises(ValueError, match="SH"):
         LabelRigidPoser(cloud, np.zeros(40, np.int32), 1, out=narrow)
+
+
+def test_lbs_copies_in_one_launch_equal_each_copy_alone():
+    """update_many skins several particle sets (e.g. worlds) into one buffer; each copy is bit-identical to
+    update on its particles alone, and copies land only where their starts say."""
+    import warp as wp
+
+    particles, gauss, quats = _blob(4, n_particles=80, n_gauss=120)
+    sk = LBSSkinner(bind(gauss, particles), gauss, quats)
+    rng = np.random.default_rng(4)
+    sets = [particles + rng.normal(0, 0.01, particles.shape) for _ in range(3)]
+    alone = [tuple(a.numpy().copy() for a in sk.update(p)) for p in sets]
+    # particles of three "worlds" laid out with a gap; outputs reversed, after 7 untouched entries
+    flat = np.concatenate([np.zeros((5, 3)), sets[0], sets[1], np.zeros((2, 3)), sets[2]]).astype(np.float32)
+    pstarts = [5, 85, 167]
+    ostarts = [7 + 240, 7 + 120, 7]
+    means = wp.full(7 + 360, wp.vec3(9.0, 9.0, 9.0), dtype=wp.vec3)
+    q = wp.zeros(7 + 360, dtype=wp.vec4)
+    sk.update_many(wp.array(flat, dtype=wp.vec3), pstarts, means, q, ostarts)
+    m_np, q_np = means.numpy(), q.numpy()
+    assert np.all(m_np[:7] == 9.0)
+    for c in range(3):
+        np.testing.assert_array_equal(m_np[ostarts[c]: ostarts[c] + 120], alone[c][0])
+        np.testing.assert_array_equal(q_np[ostarts[c]: ostarts[c] + 120], alone[c][1])
+    with pytest.raises(ValueError, match="fit"):
+        sk.update_many(wp.array(flat, dtype=wp.vec3), [200], means, q, [0])
+    with pytest.raises(ValueError, match="starts"):
+        sk.update_many(wp.array(flat, dtype=wp.vec3), [5, 85], means, q, [0])
+
+
+def test_label_rigid_copies_in_one_launch_equal_each_copy_alone(make_cloud):
+    from twinbench.gaussians.cloud import DeviceGaussians
+
+    cloud = make_cloud(90, degree=2, seed=12, spread=0.1)
+    labels = np.arange(90) % 3
+    poser = LabelRigidPoser(cloud, labels, 3)
+    rng = np.random.default_rng(12)
+    sets = []
+    for _ in range(2):
+        t = np.tile(np.eye(4), (3, 1, 1))
+        t[:, :3, :3] = Rotation.random(3, random_state=rng.integers(1 << 30)).as_matrix()
+        t[:, :3, 3] = rng.normal(0, 0.1, (3, 3))
+        sets.append(t)
+    alone = []
+    for t in sets:
+        g = poser.update(t)
+        alone.append([a.numpy().copy() for a in (g.means, g.quats, g.sh)])
+    # a wider scene buffer (more SH coefficients): copy 1 first, then copy 0
+    out = DeviceGaussians.concatenate([make_cloud(200, degree=3, seed=13).to_device("cpu")])
+    poser.update_many(np.stack(sets), out, [105, 10])
+    for c, first in ((0, 105), (1, 10)):
+        for got, ref in zip((out.means, out.quats), alone[c][:2], strict=True):
+            np.testing.assert_array_equal(got.numpy()[first: first + 90], ref)
+        np.testing.assert_array_equal(out.sh.numpy()[first: first + 90, :9], alone[c][2])
+    with pytest.raises(ValueError, match="transforms"):
+        poser.update_many(sets[0], out, [0])

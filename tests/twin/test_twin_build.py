@@ -149,8 +149,11 @@ def test_render_worlds_renders_every_world_in_one_call_as_each_alone(setup):
     that world by itself, and the worlds' images differ."""
     twin, _ = setup
     many, states = build_twin(twin.spec, num_worlds=3)
+    def poses(k):
+        return {"block": planar_pose(0.45, -0.1 + 0.1 * k, 0.3 * k), "soft": planar_pose(0.3, 0.2, 0.5 * k)}
+
     for k, state in enumerate(states):
-        many.reset(state, None, {"block": planar_pose(0.45, -0.1 + 0.1 * k, 0.3 * k)})
+        many.reset(state, None, poses(k))
     together = many.render_worlds(states)
     assert len(together) == 3 and all(set(d) == set(many.cameras) for d in together)
     for state, images in zip(states, together, strict=True):
@@ -160,6 +163,18 @@ def test_render_worlds_renders_every_world_in_one_call_as_each_alone(setup):
     name = next(iter(many.cameras))
     assert not np.array_equal(together[0][name].rgb, together[2][name].rgb)
     assert many.render_worlds([]) == []
+    # the posers run once for all worlds (rigid, LBS and robot Gaussians in one buffer): a world's Gaussians
+    # and images equal a one-world twin's in the same state, also after the soft body moved
+    many.step_worlds(states, [None] * 3)
+    one, alone = build_twin(twin.spec)
+    one.reset(alone, None, poses(1))
+    one.step(alone, None)
+    posed = many.pose_worlds(states)[1]
+    ref = one.pose_gaussians(alone)
+    for field in ("means", "quats", "sh"):
+        np.testing.assert_array_equal(getattr(posed, field).numpy(), getattr(ref, field).numpy())
+    for name, out in one.render(alone).items():
+        np.testing.assert_array_equal(many.render_worlds(states)[1][name].rgb, out.rgb)
 
 
 def test_gripper_latches_on_finger_forces_and_lifts_by_friction():

@@ -113,22 +113,28 @@ def _rotate_quat_wxyz(r: wp.mat33, q: wp.vec4):
 def _bone_rotations(
     rest: wp.array(dtype=wp.vec3),
     cur: wp.array(dtype=wp.vec3),
+    cur_starts: wp.array(dtype=int),
     nbrs: wp.array2d(dtype=wp.int32),
     eps_rel: float,
     rots: wp.array(dtype=wp.mat33),
 ):
-    b = wp.tid()
+    """Bone b of copy c (thread c * P + b) from the particles cur[cur_starts[c]:]."""
+    i = wp.tid()
+    num = rest.shape[0]
+    c = i // num
+    b = i - c * num
+    base = cur_starts[c]
     a = wp.mat33()
     p0 = rest[b]
-    p1 = cur[b]
+    p1 = cur[base + b]
     tr = float(0.0)  # noqa: UP018 (a Warp dynamic variable)
     for j in range(nbrs.shape[1]):
         n = nbrs[b, j]
         d0 = rest[n] - p0
-        d1 = cur[n] - p1
+        d1 = cur[base + n] - p1
         a += wp.outer(d1, d0)
         tr += wp.length(d1) * wp.length(d0)
-    rots[b] = _polar_rotation(a + wp.identity(3, dtype=float) * (eps_rel * tr))
+    rots[i] = _polar_rotation(a + wp.identity(3, dtype=float) * (eps_rel * tr))
 
 
 @wp.kernel
@@ -139,21 +145,31 @@ def _skin(
     weights: wp.array2d(dtype=wp.float32),
     rest: wp.array(dtype=wp.vec3),
     cur: wp.array(dtype=wp.vec3),
+    cur_starts: wp.array(dtype=int),
     rots: wp.array(dtype=wp.mat33),
+    out_starts: wp.array(dtype=int),
     out_means: wp.array(dtype=wp.vec3),
     out_quats: wp.array(dtype=wp.vec4),
 ):
+    """Gaussian g of copy c (thread c * N + g) into out_*[out_starts[c] + g]."""
     i = wp.tid()
-    x = rest_means[i]
+    num = rest_means.shape[0]
+    c = i // num
+    g = i - c * num
+    base = cur_starts[c]
+    first_bone = c * rest.shape[0]
+    x = rest_means[g]
     xn = wp.vec3()
     m = wp.mat33()
     for j in range(indices.shape[1]):
-        b = indices[i, j]
-        w = weights[i, j]
-        xn += w * (rots[b] * (x - rest[b]) + cur[b])
-        m += w * rots[b]
-    out_means[i] = xn
-    out_quats[i] = _rotate_quat_wxyz(_polar_rotation(m), rest_quats[i])
+        b = indices[g, j]
+        w = weights[g, j]
+        r = rots[first_bone + b]
+        xn += w * (r * (x - rest[b]) + cur[base + b])
+        m += w * r
+    o = out_starts[c] + g
+    out_means[o] = xn
+    out_quats[o] = _rotate_quat_wxyz(_polar_rotation(m), rest_quats[g])
 
 
 @wp.kernel
@@ -162,19 +178,27 @@ def _rigid_by_label(
     rest_quats: wp.array(dtype=wp.vec4),
     rest_sh: wp.array2d(dtype=wp.vec3),
     labels: wp.array(dtype=wp.int32),
+    num_labels: int,
     rots: wp.array(dtype=wp.mat33),
     trans: wp.array(dtype=wp.vec3),
     sh_mats: wp.array2d(dtype=wp.float32),
+    out_starts: wp.array(dtype=int),
     out_means: wp.array(dtype=wp.vec3),
     out_quats: wp.array(dtype=wp.vec4),
     out_sh: wp.array2d(dtype=wp.vec3),
 ):
-    i = wp.tid()
-    lab = labels[i]
+    """Gaussian i of copy c (thread c * N + i) moved by the copy's transform of its label, into
+    out_*[out_starts[c] + i]."""
+    t = wp.tid()
+    num = rest_means.shape[0]
+    c = t // num
+    i = t - c * num
+    lab = c * num_labels + labels[i]
+    o = out_starts[c] + i
     r = rots[lab]
-    out_means[i] = r * rest_means[i] + trans[lab]
-    out_quats[i] = _rotate_quat_wxyz(r, rest_quats[i])
-    out_sh[i, 0] = rest_sh[i, 0]
+    out_means[o] = r * rest_means[i] + trans[lab]
+    out_quats[o] = _rotate_quat_wxyz(r, rest_quats[i])
+    out_sh[o, 0] = rest_sh[i, 0]
     # band l occupies coefficients l^2 .. (l+1)^2 - 1; its (2l+1)^2 matrix entries follow the previous bands'
     k = rest_sh.shape[1]
     moff = int(0)  # noqa: UP018 (a Warp dynamic variable)
@@ -186,9 +210,19 @@ def _rigid_by_label(
             acc = wp.vec3()
             for b in range(size):
                 acc += sh_mats[lab, moff + a * size + b] * rest_sh[i, first + b]
-            out_sh[i, first + a] = acc
+            out_sh[o, first + a] = acc
         moff += size * size
         band += 1
+
+
+def _starts(starts, count: int, what: str, device) -> wp.array:
+    """Checked first indices of `len(starts)` copies of `count` items in an array of `what` items."""
+    s = np.asarray(starts)
+    if s.ndim != 1 or not s.size or not np.issubdtype(s.dtype, np.integer):
+        raise ValueError(f"starts must be a non-empty 1-D sequence of integers, got {starts!r}")
+    if s.min() < 0 or s.max() + count > what:
+        raise ValueError(f"starts: every copy of {count} items must fit in the {what} items of the output")
+    return wp.array(s.astype(np.int32), dtype=int, device=device)
 
 
 class LabelRigidPoser:
@@ -245,41 +279,65 @@ class LabelRigidPoser:
     def update(self, transforms, out: DeviceGaussians | None = None) -> DeviceGaussians:
         """Pose with `transforms` (num_labels, 4, 4), each a rigid transform from the rest pose, into
         `out` (same requirements as the constructor's) or the poser's own output."""
+        target = self.posed if out is None else self._check_out(out)
+        self.update_many(np.asarray(transforms, dtype=np.float64)[None], target, [0])
+        return target
+
+    def update_many(self, transforms, out: DeviceGaussians, starts) -> DeviceGaussians:
+        """Pose several copies in one launch (e.g. one per world of a scene buffer): copy c with
+        `transforms[c]` (C, num_labels, 4, 4) into `out` from index `starts[c]`. Each copy equals
+        `update(transforms[c])`."""
         t = np.asarray(transforms, dtype=np.float64)
-        if t.shape != (self.num_labels, 4, 4) or not np.all(np.isfinite(t)):
+        copies = t.shape[0] if t.ndim == 4 else 0
+        if t.shape != (copies, self.num_labels, 4, 4) or not copies or not np.all(np.isfinite(t)):
             raise ValueError(
-                f"LabelRigidPoser.update: transforms must be finite ({self.num_labels}, 4, 4), got {t.shape}"
+                f"LabelRigidPoser.update: transforms must be finite (copies, {self.num_labels}, 4, 4), "
+                f"got {t.shape}"
             )
-        rots = t[:, :3, :3]
+        rots = t[..., :3, :3].reshape(-1, 3, 3)
         if not np.allclose(rots @ rots.transpose(0, 2, 1), np.eye(3), atol=1e-5) or np.any(
             np.linalg.det(rots) < 0
         ):
             raise ValueError("LabelRigidPoser.update: every transform's 3x3 block must be a rotation")
-        target = self.posed if out is None else self._check_out(out)
+        n, k = len(self.rest), self.rest.sh.shape[1]
+        if out.device != self.device or out.sh.shape[1] < k:
+            raise ValueError(
+                f"LabelRigidPoser.update: out must have >= {k} SH coefficients on {self.device}, got "
+                f"{out.sh.shape[1]} on {out.device}"
+            )
+        first = _starts(starts, n, len(out), self.device)
+        if first.shape[0] != copies:
+            raise ValueError(f"LabelRigidPoser.update: {copies} transforms sets but {first.shape[0]} starts")
+        if self._rots.shape[0] != rots.shape[0]:
+            self._rots = wp.empty(rots.shape[0], dtype=wp.mat33, device=self.device)
+            self._trans = wp.empty(rots.shape[0], dtype=wp.vec3, device=self.device)
+            self._sh_mats = wp.zeros((rots.shape[0], self._sh_mats.shape[1]), dtype=wp.float32,
+                                     device=self.device)
         self._rots.assign(rots.astype(np.float32))
-        self._trans.assign(t[:, :3, 3].astype(np.float32))
+        self._trans.assign(t[..., :3, 3].reshape(-1, 3).astype(np.float32))
         if self.degree > 0:
             mats = np.stack([
-                np.concatenate([m.ravel() for m in sh_rotation_matrices(rots[i], self.degree)[1:]])
-                for i in range(self.num_labels)
+                np.concatenate([m.ravel() for m in sh_rotation_matrices(r, self.degree)[1:]]) for r in rots
             ])
             self._sh_mats.assign(mats.astype(np.float32))
         wp.launch(
             _rigid_by_label,
-            dim=len(self.rest),
+            dim=copies * n,
             inputs=[
                 self.rest.means,
                 self.rest.quats,
                 self.rest.sh,
                 self._labels,
+                self.num_labels,
                 self._rots,
                 self._trans,
                 self._sh_mats,
+                first,
             ],
-            outputs=[target.means, target.quats, target.sh],
+            outputs=[out.means, out.quats, out.sh],
             device=self.device,
         )
-        return target
+        return out
 
 
 class LBSSkinner:
@@ -332,16 +390,34 @@ class LBSSkinner:
         n = self.means.shape[0]
         if means.shape[0] != n or quats.shape[0] != n:
             raise ValueError(f"LBSSkinner.update: out_means/out_quats must hold {n} entries")
+        return self.update_many(particles, [0], means, quats, [0])
+
+    def update_many(
+        self, particles: wp.array, particle_starts, out_means: wp.array, out_quats: wp.array, out_starts
+    ) -> tuple[wp.array, wp.array]:
+        """Skin several copies in one launch per stage (e.g. one per world): copy c to the particles
+        `particles[particle_starts[c]:]` (a vec3 wp.array on this device) into `out_means` / `out_quats`
+        from index `out_starts[c]`. Each copy equals `update` on its particles."""
+        if not isinstance(particles, wp.array) or particles.device != self.device:
+            raise ValueError(f"LBSSkinner.update_many: particles must be a vec3 wp.array on {self.device}")
+        n, p = self.means.shape[0], self.num_particles
+        cur = _starts(particle_starts, p, particles.shape[0], self.device)
+        out = _starts(out_starts, n, min(out_means.shape[0], out_quats.shape[0]), self.device)
+        copies = cur.shape[0]
+        if out.shape[0] != copies:
+            raise ValueError(f"LBSSkinner.update_many: {copies} particle starts but {out.shape[0]} output starts")
+        if self.bone_rotations.shape[0] != copies * p:
+            self.bone_rotations = wp.zeros(copies * p, dtype=wp.mat33, device=self.device)
         wp.launch(
             _bone_rotations,
-            dim=self.num_particles,
-            inputs=[self._rest, particles, self._nbrs, _EPS_REL],
+            dim=copies * p,
+            inputs=[self._rest, particles, cur, self._nbrs, _EPS_REL],
             outputs=[self.bone_rotations],
             device=self.device,
         )
         wp.launch(
             _skin,
-            dim=n,
+            dim=copies * n,
             inputs=[
                 self._rest_means,
                 self._rest_quats,
@@ -349,12 +425,14 @@ class LBSSkinner:
                 self._weights,
                 self._rest,
                 particles,
+                cur,
                 self.bone_rotations,
+                out,
             ],
-            outputs=[means, quats],
+            outputs=[out_means, out_quats],
             device=self.device,
         )
-        return means, quats
+        return out_means, out_quats
 
 
 def skin(binding: SkinBinding, rest_cloud: GaussianCloud, particles, device: str = "cpu") -> GaussianCloud:

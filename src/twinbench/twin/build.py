@@ -49,6 +49,14 @@ from twinbench.transforms import fit_rigid_transform, transform_points
 from twinbench.twin.spec import CameraSpec, RobotSpec, TwinSpec, with_color_map
 
 
+class _PosedGaussians:
+    """The posed Gaussians of every world of one set of states, world after world in one buffer (made on
+    first use), so that each poser runs once for all worlds."""
+
+    def __init__(self) -> None:
+        self.all: DeviceGaussians | None = None
+
+
 @dataclass
 class TwinState:
     """Everything of one world that changes while a twin runs. Read it through the Twin's accessors
@@ -59,6 +67,7 @@ class TwinState:
     robot: ControllerState  # joint configuration, gripper command, latch
     gaussians: DeviceGaussians | None = None  # the scene's Gaussians, posed (made on first use)
     world: int = 0
+    posed: _PosedGaussians = field(default_factory=_PosedGaussians, repr=False)  # shared by the worlds
     object_poses: dict[str, np.ndarray] = field(default_factory=dict)  # best-fit rigid pose per object
     collider_poses: dict[str, np.ndarray] = field(default_factory=dict)  # this episode's collider poses
     finger_forces: tuple[float, float] | None = None  # last frame's contact force per finger (N)
@@ -254,9 +263,10 @@ class Twin:
 
     def new_states(self) -> list[TwinState]:
         """One state per world over fresh shared physics buffers, each world reset to home and rest."""
-        physics, control = self.model.state(), self.model.control()
+        physics, control, posed = self.model.state(), self.model.control(), _PosedGaussians()
         states = [
-            TwinState(physics=physics, control=control, robot=self.controller.initial_state(), world=w)
+            TwinState(physics=physics, control=control, robot=self.controller.initial_state(), world=w,
+                      posed=posed)
             for w in range(self.num_worlds)
         ]
         for state in states:
@@ -455,22 +465,43 @@ class Twin:
 
     def pose_gaussians(self, state: TwinState) -> DeviceGaussians:
         """Pose the state's Gaussians: robot links by FK, objects by rigid fit or LBS. Returns them."""
-        if state.gaussians is None:
-            state.gaussians = self._rest_gaussians.to_device(self.device)
-        g = state.gaussians
-        self._robot_poser.update(self.robot.fk(state.robot.q), out=self._segment(g, *self._robot_range))
+        return self.pose_worlds([state])[0]
+
+    def pose_worlds(self, states: list[TwinState]) -> list[DeviceGaussians]:
+        """Pose several states' Gaussians (e.g. every world's): each poser runs once for all the states
+        that share buffers. Returns each state's Gaussians; each equals `pose_gaussians(state)`."""
+        groups: dict[int, list[TwinState]] = {}
+        for state in states:
+            groups.setdefault(id(state.posed), []).append(state)
+        for group in groups.values():
+            self._pose_group(group)
+        return [state.gaussians for state in states]
+
+    def _pose_group(self, states: list[TwinState]) -> None:
+        posed = states[0].posed
+        n = len(self._rest_gaussians)
+        if posed.all is None:
+            rest = self._rest_gaussians.to_device(self.device)
+            posed.all = rest if self.num_worlds == 1 else DeviceGaussians.concatenate([rest] * self.num_worlds)
+        for state in states:
+            if state.gaussians is None:
+                state.gaussians = self._segment(posed.all, state.world * n, n)
+        first = np.array([state.world * n for state in states])
+        g = posed.all
+        q = np.stack([state.robot.q for state in states])
+        self._robot_poser.update_many(self.robot.fk(q), g, first + self._robot_range[0])
         for name, poser in self._posers.items():
             if name in self._colliders:
-                poser.update(state.collider_poses[name][None], out=self._segment(g, *self._colliders[name]))
+                poses = np.stack([state.collider_poses[name] for state in states])[:, None]
+                poser.update_many(poses, g, first + self._colliders[name][0])
                 continue
             slot = self._objects[name]
-            seg = self._segment(g, slot.g_start, slot.g_count)
             if isinstance(poser, LabelRigidPoser):
-                poser.update(state.object_poses[name][None], out=seg)
+                poses = np.stack([state.object_poses[name] for state in states])[:, None]
+                poser.update_many(poses, g, first + slot.g_start)
             else:
-                particles = state.physics.x[self._span(state, slot.start, slot.count)]  # a device view
-                poser.update(particles, out_means=seg.means, out_quats=seg.quats)
-        return g
+                particles = [state.world * self._nw + slot.start for state in states]
+                poser.update_many(states[0].physics.x, particles, g.means, g.quats, first + slot.g_start)
 
     def camera(self, state: TwinState, name: str) -> Camera:
         """The Camera of a named camera at the state's robot configuration."""
@@ -495,10 +526,8 @@ class Twin:
         names = list(self.cameras) if cameras is None else list(cameras)
         if not states:
             return []
-        views = []
-        for state in states:
-            g = self.pose_gaussians(state)
-            views += [(g, self.camera(state, n)) for n in names]
+        views = [(g, self.camera(state, n)) for state, g in zip(states, self.pose_worlds(states), strict=True)
+                 for n in names]
         outs = render_batch(views, background=self.spec.render_background, device=self.device)
         k = len(names)
         return [dict(zip(names, outs[i * k : (i + 1) * k], strict=True)) for i in range(len(states))]
