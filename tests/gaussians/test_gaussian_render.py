@@ -195,7 +195,7 @@ def test_render_batch_of_several_clouds_and_cameras_equals_each_view_alone(make_
         render_batch([(clouds[0], "front")])
 
 
-def test_one_launch_per_stage_batch_path_equals_each_view_alone_on_cpu(make_cloud, ref_render):
+def test_one_launch_per_stage_batch_path_equals_each_view_alone_on_cpu(make_cloud, ref_render, monkeypatch):
     """render_batch's CUDA path (every view's records, sorts and tiles in one launch per stage) run on
     CPU: each image equals its view rendered alone with the same radix sorts, bit for bit, and matches
     the brute-force reference; views share clouds, differ in size, and one sees nothing."""
@@ -217,6 +217,24 @@ def test_one_launch_per_stage_batch_path_equals_each_view_alone_on_cpu(make_clou
     _assert_matches(outs[0], ref_render(host[0], cams[0], bg))
     _assert_matches(outs[2], ref_render(host[0], cams[1], bg))
     assert outs[3].alpha.max() == 0.0 and np.allclose(outs[3].rgb, bg)
+    # segments of one cloud (a twin's worlds) are read in place, not concatenated: same images
+    from twinbench.gaussians.cloud import DeviceGaussians
+
+    both = DeviceGaussians.concatenate(clouds)
+    parts = [both.segment(0, 300), both.segment(300, 170)]
+    assert parts[1].base == (both, 300) and parts[1].segment(20, 50).base == (both, 320)
+
+    def no_copy(items):
+        raise AssertionError("segments of one cloud were concatenated")
+
+    monkeypatch.setattr(DeviceGaussians, "concatenate", staticmethod(no_copy))
+    jobs = [(parts[i], cam) for i, cam in ((0, cams[0]), (1, cams[1]), (0, cams[1]))]
+    seg_outs = _render_warp_batch(jobs, bg)
+    for got, ref in zip(seg_outs, outs[:3], strict=True):
+        np.testing.assert_array_equal(got.rgb, ref.rgb)
+        np.testing.assert_array_equal(got.depth, ref.depth)
+    with pytest.raises(ValueError, match="outside"):
+        both.segment(400, 71)
 
 
 @pytest.mark.gpu

@@ -102,7 +102,8 @@ def test_mesh_boxes_only_skip_queries_that_find_nothing():
             solver._cp.mesh_lo.fill_(-pad)
             solver._cp.mesh_hi.fill_(pad)
         pusher = model.meshes[mid].vertices.astype(np.float64)
-        x = _drive(model, solver, model.state(), model.control(), [mid], [(0.0, 0.0, 0.0)], pusher, 12, [0.006])
+        x = _drive(model, solver, model.state(), model.control(), [mid], [(0.0, 0.0, 0.0)], pusher, 12,
+                   [0.006])
         runs.append((x, [solver.mesh_contact_force(k, per_face=True) for k in range(2)]))
     assert np.abs(runs[0][1][1]).max() > 0 and np.abs(runs[0][1][0]).max() > 0  # both meshes touched
     for a, b in zip(runs[0][0] + runs[0][1], runs[1][0] + runs[1][1], strict=True):

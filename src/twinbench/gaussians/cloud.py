@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -196,10 +196,24 @@ class DeviceGaussians:
     scales: wp.array
     opacities: wp.array
     sh: wp.array
+    # set by `segment`: (the cloud whose arrays these views are part of, index of the first Gaussian there)
+    base: tuple[DeviceGaussians, int] | None = field(default=None, repr=False, compare=False)
 
     @property
     def device(self):
         return self.means.device
+
+    def segment(self, start: int, count: int) -> DeviceGaussians:
+        """Gaussians [start, start + count) as views of this cloud's arrays (writes to them land here). A
+        batch render of segments of one cloud reads that cloud in place instead of concatenating."""
+        if start < 0 or count < 0 or start + count > len(self):
+            raise ValueError(
+                f"segment [{start}, {start + count}) is outside the cloud's {len(self)} Gaussians"
+            )
+        end = start + count
+        root, offset = self.base or (self, 0)
+        return DeviceGaussians(self.means[start:end], self.quats[start:end], self.scales[start:end],
+                               self.opacities[start:end], self.sh[start:end], base=(root, offset + start))
 
     def __len__(self) -> int:
         return self.means.shape[0]

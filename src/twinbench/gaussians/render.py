@@ -580,7 +580,12 @@ def _render_warp_batch(jobs: list[tuple[DeviceGaussians, Camera]], background) -
         if id(g) not in starts:
             starts[id(g)] = sum(len(c) for c in clouds)
             clouds.append(g)
-    cloud = clouds[0] if len(clouds) == 1 else DeviceGaussians.concatenate(clouds)
+    roots = {id((g.base or (g, 0))[0]) for g in clouds}
+    if len(clouds) > 1 and len(roots) == 1:  # segments of one cloud (e.g. a twin's worlds): read it in place
+        cloud = (clouds[0].base or (clouds[0], 0))[0]
+        starts = {id(g): (g.base or (g, 0))[1] for g in clouds}
+    else:
+        cloud = clouds[0] if len(clouds) == 1 else DeviceGaussians.concatenate(clouds)
     views, shapes = [], []
     item = tile = pixel = 0
     for g, cam in jobs:

@@ -405,7 +405,9 @@ class LBSSkinner:
         out = _starts(out_starts, n, min(out_means.shape[0], out_quats.shape[0]), self.device)
         copies = cur.shape[0]
         if out.shape[0] != copies:
-            raise ValueError(f"LBSSkinner.update_many: {copies} particle starts but {out.shape[0]} output starts")
+            raise ValueError(
+                f"LBSSkinner.update_many: {copies} particle starts but {out.shape[0]} output starts"
+            )
         if self.bone_rotations.shape[0] != copies * p:
             self.bone_rotations = wp.zeros(copies * p, dtype=wp.mat33, device=self.device)
         wp.launch(

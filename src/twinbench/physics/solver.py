@@ -118,7 +118,7 @@ class SpringMassSolver:
         width = p.max_collision_candidates if self._collide else 1
         self._cand = wp.zeros((n, width), dtype=int, device=dev)
         self._cand_count = wp.zeros(n, dtype=int, device=dev)
-        # one hash grid per group of worlds (w0, w1), its points grouped by world: a query sees its own world's
+        # one hash grid per group of worlds (w0, w1), points grouped by world: a query sees its own world's
         self._grids: dict[tuple[int, int], wp.HashGrid] = {}
         nm = len(model.meshes)
         nfaces = sum(m.faces.shape[0] for m in model.meshes)
@@ -226,7 +226,8 @@ class SpringMassSolver:
             grid = self._grids[(wr.w0, wr.w1)] = wp.HashGrid(64, 64, 64, device=self.device)
         grid.build(state.x[p0:p1], query_r, groups=m.particle_world[p0:p1])
         wp.launch(K.build_candidates, dim=p1 - p0,
-                  inputs=[grid.id, state.x, m.masks, m.particle_world, m.nbr_offsets, m.nbr, cand_r, query_r, p0],
+                  inputs=[grid.id, state.x, m.masks, m.particle_world, m.nbr_offsets, m.nbr, cand_r, query_r,
+                          p0],
                   outputs=[self._cand, self._cand_count], device=self.device)
 
     def _update_stiffness(self, ops: list | None = None, wr: _Worlds | None = None) -> None:

@@ -453,16 +453,6 @@ class Twin:
         return self._objects[name]
 
     # ------------------------------------------------------------------ appearance
-    def _segment(self, g: DeviceGaussians, start: int, count: int) -> DeviceGaussians:
-        end = start + count
-        return DeviceGaussians(
-            g.means[start:end],
-            g.quats[start:end],
-            g.scales[start:end],
-            g.opacities[start:end],
-            g.sh[start:end],
-        )
-
     def pose_gaussians(self, state: TwinState) -> DeviceGaussians:
         """Pose the state's Gaussians: robot links by FK, objects by rigid fit or LBS. Returns them."""
         return self.pose_worlds([state])[0]
@@ -482,10 +472,11 @@ class Twin:
         n = len(self._rest_gaussians)
         if posed.all is None:
             rest = self._rest_gaussians.to_device(self.device)
-            posed.all = rest if self.num_worlds == 1 else DeviceGaussians.concatenate([rest] * self.num_worlds)
+            worlds = self.num_worlds
+            posed.all = rest if worlds == 1 else DeviceGaussians.concatenate([rest] * worlds)
         for state in states:
             if state.gaussians is None:
-                state.gaussians = self._segment(posed.all, state.world * n, n)
+                state.gaussians = posed.all.segment(state.world * n, n)
         first = np.array([state.world * n for state in states])
         g = posed.all
         q = np.stack([state.robot.q for state in states])
@@ -526,8 +517,8 @@ class Twin:
         names = list(self.cameras) if cameras is None else list(cameras)
         if not states:
             return []
-        views = [(g, self.camera(state, n)) for state, g in zip(states, self.pose_worlds(states), strict=True)
-                 for n in names]
+        posed = self.pose_worlds(states)
+        views = [(g, self.camera(state, n)) for state, g in zip(states, posed, strict=True) for n in names]
         outs = render_batch(views, background=self.spec.render_background, device=self.device)
         k = len(names)
         return [dict(zip(names, outs[i * k : (i + 1) * k], strict=True)) for i in range(len(states))]
