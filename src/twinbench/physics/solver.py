@@ -118,8 +118,6 @@ class SpringMassSolver:
         width = p.max_collision_candidates if self._collide else 1
         self._cand = wp.zeros((n, width), dtype=int, device=dev)
         self._cand_count = wp.zeros(n, dtype=int, device=dev)
-        # one hash grid per group of worlds (w0, w1), points grouped by world: a query sees its own world's
-        self._grids: dict[tuple[int, int], wp.HashGrid] = {}
         nm = len(model.meshes)
         nfaces = sum(m.faces.shape[0] for m in model.meshes)
         self._mesh_force = wp.zeros(max(nm, 1), dtype=wp.vec3, device=dev)
@@ -168,6 +166,9 @@ class SpringMassSolver:
         cuts = np.linspace(0, model.num_worlds, min(self.threads, model.num_worlds) + 1).round().astype(int)
         self._groups = [_worlds(model, int(a), int(b)) for a, b in zip(cuts[:-1], cuts[1:], strict=True)]
         self._pool = ThreadPoolExecutor(len(self._groups) - 1) if len(self._groups) > 1 else None
+        # one hash grid per group of worlds (w0, w1), points grouped by world: a query sees its own world's
+        parts = [self._all, *self._groups] if self._collide else []
+        self._grids = {(wr.w0, wr.w1): wp.HashGrid(64, 64, 64, device=dev) for wr in parts}
         # One world on several cores: half of every substep in a helper process (see physics.split).
         self._split_wanted = wants_split(model, self.threads if threads is not None else cpu_cores())
         self._split: SplitFrame | None = None
@@ -221,9 +222,7 @@ class SpringMassSolver:
         cand_r = cd * float(m.params.candidate_radius_scale)
         query_r = max(cd * 5.0, cand_r)  # PhysTwin: hash cell and query radius 5 * collision_dist
         p0, p1 = wr.particles
-        grid = self._grids.get((wr.w0, wr.w1))
-        if grid is None:
-            grid = self._grids[(wr.w0, wr.w1)] = wp.HashGrid(64, 64, 64, device=self.device)
+        grid = self._grids[(wr.w0, wr.w1)]
         grid.build(state.x[p0:p1], query_r, groups=m.particle_world[p0:p1])
         wp.launch(K.build_candidates, dim=p1 - p0,
                   inputs=[grid.id, state.x, m.masks, m.particle_world, m.nbr_offsets, m.nbr, cand_r, query_r,
