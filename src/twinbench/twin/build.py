@@ -14,8 +14,9 @@ velocities, kinematic-mesh targets, controller state, posed Gaussians).
 Worlds: the model holds `num_worlds` independent copies of the objects and tool meshes (world-major),
 so every kernel of a frame runs all worlds in one launch; each world's `TwinState` is a view of world
 `state.world` of the shared physics buffers plus its own robot and poses; its Gaussians are world
-`state.world` of one buffer that `pose_worlds` poses for all worlds in one launch per poser. A world computes bit
-for bit what a one-world twin computes, and a world that diverges ends alone (its result is the error).
+`state.world` of one buffer that `pose_worlds` poses for all worlds in one launch per poser. A world
+computes bit for bit what a one-world twin computes, and a world that diverges ends alone (its result is
+the error).
 
 Per step: the controller turns the action into joint targets (IK + velocity-control mimic + gripper
 latch, DESIGN §5), the tool meshes' vertices are interpolated over the physics substeps, one spring-mass
