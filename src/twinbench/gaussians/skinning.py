@@ -10,6 +10,7 @@ rotation is pre-multiplied by the polar rotation of sum_k w_k R_k.
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 
 import numpy as np
@@ -215,14 +216,20 @@ def _rigid_by_label(
         band += 1
 
 
-def _starts(starts, count: int, what: str, device) -> wp.array:
-    """Checked first indices of `len(starts)` copies of `count` items in an array of `what` items."""
+def _starts(starts, count: int, what: int, device) -> wp.array:
+    """Checked first indices of `len(starts)` copies of `count` items in an array of `what` items, as a
+    device array (cached: a twin passes the same starts every step)."""
     s = np.asarray(starts)
     if s.ndim != 1 or not s.size or not np.issubdtype(s.dtype, np.integer):
         raise ValueError(f"starts must be a non-empty 1-D sequence of integers, got {starts!r}")
     if s.min() < 0 or s.max() + count > what:
         raise ValueError(f"starts: every copy of {count} items must fit in the {what} items of the output")
-    return wp.array(s.astype(np.int32), dtype=int, device=device)
+    return _index_array(tuple(int(i) for i in s), str(device))
+
+
+@functools.lru_cache(maxsize=64)
+def _index_array(values: tuple[int, ...], device: str) -> wp.array:
+    return wp.array(np.array(values, np.int32), dtype=int, device=device)
 
 
 class LabelRigidPoser:
