@@ -211,9 +211,21 @@ class DeviceGaussians:
                 f"segment [{start}, {start + count}) is outside the cloud's {len(self)} Gaussians"
             )
         end = start + count
-        root, offset = self.base or (self, 0)
+        root, offset = self.parent()
         return DeviceGaussians(self.means[start:end], self.quats[start:end], self.scales[start:end],
                                self.opacities[start:end], self.sh[start:end], base=(root, offset + start))
+
+    def parent(self) -> tuple[DeviceGaussians, int]:
+        """(cloud, index of this cloud's first Gaussian there) for a `segment`, else (self, 0). Checked
+        against the arrays' addresses, so a segment whose arrays were swapped since counts as its own."""
+        if self.base is None:
+            return self, 0
+        root, start = self.base
+        for name in ("means", "quats", "scales", "opacities", "sh"):
+            mine, theirs = getattr(self, name), getattr(root, name)
+            if mine.ptr != theirs.ptr + start * theirs.strides[0] or mine.shape[1:] != theirs.shape[1:]:
+                return self, 0
+        return root, start
 
     def __len__(self) -> int:
         return self.means.shape[0]

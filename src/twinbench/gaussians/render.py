@@ -568,19 +568,6 @@ def _render_warp_one(
     )
 
 
-def _segment_of(g: DeviceGaussians) -> tuple[DeviceGaussians, int]:
-    """(cloud, first index) that `g` is a segment of (`DeviceGaussians.segment`), else (g, 0); checked
-    against the arrays' addresses, so a segment whose arrays were swapped since is not mistaken for one."""
-    if g.base is None:
-        return g, 0
-    root, start = g.base
-    names = ("means", "quats", "scales", "opacities", "sh")
-    if all(getattr(g, a).ptr == getattr(root, a).ptr + start * getattr(root, a).strides[0] for a in names) \
-            and g.sh.shape[1] == root.sh.shape[1]:
-        return root, start
-    return g, 0
-
-
 def _render_warp_batch(jobs: list[tuple[DeviceGaussians, Camera]], background) -> list[RenderOutput]:
     """Every view of `jobs` in one launch per stage (render_batch's path on CUDA; it runs on CPU too):
     the views' clouds in one buffer, a record per (view, Gaussian), one depth sort, pairs keyed by the
@@ -593,10 +580,10 @@ def _render_warp_batch(jobs: list[tuple[DeviceGaussians, Camera]], background) -
         if id(g) not in starts:
             starts[id(g)] = sum(len(c) for c in clouds)
             clouds.append(g)
-    roots = {id(_segment_of(g)[0]) for g in clouds}
-    if len(clouds) > 1 and len(roots) == 1:  # segments of one cloud (e.g. a twin's worlds): read it in place
-        cloud = _segment_of(clouds[0])[0]
-        starts = {id(g): _segment_of(g)[1] for g in clouds}
+    parents = [g.parent() for g in clouds]
+    if len(clouds) > 1 and len({id(root) for root, _ in parents}) == 1:
+        cloud = parents[0][0]  # segments of one cloud (e.g. a twin's worlds): read it in place
+        starts = {id(g): first for g, (_, first) in zip(clouds, parents, strict=True)}
     else:
         cloud = clouds[0] if len(clouds) == 1 else DeviceGaussians.concatenate(clouds)
     views, shapes = [], []

@@ -274,12 +274,13 @@ class LabelRigidPoser:
         self._trans = wp.empty(self.num_labels, dtype=wp.vec3, device=self.device)
         self._sh_mats = wp.zeros((self.num_labels, width), dtype=wp.float32, device=self.device)
 
-    def _check_out(self, out: DeviceGaussians) -> DeviceGaussians:
+    def _check_out(self, out: DeviceGaussians, exact: bool = True) -> DeviceGaussians:
+        """`out` on this device with >= the rest cloud's SH coefficients, and (`exact`) its size."""
         n, k = len(self.rest), self.rest.sh.shape[1]
-        if len(out) != n or out.sh.shape[1] < k or out.device != self.device:
+        if (exact and len(out) != n) or out.sh.shape[1] < k or out.device != self.device:
             raise ValueError(
-                f"LabelRigidPoser: out must hold {n} Gaussians with >= {k} SH coefficients on "
-                f"{self.device}, got {len(out)} with {out.sh.shape[1]} on {out.device}"
+                f"LabelRigidPoser: out must hold {n if exact else 'the'} Gaussians with >= {k} SH "
+                f"coefficients on {self.device}, got {len(out)} with {out.sh.shape[1]} on {out.device}"
             )
         return out
 
@@ -306,12 +307,8 @@ class LabelRigidPoser:
             np.linalg.det(rots) < 0
         ):
             raise ValueError("LabelRigidPoser.update: every transform's 3x3 block must be a rotation")
-        n, k = len(self.rest), self.rest.sh.shape[1]
-        if out.device != self.device or out.sh.shape[1] < k:
-            raise ValueError(
-                f"LabelRigidPoser.update: out must have >= {k} SH coefficients on {self.device}, got "
-                f"{out.sh.shape[1]} on {out.device}"
-            )
+        n = len(self.rest)
+        self._check_out(out, exact=False)
         first = _starts(starts, n, len(out), self.device)
         if first.shape[0] != copies:
             raise ValueError(f"LabelRigidPoser.update: {copies} transforms sets but {first.shape[0]} starts")
