@@ -10,9 +10,10 @@ from twinbench.physics import ModelBuilder, SimParams
 from twinbench.physics.model import lattice
 
 
-def pusher_scene() -> tuple[ModelBuilder, int, int]:
-    """Two bodies with self-collision, control points, a static box and a kinematic pusher."""
-    p = SimParams(self_collision=True, ground_friction=0.6)
+def pusher_scene(collisions: bool = True) -> tuple[ModelBuilder, int, int]:
+    """Two bodies (with self- and object collision unless told), control points, a static box and a kinematic
+    pusher."""
+    p = SimParams(self_collision=collisions, object_collision=collisions, ground_friction=0.6)
     b = ModelBuilder(p)
     b.add_body(lattice(3, 3, 3, origin=(-0.05, 0.0, 0.12)), spring_Y=2e4)
     b.add_body(lattice(3, 3, 2, origin=(0.02, 0.0, 0.12)), spring_Y=5e3)

@@ -3,6 +3,8 @@ contact forces included, and a helper that dies leaves the run on one core with 
 
 from __future__ import annotations
 
+import time
+
 import numpy as np
 import pytest
 from scenes import pusher_scene as _builder
@@ -20,8 +22,8 @@ def _split_small_models_and_stay_split(monkeypatch):
     monkeypatch.setattr(S, "CONTENDED_FRAMES", 10**9)  # a busy CI machine must not end the split
 
 
-def _run(threads: int, frames: int = 10, kill_after: int | None = None):
-    b, mid, _ = _builder()
+def _run(threads: int, frames: int = 10, kill_after: int | None = None, collisions: bool = True):
+    b, mid, _ = _builder(collisions)
     model = b.finalize()
     solver = SpringMassSolver(model, threads=threads)
     pusher = model.meshes[mid].vertices.astype(np.float64)
@@ -91,3 +93,24 @@ def test_a_twin_env_on_two_cores_matches_one_core(monkeypatch):
         env.twin.solver.close()
     for (p1, x1, g1), (p2, x2, g2) in zip(*runs, strict=True):
         assert np.array_equal(p1, p2) and np.array_equal(x1, x2) and g1 == g2
+
+
+def test_contact_forces_are_exact_when_the_main_process_is_preempted_after_a_barrier(monkeypatch):
+    """The main side sums the per-particle mesh contact forces after each substep's barrier, while the helper
+    already runs the next substep: a main process descheduled there must still read this substep's forces."""
+    one, f1, _ = _run(1, collisions=False)  # no particle contacts: one barrier per substep
+    barrier = S._Barrier.__call__
+
+    def preempted(self):
+        barrier(self)
+        time.sleep(0.0005)  # the helper runs on meanwhile (this patch lives in the main process only)
+
+    monkeypatch.setattr(S._Barrier, "__call__", preempted)
+    two, f2, used = _run(2, collisions=False)
+    assert used
+    for a, b in zip(one, two, strict=False):
+        assert np.array_equal(a, b)
+    assert max(np.abs(f[1]).max() for f in f2) > 0  # the pusher touched within these frames
+    for a, b in zip(f1, f2, strict=False):
+        for x, y in zip(a, b, strict=True):
+            assert np.array_equal(x, y)

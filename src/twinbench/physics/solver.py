@@ -151,6 +151,7 @@ class SpringMassSolver:
         self._kin_count = wp.array([model.meshes[i].vertices.shape[0] for i in kin], dtype=int, device=dev)
         self._kin_mesh = wp.array(kin, dtype=int, device=dev)
         self._cp = cp
+        self._cp_split = None  # split frames: (even, odd) substeps' copies of cp, see physics.split._share
         self._kinematic = kin
         self._use_graph = use_graph
         self._graph = None
@@ -255,6 +256,7 @@ class SpringMassSolver:
         p0, p1 = wr.particles
         t = self._t(substep_index)
         tail = [float(p.dashpot_damping), control.ctrl_from, control.ctrl_to, t, n]
+        cp = self._cp if self._cp_split is None else self._cp_split[substep_index % 2]
         spring_f = self._spring_f  # per-spring forces (gather path); unused by the atomic path
         if grad:
             if wr is not self._all:
@@ -292,7 +294,7 @@ class SpringMassSolver:
         self._go(K.particle_update, p1 - p0,
                  [state_in.x, state_in.v, spring_f, m.inc_offsets, m.inc_springs, f, int(gather),
                   int(self._scatter and not grad),
-                  m.masses, self._gravity, float(dt), float(p.drag_damping), int(not collide), self._cp, p0],
+                  m.masses, self._gravity, float(dt), float(p.drag_damping), int(not collide), cp, p0],
                  [v_star, state_out.x, state_out.v], ops)
         if collide and grad:  # the differentiable form (same sums in the same order)
             j_sum = wp.zeros(n, dtype=wp.vec3, device=self.device, requires_grad=True)
@@ -308,7 +310,7 @@ class SpringMassSolver:
                 ops.append(sync)  # impulses read the other part's v_star
             self._go(K.collide_and_finish, p1 - p0,
                      [state_in.x, v_star, m.masses, m.masks, float(p.collision_dist), self._cand,
-                      self._cand_count, float(dt), self._cp, p0],
+                      self._cand_count, float(dt), cp, p0],
                      [state_out.x, state_out.v], ops)
         if sync is not None:
             ops.append(sync)  # the next substep reads every particle
@@ -347,8 +349,8 @@ class SpringMassSolver:
             if self._kinematic:
                 self._update_kinematic_meshes(control, s, ops, wr)
             self._launch_substep(src, dst, control, p.dt, s, grad=False, ops=ops, wr=wr, sync=sync)
-            if after_substep is not None:
-                ops.append(after_substep)
+            if after_substep is not None:  # ops for even and odd substeps
+                ops.append(after_substep[s % 2])
         return b if p.substeps % 2 == 1 else a
 
     def _threaded_frame(self, control: Control) -> State:
@@ -456,7 +458,7 @@ class SpringMassSolver:
         if self._split is not None:
             self._split.close()
         self._split, self._split_wanted = None, False
-        self._cp.per_particle = 0  # contact forces added directly again
+        self._cp_split = None  # contact forces added directly again
         self._graph = None
 
     def close(self) -> None:

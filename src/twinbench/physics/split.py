@@ -98,7 +98,7 @@ def _specs(model: SpringMassModel, cand_width: int) -> dict:
         "cand": ((n, cand_width), i32), "cand_count": ((n,), i32),
         "ctrl_from": ((model.num_control_points, 3), f32), "ctrl_to": ((model.num_control_points, 3), f32),
         "kin_from": ((kv, 3), f32), "kin_to": ((kv, 3), f32),
-        "pm_force": ((pm, 3), f32), "pm_face": ((pm,), i32),
+        "pm_force": ((2, pm, 3), f32), "pm_face": ((2, pm), i32),  # per substep parity (see _share)
         "sync": ((8,), np.int64),  # 0: main phase, 1: helper phase, 2: helper ready, 3: helper failed
     }
 
@@ -112,9 +112,10 @@ def _share(solver, shared: SharedArrays) -> Control:
     solver._v_star = shared.wp("v_star", v3)
     solver._cand = shared.wp("cand", int)
     solver._cand_count = shared.wp("cand_count", int)
-    solver._cp.per_particle = 1
-    solver._cp.pm_force = shared.wp("pm_force", v3)
-    solver._cp.pm_face = shared.wp("pm_face", int)
+    # Per-particle contact forces, added to the meshes in particle order by the main side after each substep's
+    # last barrier. The helper may already be writing the next substep's forces then, so even and odd
+    # substeps write their own copy.
+    solver._cp_split = tuple(_per_particle_contacts(solver._cp, shared, k) for k in (0, 1))
     ctl = Control(ctrl_from=shared.wp("ctrl_from", v3), ctrl_to=shared.wp("ctrl_to", v3),
                   kin_from=shared.wp("kin_from", v3), kin_to=shared.wp("kin_to", v3))
     for mid, info in enumerate(solver.model.meshes):
@@ -122,6 +123,15 @@ def _share(solver, shared: SharedArrays) -> Control:
             span = slice(info.vertex_offset, info.vertex_offset + info.vertices.shape[0])
             ctl.mesh_from[mid], ctl.mesh_to[mid] = ctl.kin_from[span], ctl.kin_to[span]
     return ctl
+
+
+def _per_particle_contacts(cp: K.ContactParams, shared: SharedArrays, parity: int) -> K.ContactParams:
+    out = K.ContactParams()
+    out.assign(cp)
+    out.per_particle = 1
+    out.pm_force = wp.array(shared.np["pm_force"][parity], dtype=wp.vec3, device="cpu", copy=False)
+    out.pm_face = wp.array(shared.np["pm_face"][parity], dtype=int, device="cpu", copy=False)
+    return out
 
 
 def _payload(model: SpringMassModel) -> dict:
@@ -219,9 +229,9 @@ class SplitFrame:
         self.strikes = 0
         self.barrier = _Barrier(self.shared.np["sync"], 0, 1, self._alive)
         reduce = None
-        if m.meshes:
-            reduce = wp.launch(K.reduce_mesh_forces, dim=1, inputs=[solver._cp, 0, m.num_particles],
-                               device="cpu", record_cmd=True).launch
+        if m.meshes:  # even and odd substeps' contact forces
+            reduce = tuple(wp.launch(K.reduce_mesh_forces, dim=1, inputs=[cp, 0, m.num_particles],
+                                     device="cpu", record_cmd=True).launch for cp in solver._cp_split)
         self.ops: list = []
         self.out = solver._frame_launches(self.control, self.ops, _half(m, False, _Worlds), sync=self.barrier,
                                           after_substep=reduce)
