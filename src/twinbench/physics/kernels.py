@@ -109,7 +109,35 @@ def eval_spring_forces(
 
 
 @wp.kernel(enable_backward=False)
-def scatter_springs(
+def scatter_object_springs(
+    x: wp.array(dtype=wp.vec3),
+    v: wp.array(dtype=wp.vec3),
+    springs: wp.array(dtype=wp.vec2i),
+    ry: wp.array(dtype=wp.vec2),
+    dashpot: float,
+    first: int,
+    listed: wp.array(dtype=int),
+    f: wp.array(dtype=wp.vec3),
+):
+    """CPU only: object spring `first + k` (or `listed[k]`, ascending) added to both its ends by thread k.
+    A CPU launch runs its threads one after another in order, so each particle's sum grows in spring
+    order: the per-particle gather's sums, without a per-spring array (`f` must start at zero). Both ends
+    are written: a part of a split frame owns `f` alone and reads only its own particles' sums (see
+    `SpringMassSolver._zero_forces`); no branch per end keeps this, the hottest loop on CPU, lean."""
+    s = first + wp.tid()
+    if listed.shape[0] > 0:
+        s = listed[s]
+    e = springs[s]
+    r = ry[s]
+    fs = wp.vec3(0.0, 0.0, 0.0)
+    if r[1] >= 0.0:
+        fs = spring_force_between(x[e[0]], x[e[1]], v[e[0]], v[e[1]], r[0], r[1], dashpot)
+    f[e[0]] = f[e[0]] + fs
+    f[e[1]] = f[e[1]] - fs
+
+
+@wp.kernel(enable_backward=False)
+def scatter_control_springs(
     x: wp.array(dtype=wp.vec3),
     v: wp.array(dtype=wp.vec3),
     springs: wp.array(dtype=wp.vec2i),
@@ -119,27 +147,19 @@ def scatter_springs(
     ctrl_to: wp.array(dtype=wp.vec3),
     t: float,
     n: int,
-    control: int,
     p0: int,
     p1: int,
     first: int,
     listed: wp.array(dtype=int),
     f: wp.array(dtype=wp.vec3),
 ):
-    """CPU only: spring `first + k` (or `listed[k]`, ascending) added to its ends in [p0, p1) by thread k.
-    A CPU launch runs its threads one after another in order, so each particle's sum grows in spring
-    order: the per-particle gather's sums, without a per-spring array (`f` must start at zero). With
-    `control` 0 the springs join two particles (object springs: no control-point branches)."""
+    """CPU only: as `scatter_object_springs` for springs to control points (index >= n), added only to
+    their ends in [p0, p1)."""
     s = first + wp.tid()
     if listed.shape[0] > 0:
         s = listed[s]
     e = springs[s]
-    r = ry[s]
-    fs = wp.vec3(0.0, 0.0, 0.0)
-    if control != 0:
-        fs = spring_of(x, v, e, r, dashpot, ctrl_from, ctrl_to, t, n)
-    elif r[1] >= 0.0:
-        fs = spring_force_between(x[e[0]], x[e[1]], v[e[0]], v[e[1]], r[0], r[1], dashpot)
+    fs = spring_of(x, v, e, ry[s], dashpot, ctrl_from, ctrl_to, t, n)
     if e[0] >= p0 and e[0] < p1:
         f[e[0]] = f[e[0]] + fs
     if e[1] >= p0 and e[1] < p1:
@@ -183,8 +203,8 @@ def accumulate_spring_forces(
 
 
 @wp.func
-def velocity_update(v0: wp.vec3, f0: wp.vec3, m0: float, gravity: wp.vec3, dt: float, drag: float):
-    drag_factor = wp.exp(-dt * drag)
+def velocity_update(v0: wp.vec3, f0: wp.vec3, m0: float, gravity: wp.vec3, dt: float, drag_factor: float):
+    """PhysTwin's velocity step; `drag_factor` = exp(-dt * drag) (see `drag_factor`)."""
     all_force = f0 + m0 * gravity
     a = all_force / m0
     v1 = v0 + a * dt
@@ -325,7 +345,6 @@ def particle_update(
     inc_springs: wp.array(dtype=int),
     f_acc: wp.array(dtype=wp.vec3),
     use_gather: int,
-    clear: int,
     masses: wp.array(dtype=float),
     gravity: wp.vec3,
     dt: float,
@@ -337,9 +356,9 @@ def particle_update(
     x_out: wp.array(dtype=wp.vec3),
     v_out: wp.array(dtype=wp.vec3),
 ):
-    """Spring forces (gathered from the incident springs in spring order, or read from ``f_acc`` and
-    zeroed there with ``clear``), gravity, drag; then contacts when ``finish`` (no particle-particle
-    collision stage this substep). Thread i serves particle base + i."""
+    """Spring forces (gathered from the incident springs in spring order, or read from ``f_acc``), gravity,
+    drag; then contacts when ``finish`` (no particle-particle collision stage this substep). Thread i serves
+    particle base + i. (CPU: `integrate_scattered`.)"""
     tid = base + wp.tid()
     f = wp.vec3(0.0, 0.0, 0.0)
     if use_gather != 0:
@@ -351,10 +370,44 @@ def particle_update(
                 f = f - spring_f[-e - 1]
     else:
         f = f_acc[tid]
-        if clear != 0:
-            f_acc[tid] = wp.vec3(0.0, 0.0, 0.0)  # zero again for the next substep's scatter
     m = masses[tid]
-    vs = velocity_update(v[tid], f, m, gravity, dt, drag)
+    vs = velocity_update(v[tid], f, m, gravity, dt, wp.exp(-dt * drag))
+    if finish != 0:
+        finish_particle(tid, x[tid], vs, m, dt, cp, x_out, v_out)
+    else:
+        v_star[tid] = vs
+
+
+@wp.kernel(enable_backward=False)
+def drag_factor(dt: float, drag: float, out: wp.array(dtype=float)):
+    """One thread: exp(-dt * drag), the per-substep velocity factor of air drag."""
+    out[0] = wp.exp(-dt * drag)
+
+
+@wp.kernel(enable_backward=False)
+def integrate_scattered(
+    x: wp.array(dtype=wp.vec3),
+    v: wp.array(dtype=wp.vec3),
+    f_acc: wp.array(dtype=wp.vec3),
+    masses: wp.array(dtype=float),
+    gravity: wp.vec3,
+    dt: float,
+    drag_factor: float,
+    finish: int,
+    cp: ContactParams,
+    base: int,
+    v_star: wp.array(dtype=wp.vec3),
+    x_out: wp.array(dtype=wp.vec3),
+    v_out: wp.array(dtype=wp.vec3),
+):
+    """CPU only: `particle_update` for forces scattered into ``f_acc`` (read, then zeroed for the next
+    substep's scatter), with the drag factor computed once (by the `drag_factor` kernel: the same float)
+    instead of per particle. Thread i serves particle base + i."""
+    tid = base + wp.tid()
+    f = f_acc[tid]
+    f_acc[tid] = wp.vec3(0.0, 0.0, 0.0)
+    m = masses[tid]
+    vs = velocity_update(v[tid], f, m, gravity, dt, drag_factor)
     if finish != 0:
         finish_particle(tid, x[tid], vs, m, dt, cp, x_out, v_out)
     else:

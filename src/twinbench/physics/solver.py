@@ -110,6 +110,7 @@ class SpringMassSolver:
         self._no_list = wp.zeros(0, dtype=int, device=dev)
         self._f = wp.zeros(n, dtype=wp.vec3, device=dev)
         self._v_star = wp.zeros(n, dtype=wp.vec3, device=dev)
+        self._drag_factors: dict[tuple[float, float], float] = {}
         self._gravity = wp.vec3(*[float(g) for g in p.gravity])
         self._collide = model.particle_collisions  # fixed topology: decided once, not per substep
         # CPU: spring forces scattered to their ends in one sequential pass per thread or process (same sums,
@@ -237,11 +238,25 @@ class SpringMassSolver:
             inputs = [m.log_y[a:b], m.rest_lengths[a:b], *limits]
             self._go(K.effective_stiffness, b - a, inputs, [self._ry[a:b]], ops)
 
+    def _drag_factor(self, dt: float, drag: float) -> float:
+        """exp(-dt * drag) as the kernels compute it (one Warp launch per new pair, then cached)."""
+        key = (dt, drag)
+        if key not in self._drag_factors:
+            if wp.get_device(self.device).is_capturing:  # a captured launch would not run here
+                raise RuntimeError("SpringMassSolver: compute the drag factor before a graph capture")
+            out = wp.zeros(1, dtype=float, device=self.device)
+            wp.launch(K.drag_factor, dim=1, inputs=[dt, drag], outputs=[out], device=self.device)
+            self._drag_factors[key] = float(out.numpy()[0])
+        return self._drag_factors[key]
+
     def _zero_forces(self, ops: list | None = None, wr: _Worlds | None = None) -> None:
         """Scatter path: the part's particle forces to zero (each substep's integration zeroes them again
-        after reading; this covers a first frame and one cut short)."""
+        after reading; this covers a first frame and one cut short). A split frame's part zeroes every
+        particle: its process owns `f` and adds the springs across the cut to both ends, the other part's
+        sums only to be dropped."""
         if self._scatter:
-            p0, p1 = (wr or self._all).particles
+            wr = wr or self._all
+            p0, p1 = (0, self.model.num_particles) if wr.touching is not None else wr.particles
             self._go(K.zero_forces, p1 - p0, [p0], [self._f], ops)
 
     def _launch_substep(self, state_in: State, state_out: State, control: Control, dt: float,
@@ -268,34 +283,41 @@ class SpringMassSolver:
                       outputs=[f], device=self.device)
             v_star = wp.zeros(n, dtype=wp.vec3, device=self.device, requires_grad=True)
         elif self._scatter:
-            # CPU: each spring added to its ends in this part, in spring order (f is zero: see zero_forces)
+            # CPU: each spring added to its ends in spring order (f is zero: see _zero_forces)
             f = self._f
             v_star = self._v_star
-            head = [state_in.x, state_in.v, m.springs, self._ry, *tail]
-            if wr.touching is not None:
-                for control, ids in enumerate(wr.touching):
-                    if ids.shape[0]:
-                        self._go(K.scatter_springs, ids.shape[0], [*head, control, p0, p1, 0, ids], [f], ops)
+            head = [state_in.x, state_in.v, m.springs, self._ry, float(p.dashpot_damping)]
+            cut = m.num_object_springs  # object springs [0, cut), then control springs
+            if wr.touching is not None:  # a split frame's part: the listed springs touching it
+                runs = [(k == 1, 0, ids.shape[0], ids) for k, ids in enumerate(wr.touching)]
             else:
-                cut = m.num_object_springs  # object springs [0, cut), then control springs
-                for a, b in wr.springs:
-                    for control, (lo, hi) in enumerate(((a, min(b, cut)), (max(a, cut), b))):
-                        if hi > lo:
-                            self._go(K.scatter_springs, hi - lo, [*head, control, p0, p1, lo, self._no_list],
-                                     [f], ops)
+                runs = [(lo >= cut, lo, hi - lo, self._no_list) for a, b in wr.springs
+                        for lo, hi in ((a, min(b, cut)), (max(a, cut), b))]
+            for to_control, first, count, ids in runs:
+                if count <= 0:
+                    continue
+                if to_control:
+                    args = [*head, control.ctrl_from, control.ctrl_to, t, n, p0, p1, first, ids]
+                    self._go(K.scatter_control_springs, count, args, [f], ops)
+                else:
+                    self._go(K.scatter_object_springs, count, [*head, first, ids], [f], ops)
         else:
             f = self._f
             v_star = self._v_star
             for a, b in wr.springs:
                 inputs = [state_in.x, state_in.v, m.springs[a:b], self._ry[a:b], *tail]
                 self._go(K.eval_spring_forces, b - a, inputs, [spring_f[a:b]], ops)
-        gather = not grad and not self._scatter
         collide = self._collide
-        self._go(K.particle_update, p1 - p0,
-                 [state_in.x, state_in.v, spring_f, m.inc_offsets, m.inc_springs, f, int(gather),
-                  int(self._scatter and not grad),
-                  m.masses, self._gravity, float(dt), float(p.drag_damping), int(not collide), cp, p0],
-                 [v_star, state_out.x, state_out.v], ops)
+        if self._scatter and not grad:
+            self._go(K.integrate_scattered, p1 - p0,
+                     [state_in.x, state_in.v, f, m.masses, self._gravity, float(dt),
+                      self._drag_factor(float(dt), float(p.drag_damping)), int(not collide), cp, p0],
+                     [v_star, state_out.x, state_out.v], ops)
+        else:
+            self._go(K.particle_update, p1 - p0,
+                     [state_in.x, state_in.v, spring_f, m.inc_offsets, m.inc_springs, f, int(not grad),
+                      m.masses, self._gravity, float(dt), float(p.drag_damping), int(not collide), cp, p0],
+                     [v_star, state_out.x, state_out.v], ops)
         if collide and grad:  # the differentiable form (same sums in the same order)
             j_sum = wp.zeros(n, dtype=wp.vec3, device=self.device, requires_grad=True)
             valid = wp.zeros(n, dtype=float, device=self.device, requires_grad=True)
@@ -399,6 +421,8 @@ class SpringMassSolver:
         when possible (no kinematic meshes), records the mean contact force per mesh, and raises
         :class:`SimulationDiverged` when ``check`` and a particle became non-finite or too fast.
         """
+        if self._scatter:  # before any capture below
+            self._drag_factor(float(self.model.params.dt), float(self.model.params.drag_damping))
         if self._split_wanted:
             split = self._split_frame()
             if split is not None:
