@@ -395,23 +395,25 @@ def integrate_scattered(
     drag_factor: float,
     finish: int,
     cp: ContactParams,
-    base: int,
+    p0: int,
+    p1: int,
     v_star: wp.array(dtype=wp.vec3),
     x_out: wp.array(dtype=wp.vec3),
     v_out: wp.array(dtype=wp.vec3),
 ):
-    """CPU only: `particle_update` for forces scattered into ``f_acc`` (read, then zeroed for the next
-    substep's scatter), with the drag factor computed once (by the `drag_factor` kernel: the same float)
-    instead of per particle. Thread i serves particle base + i."""
-    tid = base + wp.tid()
-    f = f_acc[tid]
-    f_acc[tid] = wp.vec3(0.0, 0.0, 0.0)
-    m = masses[tid]
-    vs = velocity_update(v[tid], f, m, gravity, dt, drag_factor)
-    if finish != 0:
-        finish_particle(tid, x[tid], vs, m, dt, cp, x_out, v_out)
-    else:
-        v_star[tid] = vs
+    """CPU only, one thread: `particle_update` of particles [p0, p1) in order, for forces scattered into
+    ``f_acc`` (read, then zeroed for the next substep's scatter), with the drag factor computed once (by the
+    `drag_factor` kernel: the same float) instead of per particle. (One looping thread: Warp's CPU code
+    copies a kernel's arguments, the contact struct included, for every thread.)"""
+    for tid in range(p0, p1):
+        f = f_acc[tid]
+        f_acc[tid] = wp.vec3(0.0, 0.0, 0.0)
+        m = masses[tid]
+        vs = velocity_update(v[tid], f, m, gravity, dt, drag_factor)
+        if finish != 0:
+            finish_particle(tid, x[tid], vs, m, dt, cp, x_out, v_out)
+        else:
+            v_star[tid] = vs
 
 
 @wp.func
@@ -449,6 +451,40 @@ def pair_impulse(
     return hit, j_n, j_t
 
 
+@wp.func
+def collide_particle(
+    tid: int,
+    x: wp.array(dtype=wp.vec3),
+    v_star: wp.array(dtype=wp.vec3),
+    masses: wp.array(dtype=float),
+    masks: wp.array(dtype=int),
+    collision_dist: float,
+    cand: wp.array2d(dtype=int),
+    cand_count: wp.array(dtype=int),
+    dt: float,
+    cp: ContactParams,
+    x_out: wp.array(dtype=wp.vec3),
+    v_out: wp.array(dtype=wp.vec3),
+):
+    """Particle-particle impulses averaged over the counted pairs (PhysTwin), then meshes, ground, x.
+    (Not differentiable: the loop carries its sums; the taped path uses `pair_impulses` + `apply_impulses`,
+    which add in the same order.)"""
+    v1 = v_star[tid]
+    m1 = masses[tid]
+    valid = float(0.0)  # noqa: UP018 (Warp needs a typed dynamic variable)
+    j_sum = wp.vec3(0.0, 0.0, 0.0)
+    e = wp.clamp(cp.coeffs[2], 0.0, 1.0)
+    mu = wp.clamp(cp.coeffs[3], 0.0, 2.0)
+    for k in range(cand_count[tid]):
+        hit, j_n, j_t = pair_impulse(x, v_star, masses, masks, collision_dist, e, mu, tid, cand[tid, k])
+        if hit > 0.0:
+            valid = valid + 1.0
+            j_sum = j_sum + j_n + j_t
+    if valid > 0.0:
+        v1 = v1 - (j_sum / valid) / m1
+    finish_particle(tid, x[tid], v1, m1, dt, cp, x_out, v_out)
+
+
 @wp.kernel
 def collide_and_finish(
     x: wp.array(dtype=wp.vec3),
@@ -464,24 +500,32 @@ def collide_and_finish(
     x_out: wp.array(dtype=wp.vec3),
     v_out: wp.array(dtype=wp.vec3),
 ):
-    """Particle-particle impulses averaged over the counted pairs (PhysTwin), then meshes, ground, x.
-    Thread i serves particle base + i. (Not differentiable: the loop carries its sums; the taped path
-    uses `pair_impulses` + `apply_impulses`, which add in the same order.)"""
-    tid = base + wp.tid()
-    v1 = v_star[tid]
-    m1 = masses[tid]
-    valid = float(0.0)  # noqa: UP018 (Warp needs a typed dynamic variable)
-    j_sum = wp.vec3(0.0, 0.0, 0.0)
-    e = wp.clamp(cp.coeffs[2], 0.0, 1.0)
-    mu = wp.clamp(cp.coeffs[3], 0.0, 2.0)
-    for k in range(cand_count[tid]):
-        hit, j_n, j_t = pair_impulse(x, v_star, masses, masks, collision_dist, e, mu, tid, cand[tid, k])
-        if hit > 0.0:
-            valid = valid + 1.0
-            j_sum = j_sum + j_n + j_t
-    if valid > 0.0:
-        v1 = v1 - (j_sum / valid) / m1
-    finish_particle(tid, x[tid], v1, m1, dt, cp, x_out, v_out)
+    """`collide_particle` for particle base + i in thread i."""
+    collide_particle(base + wp.tid(), x, v_star, masses, masks, collision_dist, cand, cand_count, dt, cp,
+                     x_out, v_out)
+
+
+@wp.kernel(enable_backward=False)
+def collide_and_finish_range(
+    x: wp.array(dtype=wp.vec3),
+    v_star: wp.array(dtype=wp.vec3),
+    masses: wp.array(dtype=float),
+    masks: wp.array(dtype=int),
+    collision_dist: float,
+    cand: wp.array2d(dtype=int),
+    cand_count: wp.array(dtype=int),
+    dt: float,
+    cp: ContactParams,
+    p0: int,
+    p1: int,
+    x_out: wp.array(dtype=wp.vec3),
+    v_out: wp.array(dtype=wp.vec3),
+):
+    """CPU only, one thread: `collide_particle` for particles [p0, p1) in order (see `integrate_scattered`
+    on why one looping thread)."""
+    for tid in range(p0, p1):
+        collide_particle(tid, x, v_star, masses, masks, collision_dist, cand, cand_count, dt, cp, x_out,
+                         v_out)
 
 
 @wp.kernel

@@ -309,9 +309,9 @@ class SpringMassSolver:
                 self._go(K.eval_spring_forces, b - a, inputs, [spring_f[a:b]], ops)
         collide = self._collide
         if self._scatter and not grad:
-            self._go(K.integrate_scattered, p1 - p0,
+            self._go(K.integrate_scattered, 1,
                      [state_in.x, state_in.v, f, m.masses, self._gravity, float(dt),
-                      self._drag_factor(float(dt), float(p.drag_damping)), int(not collide), cp, p0],
+                      self._drag_factor(float(dt), float(p.drag_damping)), int(not collide), cp, p0, p1],
                      [v_star, state_out.x, state_out.v], ops)
         else:
             self._go(K.particle_update, p1 - p0,
@@ -330,10 +330,12 @@ class SpringMassSolver:
         elif collide:
             if sync is not None:
                 ops.append(sync)  # impulses read the other part's v_star
-            self._go(K.collide_and_finish, p1 - p0,
-                     [state_in.x, v_star, m.masses, m.masks, float(p.collision_dist), self._cand,
-                      self._cand_count, float(dt), cp, p0],
-                     [state_out.x, state_out.v], ops)
+            args = [state_in.x, v_star, m.masses, m.masks, float(p.collision_dist), self._cand,
+                    self._cand_count, float(dt), cp]
+            if self._scatter:  # CPU: one thread looping over the part
+                self._go(K.collide_and_finish_range, 1, [*args, p0, p1], [state_out.x, state_out.v], ops)
+            else:
+                self._go(K.collide_and_finish, p1 - p0, [*args, p0], [state_out.x, state_out.v], ops)
         if sync is not None:
             ops.append(sync)  # the next substep reads every particle
 
