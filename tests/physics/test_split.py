@@ -114,3 +114,13 @@ def test_contact_forces_are_exact_when_the_main_process_is_preempted_after_a_bar
     for a, b in zip(f1, f2, strict=False):
         for x, y in zip(a, b, strict=True):
             assert np.array_equal(x, y)
+
+
+def test_spring_runs_cover_the_ids_in_order_with_long_runs_as_ranges():
+    ids = np.r_[3, 7, 8, 10:600, 601, 605, 700:1000, 1002].astype(np.int32)
+    runs = S._spring_runs(ids, False, "cpu", min_run=256)
+    got = np.concatenate([np.arange(first, first + count) if listed is None else listed.numpy()
+                          for _, first, count, listed in runs])
+    assert np.array_equal(got, ids)
+    assert [(first, count) for _, first, count, listed in runs if listed is None] == [(10, 590), (700, 300)]
+    assert len(runs) == 5 and S._spring_runs(np.zeros(0, np.int32), True, "cpu") == []

@@ -46,8 +46,9 @@ class _Worlds:
     springs: tuple[tuple[int, int], ...]  # object springs, then control springs (merged when adjacent)
     kin_vertices: tuple[int, int]
     kinematic: tuple[int, ...]  # kinematic mesh ids
-    # a split frame's part: ascending ids of the object springs and of the control springs touching it
-    touching: tuple[wp.array, wp.array] | None = None
+    # a split frame's part: the object springs, then the control springs touching it, in ascending order as
+    # launches (control, first, count, ids): a range [first, first + count) when ids is None
+    touching: tuple[tuple[bool, int, int, wp.array | None], ...] | None = None
 
 
 def _worlds(model: SpringMassModel, w0: int, w1: int) -> _Worlds:
@@ -288,8 +289,9 @@ class SpringMassSolver:
             v_star = self._v_star
             head = [state_in.x, state_in.v, m.springs, self._ry, float(p.dashpot_damping)]
             cut = m.num_object_springs  # object springs [0, cut), then control springs
-            if wr.touching is not None:  # a split frame's part: the listed springs touching it
-                runs = [(k == 1, 0, ids.shape[0], ids) for k, ids in enumerate(wr.touching)]
+            if wr.touching is not None:  # a split frame's part: the springs touching it
+                runs = [(c, first, count, self._no_list if ids is None else ids)
+                        for c, first, count, ids in wr.touching]
             else:
                 runs = [(lo >= cut, lo, hi - lo, self._no_list) for a, b in wr.springs
                         for lo, hi in ((a, min(b, cut)), (max(a, cut), b))]

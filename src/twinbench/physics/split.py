@@ -155,6 +155,27 @@ def _model_from_payload(payload: dict) -> SpringMassModel:
     return SpringMassModel(**kw)
 
 
+def _spring_runs(ids: np.ndarray, control: bool, device, min_run: int = 256) -> list[tuple]:
+    """Launches for the ascending spring ids `ids`, in their order: runs of at least `min_run` consecutive ids
+    as (control, first, count, None) ranges (no index list to read), the ids between them as (control, 0,
+    count, ids) lists."""
+    out, pending = [], []
+    cuts = np.flatnonzero(np.diff(ids) != 1) + 1
+    for run in np.split(ids, cuts) if ids.size else []:
+        if run.size < min_run:
+            pending.append(run)
+            continue
+        if pending:
+            listed = np.concatenate(pending)
+            out.append((control, 0, listed.size, wp.array(listed, dtype=int, device=device)))
+            pending = []
+        out.append((control, int(run[0]), run.size, None))
+    if pending:
+        listed = np.concatenate(pending)
+        out.append((control, 0, listed.size, wp.array(listed, dtype=int, device=device)))
+    return out
+
+
 def _half(model: SpringMassModel, second: bool, parts) -> object:
     """The solver's part (see solver._Worlds) for one half of a one-world model."""
     n = model.num_particles
@@ -164,9 +185,9 @@ def _half(model: SpringMassModel, second: bool, parts) -> object:
     ends = model.springs_np
     touching = np.flatnonzero(((ends >= p0) & (ends < p1)).any(axis=1)).astype(np.int32)
     cut = model.num_object_springs
-    lists = tuple(wp.array(ids, dtype=int, device=model.device)
-                  for ids in (touching[touching < cut], touching[touching >= cut]))
-    return parts(0, 0, (p0, p1), (), kv, kin, lists)  # springs: the lists (the main side sets stiffness)
+    runs = (_spring_runs(touching[touching < cut], False, model.device)
+            + _spring_runs(touching[touching >= cut], True, model.device))
+    return parts(0, 0, (p0, p1), (), kv, kin, tuple(runs))  # springs: the runs (the main side sets stiffness)
 
 
 class _Barrier:
