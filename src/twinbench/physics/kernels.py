@@ -244,20 +244,20 @@ def mesh_contacts(
     per_particle: int,
     pm_force: wp.array(dtype=wp.vec3),
     pm_face: wp.array(dtype=int),
+    pm_list: wp.array(dtype=int),
+    pm_count: wp.array(dtype=int),
     mesh_lo: wp.array(dtype=wp.vec3),
     mesh_hi: wp.array(dtype=wp.vec3),
 ):
     """Velocity response against the triangle meshes ``[first, last)`` (the particle's world), relative
     to the mesh point velocity. The contact force is added to its mesh and face, or with ``per_particle``
-    stored in the particle's own slots (``pm_force``/``pm_face``, face -1 = no contact) for
-    `reduce_mesh_forces` to add in particle order (so that two processes can share a frame). A particle
+    stored in the particle's own slot (``pm_force``/``pm_face``) and the slot appended to ``pm_list``
+    (count in ``pm_count[0]``; particle order in a one-thread CPU loop) for `reduce_mesh_forces` to add
+    in that order (so that two processes can share a frame). A particle
     outside a mesh's box ``[mesh_lo, mesh_hi]`` (the mesh over the whole frame, grown past the margin)
     is too far for a contact and skips the query."""
     v = vp
     for k in range(first, last):
-        slot = tid * (last - first) + k - first
-        if per_particle != 0:
-            pm_face[slot] = -1
         lo = mesh_lo[k]
         hi = mesh_hi[k]
         if xp[0] < lo[0] or xp[1] < lo[1] or xp[2] < lo[2] or xp[0] > hi[0] or xp[1] > hi[1] or xp[2] > hi[2]:
@@ -277,8 +277,10 @@ def mesh_contacts(
                 v_new = vm + contact_velocity(vrel, normal, mesh_elas[k], mesh_fric[k])
                 force = mp * (v_new - v) / dt
                 if per_particle != 0:
+                    slot = tid * (last - first) + k - first
                     pm_force[slot] = force
                     pm_face[slot] = q.face
+                    pm_list[wp.atomic_add(pm_count, 0, 1)] = slot
                 else:
                     wp.atomic_add(mesh_force, k, force)
                     wp.atomic_add(face_force, face_offsets[k] + q.face, force)
@@ -310,9 +312,11 @@ class ContactParams:
     face_force: wp.array(dtype=wp.vec3)
     particle_world: wp.array(dtype=int)
     world_mesh_start: wp.array(dtype=int)
-    per_particle: int  # 1: contact forces go to pm_force/pm_face (see mesh_contacts)
+    per_particle: int  # 1: contact forces go to pm_force/pm_face, their slots to pm_list (see mesh_contacts)
     pm_force: wp.array(dtype=wp.vec3)
     pm_face: wp.array(dtype=int)
+    pm_list: wp.array(dtype=int)
+    pm_count: wp.array(dtype=int)
     ground: int
     coeffs: wp.array(dtype=float)  # ground restitution, ground friction, object restitution, object friction
     mesh_lo: wp.array(dtype=wp.vec3)  # per mesh: a box holding it over the frame, grown past the margin
@@ -329,8 +333,8 @@ def finish_particle(
         w = cp.particle_world[tid]
         v1 = mesh_contacts(x0, v1, m, cp.world_mesh_start[w], cp.world_mesh_start[w + 1], cp.mesh_ids,
                            cp.mesh_elas, cp.mesh_fric, cp.face_offsets, cp.margin, dt, cp.mesh_force,
-                           cp.face_force, tid, cp.per_particle, cp.pm_force, cp.pm_face, cp.mesh_lo,
-                           cp.mesh_hi)
+                           cp.face_force, tid, cp.per_particle, cp.pm_force, cp.pm_face, cp.pm_list,
+                           cp.pm_count, cp.mesh_lo, cp.mesh_hi)
     xn, vn = ground_integrate(x0, v1, cp.coeffs[0], cp.coeffs[1], dt, cp.ground)
     x_out[tid] = xn
     v_out[tid] = vn
@@ -576,20 +580,20 @@ def apply_impulses(
 
 
 @wp.kernel(enable_backward=False)
-def reduce_mesh_forces(cp: ContactParams, p0: int, p1: int):
-    """One thread: add the per-particle contact forces of particles [p0, p1) to their meshes and faces in
-    particle order, mesh order within a particle (the order of the direct atomic path on CPU)."""
-    for p in range(p0, p1):
-        w = cp.particle_world[p]
-        first = cp.world_mesh_start[w]
-        count = cp.world_mesh_start[w + 1] - first
-        for j in range(count):
-            slot = p * count + j
-            face = cp.pm_face[slot]
-            if face >= 0:
-                k = first + j
-                wp.atomic_add(cp.mesh_force, k, cp.pm_force[slot])
-                wp.atomic_add(cp.face_force, cp.face_offsets[k] + face, cp.pm_force[slot])
+def reduce_mesh_forces(cp: ContactParams, lists: wp.array2d(dtype=int), counts: wp.array(dtype=int),
+                       meshes_per_world: int):
+    """One thread: add the per-particle contact forces listed in ``lists[i, :counts[i]]`` (slots
+    particle * meshes_per_world + mesh, see `mesh_contacts`), list after list, to their meshes and faces
+    (each list in particle order, mesh order within a particle: the order of the direct atomic path on
+    CPU when the lists are consecutive particle ranges); then zero the counts for the lists' next use."""
+    for i in range(counts.shape[0]):
+        for k in range(counts[i]):
+            slot = lists[i, k]
+            p = slot // meshes_per_world
+            mesh = cp.world_mesh_start[cp.particle_world[p]] + slot - p * meshes_per_world
+            wp.atomic_add(cp.mesh_force, mesh, cp.pm_force[slot])
+            wp.atomic_add(cp.face_force, cp.face_offsets[mesh] + cp.pm_face[slot], cp.pm_force[slot])
+        counts[i] = 0
 
 
 @wp.func

@@ -139,6 +139,8 @@ class SpringMassSolver:
         cp.per_particle = 0
         cp.pm_force = wp.zeros(0, dtype=wp.vec3, device=dev)
         cp.pm_face = wp.zeros(0, dtype=int, device=dev)
+        cp.pm_list = wp.zeros(0, dtype=int, device=dev)
+        cp.pm_count = wp.zeros(0, dtype=int, device=dev)
         cp.ground = int(p.ground)
         cp.coeffs = model.contact_coeffs  # read each launch: changing them needs no recapture
         # per mesh, a box a particle must be inside to be queried (exactly outside: farther than the margin

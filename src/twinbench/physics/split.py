@@ -8,9 +8,9 @@ replays its own recorded launches (particles [0, n/2) here, the rest there; each
 springs touching its particles in spring order, so a spring across the cut is evaluated by both) and the
 two meet at spin barriers on shared counters (a few us) wherever a stage reads what the other half wrote.
 Each array element is written by exactly one process with the same arithmetic, and the mesh contact forces
-are added in particle order by `reduce_mesh_forces`, so a split frame is bit-identical to a frame on one
-core. Between frames the helper blocks on a pipe (no spinning). If the helper dies, the frame is run on
-one core and the solver stays there.
+are listed by each process in particle order and added list after list by `reduce_mesh_forces`, so a split
+frame is bit-identical to a frame on one core. Between frames the helper blocks on a pipe (no spinning). If
+the helper dies, the frame is run on one core and the solver stays there.
 
 Spin barriers rely on x86's ordered stores (TSO): the split is only used on x86-64.
 """
@@ -98,12 +98,14 @@ def _specs(model: SpringMassModel, cand_width: int) -> dict:
         "cand": ((n, cand_width), i32), "cand_count": ((n,), i32),
         "ctrl_from": ((model.num_control_points, 3), f32), "ctrl_to": ((model.num_control_points, 3), f32),
         "kin_from": ((kv, 3), f32), "kin_to": ((kv, 3), f32),
-        "pm_force": ((2, pm, 3), f32), "pm_face": ((2, pm), i32),  # per substep parity (see _share)
+        # per substep parity (see _share); the lists and counts also per side (0: main, 1: helper)
+        "pm_force": ((2, pm, 3), f32), "pm_face": ((2, pm), i32),
+        "pm_list": ((2, 2, pm), i32), "pm_count": ((2, 2), i32),
         "sync": ((8,), np.int64),  # 0: main phase, 1: helper phase, 2: helper ready, 3: helper failed
     }
 
 
-def _share(solver, shared: SharedArrays) -> Control:
+def _share(solver, shared: SharedArrays, side: int) -> Control:
     """Point the solver's frame buffers at the shared arrays; returns the shared Control."""
     v3 = wp.vec3
     solver._buf = (State(shared.wp("xa", v3), shared.wp("va", v3)),
@@ -112,10 +114,10 @@ def _share(solver, shared: SharedArrays) -> Control:
     solver._v_star = shared.wp("v_star", v3)
     solver._cand = shared.wp("cand", int)
     solver._cand_count = shared.wp("cand_count", int)
-    # Per-particle contact forces, added to the meshes in particle order by the main side after each substep's
-    # last barrier. The helper may already be writing the next substep's forces then, so even and odd
-    # substeps write their own copy.
-    solver._cp_split = tuple(_per_particle_contacts(solver._cp, shared, k) for k in (0, 1))
+    # Per-particle contact forces: each side lists its contacts in particle order, and the main side adds the
+    # two lists to the meshes after each substep's last barrier. The helper may already be writing the next
+    # substep's contacts then, so even and odd substeps write their own copy.
+    solver._cp_split = tuple(_per_particle_contacts(solver._cp, shared, k, side) for k in (0, 1))
     ctl = Control(ctrl_from=shared.wp("ctrl_from", v3), ctrl_to=shared.wp("ctrl_to", v3),
                   kin_from=shared.wp("kin_from", v3), kin_to=shared.wp("kin_to", v3))
     for mid, info in enumerate(solver.model.meshes):
@@ -125,12 +127,16 @@ def _share(solver, shared: SharedArrays) -> Control:
     return ctl
 
 
-def _per_particle_contacts(cp: K.ContactParams, shared: SharedArrays, parity: int) -> K.ContactParams:
+def _per_particle_contacts(cp: K.ContactParams, shared: SharedArrays, parity: int, side: int):
     out = K.ContactParams()
     out.assign(cp)
     out.per_particle = 1
-    out.pm_force = wp.array(shared.np["pm_force"][parity], dtype=wp.vec3, device="cpu", copy=False)
-    out.pm_face = wp.array(shared.np["pm_face"][parity], dtype=int, device="cpu", copy=False)
+    a = shared.np
+    arrays = {"pm_force": (a["pm_force"][parity], wp.vec3), "pm_face": (a["pm_face"][parity], int),
+              "pm_list": (a["pm_list"][parity, side], int),
+              "pm_count": (a["pm_count"][parity, side:side + 1], int)}
+    for name, (a, dtype) in arrays.items():
+        setattr(out, name, wp.array(a, dtype=dtype, device="cpu", copy=False))
     return out
 
 
@@ -224,7 +230,7 @@ class SplitFrame:
         self.shared = SharedArrays.create(_specs(m, solver._cand.shape[1]))
         self.proc = None
         try:
-            self.control = _share(solver, self.shared)
+            self.control = _share(solver, self.shared, 0)
             # A plain interpreter running this module (not multiprocessing's spawn, which would re-run the
             # user's __main__ script in the helper); the setup travels on its stdin.
             env = {**os.environ, "PYTHONPATH": os.pathsep.join(p for p in sys.path if p)}
@@ -251,8 +257,11 @@ class SplitFrame:
         self.barrier = _Barrier(self.shared.np["sync"], 0, 1, self._alive)
         reduce = None
         if m.meshes:  # even and odd substeps' contact forces
-            reduce = tuple(wp.launch(K.reduce_mesh_forces, dim=1, inputs=[cp, 0, m.num_particles],
-                                     device="cpu", record_cmd=True).launch for cp in solver._cp_split)
+            lists, counts = self.shared.np["pm_list"], self.shared.np["pm_count"]
+            reduce = tuple(wp.launch(K.reduce_mesh_forces, dim=1, device="cpu", record_cmd=True, inputs=[
+                cp, wp.array(lists[k], dtype=int, device="cpu", copy=False),
+                wp.array(counts[k], dtype=int, device="cpu", copy=False), m.meshes_per_world]).launch
+                for k, cp in enumerate(solver._cp_split))
         self.ops: list = []
         self.out = solver._frame_launches(self.control, self.ops, _half(m, False, _Worlds), sync=self.barrier,
                                           after_substep=reduce)
@@ -336,7 +345,7 @@ def _helper_main() -> None:
 
         model = _model_from_payload(payload)
         solver = SpringMassSolver(model, use_graph=False, threads=1)
-        control = _share(solver, shared)
+        control = _share(solver, shared, 1)
 
         def parent_alive() -> None:
             if os.getppid() == 1:
