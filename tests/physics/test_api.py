@@ -173,3 +173,35 @@ def test_new_stiffness_reaches_the_cached_frame(with_mesh):
     ref.simulate_frame(st2, c2)
     np.testing.assert_array_equal(st1.x.numpy(), st2.x.numpy())
     assert not np.array_equal(before, st2.x.numpy())
+
+
+@wp.kernel
+def _axpy(a: float, x: wp.array(dtype=wp.vec3), y: wp.array(dtype=wp.vec3), out: wp.array(dtype=wp.vec3)):
+    i = wp.tid()
+    out[i] = a * x[i] + y[i]
+
+
+def test_a_replayable_cpu_launch_calls_the_kernel_directly_with_the_recorded_arguments():
+    """Recorded frames replay their launches through `replayable`: a direct call of the compiled kernel
+    (with the pinned Warp) that computes what the recorded launch computes, call after call."""
+    from twinbench.physics.solver import replayable
+
+    rng = np.random.default_rng(1)
+    x, y = (wp.array(rng.normal(size=(50, 3)), dtype=wp.vec3, device="cpu") for _ in range(2))
+    out = wp.zeros(50, dtype=wp.vec3, device="cpu")
+    launch = wp.launch(_axpy, dim=50, inputs=[2.5, x, y], outputs=[out], device="cpu", record_cmd=True)
+    run = replayable(launch)
+    assert run != launch.launch  # the direct path, not Warp's per-call packing
+    expected = np.float32(2.5) * x.numpy() + y.numpy()
+    out.zero_()
+    run()
+    np.testing.assert_array_equal(out.numpy(), expected)
+    x.assign(np.ones((50, 3)))  # same arrays, new contents: a replay reads them now
+    run()
+    np.testing.assert_array_equal(out.numpy(), np.float32(2.5) + y.numpy())
+
+    class Unlike:  # a launch object of another layout: Warp's own replay
+        device = wp.get_device("cpu")
+        launch = "launch.launch"
+
+    assert replayable(Unlike()) == "launch.launch"

@@ -2,8 +2,10 @@
 
 from __future__ import annotations
 
+import ctypes
 import os
 import warnings
+from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
@@ -68,6 +70,45 @@ def _worlds(model: SpringMassModel, w0: int, w1: int) -> _Worlds:
     return _Worlds(w0, w1, (w0 * nw, w1 * nw), tuple(ranges), kv, kin)
 
 
+_ARGS_TYPES: dict = {}  # (kernel, argument types) -> ctypes struct of a CPU kernel's arguments
+
+
+def replayable(launch) -> Callable[[], None]:
+    """A recorded launch (``wp.launch(..., record_cmd=True)``) as a call without arguments.
+
+    On CPU: a direct call of the kernel's compiled entry point with its argument struct packed once. Warp's
+    ``Launch.launch()`` packs a ctypes struct of every argument on each call (2-5 us; the contact struct
+    costs most), and a frame replays thousands of launches. The struct holds what the recorded launch holds
+    (the arrays' addresses, the scalars), so a call is that launch. Where Warp's launch layout is not the
+    one this relies on (CUDA, tiles, the adjoint, another Warp version), ``launch.launch``.
+    """
+    try:
+        if not launch.device.is_cpu or launch.adjoint or launch.block_dim > 1:
+            return launch.launch
+        params = launch.params
+        labels = [a.label for a in launch.kernel.adj.args]
+        if len(params) != len(labels) + 1:
+            return launch.launch
+        key = (launch.kernel, tuple(type(p) for p in params[1:]))
+        args_type = _ARGS_TYPES.get(key)
+        if args_type is None:
+            fields = [(name, type(p)) for name, p in zip(labels, params[1:], strict=True)]
+            args_type = _ARGS_TYPES[key] = type("Args", (ctypes.Structure,), {"_fields_": fields})
+        args = args_type()
+        for name, p in zip(labels, params[1:], strict=True):
+            setattr(args, name, p)
+        forward, bounds, packed = launch.hooks.forward, ctypes.byref(params[0]), ctypes.byref(args)
+    except (AttributeError, TypeError, ValueError):
+        return launch.launch
+
+    def run() -> None:
+        forward(bounds, packed)
+
+    run.launch = launch  # keeps the recorded launch (and the arrays it holds) alive
+    run.args = args
+    return run
+
+
 def cpu_cores() -> int:
     """CPU cores the physics may use: $TWINBENCH_CPU_THREADS, else the cores this process may run on."""
     env = os.environ.get("TWINBENCH_CPU_THREADS")
@@ -95,7 +136,8 @@ class SpringMassSolver:
     Per substep: spring + dashpot forces (summed per particle in spring order: scattered in one pass on
     CPU, gathered per particle on CUDA; PhysTwin's atomics on the differentiable path), gravity and drag,
     particle-particle impulses (candidates rebuilt once per frame), mesh contacts (relative to the mesh
-    velocity), ground with time of impact.
+    velocity), ground with time of impact. On CPU the per-particle stages run as one thread looping over
+    its particles (the same per-particle functions as CUDA's thread per particle).
     """
 
     def __init__(self, model: SpringMassModel, *, use_graph: bool = True, max_speed: float = 100.0,
@@ -184,12 +226,13 @@ class SpringMassSolver:
         return float(np.float32(substep_index + 1) / np.float32(s))
 
     def _go(self, kernel, dim: int, inputs: list, outputs: list, ops: list | None) -> None:
-        """Launch now, or record the launch into ``ops`` (replayed with ~7 us overhead each)."""
+        """Launch now, or record the launch into ``ops`` (see `replayable`)."""
         if ops is None:
             wp.launch(kernel, dim=dim, inputs=inputs, outputs=outputs, device=self.device)
         else:
-            ops.append(wp.launch(kernel, dim=dim, inputs=inputs, outputs=outputs, device=self.device,
-                                 record_cmd=True).launch)
+            launch = wp.launch(kernel, dim=dim, inputs=inputs, outputs=outputs, device=self.device,
+                               record_cmd=True)
+            ops.append(replayable(launch))
 
     def _update_kinematic_meshes(self, control: Control, substep_index: int, ops: list | None = None,
                                  wr: _Worlds | None = None) -> None:

@@ -223,7 +223,7 @@ class SplitFrame:
     """The main side of split frames for `solver` (see the module docstring)."""
 
     def __init__(self, solver, startup_timeout_s: float = 120.0):
-        from .solver import _Worlds
+        from .solver import _Worlds, replayable
 
         m = solver.model
         self.solver = solver
@@ -258,9 +258,10 @@ class SplitFrame:
         reduce = None
         if m.meshes:  # even and odd substeps' contact forces
             lists, counts = self.shared.np["pm_list"], self.shared.np["pm_count"]
-            reduce = tuple(wp.launch(K.reduce_mesh_forces, dim=1, device="cpu", record_cmd=True, inputs=[
-                cp, wp.array(lists[k], dtype=int, device="cpu", copy=False),
-                wp.array(counts[k], dtype=int, device="cpu", copy=False), m.meshes_per_world]).launch
+            reduce = tuple(replayable(wp.launch(
+                K.reduce_mesh_forces, dim=1, device="cpu", record_cmd=True,
+                inputs=[cp, wp.array(lists[k], dtype=int, device="cpu", copy=False),
+                        wp.array(counts[k], dtype=int, device="cpu", copy=False), m.meshes_per_world]))
                 for k, cp in enumerate(solver._cp_split))
         self.ops: list = []
         self.out = solver._frame_launches(self.control, self.ops, _half(m, False, _Worlds), sync=self.barrier,
