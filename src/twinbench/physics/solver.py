@@ -268,12 +268,17 @@ class SpringMassSolver:
         wr = wr or self._all
         cd = float(m.params.collision_dist)
         cand_r = cd * float(m.params.candidate_radius_scale)
-        query_r = max(cd * 5.0, cand_r)  # PhysTwin: hash cell and query radius 5 * collision_dist
+        cell = max(cd * 5.0, cand_r)  # PhysTwin: hash cell (and query radius) 5 * collision_dist
+        # Only particles closer than cand_r become candidates, so the lookup covers the cells within cand_r
+        # (with a margin over float rounding): a query visits the cells of its box in lexicographic order,
+        # so the candidates and their order are those of PhysTwin's 5 * collision_dist lookup, at a
+        # fraction of the visits.
+        lookup_r = min(cell, 1.25 * cand_r)
         p0, p1 = wr.particles
         grid = self._grids[(wr.w0, wr.w1)]
-        grid.build(state.x[p0:p1], query_r, groups=m.particle_world[p0:p1])
+        grid.build(state.x[p0:p1], cell, groups=m.particle_world[p0:p1])
         wp.launch(K.build_candidates, dim=p1 - p0,
-                  inputs=[grid.id, state.x, m.masks, m.particle_world, m.nbr_offsets, m.nbr, cand_r, query_r,
+                  inputs=[grid.id, state.x, m.masks, m.particle_world, m.nbr_offsets, m.nbr, cand_r, lookup_r,
                           p0],
                   outputs=[self._cand, self._cand_count], device=self.device)
 
