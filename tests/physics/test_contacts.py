@@ -168,7 +168,7 @@ def test_candidate_lists_equal_phystwins_full_radius_lookup_in_the_same_order():
     grid.build(state.x, cell, groups=model.particle_world)
     cand, count = wp.zeros_like(solver._cand), wp.zeros_like(solver._cand_count)
     wp.launch(K.build_candidates, dim=512, inputs=[grid.id, state.x, model.masks, model.particle_world,
-                                                   model.nbr_offsets, model.nbr, p.collision_dist, cell, 0],
+                                                   model.nbr_offsets, model.nbr, p.collision_dist, cell, 0, 0],
               outputs=[cand, count], device="cpu")
     assert ours[1].sum() > 5000 and (ours[1] == 20).any()  # many candidates, some lists capped
     np.testing.assert_array_equal(ours[1], count.numpy())

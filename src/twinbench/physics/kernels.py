@@ -623,13 +623,14 @@ def build_candidates(
     cand_radius: float,
     query_radius: float,
     base: int,
+    first: int,
     cand: wp.array2d(dtype=int),
     cand_count: wp.array(dtype=int),
 ):
     """Once per frame: other-mask particles strictly closer than ``cand_radius`` (max cand width),
-    excluding spring neighbours. ``grid`` holds one world's particles ``x[base:]``: thread ``i`` serves
-    particle ``base + i`` and grid index ``j`` is particle ``base + j``."""
-    tid = base + wp.tid()
+    excluding spring neighbours. ``grid`` holds the particles ``x[base:]`` (grid index ``j`` is particle
+    ``base + j``); thread ``i`` serves particle ``first + i``."""
+    tid = first + wp.tid()
     p = x[tid]
     mask = masks[tid]
     max_c = cand.shape[1]

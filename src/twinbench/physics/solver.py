@@ -260,8 +260,10 @@ class SpringMassSolver:
                   inputs=[control.kin_from, control.kin_to, self._kin_first, self._kin_count, self._kin_mesh,
                           self._pad], outputs=[self._cp.mesh_lo, self._cp.mesh_hi], device=self.device)
 
-    def rebuild_collision_candidates(self, state: State, wr: _Worlds | None = None) -> None:
-        """Rebuild the particle-particle candidate lists from ``state.x`` (done once per frame)."""
+    def rebuild_collision_candidates(self, state: State, wr: _Worlds | None = None,
+                                     rows: tuple[int, int] | None = None) -> None:
+        """Rebuild the particle-particle candidate lists from ``state.x`` (done once per frame): the lists of
+        the particles ``rows`` (default: all of the worlds ``wr``)."""
         m = self.model
         if not self._collide:
             return
@@ -275,11 +277,12 @@ class SpringMassSolver:
         # fraction of the visits.
         lookup_r = min(cell, 1.25 * cand_r)
         p0, p1 = wr.particles
+        r0, r1 = rows or (p0, p1)
         grid = self._grids[(wr.w0, wr.w1)]
         grid.build(state.x[p0:p1], cell, groups=m.particle_world[p0:p1])
-        wp.launch(K.build_candidates, dim=p1 - p0,
+        wp.launch(K.build_candidates, dim=r1 - r0,
                   inputs=[grid.id, state.x, m.masks, m.particle_world, m.nbr_offsets, m.nbr, cand_r, lookup_r,
-                          p0],
+                          p0, r0],
                   outputs=[self._cand, self._cand_count], device=self.device)
 
     def _update_stiffness(self, ops: list | None = None, wr: _Worlds | None = None) -> None:

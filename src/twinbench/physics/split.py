@@ -285,12 +285,14 @@ class SplitFrame:
             wp.copy(self.control.kin_to, control.kin_to)
             s._set_mesh_velocities(self.control)
         s._update_stiffness()
-        s.rebuild_collision_candidates(s._buf[0])
         try:
             self.proc.stdin.write(b"F")
             self.proc.stdin.flush()
         except OSError as err:
             raise SplitFailed(f"the physics helper process is gone ({err})") from None
+        # each side lists the collision candidates of its own particles (the only lists it reads); the frame's
+        # first barrier comes before any side writes the positions they are built from again
+        s.rebuild_collision_candidates(s._buf[0], rows=(0, s.model.num_particles // 2))
         start_phase, self.barrier.slow = self.barrier.phase, 0
         for op in self.ops:
             op()
@@ -356,9 +358,11 @@ def _helper_main() -> None:
         ops: list = []
         solver._frame_launches(control, ops, _half(model, True, _Worlds), sync=barrier)
         sync[2] = 1
+        n = model.num_particles
         while stdin.read(1) == b"F":
             if solver._kinematic:
                 solver._set_mesh_velocities(control)
+            solver.rebuild_collision_candidates(solver._buf[0], rows=(n // 2, n))
             for op in ops:
                 op()
     except BaseException:
