@@ -167,9 +167,9 @@ def test_candidate_lists_equal_phystwins_full_radius_lookup_in_the_same_order():
     grid = wp.HashGrid(64, 64, 64, device="cpu")
     grid.build(state.x, cell, groups=model.particle_world)
     cand, count = wp.zeros_like(solver._cand), wp.zeros_like(solver._cand_count)
-    wp.launch(K.build_candidates, dim=512, inputs=[grid.id, state.x, model.masks, model.particle_world,
-                                                   model.nbr_offsets, model.nbr, p.collision_dist, cell, 0, 0],
-              outputs=[cand, count], device="cpu")
+    inputs = [grid.id, state.x, model.masks, model.particle_world, model.nbr_offsets, model.nbr,
+              p.collision_dist, cell, 0, 0]
+    wp.launch(K.build_candidates, dim=512, inputs=inputs, outputs=[cand, count], device="cpu")
     assert ours[1].sum() > 5000 and (ours[1] == 20).any()  # many candidates, some lists capped
     np.testing.assert_array_equal(ours[1], count.numpy())
     for i in range(512):

@@ -455,62 +455,8 @@ def pair_impulse(
     return hit, j_n, j_t
 
 
-@wp.func
-def collide_particle(
-    tid: int,
-    x: wp.array(dtype=wp.vec3),
-    v_star: wp.array(dtype=wp.vec3),
-    masses: wp.array(dtype=float),
-    masks: wp.array(dtype=int),
-    collision_dist: float,
-    cand: wp.array2d(dtype=int),
-    cand_count: wp.array(dtype=int),
-    dt: float,
-    cp: ContactParams,
-    x_out: wp.array(dtype=wp.vec3),
-    v_out: wp.array(dtype=wp.vec3),
-):
-    """Particle-particle impulses averaged over the counted pairs (PhysTwin), then meshes, ground, x.
-    (Not differentiable: the loop carries its sums; the taped path uses `pair_impulses` + `apply_impulses`,
-    which add in the same order.)"""
-    v1 = v_star[tid]
-    m1 = masses[tid]
-    valid = float(0.0)  # noqa: UP018 (Warp needs a typed dynamic variable)
-    j_sum = wp.vec3(0.0, 0.0, 0.0)
-    e = wp.clamp(cp.coeffs[2], 0.0, 1.0)
-    mu = wp.clamp(cp.coeffs[3], 0.0, 2.0)
-    for k in range(cand_count[tid]):
-        hit, j_n, j_t = pair_impulse(x, v_star, masses, masks, collision_dist, e, mu, tid, cand[tid, k])
-        if hit > 0.0:
-            valid = valid + 1.0
-            j_sum = j_sum + j_n + j_t
-    if valid > 0.0:
-        v1 = v1 - (j_sum / valid) / m1
-    finish_particle(tid, x[tid], v1, m1, dt, cp, x_out, v_out)
-
-
-@wp.kernel
-def collide_and_finish(
-    x: wp.array(dtype=wp.vec3),
-    v_star: wp.array(dtype=wp.vec3),
-    masses: wp.array(dtype=float),
-    masks: wp.array(dtype=int),
-    collision_dist: float,
-    cand: wp.array2d(dtype=int),
-    cand_count: wp.array(dtype=int),
-    dt: float,
-    cp: ContactParams,
-    base: int,
-    x_out: wp.array(dtype=wp.vec3),
-    v_out: wp.array(dtype=wp.vec3),
-):
-    """`collide_particle` for particle base + i in thread i."""
-    collide_particle(base + wp.tid(), x, v_star, masses, masks, collision_dist, cand, cand_count, dt, cp,
-                     x_out, v_out)
-
-
 @wp.kernel(enable_backward=False)
-def collide_and_finish_range(
+def collide_and_finish(
     x: wp.array(dtype=wp.vec3),
     v_star: wp.array(dtype=wp.vec3),
     masses: wp.array(dtype=float),
@@ -522,14 +468,30 @@ def collide_and_finish_range(
     cp: ContactParams,
     p0: int,
     p1: int,
+    per_thread: int,
     x_out: wp.array(dtype=wp.vec3),
     v_out: wp.array(dtype=wp.vec3),
 ):
-    """CPU only, one thread: `collide_particle` for particles [p0, p1) in order (see `integrate_scattered`
-    on why one looping thread)."""
-    for tid in range(p0, p1):
-        collide_particle(tid, x, v_star, masses, masks, collision_dist, cand, cand_count, dt, cp, x_out,
-                         v_out)
+    """Particle-particle impulses averaged over the counted pairs (PhysTwin), then meshes, ground, x, for
+    particles [p0, p1): thread i serves ``per_thread`` of them in order from p0 + i * per_thread (CUDA: 1;
+    CPU: all, in one thread, see `integrate_scattered`). (Not differentiable: the loop carries its sums;
+    the taped path uses `pair_impulses` + `apply_impulses`, which add in the same order.)"""
+    i0 = p0 + wp.tid() * per_thread
+    e = wp.clamp(cp.coeffs[2], 0.0, 1.0)
+    mu = wp.clamp(cp.coeffs[3], 0.0, 2.0)
+    for tid in range(i0, wp.min(i0 + per_thread, p1)):
+        v1 = v_star[tid]
+        m1 = masses[tid]
+        valid = float(0.0)  # noqa: UP018 (Warp needs a typed dynamic variable)
+        j_sum = wp.vec3(0.0, 0.0, 0.0)
+        for k in range(cand_count[tid]):
+            hit, j_n, j_t = pair_impulse(x, v_star, masses, masks, collision_dist, e, mu, tid, cand[tid, k])
+            if hit > 0.0:
+                valid = valid + 1.0
+                j_sum = j_sum + j_n + j_t
+        if valid > 0.0:
+            v1 = v1 - (j_sum / valid) / m1
+        finish_particle(tid, x[tid], v1, m1, dt, cp, x_out, v_out)
 
 
 @wp.kernel

@@ -387,10 +387,8 @@ class SpringMassSolver:
                 ops.append(sync)  # impulses read the other part's v_star
             args = [state_in.x, v_star, m.masses, m.masks, float(p.collision_dist), self._cand,
                     self._cand_count, float(dt), cp]
-            if self._scatter:  # CPU: one thread looping over the part
-                self._go(K.collide_and_finish_range, 1, [*args, p0, p1], [state_out.x, state_out.v], ops)
-            else:
-                self._go(K.collide_and_finish, p1 - p0, [*args, p0], [state_out.x, state_out.v], ops)
+            threads, per = (1, p1 - p0) if self._scatter else (p1 - p0, 1)  # CPU: one thread for the part
+            self._go(K.collide_and_finish, threads, [*args, p0, p1, per], [state_out.x, state_out.v], ops)
         if sync is not None:
             ops.append(sync)  # the next substep reads every particle
 
