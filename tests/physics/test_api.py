@@ -205,3 +205,20 @@ def test_a_replayable_cpu_launch_calls_the_kernel_directly_with_the_recorded_arg
         launch = "launch.launch"
 
     assert replayable(Unlike()) == "launch.launch"
+
+
+def test_a_new_time_step_inside_a_cpu_graph_capture_is_refused_with_the_fix():
+    """The CPU integration reads a drag factor computed once per (dt, drag) by a launch, which a capture
+    would only record: the model's own dt is ready from the start, a new one must first run uncaptured."""
+    b = ModelBuilder(SimParams())
+    b.add_body(lattice(2, 2, 2, origin=(0.0, 0.0, 0.1)))
+    model = b.finalize()
+    solver = SpringMassSolver(model)
+    a, c, ctl = model.state(), model.state(), model.control()
+    with wp.ScopedCapture(device="cpu"):
+        solver.step(a, c, ctl)  # the model's dt: fine
+    with pytest.raises(RuntimeError, match="outside a graph capture"), wp.ScopedCapture(device="cpu"):
+        solver.step(a, c, ctl, dt=1e-5)
+    solver.step(a, c, ctl, dt=1e-5)  # uncaptured: computes it
+    with wp.ScopedCapture(device="cpu"):
+        solver.step(a, c, ctl, dt=1e-5)

@@ -153,12 +153,14 @@ class SpringMassSolver:
         self._no_list = wp.zeros(0, dtype=int, device=dev)
         self._f = wp.zeros(n, dtype=wp.vec3, device=dev)
         self._v_star = wp.zeros(n, dtype=wp.vec3, device=dev)
-        self._drag_factors: dict[tuple[float, float], float] = {}
+        self._drag_factors: dict[tuple[float, float], float] = {}  # see _drag_factor (CPU)
         self._gravity = wp.vec3(*[float(g) for g in p.gravity])
         self._collide = model.particle_collisions  # fixed topology: decided once, not per substep
         # CPU: spring forces scattered to their ends in one sequential pass per thread or process (same sums,
         # same order as the per-particle gather that the parallel CUDA launch uses)
         self._scatter = str(dev).startswith("cpu")
+        if self._scatter:  # the drag factor of the model's parameters, outside any capture
+            self._drag_factor(float(p.dt), float(p.drag_damping))
         width = p.max_collision_candidates if self._collide else 1
         self._cand = wp.zeros((n, width), dtype=int, device=dev)
         self._cand_count = wp.zeros(n, dtype=int, device=dev)
@@ -297,7 +299,8 @@ class SpringMassSolver:
         key = (dt, drag)
         if key not in self._drag_factors:
             if wp.get_device(self.device).is_capturing:  # a captured launch would not run here
-                raise RuntimeError("SpringMassSolver: compute the drag factor before a graph capture")
+                raise RuntimeError(f"SpringMassSolver: a first step with dt={dt}, drag_damping={drag} must "
+                                   "run outside a graph capture (it computes the drag factor once)")
             out = wp.zeros(1, dtype=float, device=self.device)
             wp.launch(K.drag_factor, dim=1, inputs=[dt, drag], outputs=[out], device=self.device)
             self._drag_factors[key] = float(out.numpy()[0])

@@ -135,8 +135,8 @@ def _per_particle_contacts(cp: K.ContactParams, shared: SharedArrays, parity: in
     arrays = {"pm_force": (a["pm_force"][parity], wp.vec3), "pm_face": (a["pm_face"][parity], int),
               "pm_list": (a["pm_list"][parity, side], int),
               "pm_count": (a["pm_count"][parity, side:side + 1], int)}
-    for name, (a, dtype) in arrays.items():
-        setattr(out, name, wp.array(a, dtype=dtype, device="cpu", copy=False))
+    for name, (view, dtype) in arrays.items():
+        setattr(out, name, wp.array(view, dtype=dtype, device="cpu", copy=False))
     return out
 
 
