@@ -7,11 +7,13 @@ import time
 
 import numpy as np
 import pytest
+import trimesh
 from scenes import pusher_scene as _builder
 from scenes import run_pushed as _drive
 
-from twinbench.physics import SpringMassSolver
+from twinbench.physics import ModelBuilder, SimParams, SpringMassSolver
 from twinbench.physics import split as S
+from twinbench.physics.model import lattice
 
 pytestmark = pytest.mark.skipif(not S.split_supported(), reason="split frames need x86-64")
 
@@ -124,3 +126,33 @@ def test_spring_runs_cover_the_ids_in_order_with_long_runs_as_ranges():
     assert np.array_equal(got, ids)
     assert [(first, count) for _, first, count, listed in runs if listed is None] == [(10, 590), (700, 300)]
     assert len(runs) == 5 and S._spring_runs(np.zeros(0, np.int32), True, "cpu") == []
+
+
+def test_contacts_of_both_halves_with_one_mesh_are_summed_in_particle_order():
+    """A tilted block landing across a static box: both halves touch the same mesh in the same substeps, with
+    different forces, so the split's per-side contact lists must be added main side first, as one core
+    adds them in particle order."""
+    forces = []
+    for threads in (1, 2):
+        b = ModelBuilder(SimParams(ground_friction=0.6))
+        pts = lattice(8, 3, 3, origin=(-0.04, -0.01, 0.105))
+        pts[:, 2] += 0.05 * (pts[:, 0] + 0.04)  # one end lower: contacts start at different times
+        b.add_body(pts, spring_Y=1e4)
+        box = trimesh.creation.box(extents=(0.3, 0.3, 0.1))
+        box.apply_translation((0.0, 0.0, 0.05))
+        b.add_static_mesh(box.vertices, box.faces, friction=0.4)
+        model = b.finalize()
+        solver = SpringMassSolver(model, threads=threads)
+        state, ctl = model.state(), model.control()
+        run = []
+        for _ in range(8):
+            solver.simulate_frame(state, ctl)
+            run.append(solver.mesh_contact_force(0, per_face=True))
+        assert (solver._split is not None) == (threads == 2)
+        z, half = state.x.numpy()[:, 2], model.num_particles // 2
+        assert z[:half].min() < 0.11 and z[half:].min() < 0.11  # both halves lie on the box (top at 0.1)
+        solver.close()
+        forces.append(run)
+    assert max(np.abs(f).max() for f in forces[0]) > 0
+    for a, b in zip(*forces, strict=True):
+        assert np.array_equal(a, b)
