@@ -203,8 +203,14 @@ def accumulate_spring_forces(
 
 
 @wp.func
+def drag_factor_of(dt: float, drag: float):
+    """Per-substep velocity factor of air drag (PhysTwin)."""
+    return wp.exp(-dt * drag)
+
+
+@wp.func
 def velocity_update(v0: wp.vec3, f0: wp.vec3, m0: float, gravity: wp.vec3, dt: float, drag_factor: float):
-    """PhysTwin's velocity step; `drag_factor` = exp(-dt * drag) (see `drag_factor`)."""
+    """PhysTwin's velocity step; `drag_factor` = `drag_factor_of(dt, drag)`."""
     all_force = f0 + m0 * gravity
     a = all_force / m0
     v1 = v0 + a * dt
@@ -375,7 +381,7 @@ def particle_update(
     else:
         f = f_acc[tid]
     m = masses[tid]
-    vs = velocity_update(v[tid], f, m, gravity, dt, wp.exp(-dt * drag))
+    vs = velocity_update(v[tid], f, m, gravity, dt, drag_factor_of(dt, drag))
     if finish != 0:
         finish_particle(tid, x[tid], vs, m, dt, cp, x_out, v_out)
     else:
@@ -383,9 +389,9 @@ def particle_update(
 
 
 @wp.kernel(enable_backward=False)
-def drag_factor(dt: float, drag: float, out: wp.array(dtype=float)):
-    """One thread: exp(-dt * drag), the per-substep velocity factor of air drag."""
-    out[0] = wp.exp(-dt * drag)
+def compute_drag_factor(dt: float, drag: float, out: wp.array(dtype=float)):
+    """One thread: `drag_factor_of(dt, drag)` (computed once for `integrate_scattered`)."""
+    out[0] = drag_factor_of(dt, drag)
 
 
 @wp.kernel(enable_backward=False)
@@ -406,8 +412,8 @@ def integrate_scattered(
     v_out: wp.array(dtype=wp.vec3),
 ):
     """CPU only, one thread: `particle_update` of particles [p0, p1) in order, for forces scattered into
-    ``f_acc`` (read, then zeroed for the next substep's scatter), with the drag factor computed once (by the
-    `drag_factor` kernel: the same float) instead of per particle. (One looping thread: Warp's CPU code
+    ``f_acc`` (read, then zeroed for the next substep's scatter), with the drag factor computed once (by
+    `compute_drag_factor`: the same float) instead of per particle. (One looping thread: Warp's CPU code
     copies a kernel's arguments, the contact struct included, for every thread.)"""
     for tid in range(p0, p1):
         f = f_acc[tid]

@@ -302,7 +302,7 @@ class SpringMassSolver:
                 raise RuntimeError(f"SpringMassSolver: a first step with dt={dt}, drag_damping={drag} must "
                                    "run outside a graph capture (it computes the drag factor once)")
             out = wp.zeros(1, dtype=float, device=self.device)
-            wp.launch(K.drag_factor, dim=1, inputs=[dt, drag], outputs=[out], device=self.device)
+            wp.launch(K.compute_drag_factor, dim=1, inputs=[dt, drag], outputs=[out], device=self.device)
             self._drag_factors[key] = float(out.numpy()[0])
         return self._drag_factors[key]
 
