@@ -5,10 +5,12 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+import warp as wp
 from scenes import pusher_scene as _builder
 from scenes import run_pushed as _drive
 
 from twinbench.physics import SpringMassSolver, check_divergence
+from twinbench.physics import kernels as K
 
 
 @pytest.mark.parametrize("threads", [1, 2, 3])
@@ -61,6 +63,51 @@ def test_cpu_scatter_of_spring_forces_equals_the_per_particle_gather():
     assert np.abs(runs[0][0][-1] - runs[0][0][0]).max() > 0.005
     for a, b in zip(runs[0][0] + runs[0][1], runs[1][0] + runs[1][1], strict=True):
         np.testing.assert_array_equal(a, b)
+
+
+@pytest.mark.parametrize("listed", [False, True])
+def test_cpu_spring_scatter_adds_each_springs_force_in_spring_order(listed):
+    """The CPU scatter (batches of springs computed lane-wise) against the per-spring kernel of the gather
+    path and a float32 sum in spring order: bit for bit, over several batches and a partial one, with runs of
+    springs sharing their first end, unsorted ends, inactive springs (stiffness -1), a zero-length spring
+    (direction clamped) and, optionally, an index list read from an offset."""
+    rng = np.random.default_rng(3)
+    n, ns = 300, 1000
+    first_ends = np.sort(rng.integers(0, n, ns))  # runs of springs sharing a first end, then random jumps
+    second = rng.integers(0, n, ns)
+    second[second == first_ends] = (second[second == first_ends] + 1) % n
+    springs = np.stack([first_ends, second], 1).astype(np.int32)
+    springs[100:140] = springs[100:140][::-1]  # not sorted
+    x = rng.normal(0, 0.05, (n, 3)).astype(np.float32)
+    x[springs[7, 1]] = x[springs[7, 0]]  # a zero-length spring
+    v = rng.normal(0, 0.2, (n, 3)).astype(np.float32)
+    ry = np.stack([rng.uniform(0.01, 0.1, ns), rng.uniform(1e2, 1e5, ns)], 1).astype(np.float32)
+    ry[rng.random(ns) < 0.1, 1] = -1.0  # inactive
+    dev = "cpu"
+    xs, vs = wp.array(x, dtype=wp.vec3, device=dev), wp.array(v, dtype=wp.vec3, device=dev)
+    sp, rys = wp.array(springs, dtype=wp.vec2i, device=dev), wp.array(ry, dtype=wp.vec2, device=dev)
+    per = wp.zeros(ns, dtype=wp.vec3, device=dev)
+    none = wp.zeros(0, dtype=wp.vec3, device=dev)
+    wp.launch(K.eval_spring_forces, dim=ns, inputs=[xs, vs, sp, rys, 3.0, none, none, 0.0, n], outputs=[per],
+              device=dev)
+    per = per.numpy()
+    if listed:
+        ids = np.sort(rng.choice(ns, 733, replace=False)).astype(np.int32)
+        first, count, ids_wp = 5, 733 - 5, wp.array(ids, dtype=int, device=dev)
+        order = ids[5:]
+    else:
+        first, count, ids_wp = 21, ns - 21, wp.zeros(0, dtype=int, device=dev)
+        order = np.arange(21, ns)
+    want = np.zeros((n, 3), np.float32)
+    for s in order:
+        a, b = springs[s]
+        want[a] = want[a] + per[s]
+        want[b] = want[b] - per[s]
+    assert np.isfinite(per).all() and np.abs(per).max() > 0
+    got = wp.zeros(n, dtype=wp.vec3, device=dev)
+    wp.launch(K.scatter_object_springs, dim=1, inputs=[xs, vs, sp, rys, 3.0, first, count, ids_wp],
+              outputs=[got], device=dev)
+    np.testing.assert_array_equal(got.numpy(), want)
 
 
 def test_a_diverging_world_leaves_the_others_untouched():

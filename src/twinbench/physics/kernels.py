@@ -108,6 +108,88 @@ def eval_spring_forces(
     out[s] = spring_of(x, v, springs[s], ry[s], dashpot, ctrl_from, ctrl_to, t, n)
 
 
+# CPU only: object springs [first, first + count) (or listed[first + k], ascending) added to both their
+# ends in spring order. A spring's force is a chain of a dependent square root and divisions: one spring at a
+# time leaves the core waiting on that chain. So each batch of 64 springs is gathered (end differences, rest
+# length, stiffness), its forces are computed 8 springs per SIMD instruction with `spring_force_between`'s
+# expressions in the same order (IEEE lane-wise, no contraction: the same floats), then added to the ends one
+# spring after another, the first end's sum held in a register while consecutive springs share it. Loops stay
+# scalar where the compiler would use gather instructions (slower than loads on current x86). Raw element
+# pointers: the arrays must be contiguous (the solver's and model's own arrays are).
+_SCATTER_OBJECT_SPRINGS_CPU = r"""
+#if !defined(__CUDA_ARCH__)
+typedef float f8 __attribute__((ext_vector_type(8)));
+constexpr int B = 64;
+const wp::vec3* X = (const wp::vec3*)x.data;
+const wp::vec3* V = (const wp::vec3*)v.data;
+const wp::vec2i* S = (const wp::vec2i*)springs.data;
+const wp::vec2* R = (const wp::vec2*)ry.data;
+const int* L = listed.shape[0] > 0 ? (const int*)listed.data : nullptr;
+wp::vec3* F = (wp::vec3*)f.data;
+alignas(32) float in[8][B];
+alignas(32) float out[3][B];
+int a[B], b[B];
+for (int k = 0; k < count; k += B) {
+    const int m = count - k < B ? count - k : B;
+    _Pragma("clang loop vectorize(disable) interleave(disable)")
+    for (int j = 0; j < B; ++j) {
+        int s = first + k + (j < m ? j : m - 1);
+        if (L) s = L[s];
+        const wp::vec2i e = S[s];
+        const wp::vec3 x1 = X[e[0]], x2 = X[e[1]], v1 = V[e[0]], v2 = V[e[1]];
+        const wp::vec2 r = R[s];
+        a[j] = e[0]; b[j] = e[1];
+        in[0][j] = x2[0] - x1[0]; in[1][j] = x2[1] - x1[1]; in[2][j] = x2[2] - x1[2];
+        in[3][j] = v2[0] - v1[0]; in[4][j] = v2[1] - v1[1]; in[5][j] = v2[2] - v1[2];
+        in[6][j] = r[0]; in[7][j] = r[1];
+    }
+    for (int j = 0; j < B; j += 8) {
+        f8 dx, dy, dz, wx, wy, wz, rest, y;
+        __builtin_memcpy(&dx, &in[0][j], 32); __builtin_memcpy(&dy, &in[1][j], 32);
+        __builtin_memcpy(&dz, &in[2][j], 32); __builtin_memcpy(&wx, &in[3][j], 32);
+        __builtin_memcpy(&wy, &in[4][j], 32); __builtin_memcpy(&wz, &in[5][j], 32);
+        __builtin_memcpy(&rest, &in[6][j], 32); __builtin_memcpy(&y, &in[7][j], 32);
+        const f8 len = __builtin_elementwise_sqrt(dx * dx + dy * dy + dz * dz);
+        const f8 eps = 1e-6f, zero = 0.0f;
+        const f8 norm = len >= eps ? len : eps;
+        const f8 ux = dx / norm, uy = dy / norm, uz = dz / norm;
+        const f8 elastic = y * (len / rest - 1.0f);
+        const f8 damp = dashpot * (wx * ux + wy * uy + wz * uz);
+        const f8 fx = y >= zero ? elastic * ux + damp * ux : zero;
+        const f8 fy = y >= zero ? elastic * uy + damp * uy : zero;
+        const f8 fz = y >= zero ? elastic * uz + damp * uz : zero;
+        __builtin_memcpy(&out[0][j], &fx, 32); __builtin_memcpy(&out[1][j], &fy, 32);
+        __builtin_memcpy(&out[2][j], &fz, 32);
+    }
+    int held = a[0];
+    wp::vec3 sum = F[held];
+    _Pragma("clang loop vectorize(disable) interleave(disable)")
+    for (int j = 0; j < m; ++j) {
+        const wp::vec3 fs(out[0][j], out[1][j], out[2][j]);
+        if (a[j] != held || b[j] == held) { F[held] = sum; held = a[j]; sum = F[held]; }
+        sum = sum + fs;
+        F[b[j]] = F[b[j]] - fs;
+    }
+    F[held] = sum;
+}
+#endif
+"""
+
+
+@wp.func_native(_SCATTER_OBJECT_SPRINGS_CPU)
+def _scatter_object_springs_cpu(
+    x: wp.array(dtype=wp.vec3),
+    v: wp.array(dtype=wp.vec3),
+    springs: wp.array(dtype=wp.vec2i),
+    ry: wp.array(dtype=wp.vec2),
+    dashpot: float,
+    first: int,
+    count: int,
+    listed: wp.array(dtype=int),
+    f: wp.array(dtype=wp.vec3),
+): ...
+
+
 @wp.kernel(enable_backward=False)
 def scatter_object_springs(
     x: wp.array(dtype=wp.vec3),
@@ -116,24 +198,16 @@ def scatter_object_springs(
     ry: wp.array(dtype=wp.vec2),
     dashpot: float,
     first: int,
+    count: int,
     listed: wp.array(dtype=int),
     f: wp.array(dtype=wp.vec3),
 ):
-    """CPU only: object spring `first + k` (or `listed[k]`, ascending) added to both its ends by thread k.
-    A CPU launch runs its threads one after another in order, so each particle's sum grows in spring
-    order: the per-particle gather's sums, without a per-spring array (`f` must start at zero). Both ends
-    are written: a part of a split frame owns `f` alone and reads only its own particles' sums (see
-    `SpringMassSolver._zero_forces`); no branch per end keeps this, the hottest loop on CPU, lean."""
-    s = first + wp.tid()
-    if listed.shape[0] > 0:
-        s = listed[s]
-    e = springs[s]
-    r = ry[s]
-    fs = wp.vec3(0.0, 0.0, 0.0)
-    if r[1] >= 0.0:
-        fs = spring_force_between(x[e[0]], x[e[1]], v[e[0]], v[e[1]], r[0], r[1], dashpot)
-    f[e[0]] = f[e[0]] + fs
-    f[e[1]] = f[e[1]] - fs
+    """CPU only, one thread (dim=1): object springs `first + k` (or `listed[first + k]`, ascending),
+    k < count, each added to both its ends in spring order (see _SCATTER_OBJECT_SPRINGS_CPU), so each
+    particle's sum grows as in the per-particle gather, without a per-spring array (`f` must start at zero).
+    Both ends are written: a part of a split frame owns `f` alone and reads only its own particles' sums (see
+    `SpringMassSolver._zero_forces`)."""
+    _scatter_object_springs_cpu(x, v, springs, ry, dashpot, first, count, listed, f)
 
 
 @wp.kernel(enable_backward=False)
@@ -153,8 +227,8 @@ def scatter_control_springs(
     listed: wp.array(dtype=int),
     f: wp.array(dtype=wp.vec3),
 ):
-    """CPU only: as `scatter_object_springs` for springs to control points (index >= n), added only to
-    their ends in [p0, p1)."""
+    """CPU only: the scatter of `scatter_object_springs` for springs to control points (index >= n), one
+    thread per spring, added only to their ends in [p0, p1)."""
     s = first + wp.tid()
     if listed.shape[0] > 0:
         s = listed[s]

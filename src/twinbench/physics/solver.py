@@ -358,7 +358,7 @@ class SpringMassSolver:
                     args = [*head, control.ctrl_from, control.ctrl_to, t, n, p0, p1, first, ids]
                     self._go(K.scatter_control_springs, count, args, [f], ops)
                 else:
-                    self._go(K.scatter_object_springs, count, [*head, first, ids], [f], ops)
+                    self._go(K.scatter_object_springs, 1, [*head, first, count, ids], [f], ops)
         else:
             f = self._f
             v_star = self._v_star
