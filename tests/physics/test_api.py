@@ -11,6 +11,7 @@ from twinbench.physics import (
     SimParams,
     SimulationDiverged,
     SpringMassSolver,
+    State,
     check_divergence,
 )
 from twinbench.physics.model import lattice
@@ -222,3 +223,19 @@ def test_a_new_time_step_inside_a_cpu_graph_capture_is_refused_with_the_fix():
     solver.step(a, c, ctl, dt=1e-5)  # uncaptured: computes it
     with wp.ScopedCapture(device="cpu"):
         solver.step(a, c, ctl, dt=1e-5)
+
+
+def test_step_refuses_strided_state_arrays_on_cpu():
+    """The CPU spring pass reads particles through raw element pointers: a strided view is refused by name."""
+    b = ModelBuilder(SimParams())
+    b.add_body(lattice(2, 2, 2, origin=(0.0, 0.0, 0.1)))
+    model = b.finalize()
+    solver = SpringMassSolver(model)
+    n = model.num_particles
+    wide = wp.zeros(2 * n, dtype=wp.vec3, device="cpu")
+    wide.assign(np.repeat(model.x0_np, 2, axis=0).astype(np.float32))
+    strided = State(x=wide[::2], v=wp.zeros(n, dtype=wp.vec3, device="cpu"))
+    assert not strided.x.is_contiguous
+    with pytest.raises(ValueError, match=r"state_in\.x and state_in\.v must be contiguous"):
+        solver.step(strided, model.state(), model.control())
+    solver.step(model.state(), model.state(), model.control())

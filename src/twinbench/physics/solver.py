@@ -341,6 +341,9 @@ class SpringMassSolver:
             v_star = wp.zeros(n, dtype=wp.vec3, device=self.device, requires_grad=True)
         elif self._scatter:
             # CPU: each spring added to its ends in spring order (f is zero: see _zero_forces)
+            if not (state_in.x.is_contiguous and state_in.v.is_contiguous):
+                raise ValueError("step(): state_in.x and state_in.v must be contiguous Warp arrays "
+                                 "(make states with model.state())")
             f = self._f
             v_star = self._v_star
             head = [state_in.x, state_in.v, m.springs, self._ry, float(p.dashpot_damping)]
