@@ -1,4 +1,5 @@
-"""CUDA path (skipped without a GPU): golden agreement and run-to-run determinism on the device."""
+"""CUDA path: golden agreement and run-to-run determinism on the device (skipped without a GPU), and the
+CUDA build of every Warp module (NVRTC, no GPU needed)."""
 
 from __future__ import annotations
 
@@ -32,3 +33,21 @@ def test_cuda_matches_golden_and_is_deterministic(phystwin_reference, name):
         # GPU code may contract multiply-adds differently: allow float32 drift well below 1e-5 m
         assert np.abs(a[k] - g["x_frames"][k + 1]).max() < 1e-5
         assert np.array_equal(a[k], b[k])  # gather in spring order: no atomics, bitwise repeatable
+
+
+@pytest.mark.parametrize("module", ["twinbench.physics.kernels", "twinbench.gaussians.render",
+                                    "twinbench.gaussians.skinning"])
+def test_warp_modules_compile_for_cuda_without_a_gpu(module, tmp_path):
+    """Warp's NVRTC builds each module's CUDA code (PTX) on a machine without a GPU, so a CPU-only snippet
+    or construct that CUDA cannot compile is caught here, not first on a user's GPU."""
+    import importlib
+
+    import warp as wp
+
+    archs = wp.get_cuda_supported_archs()
+    if not archs:
+        pytest.skip("this Warp build has no CUDA compiler (NVRTC)")
+    arch = 90 if 90 in archs else archs[-1]
+    mod = importlib.import_module(module)
+    paths = wp.compile_aot_module(mod, arch=arch, module_dir=tmp_path, use_ptx=True)
+    assert paths and all(p.suffix == ".ptx" and p.stat().st_size > 0 for p in paths)
