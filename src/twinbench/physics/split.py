@@ -35,7 +35,7 @@ import warp as wp
 from . import kernels as K
 from .model import Control, SpringMassModel, State, device_meshes
 
-SPLIT_MIN_WORK = 8000  # springs + 2 * particles below which one core is faster than a split frame
+SPLIT_MIN_WORK = 6000  # springs + 2 * particles below which one core is as fast as a split frame
 CONTENDED_FRAMES = 3  # frames in a row with over 10 % of barriers waiting for a descheduled process
 _ALIGN = 64
 _WP_FIELDS = {  # SpringMassModel array fields the helper rebuilds, with their Warp dtypes
