@@ -118,6 +118,8 @@ def eval_spring_forces(
 # pointers: the arrays must be contiguous (the solver's and model's own arrays are).
 _SCATTER_OBJECT_SPRINGS_CPU = r"""
 #if !defined(__CUDA_ARCH__)
+{
+_Pragma("clang fp contract(off)")  // no fused multiply-adds: Warp's per-spring expressions round each step
 typedef float f8 __attribute__((ext_vector_type(8)));
 constexpr int B = 64;
 const wp::vec3* X = (const wp::vec3*)x.data;
@@ -171,6 +173,7 @@ for (int k = 0; k < count; k += B) {
         F[b[j]] = F[b[j]] - fs;
     }
     F[held] = sum;
+}
 }
 #endif
 """
