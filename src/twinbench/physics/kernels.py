@@ -168,9 +168,10 @@ for (int k = 0; k < count; k += B) {
     _Pragma("clang loop vectorize(disable) interleave(disable)")
     for (int j = 0; j < m; ++j) {
         const wp::vec3 fs(out[0][j], out[1][j], out[2][j]);
-        if (a[j] != held || b[j] == held) { F[held] = sum; held = a[j]; sum = F[held]; }
+        if (a[j] != held) { F[held] = sum; held = a[j]; sum = F[held]; }
         sum = sum + fs;
-        F[b[j]] = F[b[j]] - fs;
+        if (b[j] == held) sum = sum - fs;  // a spring from a particle to itself
+        else F[b[j]] = F[b[j]] - fs;
     }
     F[held] = sum;
 }
