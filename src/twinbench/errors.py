@@ -1,12 +1,40 @@
-"""The project's error type for bad input: a file or an argument that cannot be used as given.
+"""twinbench's error family: every error the package raises on purpose is a `TwinbenchError`.
 
-`InputError` is a `ValueError`, so callers that catch ValueError keep working. Its message names the
-file or argument and says how to fix it; `twinbench <command>` prints it as one line (exit code 2).
-Format-specific errors (`GaussianFileError`, `URDFError`, ...) subclass it.
+- `InputError` (a `ValueError`): a file, an argument or a message that cannot be used as given; its text
+  names the file or field and the fix. Every format error (`GaussianFileError`, `URDFError`,
+  `TwinFormatError`, `PhysTwinFormatError`, `SysIdFormatError`, `MessageError`) subclasses it, and
+  `twinbench <command>` prints it as one line (exit code 2).
+- `SimulationDiverged` (a `RuntimeError`): particles became non-finite or too fast; the episode ends with
+  status `sim_error`.
+- `PolicyError` (a `RuntimeError`): a policy failed to produce an action (crash, unreachable server, bad
+  output); the episode ends with status `policy_error`.
 """
 
 from __future__ import annotations
 
+import numpy as np
 
-class InputError(ValueError):
+
+class TwinbenchError(Exception):
+    """Base of every error twinbench raises on purpose."""
+
+
+class InputError(TwinbenchError, ValueError):
     """Bad input (a file, an argument, a message): the message names it and the fix."""
+
+
+class SimulationDiverged(TwinbenchError, RuntimeError):
+    """The simulation diverged (non-finite or too fast particles; ``indices`` lists them, may be empty)."""
+
+    def __init__(self, indices=(), reason: str = ""):
+        self.indices = np.asarray(indices, dtype=np.int64).reshape(-1)
+        if self.indices.size == 0:  # a divergence found otherwise (energy, a task's own check)
+            super().__init__(f"simulation diverged{': ' if reason and reason[0] != ':' else ''}{reason}")
+            return
+        shown = self.indices[:10].tolist()
+        more = "" if self.indices.size <= 10 else f" (+{self.indices.size - 10} more)"
+        super().__init__(f"simulation diverged at {self.indices.size} particle(s) {shown}{more}{reason}")
+
+
+class PolicyError(TwinbenchError, RuntimeError):
+    """A policy failed to produce an action (crash, unreachable server, bad output): policy_error."""

@@ -88,7 +88,7 @@ def test_error_statuses(tmp_path):
     assert [(r.status, r.success, r.steps) for r in nan] == [("sim_error", False, 4)] * 2
     raised = evaluate("point-reach", ["expert"], 1, 0, "raise", store,
                       env_kwargs={"fail_mode": "raise", "fail_step": 2}, output_dir=tmp_path)
-    assert raised[0].status == "sim_error" and "SimulationError" in raised[0].metrics["error"]
+    assert raised[0].status == "sim_error" and "SimulationDiverged" in raised[0].metrics["error"]
     register_task("crash-test", env_id=ENV_ID, make_expert=lambda env: CrashAtStep3(), n_grid_states=8,
                   description="point-reach with a crashing expert")
     crash = evaluate("crash-test", ["expert"], 1, 0, "crash", store, output_dir=tmp_path)

@@ -50,11 +50,11 @@ def test_bad_world_counts_are_refused(tmp_path):
 def test_worker_processes_share_the_cores(monkeypatch):
     """Each of N eval workers gets cores // N for its physics (a large twin splits its frames only when
     its worker has two cores), unless the user chose TWINBENCH_CPU_THREADS."""
-    from twinbench.evaluation.runner import worker_cores
-    from twinbench.physics import solver
+    from twinbench import _runtime
+    from twinbench._runtime import share_cores
 
     monkeypatch.delenv("TWINBENCH_CPU_THREADS", raising=False)
-    monkeypatch.setattr(solver, "cpu_cores", lambda: 8)
-    assert [worker_cores(w) for w in (1, 2, 3, 8, 16)] == ["8", "4", "2", "1", "1"]
+    monkeypatch.setattr(_runtime, "cpu_cores", lambda: 8)
+    assert [share_cores(w) for w in (1, 2, 3, 8, 16)] == ["8", "4", "2", "1", "1"]
     monkeypatch.setenv("TWINBENCH_CPU_THREADS", "2")
-    assert worker_cores(8) == "2"
+    assert share_cores(8) == "2"

@@ -5,7 +5,8 @@ import pytest
 from gymnasium.utils.env_checker import check_env
 
 import twinbench.tasks.point_reach as pr
-from twinbench.tasks import SimulationError, get_task, task_names
+from twinbench.errors import SimulationDiverged
+from twinbench.tasks import get_task, task_names
 
 
 def test_registry_and_env_checker():
@@ -75,7 +76,7 @@ def test_time_limit_and_forced_failures():
     assert statuses == ["ok", "ok", "sim_error"]
     env = get_task("point-reach").make_env(fail_mode="raise", fail_step=1)
     env.reset(seed=0)
-    with pytest.raises(SimulationError):
+    with pytest.raises(SimulationDiverged):
         env.step(np.zeros(2, np.float32))
     with pytest.raises(ValueError, match="fail_mode"):
         pr.PointReachEnv(fail_mode="bogus")

@@ -69,7 +69,7 @@ class LeRobotResetOptions(gym.Wrapper):
 def make_env(env_id: str, kwargs: dict) -> gym.Env:
     """One sub-env; importing twinbench here registers its ids in any (spawned) worker process."""
     import twinbench  # noqa: F401 - registers the env ids
-    from twinbench.cli import quiet_warp
+    from twinbench._runtime import quiet_warp
 
     quiet_warp()  # no Warp banner or per-module load lines in LeRobot's output
     return LeRobotResetOptions(gym.make(env_id, disable_env_checker=True, **kwargs))

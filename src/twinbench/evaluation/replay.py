@@ -38,7 +38,7 @@ from twinbench.evaluation.store import (
     parse_int,
     parse_success,
 )
-from twinbench.policies.base import PolicyError
+from twinbench.errors import PolicyError
 
 _OUTCOME_FIELDS = ("init_state", "success", "policy", "checkpoint")
 

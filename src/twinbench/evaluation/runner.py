@@ -30,10 +30,11 @@ from typing import Annotated, Literal
 import numpy as np
 from tyro.conf import UseAppendAction
 
+from twinbench._runtime import quiet_warp, share_cores, watch_parent
 from twinbench.errors import InputError
 from twinbench.evaluation.export import policy_folder, write_eval_infos
 from twinbench.evaluation.store import DEFAULT_DB, EpisodeRecord, ResultsStore, check_run_id
-from twinbench.policies.base import PolicyError
+from twinbench.errors import PolicyError
 from twinbench.policies.spec import make_policy, parse_policy_spec
 from twinbench.progress import progress_bar
 
@@ -746,38 +747,6 @@ def _exit_reason(exitcode: int | None) -> str:
     return f"exit code {exitcode}"
 
 
-def _watch_parent(poll_s: float = 0.5) -> None:
-    """Start a daemon thread that ends this process as soon as its parent dies (any way, SIGKILL too)."""
-    import multiprocessing as mp
-    import os
-    import threading
-    from multiprocessing.connection import wait
-
-    parent = mp.parent_process()
-    sentinel = getattr(parent, "sentinel", None)
-    ppid = os.getppid()
-
-    def run() -> None:
-        while True:
-            if sentinel is not None:
-                if wait([sentinel], timeout=poll_s):
-                    os._exit(75)
-            else:
-                time.sleep(poll_s)
-            if os.getppid() != ppid:
-                os._exit(75)
-
-    threading.Thread(target=run, name="twinbench-parent-watchdog", daemon=True).start()
-
-
-def worker_cores(workers: int) -> str:
-    """TWINBENCH_CPU_THREADS for each of `workers` worker processes: the cores shared out (a user's own
-    setting wins), so that a large twin's split frames never oversubscribe the machine."""
-    from twinbench.physics.solver import cpu_cores
-
-    return os.environ.get("TWINBENCH_CPU_THREADS") or str(max(1, cpu_cores() // max(1, workers)))
-
-
 def _worker_main(conn, cores: str = "1") -> None:
     """A worker process: runs one EpisodeBatch at a time from `conn`, replies ("ok", records) or
     ("error", exc).
@@ -788,10 +757,8 @@ def _worker_main(conn, cores: str = "1") -> None:
 
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     signal.signal(signal.SIGTERM, signal.SIG_IGN)
-    os.environ["TWINBENCH_CPU_THREADS"] = cores  # this worker's share of the cores (see worker_cores)
-    _watch_parent()
-    from twinbench.cli import quiet_warp
-
+    os.environ["TWINBENCH_CPU_THREADS"] = cores  # this worker's share of the cores (see share_cores)
+    watch_parent()
     quiet_warp()  # workers print no Warp banner or module-load lines either
     try:
         while True:
@@ -846,7 +813,7 @@ def _run_pool(jobs: list[EpisodeBatch], workers: int, on_done) -> None:
     from multiprocessing.connection import wait
 
     ctx = mp.get_context("spawn")
-    cores = worker_cores(workers)
+    cores = share_cores(workers)
     todo = deque(jobs)
     pool: list[_Worker] = []
     ok = False

@@ -12,19 +12,12 @@ from dataclasses import dataclass
 import numpy as np
 import warp as wp
 
+from twinbench._runtime import cpu_cores
+from twinbench.errors import SimulationDiverged
+
 from . import kernels as K
 from .model import Control, SpringMassModel, State
 from .split import SplitFailed, SplitFrame, wants_split
-
-
-class SimulationDiverged(RuntimeError):
-    """Raised when particles become non-finite or exceed the speed limit; ``indices`` lists them."""
-
-    def __init__(self, indices: np.ndarray, reason: str = ""):
-        self.indices = np.asarray(indices, dtype=np.int64)
-        shown = self.indices[:10].tolist()
-        more = "" if self.indices.size <= 10 else f" (+{self.indices.size - 10} more)"
-        super().__init__(f"simulation diverged at {self.indices.size} particle(s) {shown}{more}{reason}")
 
 
 def check_divergence(state: State, max_speed: float = 100.0) -> np.ndarray:
@@ -107,18 +100,6 @@ def replayable(launch) -> Callable[[], None]:
     run.launch = launch  # keeps the recorded launch (and the arrays it holds) alive
     run.args = args
     return run
-
-
-def cpu_cores() -> int:
-    """CPU cores the physics may use: $TWINBENCH_CPU_THREADS, else the cores this process may run on."""
-    env = os.environ.get("TWINBENCH_CPU_THREADS")
-    if env:
-        try:
-            cores = int(env)
-        except ValueError:
-            raise ValueError(f"TWINBENCH_CPU_THREADS={env!r}: give a positive integer") from None
-        return max(1, cores)
-    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
 
 
 def default_threads(model: SpringMassModel) -> int:

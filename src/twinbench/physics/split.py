@@ -32,6 +32,8 @@ from dataclasses import fields
 import numpy as np
 import warp as wp
 
+from twinbench._runtime import quiet_warp, watch_parent
+
 from . import kernels as K
 from .model import Control, SpringMassModel, State, device_meshes
 
@@ -323,22 +325,11 @@ def _stop(proc: subprocess.Popen) -> None:
     proc.stderr.close()
 
 
-def _watch_parent() -> None:
-    ppid = os.getppid()
-
-    def run() -> None:
-        while os.getppid() == ppid:
-            time.sleep(0.5)
-        os._exit(75)
-
-    threading.Thread(target=run, daemon=True).start()
-
-
 def _helper_main() -> None:
     """The helper process: builds its copy of the model, then runs its half of a frame per byte on stdin."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)
-    _watch_parent()
-    wp.config.log_level = wp.LOG_WARNING
+    watch_parent()
+    quiet_warp()
     stdin = sys.stdin.buffer
     path, layout, payload = pickle.load(stdin)  # written by our own parent process, never a file
     shared = SharedArrays(layout, path, create=False)

@@ -46,13 +46,15 @@ from pathlib import Path
 
 import numpy as np
 
+from twinbench.errors import InputError
+
 FORMAT = "twinbench-sysid"
 VERSION = 1
 JSON_NAME = "sysid.json"
 MIN_SPRING_LENGTH = 1e-4  # as the builder's radius rule: shorter springs make a 0/0 strain
 
 
-class SysIdFormatError(ValueError):
+class SysIdFormatError(InputError):
     """Bad system-identification input; the message names the file, the field and the fix."""
 
 

@@ -7,9 +7,7 @@ from typing import Protocol, runtime_checkable
 
 import numpy as np
 
-
-class PolicyError(RuntimeError):
-    """A policy failed to produce an action (crash, unreachable server, bad output): policy_error."""
+from twinbench.errors import PolicyError
 
 
 @runtime_checkable

@@ -216,7 +216,7 @@ def main(cfg: ServeConfig) -> int:
     spec = parse_policy_spec(cfg.policy)
     if spec.kind == "remote":
         raise ValueError("--policy: the server serves local policies (expert, expert@LEVEL, lerobot:PATH)")
-    from twinbench.cli import quiet_warp
+    from twinbench._runtime import quiet_warp
     from twinbench.evaluation.runner import parse_env_kwargs
 
     quiet_warp()  # the printed url is the first stdout line

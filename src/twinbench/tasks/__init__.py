@@ -11,7 +11,8 @@ Env conventions every task follows:
   seed).
 - observation `{"pixels": {"front": HxWx3 uint8, "wrist": HxWx3 uint8}, "agent_pos": float32}`.
 - `step` returns `(obs, reward, terminated, truncated, info)` with `info["is_success"]` (bool) and
-  `info["status"]` in {"ok", "sim_error"} on every step; an env may instead raise `SimulationError`.
+  `info["status"]` in {"ok", "sim_error"} on every step; an env may instead raise
+  `twinbench.errors.SimulationDiverged`.
 - `render()` returns the front frame; attributes `task_description`, `_max_episode_steps` and
   `metadata["render_fps"]`.
 """
@@ -27,8 +28,6 @@ from typing import Any
 from twinbench.errors import InputError
 
 
-class SimulationError(RuntimeError):
-    """Raised by an env whose simulation diverged (NaN, exploding energy): the episode is a sim_error."""
 
 
 @dataclass(frozen=True)

@@ -12,7 +12,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from twinbench.policies.base import PolicyError
+from twinbench.errors import PolicyError
 from twinbench.transforms import quat_multiply
 
 DOWN = np.array([0.0, 1.0, 0.0, 0.0])  # tcp z down, tcp x = world x (wxyz)

@@ -17,7 +17,8 @@ import gymnasium
 import numpy as np
 from gymnasium import spaces
 
-from twinbench.tasks import SimulationError, register_task
+from twinbench.errors import SimulationDiverged
+from twinbench.tasks import register_task
 
 HALF = 0.25  # workspace half-width, m
 GOAL = np.zeros(2)
@@ -90,7 +91,7 @@ class PointReachEnv(gymnasium.Env):
             time.sleep(self.step_delay_s)
         if self.fail_mode and self._t >= self.fail_step:
             if self.fail_mode == "raise":
-                raise SimulationError(f"point_reach: forced divergence at step {self._t}")
+                raise SimulationDiverged(reason=f"point_reach: forced divergence at step {self._t}")
             if self.fail_mode == "exit":
                 os._exit(70)
             self._pos = np.full(2, np.nan)

@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from twinbench.policies.base import PolicyError
+from twinbench.errors import PolicyError
 from twinbench.robot.builtin import PUSHER_RADIUS
 
 

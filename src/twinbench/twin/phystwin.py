@@ -40,6 +40,8 @@ from pathlib import Path
 
 import numpy as np
 
+from twinbench.errors import InputError
+
 FINAL_KEYS = (
     "object_points",
     "object_colors",
@@ -68,7 +70,7 @@ CHECKPOINT_KEYS = ("spring_Y", "collide_elas", "collide_fric", "collide_object_e
 FLIP_Z = np.diag([1.0, -1.0, -1.0, 1.0])  # half a turn about x: PhysTwin reverse_z frame <-> z up
 
 
-class PhysTwinFormatError(ValueError):
+class PhysTwinFormatError(InputError):
     """A PhysTwin file that cannot be read safely or lacks a field (message names file, field and fix)."""
 
 
