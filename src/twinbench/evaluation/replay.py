@@ -29,7 +29,7 @@ from pathlib import Path
 
 import numpy as np
 
-from twinbench.errors import InputError
+from twinbench.errors import InputError, PolicyError
 from twinbench.evaluation.store import (
     DEFAULT_DB,
     EpisodeRecord,
@@ -38,7 +38,6 @@ from twinbench.evaluation.store import (
     parse_int,
     parse_success,
 )
-from twinbench.errors import PolicyError
 
 _OUTCOME_FIELDS = ("init_state", "success", "policy", "checkpoint")
 

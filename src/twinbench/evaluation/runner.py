@@ -31,10 +31,9 @@ import numpy as np
 from tyro.conf import UseAppendAction
 
 from twinbench._runtime import quiet_warp, share_cores, watch_parent
-from twinbench.errors import InputError
+from twinbench.errors import InputError, PolicyError
 from twinbench.evaluation.export import policy_folder, write_eval_infos
 from twinbench.evaluation.store import DEFAULT_DB, EpisodeRecord, ResultsStore, check_run_id
-from twinbench.errors import PolicyError
 from twinbench.policies.spec import make_policy, parse_policy_spec
 from twinbench.progress import progress_bar
 

@@ -28,8 +28,6 @@ from typing import Any
 from twinbench.errors import InputError
 
 
-
-
 @dataclass(frozen=True)
 class TaskSpec:
     """A registered task: its env id, how to build its scripted expert, and its grid size."""
