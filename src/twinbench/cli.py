@@ -1,4 +1,5 @@
-"""`twinbench <command>`: one typed (tyro) config per command, modules imported lazily."""
+"""`twinbench <command>`: the entry point. Each command is a module of `twinbench.commands` (its tyro config
+and its `main`), imported only when that command runs; errors print as one line (see `_report_error`)."""
 
 from __future__ import annotations
 
@@ -6,7 +7,9 @@ import importlib
 import os
 import sys
 
-# command -> (module, config dataclass, function taking the config)
+from twinbench._runtime import quiet_warp
+
+# command -> (module, config dataclass, function taking the config, one-line description)
 COMMANDS: dict[str, tuple[str, str, str, str]] = {
     "demo": ("twinbench.demo", "DemoConfig", "main",
              "evaluate scripted policies on a built-in twin (push-T; --task rope-routing | toy-packing)"),
@@ -39,17 +42,6 @@ COMMANDS: dict[str, tuple[str, str, str, str]] = {
     "mesh-to-object": ("twinbench.twin.construct_cli", "MeshToObjectConfig", "mesh_to_object_cmd",
                        "a rigid spring-mass object with surface Gaussians from a closed mesh"),
 }
-
-
-def quiet_warp() -> None:
-    """Keep Warp's init banner and per-module load lines out of stdout (warnings still show): Warp >= 1.19
-    reads `config.log_level`; older releases read `config.quiet`."""
-    import warp as wp
-
-    if hasattr(wp.config, "log_level") and hasattr(wp, "LOG_WARNING"):
-        wp.config.log_level = wp.LOG_WARNING
-    else:
-        wp.config.quiet = True
 
 
 def _usage() -> str:
