@@ -1,4 +1,4 @@
-"""Shared test fixtures: the golden-data folder and device selection."""
+"""Shared test fixtures: the golden-data folder (in the repository) and device selection."""
 
 from __future__ import annotations
 
@@ -6,15 +6,19 @@ from pathlib import Path
 
 import pytest
 
-SHARED = Path(__file__).resolve().parents[1].parent / "shared"
+import os
+
+DATA = Path(__file__).resolve().parent / "data"
 
 
 @pytest.fixture(scope="session")
 def phystwin_reference() -> Path:
-    """Folder with PhysTwin's golden trajectories; skips with a reason when ../shared is absent."""
-    folder = SHARED / "reference" / "phystwin"
-    if not folder.is_dir():
-        pytest.skip(f"golden data not found at {folder} (clone the repo beside ../shared to run this)")
+    """Folder with PhysTwin's golden trajectories: the repository's copy (tests/data/phystwin, every frame
+    and a subset of substeps), or the full files where $TWINBENCH_GOLDEN_DIR points to them."""
+    folder = Path(os.environ.get("TWINBENCH_GOLDEN_DIR") or DATA / "phystwin")
+    if not (folder / "drop.npz").is_file():
+        raise FileNotFoundError(f"golden data not found at {folder}: TWINBENCH_GOLDEN_DIR must name a folder "
+                                "with PhysTwin's golden NPZ files (drop.npz, ...)")
     return folder
 
 
