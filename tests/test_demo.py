@@ -1,6 +1,6 @@
 """End to end: the demo job (push-T evaluation + report) on one grid state, in this process."""
 
-from twinbench.demo import DemoConfig, main
+from twinbench.commands.demo import DemoConfig, main
 from twinbench.evaluation.store import ResultsStore
 
 

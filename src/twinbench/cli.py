@@ -11,7 +11,7 @@ from twinbench._runtime import quiet_warp
 
 # command -> (module, config dataclass, function taking the config, one-line description)
 COMMANDS: dict[str, tuple[str, str, str, str]] = {
-    "demo": ("twinbench.demo", "DemoConfig", "main",
+    "demo": ("twinbench.commands.demo", "DemoConfig", "main",
              "evaluate scripted policies on a built-in twin (push-T; --task rope-routing | toy-packing)"),
     "twin": ("twinbench.twin.cli", "TwinCommand", "main",
              "twin export (a task's built-in twin as a directory) | twin show (summary + camera PNGs)"),
