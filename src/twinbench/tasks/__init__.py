@@ -1,8 +1,12 @@
-"""Task registry: every task names its Gymnasium env id, scripted expert and initial-state grid.
+"""Task registry: every task is declared once, by `register_task` at the end of its module, which also
+registers its Gymnasium env id.
 
-A task module registers itself on import (`register_task`); `get_task` imports the package's task
-modules when asked for a name not registered yet. Tasks over a twin (`tasks.base.TwinTask`) run in the
-generic `twinbench.env.TwinEnv`; the env ids are registered with gymnasium on `import twinbench`.
+A task over a twin declares a `tasks.base.TwinTask` subclass (class attributes `name`, `env_id`,
+`description`; its initial-state grid; its rules) and calls `register_task(MyTask, make_expert=...)`: the
+grid size is `len(MyTask().initial_states)` and the env is the generic `twinbench.env.TwinEnv`. A task
+with its own env class (point-reach) gives its entry point and grid size instead. `import twinbench`
+imports this package's task modules (light: NumPy and gymnasium; Warp loads when an env is made), so
+their ids are registered; a task module of your own registers its id when you import it.
 Env conventions every task follows:
 
 - `reset(seed=s, options={"init_state": i})` starts from grid state i (0 <= i < n_grid_states); a
@@ -26,6 +30,8 @@ from dataclasses import dataclass
 from typing import Any
 
 from twinbench.errors import InputError
+
+TWIN_ENV, TWIN_VECTOR_ENV = "twinbench.env:TwinEnv", "twinbench.env:TwinVectorEnv"
 
 
 @dataclass(frozen=True)
@@ -59,23 +65,59 @@ class TaskSpec:
 _TASKS: dict[str, TaskSpec] = {}
 
 
-def register_task(name: str, *, env_id: str, make_expert: Callable[[Any], Any], n_grid_states: int,
-                  description: str, task_cls: type | None = None) -> TaskSpec:
-    """Register a task under `name` (re-registering the same name replaces it)."""
+def register_task(task, *, make_expert: Callable[[Any], Any], env_id: str | None = None,
+                  n_grid_states: int | None = None, description: str | None = None,
+                  entry_point: str | None = None, max_episode_steps: int | None = None) -> TaskSpec:
+    """Declare a task and register its env id with gymnasium (re-declaring a name replaces it).
+
+    - A task over a twin: `register_task(MyTask, make_expert=make_expert)`; its name, env id and
+      description are `MyTask`'s class attributes, its grid size `len(MyTask().initial_states)`, its env
+      `twinbench.env.TwinEnv(task=name)` (and TwinVectorEnv).
+    - A task with its own env class: `register_task(name, env_id=..., entry_point="module:Class",
+      n_grid_states=..., description=..., make_expert=..., max_episode_steps=...)`; without `entry_point`
+      the env id must already be registered with gymnasium.
+
+    `make_expert(env) -> policy` builds the scripted expert (import the expert's module inside it).
+    """
+    if isinstance(task, type):
+        args = {"env_id": env_id, "n_grid_states": n_grid_states, "description": description,
+                "entry_point": entry_point}
+        given = sorted(k for k, v in args.items() if v is not None)
+        if given:
+            raise ValueError(f"register_task({task.__name__}): {given} come from the task class "
+                             "(class attributes and its initial_states), not from arguments")
+        name, env_id, description = task.name, task.env_id, task.description
+        n_grid_states = len(task().initial_states)
+        entry_point, task_cls = TWIN_ENV, task
+    else:
+        name, task_cls = task, None
     if not name or not isinstance(name, str):
         raise ValueError(f"task name must be a non-empty string, got {name!r}")
-    if int(n_grid_states) < 1:
-        raise ValueError(f"task {name!r}: n_grid_states must be >= 1, got {n_grid_states}")
+    if not isinstance(env_id, str) or "/" not in env_id:
+        raise ValueError(f"task {name!r}: env_id must be a gymnasium id 'namespace/Name-vN', got {env_id!r}")
+    if n_grid_states is None or int(n_grid_states) < 1:
+        raise ValueError(f"task {name!r}: the initial-state grid must have >= 1 state, got {n_grid_states}")
     if not callable(make_expert):
         raise ValueError(f"task {name!r}: make_expert must be callable (make_expert(env) -> policy)")
-    spec = TaskSpec(name, env_id, make_expert, int(n_grid_states), description, task_cls)
+    spec = TaskSpec(name, env_id, make_expert, int(n_grid_states), description or "", task_cls)
     _TASKS[name] = spec
+    if entry_point is not None:
+        _register_env(env_id, entry_point, {"task": name} if task_cls else {}, max_episode_steps)
     return spec
 
 
-def _discover() -> None:
-    """Import every module of this package once, so tasks that register themselves on import (e.g.
-    push-T) are found; an import error inside a task module propagates."""
+def _register_env(env_id: str, entry_point: str, kwargs: dict, max_episode_steps: int | None) -> None:
+    import gymnasium
+
+    if env_id not in gymnasium.registry:
+        vector = TWIN_VECTOR_ENV if entry_point == TWIN_ENV else None
+        gymnasium.register(id=env_id, entry_point=entry_point, vector_entry_point=vector, kwargs=kwargs,
+                           max_episode_steps=max_episode_steps)
+
+
+def discover() -> None:
+    """Import every module of this package once, so that its tasks are declared (and their env ids
+    registered); an import error inside a task module propagates."""
     global _DISCOVERED
     if _DISCOVERED:
         return
@@ -87,7 +129,7 @@ def _discover() -> None:
 def get_task(name: str) -> TaskSpec:
     """The registered task `name`; ValueError listing the known tasks otherwise."""
     if name not in _TASKS:
-        _discover()
+        discover()
     try:
         return _TASKS[name]
     except KeyError:
@@ -96,11 +138,8 @@ def get_task(name: str) -> TaskSpec:
 
 def task_names() -> list[str]:
     """Names of all registered tasks (every task module imported), sorted."""
-    _discover()
+    discover()
     return sorted(_TASKS)
 
 
-# The cheap debug task is registered on import; other task modules register when first asked for
-# (`get_task` of an unknown name or `task_names`), so importing this package stays light.
 _DISCOVERED = False
-importlib.import_module(f"{__name__}.point_reach")

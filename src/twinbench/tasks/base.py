@@ -100,7 +100,9 @@ class SuccessWindow:
 
 
 class TwinTask:
-    """Rules over a twin. Subclasses set the class attributes and implement the methods below.
+    """Rules over a twin. Subclasses set the class attributes (`name`, the gymnasium `env_id`,
+    `description`, ...), implement the methods below and are declared once with
+    `twinbench.tasks.register_task(MyTask, make_expert=...)`; the grid size is `len(initial_states)`.
 
     Lifecycle (driven by TwinEnv): `setup(twin, state)` once after the twin is built (precompute goals,
     check the objects), then per episode `reset(twin, state, offsets)`, and per step `frame(twin,
@@ -108,6 +110,7 @@ class TwinTask:
     """
 
     name: str = ""
+    env_id: str = ""  # the gymnasium id, "twinbench/MyTask-v0"
     description: str = ""
     default_roles: dict[str, str] = {}
     environment_state_dim: int = 0

@@ -141,6 +141,7 @@ def make_expert(env) -> PointReachExpert:
     return PointReachExpert()
 
 
-ENV_ID = "twinbench/PointReach-v0"  # registered with gymnasium by `import twinbench`
-register_task("point-reach", env_id=ENV_ID, make_expert=make_expert,
-              n_grid_states=N_GRID, description=PointReachEnv.task_description)
+ENV_ID = "twinbench/PointReach-v0"
+register_task("point-reach", env_id=ENV_ID, entry_point=f"{__name__}:PointReachEnv",
+              make_expert=make_expert, n_grid_states=N_GRID, description=PointReachEnv.task_description,
+              max_episode_steps=EPISODE_STEPS)

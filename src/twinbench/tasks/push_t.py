@@ -1,12 +1,15 @@
 """`push-t` (`twinbench/PushT-v0`): push a rigid spring-mass T-block onto a goal pose (DESIGN §7).
 
-Rules over a twin with an object in the role `block` (default object name `tblock`, a T of the
-`TBlockShape` dimensions, its frame at the T's area centroid): state and action are the pusher tip's
-`[x, y]` (absolute target in the robot base frame, planar action mode at the cell's pusher height).
+Rules over a twin with an object in the role `block` (default object name `tblock`) whose footprint is its
+`outline` in the twin (`ObjectSpec.outline`, in the block's frame), pushed by a robot whose tool tip has a
+`tool_radius` (`RobotSpec.tool_radius`; the scripted expert plans with it): state and action are the
+pusher tip's `[x, y]` (absolute target in the robot base frame, planar action mode at the cell's pusher
+height).
 The goal is the block's rest pose in the twin unless `goal_pose` = (x, y, theta) is given; grid states
 move the block by x, y in {-5, +5} cm and theta in {+-45, +-135} deg from its rest pose; success is a
 mean squared particle distance to the goal below 0.002 m^2 in more than 30 of the last 100 frames; the
-dense reward is the goal footprint's coverage. The goal is drawn into the front camera image as a
+dense reward is the goal footprint's coverage (the fraction of the outline at the goal that the block's
+outline covers). The goal is drawn into the front camera image as a
 translucent yellow overlay. The built-in cell is `twinbench.twin.cells.push_t_cell` (presets
 `reference` and `fast`).
 
@@ -21,14 +24,8 @@ import numpy as np
 
 from twinbench.tasks import register_task
 from twinbench.tasks.base import InitialStates, TwinTask
-from twinbench.tasks.push_t_geometry import (
-    TBlockShape,
-    grid_initial_states,
-    mean_squared_distance,
-)
 from twinbench.transforms import planar_pose, transform_points
 
-ENV_ID = "twinbench/PushT-v0"
 GOAL_RGBA = (1.0, 0.85, 0.1, 0.4)  # translucent yellow goal overlay
 
 
@@ -46,6 +43,26 @@ class PushTSettings:
     sample_half_range: float = 0.075  # m, large-scale sampling of x and y (any angle)
 
 
+def grid_initial_states() -> np.ndarray:
+    """The 16 reference initial states (dx, dy, dtheta) relative to the nominal pose.
+
+    x, y in {-5, +5} cm and theta in {+-45, +-135} degrees (DESIGN §7).
+    """
+    states = [
+        (dx, dy, np.deg2rad(th))
+        for dx in (-0.05, 0.05)
+        for dy in (-0.05, 0.05)
+        for th in (-135.0, -45.0, 45.0, 135.0)
+    ]
+    return np.array(states)
+
+
+def mean_squared_distance(particles: np.ndarray, goal_particles: np.ndarray) -> float:
+    """Mean over particles of the squared distance to the same particle at the goal pose (m^2)."""
+    d = np.asarray(particles, dtype=np.float64) - np.asarray(goal_particles, dtype=np.float64)
+    return float(np.mean(np.sum(d * d, axis=1)))
+
+
 def pose_xytheta(pose: np.ndarray) -> np.ndarray:
     """(x, y, theta) of a 4x4 pose (theta: rotation about z of its x axis)."""
     return np.array([pose[0, 3], pose[1, 3], np.arctan2(pose[1, 0], pose[0, 0])])
@@ -53,6 +70,7 @@ def pose_xytheta(pose: np.ndarray) -> np.ndarray:
 
 class PushTTask(TwinTask):
     name = "push-t"
+    env_id = "twinbench/PushT-v0"
     description = "push the T-shaped block onto the yellow target"
     default_roles = {"block": "tblock"}
     environment_state_dim = 7
@@ -60,9 +78,7 @@ class PushTTask(TwinTask):
 
     def __init__(self, roles=None, **settings):
         super().__init__(roles, **settings)
-        s = self.settings
-        self.shape = TBlockShape()
-        h = s.sample_half_range
+        h = self.settings.sample_half_range
         self.initial_states = InitialStates(
             {"block": grid_initial_states()}, {"block": (-h, -h, -np.pi)}, {"block": (h, h, np.pi)}
         )
@@ -84,26 +100,37 @@ class PushTTask(TwinTask):
         super().setup(twin, state)
         block = self.roles["block"]
         s = self.settings
-        self.goal = (
-            twin.spec.object(block).rest_pose.copy() if s.goal_pose is None else planar_pose(*s.goal_pose)
-        )
+        spec = twin.spec.object(block)
+        if spec.outline is None:
+            raise ValueError(
+                f"task {self.name!r} needs the outline of object {block!r} (its footprint in its own frame) "
+                f"but twin {twin.spec.name!r} has none: give the object an `outline` (polygon and height) in "
+                "twin.json, or ObjectSpec(outline=twinbench.twin.shapes.Outline(...))"
+            )
+        if twin.spec.robot.tool_radius is None:
+            raise ValueError(
+                f"task {self.name!r} needs the radius of the pusher tip but the robot of twin "
+                f"{twin.spec.name!r} has none: set robot.tool_radius (m) in twin.json"
+            )
+        self.outline, self.tool_radius = spec.outline, twin.spec.robot.tool_radius
+        self.goal = spec.rest_pose.copy() if s.goal_pose is None else planar_pose(*s.goal_pose)
         self.goal_particles = transform_points(self.goal, twin.rest_particles(block))
-        # Coverage: centres of a 2 mm grid of cells over the T's footprint (block frame).
-        lo = np.min([b[0] for b in self.shape.boxes()], axis=0)
-        hi = np.max([b[1] for b in self.shape.boxes()], axis=0)
+        # Coverage: centres of a 2 mm grid of cells over the block's footprint (block frame).
+        lo, hi = self.outline.bounds()
         gx, gy = np.meshgrid(np.arange(lo[0] + 0.001, hi[0], 0.002), np.arange(lo[1] + 0.001, hi[1], 0.002))
-        cells = np.c_[gx.ravel(), gy.ravel(), np.full(gx.size, 0.5 * self.shape.height)]
-        self._cover_local = cells[self.shape.contains(cells)]
+        cells = np.c_[gx.ravel(), gy.ravel(), np.full(gx.size, 0.5 * self.outline.height)]
+        self._cover_local = cells[self.outline.contains(cells)]
         ctrl = twin.controller.config
         self.q_start = self.start_configuration(twin, (*s.pusher_start, ctrl.planar_height), ctrl.planar_quat)
         self.overlay_camera = "front" if "front" in twin.cameras else next(iter(twin.cameras))
         self._overlay = self._overlay_mask(twin.camera(state, self.overlay_camera))
 
     def _overlay_mask(self, cam) -> np.ndarray:
-        """Pixels of a camera image covered by the goal T (projected onto the table)."""
+        """Pixels of a camera image covered by the goal footprint (projected onto the table)."""
         from matplotlib.path import Path as PolyPath
 
-        outline = transform_points(self.goal, np.c_[self.shape.outline_xy(), np.zeros(8)])
+        polygon = self.outline.polygon
+        outline = transform_points(self.goal, np.c_[polygon, np.zeros(len(polygon))])
         p_cam = outline @ cam.world_to_cam[:3, :3].T + cam.world_to_cam[:3, 3]
         uv = np.c_[cam.fx * p_cam[:, 0] / p_cam[:, 2] + cam.cx, cam.fy * p_cam[:, 1] / p_cam[:, 2] + cam.cy]
         jj, ii = np.meshgrid(np.arange(cam.width) + 0.5, np.arange(cam.height) + 0.5)
@@ -116,12 +143,12 @@ class PushTTask(TwinTask):
         return mean_squared_distance(twin.particles(state, self.roles["block"]), self.goal_particles)
 
     def coverage(self, twin, state) -> float:
-        """Fraction of the goal T's footprint covered by the block (the dense reward)."""
+        """Fraction of the goal footprint covered by the block (the dense reward)."""
         pose = twin.object_pose(state, self.roles["block"])
         world = transform_points(self.goal, self._cover_local)
         local = (world - pose[:3, 3]) @ pose[:3, :3]
-        local[:, 2] = 0.5 * self.shape.height
-        return float(np.mean(self.shape.contains(local, tol=1e-6)))
+        local[:, 2] = 0.5 * self.outline.height
+        return float(np.mean(self.outline.contains(local, tol=1e-6)))
 
     def frame(self, twin, state) -> tuple[bool, dict]:
         msd = self.goal_msd(twin, state)
@@ -147,17 +174,12 @@ class PushTTask(TwinTask):
 
 
 def make_expert(env):
-    """The scripted expert; it acts from `environment_state` (never the env's internals)."""
+    """The scripted expert, for the twin's block outline and pusher radius; it acts from
+    `environment_state` (never the env's internals)."""
     from twinbench.tasks.push_t_expert import PushTExpert
 
-    return PushTExpert(env.unwrapped.rules.shape)
+    rules = env.unwrapped.rules
+    return PushTExpert(rules.outline, pusher_radius=rules.tool_radius)
 
 
-register_task(
-    "push-t",
-    env_id=ENV_ID,
-    make_expert=make_expert,
-    n_grid_states=16,
-    description=PushTTask.description,
-    task_cls=PushTTask,
-)
+register_task(PushTTask, make_expert=make_expert)

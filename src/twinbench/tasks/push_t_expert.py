@@ -2,9 +2,11 @@
 `environment_state` (privileged; the runner adds it for experts, or the env when made with
 `environment_state=True`) and pushes the block onto the goal.
 
-Each step it scores candidate contacts on the T's outline: pushing at contact c (outward normal n)
+It plans with the twin's geometry: the block's outline (`ObjectSpec.outline`) and the pusher tip's radius
+(`RobotSpec.tool_radius`), which `tasks.push_t.make_expert` reads from the env's twin. Each step it
+scores candidate contacts on the outline: pushing at contact c (outward normal n)
 along -n moves the block, to first order, with velocity -n and angular velocity -(r x n) / rho^2
-(an isotropic limit-surface model, r = c - centroid, rho^2 = mean squared particle radius). The
+(an isotropic limit-surface model, r = c - centroid, rho^2 = the footprint's mean squared radius). The
 score is the predicted rate of change of the mean squared distance to the goal; the expert commits
 to the best contact for a while, goes around the block to a point just outside it, then pushes
 through it. Once the block is close enough it backs off and waits.
@@ -15,7 +17,6 @@ from __future__ import annotations
 import numpy as np
 
 from twinbench.errors import PolicyError
-from twinbench.robot.builtin import PUSHER_RADIUS
 
 
 def _wrap(a: float) -> float:
@@ -29,21 +30,22 @@ def _rot(th: float) -> np.ndarray:
 
 class PushTExpert:
     """Scripted expert for `twinbench/PushT-v0`: acts from `obs["agent_pos"]` and
-    `obs["environment_state"]` = [x, y, theta, goal_x, goal_y, goal_theta, msd] (see tasks.push_t)."""
+    `obs["environment_state"]` = [x, y, theta, goal_x, goal_y, goal_theta, msd] (see tasks.push_t), for
+    a block of footprint `outline` (a `twinbench.twin.shapes.Outline`) and a pusher tip of radius
+    `pusher_radius` (m)."""
 
     uses_environment_state = True
 
-    def __init__(self, shape, *, pusher_radius: float = PUSHER_RADIUS, contact_spacing: float = 0.01,
+    def __init__(self, outline, *, pusher_radius: float, contact_spacing: float = 0.01,
                  clearance: float = 0.012, push_depth: float = 0.015, commit_steps: int = 15,
                  done_msd: float = 0.0004):
-        self.shape = shape
+        self.outline = outline
         self.pusher_radius = pusher_radius
         self.clearance = clearance
         self.push_depth = push_depth
         self.commit_steps = commit_steps
         self.done_msd = done_msd
-        outline = shape.outline_xy()
-        self._outline = outline
+        outline = outline.polygon
         pts, normals = [], []
         for i in range(len(outline)):
             a, b = outline[i], outline[(i + 1) % len(outline)]
@@ -58,13 +60,13 @@ class PushTExpert:
         approach = pts + normals * (self.pusher_radius + clearance)
         free = np.array([self._distance_to_t(p) > self.pusher_radius + 0.5 * clearance for p in approach])
         self._contacts, self._normals = pts[free], normals[free]
-        self._rho2 = shape.polar_radius2()
+        self._rho2 = self.outline.polar_radius2()
         self._radius = float(np.max(np.linalg.norm(outline, axis=1)))
         self.reset()
 
     def _distance_to_t(self, p: np.ndarray) -> float:
-        """Distance from a block-frame 2D point to the T (0 inside)."""
-        return float(np.linalg.norm(p - self._nearest_on_t(p)))
+        """Distance from a block-frame 2D point to the block (0 inside)."""
+        return self.outline.distance(p)
 
     def reset(self) -> None:
         self._choice: int | None = None
@@ -112,16 +114,6 @@ class PushTExpert:
             return (c - n * self.push_depth).astype(np.float32)
         return self._travel(pusher, start, pose).astype(np.float32)
 
-    def _nearest_on_t(self, p: np.ndarray) -> np.ndarray:
-        """Nearest point of the T to a block-frame 2D point (the point itself when inside)."""
-        best, best_d = p, np.inf
-        for lo, hi in self.shape.boxes():
-            q = np.clip(p, lo[:2], hi[:2])
-            d = float(np.linalg.norm(p - q))
-            if d < best_d:
-                best, best_d = q, d
-        return best
-
     def _travel(self, pusher: np.ndarray, target: np.ndarray, pose: np.ndarray) -> np.ndarray:
         """Next waypoint from the pusher to `target` that keeps clear of the block.
 
@@ -139,7 +131,7 @@ class PushTExpert:
         rel = pusher - pose[:2]
         if np.linalg.norm(rel) < radius - 0.005:
             local = to_local(pusher)
-            away = local - self._nearest_on_t(local)
+            away = local - self.outline.nearest(local)
             if np.linalg.norm(away) < 1e-9:
                 away = local
             away = rot @ (away / max(np.linalg.norm(away), 1e-9))

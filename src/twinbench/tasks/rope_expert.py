@@ -14,14 +14,14 @@ from twinbench.tasks.gripper_expert import TCP_ABOVE_TIPS, GripperExpert, Leg, g
 
 
 class RopeExpert(GripperExpert):
-    """See the module docstring. `squeeze` is the gripper command while holding: fingers 6.8 mm apart,
-    pressing into the 8-10 mm rope (closing fully would push particles into the finger meshes, where
-    they stay trapped)."""
+    """See the module docstring. `channel_length` and `channel_depth` (m) are the clip channel's (the
+    twin's `ColliderSpec.channel`, read by `tasks.rope_routing.make_expert`). `squeeze` is the gripper
+    command while holding: fingers 6.8 mm apart, pressing into the 8-10 mm rope (closing fully would push
+    particles into the finger meshes, where they stay trapped)."""
 
-    def __init__(self, *, channel_length: float = 0.04, channel_depth: float = 0.03,
-                 grip_inset: float = 0.012, carry_height: float = 0.12, beyond: float = 0.07,
-                 close_steps: int = 20, settle_steps: int = 25, holding_speed: float = 0.006,
-                 squeeze: float = 0.92):
+    def __init__(self, *, channel_length: float, channel_depth: float, grip_inset: float = 0.012,
+                 carry_height: float = 0.12, beyond: float = 0.07, close_steps: int = 20,
+                 settle_steps: int = 25, holding_speed: float = 0.006, squeeze: float = 0.92):
         self.channel_length, self.channel_depth = channel_length, channel_depth
         self.grip_inset, self.carry_height, self.beyond = grip_inset, carry_height, beyond
         self.close_steps, self.settle_steps, self.squeeze = close_steps, settle_steps, squeeze

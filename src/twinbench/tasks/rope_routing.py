@@ -1,9 +1,10 @@
 """`rope-routing` (`twinbench/RopeRouting-v0`): route a deformable rope into a clip's channel (DESIGN §7).
 
 Rules over a twin with a spring-mass object in the role `rope` (default object `rope`, its marked end at
-the +x end of its own frame) and a collider in the role `clip` (default `clip`): a channel along the clip
-frame's y axis, centred on its origin, floor at z = 0, `channel_width` wide, `channel_depth` deep and
-`channel_length` long, open at both ends. State and action are the end-effector pose and gripper,
+the +x end of its own frame) and a collider in the role `clip` (default `clip`) with a `channel` in the
+twin (`ColliderSpec.channel`): a channel along the clip frame's y axis, centred on its origin, floor at
+z = 0, open at both ends, of the twin's width, depth and length (the settings `channel_width`,
+`channel_depth`, `channel_length` override them). State and action are the end-effector pose and gripper,
 `[x, y, z, qw, qx, qy, qz, gripper]` (absolute, robot base frame, gripper 1 = closed).
 
 Grid: 27 states, the rope moved by x, y in {-5, 0, 5} cm and theta in {-10, 0, 10} deg from its rest pose;
@@ -32,17 +33,15 @@ from twinbench.tasks import register_task
 from twinbench.tasks.base import GraspTask, InitialStates
 from twinbench.transforms import invert_pose, transform_points
 
-ENV_ID = "twinbench/RopeRouting-v0"
-
 
 @dataclass(frozen=True)
 class RopeRoutingSettings:
     """Task settings (the built-in twin's are `twinbench.twin.cells.RopeCell`)."""
 
     episode_seconds: float = 30.0
-    channel_width: float = 0.02
-    channel_depth: float = 0.03
-    channel_length: float = 0.04
+    channel_width: float | None = None  # m; None: the clip's channel in the twin
+    channel_depth: float | None = None
+    channel_length: float | None = None
     crossing_fraction: float = 0.5
     success_window: int = 100
     success_min_hits: int = 30
@@ -69,6 +68,7 @@ def count_crossings(
 
 class RopeRoutingTask(GraspTask):
     name = "rope-routing"
+    env_id = "twinbench/RopeRouting-v0"
     description = "pick up the rope by its red end and route it into the green clip"
     default_roles = {"rope": "rope", "clip": "clip"}
     environment_state_dim = 14
@@ -94,6 +94,7 @@ class RopeRoutingTask(GraspTask):
 
     def setup(self, twin, state) -> None:
         super().setup(twin, state)
+        self.channel = self.clip_channel(twin)
         rope = self.roles["rope"]
         self.springs = twin.object_springs(rope)
         rest = twin.rest_particles(rope)
@@ -108,15 +109,28 @@ class RopeRoutingTask(GraspTask):
         near = rest[:, 0] < rest[self.marked, 0] - 0.04
         self.along = int(np.flatnonzero(near)[np.argmax(rest[near, 0] - 1e-3 * np.abs(rest[near, 1]))])
 
-    def crossings(self, twin, state) -> tuple[int, int]:
+    def clip_channel(self, twin) -> tuple[float, float, float]:
+        """(width, depth, length) of the clip's channel: the settings' values, else the twin's."""
         s = self.settings
+        given = (s.channel_width, s.channel_depth, s.channel_length)
+        if None not in given:
+            return given
+        clip = self.roles["clip"]
+        spec = next((c for c in twin.spec.colliders if c.name == clip), None)
+        if spec is None or spec.channel is None:
+            raise ValueError(
+                f"task {self.name!r} needs the channel of collider {clip!r} but twin {twin.spec.name!r} has "
+                "none: give the collider a `channel` [width, depth, length] in twin.json, or pass "
+                "channel_width, channel_depth and channel_length"
+            )
+        return tuple(spec.channel[k] if v is None else v for k, v in enumerate(given))
+
+    def crossings(self, twin, state) -> tuple[int, int]:
+        width, depth, length = self.channel
         clip = twin.collider_pose(state, self.roles["clip"])
         local = transform_points(invert_pose(clip), twin.particles(state, self.roles["rope"]))
-        half = s.channel_length / 2
-        return tuple(
-            count_crossings(local, self.springs, y, s.channel_width / 2, s.channel_depth)
-            for y in (-half, half)
-        )
+        half = length / 2
+        return tuple(count_crossings(local, self.springs, y, width / 2, depth) for y in (-half, half))
 
     def frame(self, twin, state) -> tuple[bool, dict]:
         a, b = self.crossings(twin, state)
@@ -141,16 +155,8 @@ def make_expert(env):
     """The scripted expert; it acts from `environment_state` (never the env's internals)."""
     from twinbench.tasks.rope_expert import RopeExpert
 
-    rules = env.unwrapped.rules
-    s = rules.settings
-    return RopeExpert(channel_length=s.channel_length, channel_depth=s.channel_depth)
+    _, depth, length = env.unwrapped.rules.channel
+    return RopeExpert(channel_length=length, channel_depth=depth)
 
 
-register_task(
-    "rope-routing",
-    env_id=ENV_ID,
-    make_expert=make_expert,
-    n_grid_states=27,
-    description=RopeRoutingTask.description,
-    task_cls=RopeRoutingTask,
-)
+register_task(RopeRoutingTask, make_expert=make_expert)

@@ -23,8 +23,6 @@ from twinbench.tasks.base import GraspTask, InitialStates
 from twinbench.tasks.push_t import pose_xytheta
 from twinbench.transforms import invert_pose, transform_points
 
-ENV_ID = "twinbench/ToyPacking-v0"
-
 
 @dataclass(frozen=True)
 class ToyPackingSettings:
@@ -44,6 +42,7 @@ class ToyPackingSettings:
 
 class ToyPackingTask(GraspTask):
     name = "toy-packing"
+    env_id = "twinbench/ToyPacking-v0"
     description = "pick up the plush toy and pack it into the box"
     default_roles = {"toy": "toy", "box": "box"}
     environment_state_dim = 8
@@ -103,11 +102,4 @@ def make_expert(env):
     return ToyExpert()
 
 
-register_task(
-    "toy-packing",
-    env_id=ENV_ID,
-    make_expert=make_expert,
-    n_grid_states=20,
-    description=ToyPackingTask.description,
-    task_cls=ToyPackingTask,
-)
+register_task(ToyPackingTask, make_expert=make_expert)

@@ -3,15 +3,16 @@
 The reference workcell: a procedural table and backdrop (Gaussians), the built-in xArm-7-like arm with
 the reference cameras (a fixed front camera and a wrist camera, DESIGN §5), and the task's objects.
 
-- `push_t_cell(preset)`: the arm with a vertical pusher held at a fixed height above the table, and a
-  T-block made of particles (volume lattice, springs within a radius, max 50 neighbours, uniform
-  Y = 3e4) whose coloured surface Gaussians follow its rigid motion. Presets: `reference` (5 mm
-  lattice, 667 substeps per 30 Hz frame, PhysTwin's dt = 5e-5 s) and `fast` (15 mm lattice, 100
-  substeps, about 50x cheaper; the demo and the tests use it).
+- `push_t_cell(preset)`: the arm with a vertical pusher held at a fixed height above the table (its
+  radius is the robot's `tool_radius`), and a T-block made of particles (volume lattice, springs within a
+  radius, max 50 neighbours, uniform Y = 3e4) whose coloured surface Gaussians follow its rigid motion;
+  the T's outline is the object's `outline` (`block_scale` scales the T and its lattice). Presets:
+  `reference` (5 mm lattice, 667 substeps per 30 Hz frame, PhysTwin's dt = 5e-5 s) and `fast` (15 mm
+  lattice, 100 substeps, about 50x cheaper; the demo and the tests use it).
 - `rope_routing_cell(preset)`: the arm with its parallel gripper (friction on the finger pads, the force
   latch of DESIGN §5), a 32 cm cotton-like rope (a 1 cm thick cylinder of particles, springs within a
   radius; its marked end is red) lying on the table, and a clip: two walls on the table forming a
-  2 cm wide, 3 cm deep, 4 cm long channel along y with an opening at each end.
+  2 cm wide, 3 cm deep, 4 cm long channel along y with an opening at each end (the collider's `channel`).
 """
 
 from __future__ import annotations
@@ -23,6 +24,7 @@ import numpy as np
 from twinbench.gaussians.camera import look_at_pose
 from twinbench.gaussians.cloud import GaussianCloud
 from twinbench.physics import SimParams
+from twinbench.robot.builtin import PUSHER_RADIUS
 from twinbench.robot.controller import ControllerConfig
 from twinbench.transforms import planar_pose
 from twinbench.twin.assets import (
@@ -32,6 +34,7 @@ from twinbench.twin.assets import (
     paint,
     table_gaussians,
 )
+from twinbench.twin.shapes import TBlockShape, sample_block_particles
 from twinbench.twin.spec import CameraSpec, ColliderSpec, ContactSpec, ObjectSpec, RobotSpec, TwinSpec
 
 # (fx, fy, cx, cy) of the reference cell's cameras (DESIGN §5); both sensors are 848x480.
@@ -77,6 +80,7 @@ class PushTCell:
     ground_friction: float = 0.5
     pusher_friction: float = 0.3
     robot_gaussian_spacing: float = 0.006
+    block_scale: float = 1.0  # the T's size (and its lattice spacing) relative to the reference T
 
     @staticmethod
     def preset(name: str, **overrides) -> PushTCell:
@@ -86,19 +90,21 @@ class PushTCell:
 
 def push_t_cell(preset: str = "reference", **overrides) -> TwinSpec:
     """The built-in push-T twin (see the module docstring)."""
-    from twinbench.tasks.push_t_geometry import TBlockShape, sample_block_particles
-
     cfg = PushTCell.preset(preset, **overrides)
-    shape = TBlockShape()
+    if not cfg.block_scale > 0:
+        raise ValueError(f"push-t cell: block_scale must be > 0, got {cfg.block_scale}")
+    shape = TBlockShape().scaled(cfg.block_scale)
+    spacing = cfg.particle_spacing * cfg.block_scale
     block = ObjectSpec(
         "tblock",
-        sample_block_particles(shape, cfg.particle_spacing),
+        sample_block_particles(shape, spacing),
         spring_Y=3e4,
-        spring_radius=cfg.spring_radius_factor * cfg.particle_spacing,
+        spring_radius=cfg.spring_radius_factor * spacing,
         max_neighbors=50,
         gaussians=mesh_surface_gaussians(shape.mesh(), (0.30, 0.42, 0.68)),
         binding="rigid",
         rest_pose=planar_pose(*cfg.block_pose),
+        outline=shape.outline(),
     )
     sim = SimParams(
         dt=1.0 / cfg.fps / cfg.substeps,
@@ -106,12 +112,13 @@ def push_t_cell(preset: str = "reference", **overrides) -> TwinSpec:
         ground_restitution=0.0,
         ground_friction=cfg.ground_friction,
         object_collision=False,
-        mesh_margin=0.6 * cfg.particle_spacing,
+        mesh_margin=0.6 * spacing,
     )
     robot = RobotSpec(
         "builtin:xarm7_pusher",
         scan_spacing=cfg.robot_gaussian_spacing,
         tool_contact=ContactSpec(0.0, cfg.pusher_friction),
+        tool_radius=PUSHER_RADIUS,
     )
     return TwinSpec(
         name=f"push-t-{preset}",
@@ -232,6 +239,7 @@ def rope_routing_cell(preset: str = "reference", **overrides) -> TwinSpec:
         planar_pose(*cfg.clip_pose),
         ContactSpec(0.0, 0.5),
         mesh_surface_gaussians(clip_mesh, CLIP_RGB, spacing=0.003),
+        channel=(cfg.channel_width, cfg.channel_depth, cfg.channel_length),
     )
     dt = 1.0 / 30.0 / cfg.substeps
     sim = SimParams(

@@ -1,11 +1,14 @@
 """Twin directories on disk: `load_twin(dir)` / `save_twin(spec, dir)`, and standalone object directories
 (`load_object` / `save_object`) that construction tools and system identification write.
 
-A twin directory holds `twin.json` (format "twinbench-twin", `version` 1) and the files it names by
+A twin directory holds `twin.json` (format "twinbench-twin", `version` 2) and the files it names by
 relative paths inside the directory: `.ply` Gaussians, `.npz` arrays (read with allow_pickle=False),
 `.obj` / `.stl` / `.ply` meshes, and the robot's URDF (or a built-in robot name). The layout of every
 field is in README.md ("Twin directories"). Every problem raises `TwinFormatError` naming the file and
 the field; a save followed by a load gives back the same spec, array for array.
+
+Versions: 2 added the geometry that task rules read (an object's `outline`, the robot's `tool_radius`, a
+collider's `channel`); version 1 files (without them) still load.
 """
 
 from __future__ import annotations
@@ -24,6 +27,7 @@ from twinbench.gaussians.cloud import GaussianCloud
 from twinbench.gaussians.io import load_gaussians, save_gaussians
 from twinbench.physics import SimParams
 from twinbench.robot.controller import ControllerConfig
+from twinbench.twin.shapes import Outline
 from twinbench.twin.spec import (
     CameraSpec,
     ColliderSpec,
@@ -34,7 +38,8 @@ from twinbench.twin.spec import (
     TwinSpec,
 )
 
-TWIN_FORMAT, OBJECT_FORMAT, VERSION = "twinbench-twin", "twinbench-object", 1
+TWIN_FORMAT, OBJECT_FORMAT, VERSION = "twinbench-twin", "twinbench-object", 2
+READABLE_VERSIONS = (1, 2)
 
 
 class TwinFormatError(InputError):
@@ -188,16 +193,29 @@ def _check_header(r: _Reader, doc, fmt: str, required: set[str], optional: set[s
     doc = r.section(doc, "(top level)", {"format", "version"} | required, optional)
     if doc["format"] != fmt:
         r.fail("format", f"expected {fmt!r}, got {doc['format']!r}")
-    if doc["version"] != VERSION:
-        r.fail("version", f"this twinbench reads version {VERSION}, got {doc['version']!r}")
+    if doc["version"] not in READABLE_VERSIONS or isinstance(doc["version"], bool):
+        r.fail("version", f"this twinbench reads versions {list(READABLE_VERSIONS)}, got {doc['version']!r}")
     return doc
 
 
 # ---------------------------------------------------------------------------------------------- objects
 _OBJECT_FIELDS = (
     {"name", "arrays", "springs", "binding", "rest_pose"},
-    {"spring_Y", "mass", "gaussians", "color_map"},
+    {"spring_Y", "mass", "gaussians", "color_map", "outline"},
 )
+
+
+def _read_outline(r: _Reader, value, field: str) -> Outline | None:
+    if value is None:
+        return None
+    d = r.section(value, field, {"polygon", "height"}, set())
+    polygon = d["polygon"]
+    if not isinstance(polygon, list) or len(polygon) < 3:
+        r.fail(f"{field}.polygon", "expected a list of at least 3 [x, y] vertices (counter-clockwise, "
+               "object frame, metres)")
+    polygon = r.array(polygon, f"{field}.polygon", (len(polygon), 2))
+    height = r.number(d["height"], f"{field}.height")
+    return r.build(lambda: Outline(polygon, height), field)
 
 
 def _read_object(r: _Reader, d, field: str) -> ObjectSpec:
@@ -238,6 +256,7 @@ def _read_object(r: _Reader, d, field: str) -> ObjectSpec:
     kw["rest_pose"] = r.array(d["rest_pose"], f"{field}.rest_pose", (4, 4))
     kw["gaussians"] = r.gaussians(d.get("gaussians"), f"{field}.gaussians")
     kw["color_map"] = r.color_map(d.get("color_map"), f"{field}.color_map")
+    kw["outline"] = _read_outline(r, d.get("outline"), f"{field}.outline")
     return r.build(lambda: ObjectSpec(name, **kw), field)
 
 
@@ -271,6 +290,9 @@ def _write_object(obj: ObjectSpec, root: Path, prefix: str) -> dict:
         "binding": obj.binding,
         "rest_pose": np.asarray(obj.rest_pose).tolist(),
         "color_map": _color_map_json(obj.color_map),
+        "outline": None
+        if obj.outline is None
+        else {"polygon": obj.outline.polygon.tolist(), "height": obj.outline.height},
     }
     if obj.gaussians is not None:
         save_gaussians(obj.gaussians, root / f"{prefix}.ply")
@@ -323,10 +345,14 @@ _ROBOT_FIELDS = (
         "scan_spacing",
         "tool_contact",
         "color_map",
+        "tool_radius",
     },
 )
 _CAMERA_FIELDS = ({"name", "intrinsics", "pose"}, {"sensor_size", "mount_link", "crop", "output_hw", "depth"})
-_COLLIDER_FIELDS = ({"name", "mesh", "pose"}, {"restitution", "friction", "gaussians", "color_map"})
+_COLLIDER_FIELDS = (
+    {"name", "mesh", "pose"},
+    {"restitution", "friction", "gaussians", "color_map", "channel"},
+)
 
 
 def _read_robot(r: _Reader, d) -> RobotSpec:
@@ -371,6 +397,8 @@ def _read_robot(r: _Reader, d) -> RobotSpec:
             "robot.tool_contact",
         )
     kw["color_map"] = r.color_map(d.get("color_map"), "robot.color_map")
+    if d.get("tool_radius") is not None:
+        kw["tool_radius"] = r.number(d["tool_radius"], "robot.tool_radius")
     return r.build(lambda: RobotSpec(**kw), "robot")
 
 
@@ -402,6 +430,9 @@ def _read_collider(r: _Reader, d, field: str) -> ColliderSpec:
     d = r.section(d, field, *_COLLIDER_FIELDS)
     name, field = r.name(d, field)
     vertices, faces = r.mesh(d["mesh"], f"{field}.mesh")
+    channel = d.get("channel")
+    if channel is not None:
+        channel = tuple(r.array(channel, f"{field}.channel", (3,)).tolist())
     contact = r.build(
         lambda: ContactSpec(
             r.number(d.get("restitution", 0.0), f"{field}.restitution"),
@@ -418,6 +449,7 @@ def _read_collider(r: _Reader, d, field: str) -> ColliderSpec:
             contact,
             r.gaussians(d.get("gaussians"), f"{field}.gaussians"),
             r.color_map(d.get("color_map"), f"{field}.color_map"),
+            channel,
         ),
         field,
     )
@@ -498,6 +530,7 @@ def _robot_json(spec: RobotSpec, root: Path) -> dict:
         "scan_spacing": spec.scan_spacing,
         "tool_contact": _jsonable(spec.tool_contact),
         "color_map": _color_map_json(spec.color_map),
+        "tool_radius": spec.tool_radius,
     }
     if spec.builtin_tool is None:
         src = Path(spec.urdf).resolve()
@@ -556,6 +589,7 @@ def save_twin(spec: TwinSpec, folder) -> Path:
             "friction": c.contact.friction,
             "gaussians": None,
             "color_map": _color_map_json(c.color_map),
+            "channel": None if c.channel is None else list(c.channel),
         }
         if c.gaussians is not None:
             save_gaussians(c.gaussians, root / "colliders" / f"{c.name}.ply")

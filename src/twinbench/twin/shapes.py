@@ -1,9 +1,10 @@
-"""Push-T geometry: the T-block shape, its particles, the grid of initial states and the goal distance
-(DESIGN §7).
+"""Object geometry as twin data: `Outline` (a footprint polygon extruded to a height, the shape that
+planar tasks such as push-T read from `ObjectSpec.outline`) and the built-in T-block (`TBlockShape`, its
+particles, its mesh) that the built-in push-T cell is made of.
 
-Pure NumPy: no physics or rendering here, so the rules can be checked on their own.
-Block frame: origin at the T's area centroid in the xy plane, z from 0 (table) to `height`; the bar
-lies along x and the stem points along -y.
+Pure NumPy (trimesh only for `TBlockShape.mesh`). Object frame: the footprint lies in the xy plane, z
+from 0 (table) to `height`. The built-in T's frame has its origin at the T's area centroid; its bar lies
+along x and its stem points along -y.
 """
 
 from __future__ import annotations
@@ -11,6 +12,97 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+
+
+@dataclass(frozen=True, eq=False)
+class Outline:
+    """A prism: the simple polygon `polygon` (K, 2), counter-clockwise, in the object frame's xy plane,
+    extruded from z = 0 to `height` (metres). Push-T reads its block's footprint, goal overlay and
+    contact points from it."""
+
+    polygon: np.ndarray
+    height: float
+
+    def __post_init__(self) -> None:
+        p = np.asarray(self.polygon, dtype=np.float64)
+        if p.ndim != 2 or p.shape[1] != 2 or len(p) < 3 or not np.all(np.isfinite(p)):
+            raise ValueError(
+                f"outline.polygon: expected a finite (K, 2) array with K >= 3, got shape {p.shape}"
+            )
+        h = float(self.height)
+        if not (np.isfinite(h) and h > 0):
+            raise ValueError(f"outline.height: expected a finite number > 0, got {self.height!r}")
+        object.__setattr__(self, "polygon", p)
+        object.__setattr__(self, "height", h)
+        if not self.area > 0:
+            raise ValueError("outline.polygon: the vertices must go counter-clockwise (seen from +z) and "
+                             "enclose a positive area")
+
+    def _edges(self) -> tuple[np.ndarray, np.ndarray]:
+        a = self.polygon
+        return a, np.roll(a, -1, axis=0)
+
+    @property
+    def area(self) -> float:
+        """Signed area of the polygon (positive: counter-clockwise), m^2."""
+        a, b = self._edges()
+        return 0.5 * float(np.sum(a[:, 0] * b[:, 1] - b[:, 0] * a[:, 1]))
+
+    def polar_radius2(self) -> float:
+        """Mean squared distance of the footprint from the frame origin (polar second moment / area), m^2."""
+        a, b = self._edges()
+        cross = a[:, 0] * b[:, 1] - b[:, 0] * a[:, 1]
+        sq = a[:, 0] ** 2 + a[:, 0] * b[:, 0] + b[:, 0] ** 2 + a[:, 1] ** 2 + a[:, 1] * b[:, 1] + b[:, 1] ** 2
+        return float(np.sum(cross * sq)) / 12.0 / self.area
+
+    def bounds(self) -> tuple[np.ndarray, np.ndarray]:
+        """(min, max) corners of the prism's axis-aligned bounding box, (3,) each."""
+        return np.r_[self.polygon.min(0), 0.0], np.r_[self.polygon.max(0), self.height]
+
+    def contains(self, points: np.ndarray, tol: float = 1e-9) -> np.ndarray:
+        """Whether object-frame points lie inside the prism, boundary included (within `tol`): (N, 3)
+        points, or (N, 2) for the footprint alone."""
+        p = np.asarray(points, dtype=np.float64)
+        inside = self._in_polygon(p[:, :2]) | (self._boundary_distance(p[:, :2]) <= tol)
+        if p.shape[1] == 3:
+            inside &= (p[:, 2] >= -tol) & (p[:, 2] <= self.height + tol)
+        return inside
+
+    def nearest(self, point) -> np.ndarray:
+        """The footprint's nearest point to a 2D object-frame point (the point itself when inside)."""
+        p = np.asarray(point, dtype=np.float64)[:2]
+        if self._in_polygon(p[None])[0]:
+            return p
+        q = self._closest_on_edges(p[None])[0]
+        return q[np.argmin(np.linalg.norm(q - p, axis=1))]
+
+    def distance(self, point) -> float:
+        """Distance from a 2D object-frame point to the footprint (0 inside)."""
+        p = np.asarray(point, dtype=np.float64)[:2]
+        return float(np.linalg.norm(p - self.nearest(p)))
+
+    def scaled(self, factor: float) -> Outline:
+        """The outline scaled by `factor` about the frame origin (height included)."""
+        return Outline(self.polygon * factor, self.height * factor)
+
+    def _in_polygon(self, p: np.ndarray) -> np.ndarray:
+        """Even-odd rule: (N,) whether the (N, 2) points are strictly inside (boundary: either)."""
+        a, b = self._edges()
+        px, py = p[:, :1], p[:, 1:2]
+        straddle = (a[:, 1] > py) != (b[:, 1] > py)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            x_cross = a[:, 0] + (py - a[:, 1]) * (b[:, 0] - a[:, 0]) / (b[:, 1] - a[:, 1])
+        return np.sum(straddle & (px < x_cross), axis=1) % 2 == 1
+
+    def _closest_on_edges(self, p: np.ndarray) -> np.ndarray:
+        """(N, K, 2): the closest point of each edge to each point."""
+        a, b = self._edges()
+        e = b - a
+        t = np.einsum("nkd,kd->nk", p[:, None, :] - a, e) / np.sum(e * e, axis=1)
+        return a + np.clip(t, 0.0, 1.0)[..., None] * e
+
+    def _boundary_distance(self, p: np.ndarray) -> np.ndarray:
+        return np.min(np.linalg.norm(self._closest_on_edges(p) - p[:, None, :], axis=2), axis=1)
 
 
 @dataclass(frozen=True)
@@ -22,6 +114,12 @@ class TBlockShape:
     stem_length: float = 0.09
     stem_width: float = 0.03
     height: float = 0.03
+
+    def scaled(self, factor: float) -> TBlockShape:
+        """The T with every dimension multiplied by `factor`."""
+        f = float(factor)
+        return TBlockShape(self.bar_length * f, self.bar_width * f, self.stem_length * f,
+                           self.stem_width * f, self.height * f)
 
     def boxes_raw(self) -> list[tuple[np.ndarray, np.ndarray]]:
         """(min, max) corners of bar and stem in a frame with the bar's top edge at y = 0."""
@@ -45,17 +143,6 @@ class TBlockShape:
         shift = np.array([0.0, -self.centroid_y, 0.0])
         return [(lo + shift, hi + shift) for lo, hi in self.boxes_raw()]
 
-    def polar_radius2(self) -> float:
-        """Mean squared distance of the T's footprint from its centroid (polar second moment / area), m^2."""
-        total = moment = 0.0
-        for lo, hi in self.boxes():
-            w, h = hi[0] - lo[0], hi[1] - lo[1]
-            c = 0.5 * (lo[:2] + hi[:2])
-            area = w * h
-            total += area
-            moment += area * (float(c @ c) + (w * w + h * h) / 12.0)
-        return moment / total
-
     def contains(self, points: np.ndarray, tol: float = 1e-9) -> np.ndarray:
         """Whether block-frame points lie inside the T (boundary included)."""
         p = np.asarray(points, dtype=np.float64)
@@ -71,6 +158,10 @@ class TBlockShape:
             [blo[0], blo[1]], [slo[0], blo[1]], [slo[0], slo[1]], [shi[0], slo[1]],
             [shi[0], blo[1]], [bhi[0], blo[1]], [bhi[0], bhi[1]], [blo[0], bhi[1]],
         ])
+
+    def outline(self) -> Outline:
+        """The T as twin data (`ObjectSpec.outline`)."""
+        return Outline(self.outline_xy(), self.height)
 
     def mesh(self):
         """A closed triangle mesh of the T (trimesh), built as a prism over the outline."""
@@ -114,23 +205,3 @@ def sample_block_particles(shape: TBlockShape, spacing: float) -> np.ndarray:
     # 15 mm); the small tolerance keeps boundary points that round-off would drop.
     inside = shape.contains(grid, tol=1e-6)
     return grid[inside].astype(np.float32)
-
-
-def grid_initial_states() -> np.ndarray:
-    """The 16 reference initial states (dx, dy, dtheta) relative to the nominal pose.
-
-    x, y in {-5, +5} cm and theta in {+-45, +-135} degrees (DESIGN §7).
-    """
-    states = [
-        (dx, dy, np.deg2rad(th))
-        for dx in (-0.05, 0.05)
-        for dy in (-0.05, 0.05)
-        for th in (-135.0, -45.0, 45.0, 135.0)
-    ]
-    return np.array(states)
-
-
-def mean_squared_distance(particles: np.ndarray, goal_particles: np.ndarray) -> float:
-    """Mean over particles of the squared distance to the same particle at the goal pose (m^2)."""
-    d = np.asarray(particles, dtype=np.float64) - np.asarray(goal_particles, dtype=np.float64)
-    return float(np.mean(np.sum(d * d, axis=1)))

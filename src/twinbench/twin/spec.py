@@ -5,6 +5,9 @@ in code, `twinbench.twin.files.load_twin` reads one from a twin directory, and `
 either into a running `Twin`. World frame = robot base frame (z up, table at z = 0, DESIGN §3): a scan
 is registered into the robot base frame when the twin is made, so a spec has no separate base pose.
 
+Geometry that task rules read is data too: an object's footprint (`ObjectSpec.outline`), the pusher
+tip's radius (`RobotSpec.tool_radius`) and a collider's channel (`ColliderSpec.channel`).
+
 Contact: the robot's tool meshes have `RobotSpec.tool_contact`; each static collider its own
 restitution and friction; ground and particle-particle contact are per twin (`SimParams`, as in a
 PhysTwin case).
@@ -20,6 +23,7 @@ from twinbench.gaussians.cloud import GaussianCloud
 from twinbench.gaussians.colormap import apply_color_map, check_color_map
 from twinbench.physics import SimParams
 from twinbench.robot.controller import ControllerConfig
+from twinbench.twin.shapes import Outline
 
 BINDINGS = ("rigid", "lbs")
 BUILTIN_ROBOTS = {"builtin:xarm7_pusher": "pusher", "builtin:xarm7_gripper": "gripper"}
@@ -77,6 +81,9 @@ class RobotSpec:
     Gaussians: a registered scan in the world frame at configuration `gaussians_q` (default `home_q`),
     each labelled with a link (`gaussian_labels` index `gaussian_links`); or, when `gaussians` is None,
     discs sampled on the URDF's visual meshes every `scan_spacing` metres (built-in robots).
+
+    `tool_radius`: the radius (m) of the tool tip that pushes (a pusher rod; None for other tools). The
+    built-in pusher's is its rod's (`twinbench.robot.builtin.PUSHER_RADIUS`), filled in when omitted.
     """
 
     urdf: str
@@ -93,6 +100,7 @@ class RobotSpec:
     scan_spacing: float = 0.006
     tool_contact: ContactSpec = field(default_factory=ContactSpec)
     color_map: ColorMap | None = None
+    tool_radius: float | None = None
 
     def __post_init__(self) -> None:
         if not isinstance(self.urdf, str) or not self.urdf:
@@ -117,6 +125,20 @@ class RobotSpec:
                     f"(0..{len(self.gaussian_links) - 1})"
                 )
             object.__setattr__(self, "gaussian_labels", labels.astype(np.int32))
+        if self.tool_radius is not None and not (np.isfinite(self.tool_radius) and self.tool_radius > 0):
+            raise ValueError(
+                f"robot.tool_radius: expected a finite radius > 0 (m) or null, got {self.tool_radius!r}"
+            )
+        if self.builtin_tool == "pusher":
+            from twinbench.robot.builtin import PUSHER_RADIUS
+
+            if self.tool_radius is None:
+                object.__setattr__(self, "tool_radius", PUSHER_RADIUS)
+            elif self.tool_radius != PUSHER_RADIUS:
+                raise ValueError(
+                    f"robot.tool_radius: the built-in pusher's rod has radius {PUSHER_RADIUS} m, got "
+                    f"{self.tool_radius}; omit it, or give the URDF of your own tool"
+                )
 
     @property
     def builtin_tool(self) -> str | None:
@@ -130,7 +152,9 @@ class ObjectSpec:
     Springs are explicit (`springs` (M, 2) local indices, optional `rest_lengths`, `spring_Y` scalar or
     per spring: PhysTwin's trained twins) or made by the radius rule (`spring_radius`, `max_neighbors`,
     `spring_Y`). `binding`: "rigid" (Gaussians follow the particles' best-fit rigid motion) or "lbs"
-    (linear blend skinning). `rest_pose` places the object frame in the world at rest.
+    (linear blend skinning). `rest_pose` places the object frame in the world at rest. `outline`: the
+    object's footprint as a prism in its own frame (`twinbench.twin.shapes.Outline`), for tasks that
+    reason about its shape (push-T); None when not given.
     """
 
     name: str
@@ -145,6 +169,7 @@ class ObjectSpec:
     binding: str = "lbs"
     rest_pose: np.ndarray = field(default_factory=lambda: np.eye(4))
     color_map: ColorMap | None = None
+    outline: Outline | None = None
 
     def __post_init__(self) -> None:
         where = f"objects[{self.name!r}]"
@@ -156,6 +181,9 @@ class ObjectSpec:
         if self.binding not in BINDINGS:
             raise ValueError(f"{where}.binding: expected one of {BINDINGS}, got {self.binding!r}")
         object.__setattr__(self, "rest_pose", _pose(f"{where}.rest_pose", self.rest_pose))
+        if self.outline is not None and not isinstance(self.outline, Outline):
+            raise ValueError(f"{where}.outline: expected a twinbench.twin.shapes.Outline or None, "
+                             f"got {type(self.outline).__name__}")
         if self.springs is not None:
             s = np.asarray(self.springs)
             if s.ndim != 2 or s.shape[1] != 2 or (s.size and not np.issubdtype(s.dtype, np.integer)):
@@ -190,7 +218,9 @@ class ObjectSpec:
 @dataclass(frozen=True, eq=False)
 class ColliderSpec:
     """A static triangle-mesh collider (box, clip, table edge) placed at `pose`, with optional Gaussians
-    in its own frame."""
+    in its own frame. `channel` = (width, depth, length), m: a channel the collider forms along its
+    frame's y axis, centred on its origin, floor at z = 0, open at both ends (the rope-routing clip; its
+    end planes are the openings); None when it has none."""
 
     name: str
     vertices: np.ndarray
@@ -199,6 +229,7 @@ class ColliderSpec:
     contact: ContactSpec = field(default_factory=ContactSpec)
     gaussians: GaussianCloud | None = None
     color_map: ColorMap | None = None
+    channel: tuple[float, float, float] | None = None
 
     def __post_init__(self) -> None:
         where = f"colliders[{self.name!r}]"
@@ -208,6 +239,12 @@ class ColliderSpec:
         if f.ndim != 2 or f.shape[1] != 3 or len(f) == 0 or f.min() < 0 or f.max() >= len(v):
             raise ValueError(f"{where}.mesh: expected (F, 3) faces indexing the {len(v)} vertices")
         object.__setattr__(self, "pose", _pose(f"{where}.pose", self.pose))
+        if self.channel is not None:
+            c = np.asarray(self.channel, dtype=np.float64)
+            if c.shape != (3,) or not np.all(np.isfinite(c)) or np.any(c <= 0):
+                raise ValueError(f"{where}.channel: expected (width, depth, length) > 0 in metres, "
+                                 f"got {self.channel!r}")
+            object.__setattr__(self, "channel", tuple(float(v) for v in c))
 
 
 @dataclass(frozen=True, eq=False)
