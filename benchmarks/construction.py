@@ -11,12 +11,12 @@ import time
 import numpy as np
 import warp as wp
 
+from twinbench.construct.align_color import fit_color_map
+from twinbench.construct.align_robot import RegistrationParams, gaussian_normals, register_robot
 from twinbench.gaussians.colormap import apply_color_map, identity_color_map, map_colors
 from twinbench.robot.builtin import load_builtin_arm
 from twinbench.robot.gaussians import sample_robot_scan
 from twinbench.transforms import rotation_angle, rotvec_to_matrix
-from twinbench.twin.align_color import fit_color_map
-from twinbench.twin.align_robot import RegistrationParams, gaussian_normals, register_robot
 
 N = 200_000
 

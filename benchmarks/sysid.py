@@ -18,24 +18,23 @@ import argparse
 import statistics
 import time
 from dataclasses import replace
-from pathlib import Path
 
 import numpy as np
 import warp as wp
 from scipy.stats import spearmanr
 
+from twinbench.construct.sysid_synthetic import synthetic_case
 from twinbench.physics import SimParams, SpringMassSolver
 from twinbench.physics.sysid import (
     AdamConfig,
     CMAConfig,
+    FitConfig,
     GlobalParams,
     SequenceLoss,
-    SysIdConfig,
     build_model,
     evaluate,
     frame_gradient,
     identify,
-    synthetic_case,
 )
 
 SEARCH = ("spring_Y", "control_radius", "control_max_neighbors", "ground_restitution", "ground_friction",
@@ -95,10 +94,10 @@ def main() -> None:
                      frames=len(data.train_frames), acc=False)
         print(f"sysid_rope_{tag}_stage1_s_per_evaluation_40_substeps {(time.perf_counter() - t0) / 5:.4f} s")
 
-    cfg = SysIdConfig(data=Path("<synthetic rope>"), dt=1.0 / 1200, substeps=40, progress=False,
-                      initial=GlobalParams(spring_Y=1000.0, control_radius=0.02, control_max_neighbors=8),
-                      cma=CMAConfig(budget=args.budget, search=SEARCH, ranges=("spring_Y=100:10000",)),
-                      adam=AdamConfig(epochs=args.epochs, lr=0.02, y_min=50.0, y_max=1e4))
+    cfg = FitConfig(dt=1.0 / 1200, substeps=40, progress=False,
+                    initial=GlobalParams(spring_Y=1000.0, control_radius=0.02, control_max_neighbors=8),
+                    cma=CMAConfig(budget=args.budget, search=SEARCH, ranges=("spring_Y=100:10000",)),
+                    adam=AdamConfig(epochs=args.epochs, lr=0.02, y_min=50.0, y_max=1e4))
     t0 = time.perf_counter()
     res = identify(data, cfg, log=lambda _msg: None)
     total = time.perf_counter() - t0

@@ -8,48 +8,43 @@ per-spring bounds [50, 1e4].
 
 from __future__ import annotations
 
-import json
 from dataclasses import replace
-from pathlib import Path
 
 import numpy as np
 import pytest
 from scipy.stats import spearmanr
 
+from twinbench.construct.sysid_synthetic import synthetic_case
 from twinbench.physics import SimParams, SpringMassSolver
 from twinbench.physics.sysid import (
     AdamConfig,
     CMAConfig,
+    FitConfig,
     GlobalParams,
     LossWeights,
     SequenceLoss,
-    SysIdConfig,
     build_model,
     evaluate,
     frame_gradient,
     identify,
-    main,
     parse_ranges,
     rollout,
     stage2_adam,
-    synthetic_case,
-    write_object_dir,
-    write_report,
 )
-from twinbench.physics.sysid_data import SysIdData, SysIdFormatError, load_sysid_data, save_sysid_data
+from twinbench.physics.sysid_data import SysIdData, SysIdFormatError
 
 SUBSTEPS = 40
 SEARCH = ("spring_Y", "control_radius", "control_max_neighbors", "ground_restitution", "ground_friction",
           "drag_damping", "dashpot_damping")
 
 
-def _config(**kw) -> SysIdConfig:
-    base = dict(data=Path("<memory>"), dt=1.0 / (30 * SUBSTEPS), substeps=SUBSTEPS, progress=False,
+def _config(**kw) -> FitConfig:
+    base = dict(dt=1.0 / (30 * SUBSTEPS), substeps=SUBSTEPS, progress=False,
                 initial=GlobalParams(spring_Y=1000.0, control_radius=0.02, control_max_neighbors=8),
                 cma=CMAConfig(budget=80, search=SEARCH, ranges=("spring_Y=100:10000",), seed=0),
                 adam=AdamConfig(epochs=10, lr=0.02, y_min=50.0, y_max=1e4))
     base.update(kw)
-    return SysIdConfig(**base)
+    return FitConfig(**base)
 
 
 def _quiet(_msg: str) -> None:
@@ -269,43 +264,6 @@ def test_cloth_identification_recovers_soft_and_stiff_halves(cloth):
     _check_identification(*cloth)
 
 
-def test_outputs_object_directory_and_report(rope, tmp_path):
-    from twinbench.physics import ModelBuilder
-    from twinbench.twin import load_object
-
-    data, truth, result = rope
-    path = write_object_dir(result, data, tmp_path / "rope")
-    meta = json.loads(path.read_text())
-    assert meta["format"] == "twinbench-object" and meta["version"] == 1
-    assert meta["object"]["springs"] == "explicit" and meta["object"]["spring_Y"] is None
-    obj, sim = load_object(tmp_path / "rope")
-    n = result.model.num_object_springs
-    assert obj.name == "rope" and np.allclose(obj.rest_pose, np.eye(4))
-    np.testing.assert_allclose(obj.particles, data.particles, atol=1e-7)
-    np.testing.assert_array_equal(obj.springs, truth["springs"])
-    np.testing.assert_allclose(obj.spring_Y, np.exp(result.log_y[:n].astype(np.float64)))
-    np.testing.assert_array_equal(obj.mass, np.ones(data.num_particles))
-    assert sim["dashpot_damping"] == pytest.approx(result.params.dashpot_damping)
-    assert sim["ground_friction"] == pytest.approx(result.params.ground_friction)
-    assert sim["substeps"] == SUBSTEPS
-    # the loaded object builds (as build_twin does) into the identified object's springs and stiffness
-    b = ModelBuilder(SimParams(**{**sim, "gravity": tuple(sim["gravity"])}))
-    b.add_body(obj.particles, springs=obj.springs, rest_lengths=obj.rest_lengths, spring_Y=obj.spring_Y,
-               mass=obj.mass)
-    twin_model = b.finalize()
-    np.testing.assert_array_equal(twin_model.springs_np, result.model.springs_np[:n])
-    np.testing.assert_allclose(twin_model.rest_lengths_np, result.model.rest_lengths_np[:n])
-    np.testing.assert_allclose(twin_model.log_y_np, result.log_y[:n], atol=1e-5)
-
-    jpath, ppath = write_report(result, data, tmp_path)
-    rep = json.loads(jpath.read_text())
-    assert rep["evaluations"]["final"]["val_error_m"] == pytest.approx(result.evals["final"].val_error)
-    assert len(rep["evaluations"]["final"]["per_frame_error_m"]) == data.num_frames
-    assert len(rep["stage1_history"]) == 80 and rep["stages"] == {"stage1": True, "stage2": True}
-    assert rep["global_params"]["spring_Y"] == pytest.approx(result.params.spring_Y)
-    assert ppath.stat().st_size > 10_000 and ppath.read_bytes()[:4] == b"\x89PNG"
-
-
 def test_ablation_paths_hand_set_and_stage1_only():
     data, _ = synthetic_case("rope", frames=12, validation_frames=3, seed=4)
     hand = GlobalParams(spring_Y=1234.0, control_radius=0.02, control_max_neighbors=8, drag_damping=2.0)
@@ -398,36 +356,6 @@ def test_zero_length_explicit_spring_is_refused(small):
         SysIdData(**(_arrays(small) | {"particles": pts, "springs": np.array([[0, 1], [4, 5]])}))
 
 
-def test_save_load_round_trip_and_file_errors(small, tmp_path):
-    path = save_sysid_data(small, tmp_path / "case")
-    back = load_sysid_data(tmp_path / "case")
-    for key, val in _arrays(small).items():
-        np.testing.assert_array_equal(getattr(back, key), val)
-    assert (back.fps, back.validation_frames, back.name) == (30.0, 2, "rope")
-    assert load_sysid_data(path).num_frames == 6
-
-    meta = json.loads(path.read_text())
-    for bad, words in [({"format": "x"}, "field 'format'"), ({"version": 2}, "field 'version'"),
-                       ({"arrays": "../data.npz"}, "inside the directory"), ({"fps": "30"}, "field 'fps'"),
-                       ({"extra": 1}, "unknown field")]:
-        path.write_text(json.dumps(meta | bad))
-        with pytest.raises(SysIdFormatError, match=words):
-            load_sysid_data(path)
-    path.write_text("{not json")
-    with pytest.raises(SysIdFormatError, match="not valid JSON"):
-        load_sysid_data(path)
-    path.write_text(json.dumps(meta))
-    arrays = _arrays(small)
-    np.savez(tmp_path / "case" / "data.npz", **{k: v for k, v in arrays.items() if k != "controls"})
-    with pytest.raises(SysIdFormatError, match=r"missing array\(s\) \['controls'\]"):
-        load_sysid_data(path)
-    np.savez(tmp_path / "case" / "data.npz", **arrays, springs=np.array([{"a": 1}], dtype=object))
-    with pytest.raises(SysIdFormatError, match="without pickle"):
-        load_sysid_data(path)
-    with pytest.raises(SysIdFormatError, match="not found"):
-        load_sysid_data(tmp_path / "nowhere")
-
-
 def test_bad_configuration_is_refused(small):
     with pytest.raises(SysIdFormatError, match="field 'fps'.*substeps"):
         identify(small, _config(substeps=10), log=_quiet)
@@ -441,34 +369,6 @@ def test_bad_configuration_is_refused(small):
         parse_ranges(("spring_Y=0:10",))
     assert parse_ranges(("drag_damping=1:2",))["drag_damping"].decode(0.5) == pytest.approx(1.5)
     assert parse_ranges(())["spring_Y"].decode(0.5) == pytest.approx(1e4)  # log scale midpoint
-
-
-# ---------------------------------------------------------------------------------------------- CLI
-
-
-def test_cli_help_and_end_to_end(small, tmp_path, capsys):
-    from twinbench.cli import main as cli_main
-
-    with pytest.raises(SystemExit) as ex:
-        cli_main(["sysid", "--help"])
-    assert ex.value.code == 0
-    assert "--cma.budget" in capsys.readouterr().out
-
-    save_sysid_data(small, tmp_path / "case")
-    # every applicable global parameter searched (spring and control rules included), tiny budgets
-    rc = cli_main(["sysid", "--data", str(tmp_path / "case"), "--out-dir", str(tmp_path / "out"),
-                   "--substeps", str(SUBSTEPS), "--dt", str(1.0 / (30 * SUBSTEPS)), "--no-progress",
-                   "--initial.spring-Y", "1000", "--cma.budget", "8", "--cma.ranges", "spring_Y=100:10000",
-                   "--adam.epochs", "1", "--adam.y-min", "50", "--adam.y-max", "1e4"])
-    assert rc == 0
-    rep = json.loads((tmp_path / "out" / "sysid_report.json").read_text())
-    assert len(rep["stage1_history"]) == 8 and len(rep["stage2_history"]) == 2
-    assert set(rep["config"]["cma"]) >= {"budget", "search", "ranges"}
-    assert (tmp_path / "out" / "rope" / "object.json").is_file()
-    assert (tmp_path / "out" / "sysid_report.png").is_file()
-    assert main(replace(_config(), data=tmp_path / "missing")) == 2
-    assert "not found" in capsys.readouterr().err
-
 
 
 @pytest.mark.slow

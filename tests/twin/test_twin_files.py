@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 import trimesh
 
+from twinbench.commands.twin import ExportConfig, export
 from twinbench.env import TwinEnv
 from twinbench.gaussians.cloud import GaussianCloud
 from twinbench.gaussians.colormap import identity_color_map
@@ -31,7 +32,6 @@ from twinbench.twin import (
     save_twin,
 )
 from twinbench.twin.cells import front_camera, push_t_cell, wrist_camera
-from twinbench.twin.cli import ExportConfig, export
 
 
 def assert_same(a, b, where="spec"):

@@ -1,9 +1,10 @@
 """System identification (PhysTwin-style): fit a spring-mass object's physics to observed motion.
 
-    data = load_sysid_data("cases/rope")               # format: twinbench.physics.sysid_data
-    result = identify(data, SysIdConfig(data=Path("cases/rope"), cma=CMAConfig(budget=200)))
-    write_object_dir(result, data, "out/rope")          # twin object directory (object.json + npz)
-    write_report(result, data, "out")                   # sysid_report.json + sysid_report.png
+    result = identify(data, FitConfig(cma=CMAConfig(budget=200)))   # data: SysIdData (sysid_data.py)
+    result.params, result.log_y, result.evals["final"].val_error
+
+This module is the fit only; reading the input files, writing the identified object and the report
+are construction tools (``twinbench.construct.sysid_io``, ``twinbench.construct.sysid_report``).
 
 Two stages (DESIGN section 4), each switchable for the ablation "without physics optimisation":
 
@@ -28,18 +29,16 @@ Loss of frame ``k`` (PhysTwin's terms and weights 1, 1, 0.01):
 
 The last ``validation_frames`` frames are never fitted; their *tracking error* (mean Euclidean
 distance between tracked particles and motion-valid tracks, metres, simulating the whole sequence
-from frame 0) is the validation figure of the report. Contact parameters are identified by stage 1
-only: the solver takes them as scalar kernel arguments, which ``wp.Tape`` does not differentiate.
+from frame 0) is the validation figure of the report. Stage 2 also fits the contact parameters that
+act (``AdamConfig.fit_contact``), in logit space.
 """
 
 from __future__ import annotations
 
-import json
 import math
 import time
 from collections.abc import Callable
-from dataclasses import asdict, dataclass, field, fields, replace
-from pathlib import Path
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 import warp as wp
@@ -48,20 +47,7 @@ from scipy.spatial import cKDTree
 from .model import ModelBuilder, SpringMassModel
 from .params import SimParams
 from .solver import SimulationDiverged, SpringMassSolver, check_divergence
-from .sysid_data import SysIdData, SysIdFormatError, load_sysid_data
-
-
-def load_input(path) -> SysIdData:
-    """A sysid directory (sysid.json + npz), or a PhysTwin case's `final_data.pkl` (or a folder holding
-    one and no sysid.json), read through twinbench.twin.phystwin's restricted loader."""
-    path = Path(path)
-    pkl = path if path.suffix == ".pkl" else path / "final_data.pkl"
-    if pkl.is_file() and not (path.is_dir() and (path / "sysid.json").is_file()):
-        from twinbench.twin.phystwin import sysid_data_from_final_data
-
-        return sysid_data_from_final_data(pkl)
-    return load_sysid_data(path)
-
+from .sysid_data import SysIdData, SysIdFormatError
 
 # ----------------------------------------------------------------------------------------------
 # parameters and search space
@@ -228,14 +214,10 @@ class AdamConfig:
 
 
 @dataclass(frozen=True)
-class SysIdConfig:
-    """`twinbench sysid`: identify an object's physics from observed motion (see sysid_data for the
-    input directory). Writes ``<out_dir>/<name>/`` (object.json + npz) and ``sysid_report.{json,png}``."""
+class FitConfig:
+    """The fit's settings: which stages run, their settings, the loss weights and the simulation's time
+    step (``twinbench sysid``'s config extends this with the input and output paths)."""
 
-    data: Path
-    """sysid input directory (sysid.json + npz, see twinbench.physics.sysid_data), or a PhysTwin case
-    folder / its final_data.pkl (read with the restricted loader of twinbench.twin.phystwin)"""
-    out_dir: Path = Path("outputs/sysid")
     device: str = "cpu"
     stage1: bool = True
     """run CMA-ES over the global parameters (off: use the initial values as given)"""
@@ -655,7 +637,7 @@ class SysIdResult:
     stage1_history: list[dict] = field(default_factory=list)
     stage2_history: list[dict] = field(default_factory=list)
     seconds: dict[str, float] = field(default_factory=dict)
-    config: SysIdConfig | None = None
+    config: FitConfig | None = None
 
     @property
     def object_spring_Y(self) -> np.ndarray:
@@ -665,7 +647,7 @@ class SysIdResult:
         return np.clip(y, self.sim.spring_Y_min, self.sim.spring_Y_max)
 
 
-def identify(data: SysIdData, cfg: SysIdConfig, *, base: SimParams | None = None,
+def identify(data: SysIdData, cfg: FitConfig, *, base: SimParams | None = None,
              log: Callable[[str], None] = print) -> SysIdResult:
     """Run the configured stages on ``data``; ``base`` overrides the SimParams built from ``cfg``."""
     base = base or cfg.base_params(data.fps)
@@ -696,230 +678,3 @@ def identify(data: SysIdData, cfg: SysIdConfig, *, base: SimParams | None = None
     evals["final"] = evaluate(model, data, loss)
     return SysIdResult(params, params.sim_params(base), model.log_y_np.copy(), model, evals, history1,
                        history2, seconds, cfg)
-
-
-# ----------------------------------------------------------------------------------------------
-# output
-
-
-def sim_dict(sim: SimParams) -> dict:
-    """SimParams as JSON-ready values (tuples as lists)."""
-    return {f.name: (list(v) if isinstance(v := getattr(sim, f.name), tuple) else v) for f in fields(sim)}
-
-
-def write_object_dir(result: SysIdResult, data: SysIdData, directory: str | Path) -> Path:
-    """Write the identified object as a standalone twin object directory (``object.json`` + npz with
-    explicit object springs, rest lengths, per-spring stiffness and masses; "sim" = the identified
-    SimParams) through ``twinbench.twin.save_object``. Particles are the frame-0 positions with an
-    identity rest pose (object frame = the observations' world frame). Returns object.json's path."""
-    from twinbench.twin import ObjectSpec, save_object
-
-    m = result.model
-    n = m.num_object_springs
-    obj = ObjectSpec(name=data.name, particles=m.x0_np.astype(np.float64),
-                     springs=m.springs_np[:n].astype(np.int32),
-                     rest_lengths=m.rest_lengths_np[:n].astype(np.float64), spring_Y=result.object_spring_Y,
-                     mass=m.masses_np.astype(np.float64), binding="lbs")
-    return save_object(obj, directory, sim=sim_dict(result.sim))
-
-
-def _finite(x) -> float | None:
-    x = float(x)
-    return x if math.isfinite(x) else None
-
-
-def report_dict(result: SysIdResult, data: SysIdData) -> dict:
-    """The fit report as JSON-ready data."""
-    ys = result.object_spring_Y
-    cfg = result.config
-    return {
-        "name": data.name,
-        "frames": {"total": data.num_frames, "train": [data.train_frames.start, data.train_frames.stop - 1],
-                   "validation": data.validation_frames},
-        "stages": {"stage1": bool(cfg and cfg.stage1), "stage2": bool(cfg and cfg.stage2)},
-        "global_params": asdict(result.params),
-        "sim": sim_dict(result.sim),
-        "spring_Y": {"count": int(ys.size), "min": _finite(ys.min()) if ys.size else None,
-                     "median": _finite(np.median(ys)) if ys.size else None,
-                     "max": _finite(ys.max()) if ys.size else None},
-        "evaluations": {name: {"train_loss": _finite(e.train_loss), "train_error_m": _finite(e.train_error),
-                               "val_error_m": _finite(e.val_error), "diverged": e.diverged,
-                               "per_frame_error_m": [_finite(v) for v in e.track_error],
-                               "per_frame_loss": [_finite(v) for v in e.loss]}
-                        for name, e in result.evals.items()},
-        "stage1_history": [{k: _finite(v) if isinstance(v, float) else v for k, v in row.items()}
-                           for row in result.stage1_history],
-        "stage2_history": [{k: _finite(v) if isinstance(v, float) else v for k, v in row.items()}
-                           for row in result.stage2_history],
-        "seconds": result.seconds,
-        "config": _jsonable(asdict(cfg)) if cfg else None,
-    }
-
-
-def _jsonable(obj):
-    if isinstance(obj, dict):
-        return {k: _jsonable(v) for k, v in obj.items()}
-    if isinstance(obj, list | tuple):
-        return [_jsonable(v) for v in obj]
-    if isinstance(obj, Path):
-        return str(obj)
-    return obj
-
-
-def write_report(result: SysIdResult, data: SysIdData, directory: str | Path) -> tuple[Path, Path]:
-    """Write ``sysid_report.json`` and ``sysid_report.png`` (loss curves, per-frame tracking error,
-    stiffness histogram) into ``directory``."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    directory = Path(directory)
-    directory.mkdir(parents=True, exist_ok=True)
-    rep = report_dict(result, data)
-    jpath = directory / "sysid_report.json"
-    jpath.write_text(json.dumps(rep, indent=2) + "\n")
-
-    fig, ax = plt.subplots(2, 2, figsize=(11, 7.5))
-    a = ax[0, 0]
-    if result.stage1_history:
-        h = result.stage1_history
-        a.semilogy([r["evaluation"] for r in h], [r["best"] for r in h], label="best so far")
-        a.semilogy([r["evaluation"] for r in h], [r["loss"] for r in h], ".", ms=3, alpha=0.5,
-                   label="candidate")
-        a.legend()
-    else:
-        a.text(0.5, 0.5, "stage 1 off", ha="center", va="center", transform=a.transAxes)
-    a.set(title="stage 1: CMA-ES training loss (Chamfer + tracking)", xlabel="evaluation")
-    a = ax[0, 1]
-    rows = [r for r in result.stage2_history if "train_loss" in r]
-    if rows:
-        ep = [r["epoch"] for r in rows]
-        h1 = a.semilogy(ep, [r["train_loss"] for r in rows], "o-", label="training loss (all terms)")
-        a2 = a.twinx()
-        h2 = a2.plot(ep, [1e3 * r["val_error"] for r in rows], "s--", color="C1", label="validation error")
-        a2.set_ylabel("validation tracking error (mm)")
-        a.legend(handles=h1 + h2, loc="upper right")
-    else:
-        a.text(0.5, 0.5, "stage 2 off", ha="center", va="center", transform=a.transAxes)
-    a.set(title="stage 2: Adam on per-spring log Y", xlabel="epoch")
-    a = ax[1, 0]
-    for name, e in result.evals.items():
-        a.plot(np.arange(e.track_error.size), 1e3 * e.track_error,
-               label=f"{name} (validation {1e3 * e.val_error:.2f} mm)")
-    if data.validation_frames:
-        a.axvspan(data.val_frames.start - 0.5, data.num_frames - 0.5, color="0.9", label="validation frames")
-    a.set(title="tracking error per frame", xlabel="frame", ylabel="mm")
-    a.legend(fontsize=8)
-    a = ax[1, 1]
-    ys = result.object_spring_Y
-    if ys.size:
-        a.hist(np.log10(ys), bins=30)
-    a.set(title=f"object spring stiffness ({ys.size} springs)", xlabel="log10 Y", ylabel="springs")
-    fig.suptitle(f"system identification: {data.name}")
-    fig.tight_layout()
-    ppath = directory / "sysid_report.png"
-    fig.savefig(ppath, dpi=90)
-    plt.close(fig)
-    return jpath, ppath
-
-
-# ----------------------------------------------------------------------------------------------
-# CLI
-
-
-def main(cfg: SysIdConfig) -> int:
-    """`twinbench sysid`: load, identify, write the object directory and the fit report."""
-    from rich.console import Console
-
-    console = Console(stderr=True)
-
-    def say(msg: str) -> None:
-        console.print(msg, markup=False, soft_wrap=True, highlight=False)
-
-    try:
-        data = load_input(cfg.data)
-        result = identify(data, cfg, log=say)
-    except (SysIdFormatError, ValueError) as exc:
-        say(f"twinbench sysid: {exc}")
-        return 2
-    except SimulationDiverged as exc:
-        say(f"twinbench sysid: {exc}")
-        return 1
-    obj = write_object_dir(result, data, cfg.out_dir / data.name)
-    jpath, ppath = write_report(result, data, cfg.out_dir)
-    for name, e in result.evals.items():
-        say(f"{name:>8}: training loss {e.train_loss:.4e}, tracking error: training "
-            f"{1e3 * e.train_error:.2f} mm, validation {1e3 * e.val_error:.2f} mm")
-    say(f"object: {obj}\nreport: {jpath}, {ppath}")
-    return 0
-
-
-# ----------------------------------------------------------------------------------------------
-# synthetic ground truth (tests, benchmark, demos)
-
-
-def synthetic_case(kind: str = "rope", *, frames: int = 40, validation_frames: int = 10, substeps: int = 40,
-                   soft_Y: float = 300.0, stiff_Y: float = 3000.0, truth: GlobalParams | None = None,
-                   noise: float = 1e-3, visible_fraction: float = 0.7, tracked_stride: int = 1,
-                   seed: int = 0) -> tuple[SysIdData, dict]:
-    """A ground-truth object with hidden, spatially varying stiffness (springs whose midpoint lies at
-    x < the object's middle get ``soft_Y``, the others ``stiff_Y``) and hidden contact parameters
-    (``truth``), lying on the ground, then lifted, stretched and swayed by two control points at each
-    x end (as two hands would); observed at 30 Hz with ``noise`` (m, per axis), a random
-    ``visible_fraction`` of the particles visible per frame, every ``tracked_stride``-th particle
-    tracked (5 % of track samples motion-invalid).
-
-    ``kind``: "rope" (20 particles 1 cm apart), "cloth" (8 x 4 sheet) or "plush" (6 x 3 x 3 block).
-    ``substeps`` per 30 Hz frame (dt = 1 / (30 substeps)). Returns the data and the truth:
-    {"params", "sim", "log_y" (all springs), "springs" (object springs), "positions" (noise-free,
-    F x P x 3), "soft" (per object spring)}.
-    """
-    from .model import lattice
-
-    shapes = {"rope": (20, 1, 1), "cloth": (8, 4, 1), "plush": (6, 3, 3)}
-    if kind not in shapes:
-        raise ValueError(f"kind must be one of {sorted(shapes)}, got {kind!r}")
-    rng = np.random.default_rng(seed)
-    pts = lattice(*shapes[kind], spacing=0.01)
-    lo, hi = pts.min(axis=0), pts.max(axis=0)
-    ymid, zmid = 0.5 * (lo[1] + hi[1]), 0.5 * (lo[2] + hi[2])
-    c0 = np.array([[lo[0] - 0.005, ymid, zmid - 0.005], [lo[0] - 0.005, ymid, zmid + 0.005],
-                   [hi[0] + 0.005, ymid, zmid - 0.005], [hi[0] + 0.005, ymid, zmid + 0.005]])
-    truth = truth or GlobalParams(spring_Y=stiff_Y, spring_radius=0.02, spring_max_neighbors=30,
-                                  control_radius=0.02, control_max_neighbors=8, ground_restitution=0.1,
-                                  ground_friction=0.8, drag_damping=1.0, dashpot_damping=50.0)
-    base = SimParams(dt=1.0 / (30.0 * substeps), substeps=substeps)
-    t = np.arange(frames) / 30.0
-    u = np.clip(t / 0.6, 0.0, 1.0)
-    u = u * u * (3.0 - 2.0 * u)  # smooth 0 -> 1 over 0.6 s: lift by 12 cm and pull the ends 3 cm apart
-    sway = np.clip(t - 0.6, 0.0, None)  # then stretch and relax, and sway sideways
-    stretch = 0.03 * u + 0.015 * np.sin(2.5 * sway)
-    side = 0.03 * (1.0 - np.cos(2.0 * sway))
-    controls = np.repeat(c0[None], frames, axis=0)
-    controls[:, :, 1] += side[:, None]
-    controls[:, :, 2] += 0.12 * u[:, None]
-    controls[:, :2, 0] -= 0.5 * stretch[:, None]
-    controls[:, 2:, 0] += 0.5 * stretch[:, None]
-    b = ModelBuilder(truth.sim_params(base))
-    b.add_body(pts, radius=truth.spring_radius, max_neighbors=truth.spring_max_neighbors)
-    b.add_control_points(c0, radius=truth.control_radius, max_neighbors=truth.control_max_neighbors)
-    model = b.finalize()
-    n_obj = model.num_object_springs
-    sp = model.springs_np[:n_obj]
-    soft = 0.5 * (pts[sp[:, 0], 0] + pts[sp[:, 1], 0]) < 0.5 * (lo[0] + hi[0])
-    log_y = np.full(model.num_springs, math.log(stiff_Y), np.float32)
-    log_y[:n_obj][soft] = math.log(soft_Y)
-    model.set_spring_log_y(log_y)
-    xs = rollout(model, controls, frames - 1)[0].astype(np.float64)
-    n = len(pts)
-    observed = xs + rng.normal(0.0, noise, xs.shape)
-    visibility = rng.random((frames, n)) < visible_fraction
-    visibility[np.arange(frames), rng.integers(0, n, frames)] = True  # never an empty frame
-    tracked_idx = np.arange(0, n, tracked_stride)
-    tracked = xs[:, tracked_idx] + rng.normal(0.0, noise, (frames, tracked_idx.size, 3))
-    motion_valid = rng.random((frames, tracked_idx.size)) >= 0.05
-    data = SysIdData(pts, observed, visibility, tracked_idx, tracked, motion_valid, controls, fps=30.0,
-                     validation_frames=validation_frames, name=kind)
-    return data, {"params": truth, "sim": truth.sim_params(base), "log_y": log_y, "springs": sp,
-                  "positions": xs, "soft": soft}

@@ -1,17 +1,14 @@
-"""On-disk input of system identification (``twinbench sysid``): observed motion of one object.
+"""The input of system identification: observed motion of one object (:class:`SysIdData`).
 
-A sysid directory holds ``sysid.json`` and the ``.npz`` it names (read with ``allow_pickle=False``)::
-
-    sysid.json
-    {"format": "twinbench-sysid", "version": 1, "name": "rope", "arrays": "data.npz",
-     "fps": 30, "validation_frames": 10}
+Files holding it (a sysid directory: ``sysid.json`` + ``data.npz`` with the arrays below under their
+field names; a PhysTwin case's ``final_data.pkl``) are read by ``twinbench.construct.sysid_io``.
 
 World frame = robot base frame, z up, ground plane z = 0, SI units (DESIGN section 3). Frame 0 is
 the initial state; simulated frame ``k >= 1`` moves the control points from ``controls[k-1]`` to
 ``controls[k]`` and is compared with the observations of frame ``k``. The last
 ``validation_frames`` frames are held out (never used for fitting).
 
-``data.npz`` keys (F frames, P particles, N observed points, T tracked points, K control points):
+Arrays (F frames, P particles, N observed points, T tracked points, K control points):
 
 =================== ============ ==================================================================
 key                 shape        meaning
@@ -32,25 +29,18 @@ key                 shape        meaning
                                  PhysTwin excludes interior completions)
 =================== ============ ==================================================================
 
-Every array is validated on load; errors name the file and field (:class:`SysIdFormatError`).
-PhysTwin cases (``final_data.pkl``) are read through the restricted loader of
-``twinbench.twin.phystwin`` and converted to :class:`SysIdData` there, never unpickled here.
+Every array is validated on construction; errors name the file and field (:class:`SysIdFormatError`).
 """
 
 from __future__ import annotations
 
-import json
 import math
 from dataclasses import dataclass, field
-from pathlib import Path
 
 import numpy as np
 
 from twinbench.errors import InputError
 
-FORMAT = "twinbench-sysid"
-VERSION = 1
-JSON_NAME = "sysid.json"
 MIN_SPRING_LENGTH = 1e-4  # as the builder's radius rule: shorter springs make a 0/0 strain
 
 
@@ -237,78 +227,3 @@ class SysIdData:
     @property
     def val_frames(self) -> range:
         return range(self.num_frames - self.validation_frames, self.num_frames)
-
-
-_REQUIRED = ("particles", "observed", "visibility", "tracked_indices", "tracked", "motion_valid", "controls")
-_OPTIONAL = ("springs", "rest_lengths", "masses", "surface_indices")
-
-
-def _safe_relative(json_path: Path, key: str, rel) -> Path:
-    if not isinstance(rel, str) or not rel:
-        raise SysIdFormatError(f"{json_path}: field '{key}' must be a relative file path string, got {rel!r}")
-    p = Path(rel)
-    if p.is_absolute() or ".." in p.parts:
-        raise SysIdFormatError(f"{json_path}: field '{key}' must be a path inside the directory "
-                               f"(relative, no '..'), got {rel!r}")
-    return json_path.parent / p
-
-
-def load_sysid_data(path: str | Path) -> SysIdData:
-    """Read a sysid directory (or its ``sysid.json``); see the module docstring for the format."""
-    path = Path(path)
-    json_path = path / JSON_NAME if path.is_dir() else path
-    if not json_path.is_file():
-        raise SysIdFormatError(f"{json_path}: not found; a sysid directory holds {JSON_NAME} and its .npz")
-    try:
-        meta = json.loads(json_path.read_text())
-    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
-        raise SysIdFormatError(f"{json_path}: not valid JSON ({exc})") from None
-    if not isinstance(meta, dict):
-        raise SysIdFormatError(f"{json_path}: must hold a JSON object")
-    if meta.get("format") != FORMAT:
-        raise SysIdFormatError(f"{json_path}: field 'format' must be {FORMAT!r}, got {meta.get('format')!r}")
-    if meta.get("version") != VERSION:
-        raise SysIdFormatError(f"{json_path}: field 'version' {meta.get('version')!r} is not supported "
-                               f"(this twinbench reads version {VERSION})")
-    unknown = set(meta) - {"format", "version", "name", "arrays", "fps", "validation_frames"}
-    if unknown:
-        raise SysIdFormatError(f"{json_path}: unknown field(s) {sorted(unknown)}")
-    npz_path = _safe_relative(json_path, "arrays", meta.get("arrays"))
-    if not npz_path.is_file():
-        raise SysIdFormatError(f"{json_path}: field 'arrays' names {npz_path}, which does not exist")
-    for key, kind in (("fps", (int, float)), ("validation_frames", int)):
-        if key in meta and (isinstance(meta[key], bool) or not isinstance(meta[key], kind)):
-            raise SysIdFormatError(f"{json_path}: field '{key}' must be a number, got {meta[key]!r}")
-    try:
-        with np.load(npz_path, allow_pickle=False) as z:
-            arrays = {k: z[k] for k in z.files}
-    except ValueError as exc:  # object arrays need pickle: refused
-        raise SysIdFormatError(f"{npz_path}: cannot be read without pickle ({exc}); store plain numeric "
-                               "arrays") from None
-    except OSError as exc:
-        raise SysIdFormatError(f"{npz_path}: not a readable .npz ({exc})") from None
-    missing = [k for k in _REQUIRED if k not in arrays]
-    if missing:
-        raise SysIdFormatError(f"{npz_path}: missing array(s) {missing} (see twinbench.physics.sysid_data)")
-    extra = set(arrays) - set(_REQUIRED) - set(_OPTIONAL)
-    if extra:
-        raise SysIdFormatError(f"{npz_path}: unknown array(s) {sorted(extra)}")
-    kwargs = {k: arrays.get(k) for k in _REQUIRED + _OPTIONAL}
-    return SysIdData(**kwargs, fps=meta.get("fps", 30.0), validation_frames=meta.get("validation_frames", 0),
-                     name=meta.get("name", json_path.parent.name or "object"), source=str(npz_path))
-
-
-def save_sysid_data(data: SysIdData, directory: str | Path, arrays: str = "data.npz") -> Path:
-    """Write ``data`` as a sysid directory; returns the path of ``sysid.json``."""
-    directory = Path(directory)
-    directory.mkdir(parents=True, exist_ok=True)
-    out = {k: getattr(data, k) for k in _REQUIRED}
-    for k in _OPTIONAL:
-        if getattr(data, k) is not None:
-            out[k] = getattr(data, k)
-    np.savez(directory / arrays, **out)
-    meta = {"format": FORMAT, "version": VERSION, "name": data.name, "arrays": arrays, "fps": data.fps,
-            "validation_frames": data.validation_frames}
-    path = directory / JSON_NAME
-    path.write_text(json.dumps(meta, indent=2) + "\n")
-    return path

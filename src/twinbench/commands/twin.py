@@ -1,4 +1,5 @@
-"""`twinbench twin export|show`: write a task's built-in twin as a directory; summarise and preview one."""
+"""`twinbench twin export|show|build`: write a task's built-in twin as a directory; summarise and preview
+one; write a twin directory from a build config (twinbench.construct.build_config)."""
 
 from __future__ import annotations
 
@@ -40,7 +41,7 @@ class BuildConfig:
     """Write a twin directory from a build config naming the construction steps' outputs."""
 
     config: tyro.conf.Positional[Path]
-    """build config JSON (see twinbench.twin.construct_cli.build_spec_from_config)"""
+    """build config JSON (see twinbench.construct.build_config.build_spec_from_config)"""
     out: Path
     """the twin directory to write"""
 
@@ -132,7 +133,7 @@ def show(cfg: ShowConfig) -> int:
 
 
 def build(cfg: BuildConfig) -> int:
-    from twinbench.twin.construct_cli import build_from_config
+    from twinbench.construct.build_config import build_from_config
 
     path = build_from_config(cfg.config, cfg.out)
     print(f"wrote the twin to {path.parent}")

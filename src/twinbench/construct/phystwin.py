@@ -593,8 +593,45 @@ def case_from_arrays(arrays: dict, meta: dict) -> tuple[dict, dict, dict, int]:
     return final, dict(meta["optimal_params"]), ck, epoch
 
 
-def dumps_json(obj) -> str:
-    return json.dumps(obj, indent=1)
+# ------------------------------------------------------------------------------------------------
+# files: a twin object folder carrying its case
+
+
+def import_case_to_object(case_dir, out, *, name: str = "object", final_data=None, optimal_params=None,
+                          checkpoint=None, reverse_z: bool = True, self_collision: bool = False,
+                          gaussians=None) -> ImportedObject:
+    """`twinbench import-phystwin`: read and import a case (`read_case`, `import_case`) and write it as a
+    twin object folder (`write_imported_object`); `gaussians`: an optional 3DGS file in the case's frame."""
+    from twinbench.gaussians.io import load_gaussians
+
+    case = read_case(case_dir, final_data=final_data, optimal_params=optimal_params, checkpoint=checkpoint)
+    imp = import_case(case, reverse_z=reverse_z, self_collision=self_collision)
+    g = None if gaussians is None else load_gaussians(gaussians).transform(imp.frame)
+    write_imported_object(out, name, imp, g, case_arrays(case), case_metadata(case, imp, reverse_z))
+    return imp
+
+
+def write_imported_object(out, name: str, imp: ImportedObject, gaussians, arrays: dict, meta: dict) -> None:
+    """object.json + arrays (`twinbench.twin.save_object`), and phystwin.npz / phystwin.json: the case's
+    tracking data and scalars, for `export_object_to_case`."""
+    from twinbench.construct._json import write_json
+    from twinbench.twin import ObjectSpec, save_object
+
+    obj = ObjectSpec(name, imp.particles, springs=imp.springs, rest_lengths=imp.rest_lengths,
+                     spring_Y=imp.spring_Y.astype(np.float64), mass=1.0, gaussians=gaussians, binding="lbs")
+    save_object(obj, out, sim=imp.sim)
+    np.savez(Path(out) / "phystwin.npz", **arrays)
+    write_json(Path(out) / "phystwin.json", meta)
+
+
+def export_object_to_case(object_dir, out) -> dict:
+    """`twinbench export-phystwin`: write an object folder written by `write_imported_object` back as a
+    PhysTwin case folder (`write_case`); returns the written paths."""
+    object_dir = Path(object_dir)
+    with np.load(object_dir / "phystwin.npz", allow_pickle=False) as z:
+        arrays = {k: z[k] for k in z.files}
+    final, op, ck, epoch = case_from_arrays(arrays, json.loads((object_dir / "phystwin.json").read_text()))
+    return write_case(out, final, op, ck, epoch=epoch)
 
 
 def sysid_data_from_final_data(path, *, reverse_z: bool = True, validation_frames: int | None = None):

@@ -8,8 +8,8 @@ import json
 import numpy as np
 import pytest
 
+from twinbench.construct.calibration import OPENGL_TO_OPENCV, load_calibration
 from twinbench.gaussians.camera import look_at_pose
-from twinbench.twin.calibration import OPENGL_TO_OPENCV, load_calibration
 
 
 def test_cameras_are_read_into_the_robot_base_frame(tmp_path):

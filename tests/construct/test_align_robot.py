@@ -7,10 +7,7 @@ import numpy as np
 import pytest
 import trimesh
 
-from twinbench.robot.builtin import load_builtin_arm
-from twinbench.robot.gaussians import sample_robot_scan
-from twinbench.transforms import rotation_angle, rotvec_to_matrix
-from twinbench.twin.align_robot import (
+from twinbench.construct.align_robot import (
     RegistrationParams,
     fit_similarity,
     fpfh_features,
@@ -18,6 +15,9 @@ from twinbench.twin.align_robot import (
     register_robot,
     sample_robot_surface,
 )
+from twinbench.robot.builtin import load_builtin_arm
+from twinbench.robot.gaussians import sample_robot_scan
+from twinbench.transforms import rotation_angle, rotvec_to_matrix
 
 NOISE = 0.002
 OUTLIER_FRACTION = 0.2

@@ -7,9 +7,9 @@ import pytest
 import trimesh
 
 from twinbench.cli import main as cli
+from twinbench.construct.mesh_object import mesh_particles, mesh_to_object
 from twinbench.physics import ModelBuilder, SimParams, SpringMassSolver
 from twinbench.twin import load_object
-from twinbench.twin.mesh_object import mesh_particles, mesh_to_object
 
 
 def test_particles_fill_the_mesh_and_the_body_stays_rigid():

@@ -6,9 +6,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from twinbench.construct.align_color import before_after_grid, fit_color_map, fit_pairs, load_pairs
 from twinbench.gaussians.cloud import GaussianCloud
 from twinbench.gaussians.colormap import apply_color_map, identity_color_map, map_colors
-from twinbench.twin.align_color import before_after_grid, fit_color_map, fit_pairs, load_pairs
 
 
 def _hidden_map(rng) -> np.ndarray:

@@ -194,3 +194,66 @@ def before_after_grid(pairs, coeffs, degree: int) -> np.ndarray:
     width = max(r.shape[1] for r in rows)
     rows = [np.pad(r, ((0, 0), (0, width - r.shape[1]), (0, 0))) for r in rows]
     return np.concatenate(rows, axis=0)
+
+
+# ------------------------------------------------------------------------------------------------
+# files: rendered pairs and the align-color output folder
+
+
+def render_pairs(scan_files, calibration: Path, real_dir: Path, out_dir: Path,
+                 background=(0.0, 0.0, 0.0)) -> list[str]:
+    """Render the Gaussians from each static calibrated camera (its output view) beside its real image
+    REAL_DIR/NAME.png: writes OUT_DIR/NAME_render.png, NAME_real.png and NAME_mask.png (pixels the scan
+    covers, alpha > 0.99). Returns the camera names."""
+    import shutil
+
+    import imageio.v3 as iio
+
+    from twinbench.construct.calibration import load_calibration
+    from twinbench.gaussians.camera import Camera
+    from twinbench.gaussians.cloud import GaussianCloud
+    from twinbench.gaussians.io import load_gaussians
+    from twinbench.gaussians.render import render
+
+    cloud = GaussianCloud.concatenate([load_gaussians(p) for p in scan_files])
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    names = []
+    for cam in load_calibration(calibration):
+        real = Path(real_dir) / f"{cam.name}.png"
+        if cam.mount_link is not None or not real.is_file():
+            continue
+        img = read_image(real)
+        h, w = cam.output_hw
+        if img.shape[:2] != (h, w):
+            raise ValueError(f"{real}: size {img.shape[:2]} differs from camera output_hw {(h, w)}")
+        fx, fy, cx, cy = cam.output_intrinsics()
+        out = render(cloud, [Camera(fx, fy, cx, cy, w, h, cam.pose)], background=background)[0]
+        iio.imwrite(out_dir / f"{cam.name}_render.png", out.rgb_uint8())
+        iio.imwrite(out_dir / f"{cam.name}_mask.png", ((out.alpha > 0.99) * 255).astype(np.uint8))
+        shutil.copyfile(real, out_dir / f"{cam.name}_real.png")
+        names.append(cam.name)
+    if not names:
+        raise ValueError(f"{real_dir}: no real image NAME.png for any static camera of {calibration}")
+    return names
+
+
+def align_color_files(pairs_dir, out, gaussians=(), *, degree: int = 2,
+                      iterations: int = 50) -> tuple[int, ColorFit]:
+    """`twinbench align-color`: fit one colour map on a pairs folder and write OUT/color_map.json,
+    OUT/grid.png (before | real | after) and each of `gaussians` (.ply) mapped, as OUT/<its name>.
+    Returns (number of pairs, the fit)."""
+    import imageio.v3 as iio
+
+    from twinbench.construct._json import write_json
+    from twinbench.gaussians.colormap import apply_color_map
+    from twinbench.gaussians.io import load_gaussians, save_gaussians
+
+    out = Path(out)
+    pairs = load_pairs(pairs_dir)
+    fit = fit_pairs(pairs, degree=degree, iterations=iterations)
+    write_json(out / "color_map.json", fit.to_json())
+    iio.imwrite(out / "grid.png", before_after_grid(pairs, fit.coeffs, fit.degree))
+    for p in gaussians:
+        save_gaussians(apply_color_map(load_gaussians(p), fit.coeffs, fit.degree), out / Path(p).name)
+    return len(pairs), fit

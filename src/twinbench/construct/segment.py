@@ -153,3 +153,29 @@ def segment_scan(
         inside = np.ones(len(scan), bool)
     bg = free & inside
     return scan, Segments(t, np.flatnonzero(rm), np.flatnonzero(bg), parts, np.flatnonzero(free & ~inside))
+
+
+def segment_files(scan_path, boxes_path, out) -> dict[str, int]:
+    """`twinbench segment`: split the scan file by the boxes file and write OUT/robot.ply, background.ply,
+    objects/NAME.ply, segments.npz (the index arrays) and segments.json; returns the count per part."""
+    from twinbench.construct._json import write_json
+    from twinbench.gaussians.io import load_gaussians, save_gaussians
+
+    transform, robot, objects, bounds = load_boxes(boxes_path)
+    scan, seg = segment_scan(load_gaussians(scan_path), robot, objects, bounds, transform)
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    files = {"robot": "robot.ply", "background": "background.ply"}
+    save_gaussians(scan.subset(seg.robot), out / "robot.ply")
+    save_gaussians(scan.subset(seg.background), out / "background.ply")
+    arrays = {"robot": seg.robot, "background": seg.background, "dropped": seg.dropped}
+    for name, idx in seg.objects.items():
+        files[name] = f"objects/{name}.ply"
+        (out / "objects").mkdir(exist_ok=True)
+        save_gaussians(scan.subset(idx), out / files[name])
+        arrays[f"object_{name}"] = idx
+    np.savez(out / "segments.npz", **arrays)
+    counts = {k: int(len(v)) for k, v in arrays.items()}
+    write_json(out / "segments.json", {"scan": str(scan_path), "transform": seg.transform.tolist(),
+                                       "files": files, "counts": counts})
+    return counts

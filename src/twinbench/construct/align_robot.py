@@ -17,6 +17,7 @@ Pipeline (numpy + scipy's KD-tree, no Open3D):
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from pathlib import Path
 
 import numpy as np
 import trimesh
@@ -515,3 +516,63 @@ def label_points(
         labels[ok] = samples.link_index[jk[rows, best]]
         d[ok] = dk[rows, best]
     return labels, d
+
+
+# ------------------------------------------------------------------------------------------------
+# files: the align-robot output folder
+
+
+def align_robot_files(robot_path, out, *, urdf: str = "builtin:xarm7_gripper", q=None,
+                      params: RegistrationParams = RegistrationParams(), max_distance: float = 0.02,
+                      also=()) -> dict:
+    """`twinbench align-robot`: register the robot's Gaussians (a 3DGS file) to the URDF at `q` (default:
+    the robot's home), write the output folder (`write_aligned_robot`) and return the report."""
+    from twinbench.gaussians.io import load_gaussians
+    from twinbench.twin.build import load_spec_robot
+    from twinbench.twin.spec import RobotSpec
+
+    model = load_spec_robot(RobotSpec(urdf=urdf))
+    q = model.home_q if q is None else model.check_q(np.asarray(q, dtype=np.float64))
+    cloud = load_gaussians(robot_path)
+    res = register_robot(cloud.means, model, q, params, scan_normals=gaussian_normals(cloud))
+    write_aligned_robot(out, cloud, res, q, urdf, max_distance, also)
+    return res.report(max_distance)
+
+
+def write_aligned_robot(out, cloud, res: RegistrationResult, q, urdf: str, max_distance: float,
+                        also=()) -> None:
+    """robot.ply + labels.npz (labels int32 into `links`) + far.ply + report.json (+ aligned copies)."""
+    from twinbench.construct._json import write_json
+    from twinbench.gaussians.io import load_gaussians, save_gaussians
+
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    moved = cloud.transform(res.transform)
+    near = res.distances <= max_distance
+    save_gaussians(moved.subset(near), out / "robot.ply")
+    save_gaussians(moved.subset(~near), out / "far.ply")
+    np.savez(out / "labels.npz", labels=res.labels[near].astype(np.int32), links=np.asarray(res.links))
+    rep = res.report(max_distance)
+    rep.update({"urdf": urdf, "q": np.asarray(q).tolist(), "links": list(res.links)})
+    aligned = {}
+    for path in also:
+        p = Path(path)
+        dst = out / "aligned" / p.name
+        dst.parent.mkdir(exist_ok=True)
+        save_gaussians(load_gaussians(p).transform(res.transform), dst)
+        aligned[str(p)] = f"aligned/{p.name}"
+    rep["aligned"] = aligned
+    write_json(out / "report.json", rep)
+
+
+def read_aligned_robot(folder) -> tuple:
+    """(cloud, labels, links, q, urdf) of an align-robot output folder."""
+    import json
+
+    from twinbench.gaussians.io import load_gaussians
+
+    folder = Path(folder)
+    rep = json.loads((folder / "report.json").read_text())
+    with np.load(folder / "labels.npz", allow_pickle=False) as z:
+        labels, links = z["labels"], [str(s) for s in z["links"]]
+    return load_gaussians(folder / "robot.ply"), labels, links, rep["q"], rep["urdf"]

@@ -8,10 +8,10 @@ import numpy as np
 import pytest
 
 from twinbench.cli import main as cli
+from twinbench.construct.segment import load_boxes, segment_scan
 from twinbench.gaussians.io import load_gaussians, save_gaussians
 from twinbench.gaussians.primitives import surface_discs
 from twinbench.transforms import rotvec_to_matrix
-from twinbench.twin.segment import load_boxes, segment_scan
 
 
 def _scene():

@@ -11,9 +11,7 @@ import zipfile
 import numpy as np
 import pytest
 
-from twinbench.physics import ModelBuilder, SimParams, SpringMassSolver
-from twinbench.physics.model import lattice
-from twinbench.twin.phystwin import (
+from twinbench.construct.phystwin import (
     FLIP_Z,
     PhysTwinFormatError,
     controller_springs,
@@ -25,6 +23,8 @@ from twinbench.twin.phystwin import (
     save_torch_zip,
     write_case,
 )
+from twinbench.physics import ModelBuilder, SimParams, SpringMassSolver
+from twinbench.physics.model import lattice
 
 # ------------------------------------------------------------------------------ restricted loading
 
@@ -259,8 +259,8 @@ def test_import_export_commands_round_trip_a_case(tmp_path):
 def test_final_data_becomes_sysid_input_in_the_z_up_frame(tmp_path):
     """A case's training data read as system-identification input: particles, observed and tracked
     points and controls in twinbench's z-up frame, the last fifth held out; `sysid` reads the folder."""
-    from twinbench.physics.sysid import load_input
-    from twinbench.twin.phystwin import sysid_data_from_final_data
+    from twinbench.construct.phystwin import sysid_data_from_final_data
+    from twinbench.construct.sysid_io import load_input
 
     case, frames = _make_case(tmp_path)
     data = sysid_data_from_final_data(case / "final_data.pkl")

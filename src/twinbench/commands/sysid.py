@@ -1,0 +1,51 @@
+"""`twinbench sysid --data cases/rope`: fit an object's physics to observed motion (the fit is
+twinbench.physics.sysid; the files are twinbench.construct.sysid_io and sysid_report)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+from twinbench.construct.sysid_io import load_input, write_object_dir
+from twinbench.construct.sysid_report import write_report
+from twinbench.errors import SimulationDiverged
+from twinbench.physics.sysid import FitConfig, identify
+from twinbench.physics.sysid_data import SysIdFormatError
+
+
+@dataclass(frozen=True, kw_only=True)
+class SysIdConfig(FitConfig):
+    """`twinbench sysid`: identify an object's physics from observed motion (see sysid_data for the
+    input directory). Writes ``<out_dir>/<name>/`` (object.json + npz) and ``sysid_report.{json,png}``."""
+
+    data: Path
+    """sysid input directory (sysid.json + npz, see twinbench.construct.sysid_io), or a PhysTwin case
+    folder / its final_data.pkl (read with the restricted loader of twinbench.construct.phystwin)"""
+    out_dir: Path = Path("outputs/sysid")
+
+
+def main(cfg: SysIdConfig) -> int:
+    """Load, identify, write the object directory and the fit report."""
+    from rich.console import Console
+
+    console = Console(stderr=True)
+
+    def say(msg: str) -> None:
+        console.print(msg, markup=False, soft_wrap=True, highlight=False)
+
+    try:
+        data = load_input(cfg.data)
+        result = identify(data, cfg, log=say)
+    except (SysIdFormatError, ValueError) as exc:
+        say(f"twinbench sysid: {exc}")
+        return 2
+    except SimulationDiverged as exc:
+        say(f"twinbench sysid: {exc}")
+        return 1
+    obj = write_object_dir(result, data, cfg.out_dir / data.name)
+    jpath, ppath = write_report(result, data, cfg.out_dir)
+    for name, e in result.evals.items():
+        say(f"{name:>8}: training loss {e.train_loss:.4e}, tracking error: training "
+            f"{1e3 * e.train_error:.2f} mm, validation {1e3 * e.val_error:.2f} mm")
+    say(f"object: {obj}\nreport: {jpath}, {ppath}")
+    return 0

@@ -1,0 +1,116 @@
+"""System identification's fit report: ``sysid_report.json`` (figures, histories, settings) and
+``sysid_report.png`` (loss curves, per-frame tracking error, stiffness histogram)."""
+
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import asdict
+from pathlib import Path
+
+import numpy as np
+
+from twinbench.construct.sysid_io import sim_dict
+from twinbench.physics.sysid import SysIdResult
+from twinbench.physics.sysid_data import SysIdData
+
+
+def _finite(x) -> float | None:
+    x = float(x)
+    return x if math.isfinite(x) else None
+
+
+def report_dict(result: SysIdResult, data: SysIdData) -> dict:
+    """The fit report as JSON-ready data."""
+    ys = result.object_spring_Y
+    cfg = result.config
+    return {
+        "name": data.name,
+        "frames": {"total": data.num_frames, "train": [data.train_frames.start, data.train_frames.stop - 1],
+                   "validation": data.validation_frames},
+        "stages": {"stage1": bool(cfg and cfg.stage1), "stage2": bool(cfg and cfg.stage2)},
+        "global_params": asdict(result.params),
+        "sim": sim_dict(result.sim),
+        "spring_Y": {"count": int(ys.size), "min": _finite(ys.min()) if ys.size else None,
+                     "median": _finite(np.median(ys)) if ys.size else None,
+                     "max": _finite(ys.max()) if ys.size else None},
+        "evaluations": {name: {"train_loss": _finite(e.train_loss), "train_error_m": _finite(e.train_error),
+                               "val_error_m": _finite(e.val_error), "diverged": e.diverged,
+                               "per_frame_error_m": [_finite(v) for v in e.track_error],
+                               "per_frame_loss": [_finite(v) for v in e.loss]}
+                        for name, e in result.evals.items()},
+        "stage1_history": [{k: _finite(v) if isinstance(v, float) else v for k, v in row.items()}
+                           for row in result.stage1_history],
+        "stage2_history": [{k: _finite(v) if isinstance(v, float) else v for k, v in row.items()}
+                           for row in result.stage2_history],
+        "seconds": result.seconds,
+        "config": _jsonable(asdict(cfg)) if cfg else None,
+    }
+
+
+def _jsonable(obj):
+    if isinstance(obj, dict):
+        return {k: _jsonable(v) for k, v in obj.items()}
+    if isinstance(obj, list | tuple):
+        return [_jsonable(v) for v in obj]
+    if isinstance(obj, Path):
+        return str(obj)
+    return obj
+
+
+def write_report(result: SysIdResult, data: SysIdData, directory: str | Path) -> tuple[Path, Path]:
+    """Write ``sysid_report.json`` and ``sysid_report.png`` (loss curves, per-frame tracking error,
+    stiffness histogram) into ``directory``."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    directory = Path(directory)
+    directory.mkdir(parents=True, exist_ok=True)
+    rep = report_dict(result, data)
+    jpath = directory / "sysid_report.json"
+    jpath.write_text(json.dumps(rep, indent=2) + "\n")
+
+    fig, ax = plt.subplots(2, 2, figsize=(11, 7.5))
+    a = ax[0, 0]
+    if result.stage1_history:
+        h = result.stage1_history
+        a.semilogy([r["evaluation"] for r in h], [r["best"] for r in h], label="best so far")
+        a.semilogy([r["evaluation"] for r in h], [r["loss"] for r in h], ".", ms=3, alpha=0.5,
+                   label="candidate")
+        a.legend()
+    else:
+        a.text(0.5, 0.5, "stage 1 off", ha="center", va="center", transform=a.transAxes)
+    a.set(title="stage 1: CMA-ES training loss (Chamfer + tracking)", xlabel="evaluation")
+    a = ax[0, 1]
+    rows = [r for r in result.stage2_history if "train_loss" in r]
+    if rows:
+        ep = [r["epoch"] for r in rows]
+        h1 = a.semilogy(ep, [r["train_loss"] for r in rows], "o-", label="training loss (all terms)")
+        a2 = a.twinx()
+        h2 = a2.plot(ep, [1e3 * r["val_error"] for r in rows], "s--", color="C1", label="validation error")
+        a2.set_ylabel("validation tracking error (mm)")
+        a.legend(handles=h1 + h2, loc="upper right")
+    else:
+        a.text(0.5, 0.5, "stage 2 off", ha="center", va="center", transform=a.transAxes)
+    a.set(title="stage 2: Adam on per-spring log Y", xlabel="epoch")
+    a = ax[1, 0]
+    for name, e in result.evals.items():
+        a.plot(np.arange(e.track_error.size), 1e3 * e.track_error,
+               label=f"{name} (validation {1e3 * e.val_error:.2f} mm)")
+    if data.validation_frames:
+        a.axvspan(data.val_frames.start - 0.5, data.num_frames - 0.5, color="0.9", label="validation frames")
+    a.set(title="tracking error per frame", xlabel="frame", ylabel="mm")
+    a.legend(fontsize=8)
+    a = ax[1, 1]
+    ys = result.object_spring_Y
+    if ys.size:
+        a.hist(np.log10(ys), bins=30)
+    a.set(title=f"object spring stiffness ({ys.size} springs)", xlabel="log10 Y", ylabel="springs")
+    fig.suptitle(f"system identification: {data.name}")
+    fig.tight_layout()
+    ppath = directory / "sysid_report.png"
+    fig.savefig(ppath, dpi=90)
+    plt.close(fig)
+    return jpath, ppath
