@@ -185,7 +185,7 @@ def _axpy(a: float, x: wp.array(dtype=wp.vec3), y: wp.array(dtype=wp.vec3), out:
 def test_a_replayable_cpu_launch_calls_the_kernel_directly_with_the_recorded_arguments():
     """Recorded frames replay their launches through `replayable`: a direct call of the compiled kernel
     (with the pinned Warp) that computes what the recorded launch computes, call after call."""
-    from twinbench.physics.solver import replayable
+    from twinbench.physics.frames import replayable
 
     rng = np.random.default_rng(1)
     x, y = (wp.array(rng.normal(size=(50, 3)), dtype=wp.vec3, device="cpu") for _ in range(2))

@@ -124,14 +124,14 @@ def test_spring_neighbours_never_collide_with_self_collision_on():
     model = b.finalize()
     solver = SpringMassSolver(model)
     solver.rebuild_collision_candidates(model.state())
-    assert int(solver._cand_count.numpy().sum()) == 0
+    assert int(solver.buffers.cand_count.numpy().sum()) == 0
     # without springs the same close pairs are candidates
     b2 = ModelBuilder(p)
     b2.add_body(lattice(3, 3, 3), springs=np.zeros((0, 2), np.int32))
     model2 = b2.finalize()
     solver2 = SpringMassSolver(model2)
     solver2.rebuild_collision_candidates(model2.state())
-    assert int(solver2._cand_count.numpy().sum()) > 0
+    assert int(solver2.buffers.cand_count.numpy().sum()) > 0
 
 
 def test_runs_are_bitwise_identical():
@@ -162,11 +162,11 @@ def test_candidate_lists_equal_phystwins_full_radius_lookup_in_the_same_order():
     solver = SpringMassSolver(model)
     state = model.state()
     solver.rebuild_collision_candidates(state)
-    ours = solver._cand.numpy().copy(), solver._cand_count.numpy().copy()
+    ours = solver.buffers.cand.numpy().copy(), solver.buffers.cand_count.numpy().copy()
     cell = 5.0 * p.collision_dist
     grid = wp.HashGrid(64, 64, 64, device="cpu")
     grid.build(state.x, cell, groups=model.particle_world)
-    cand, count = wp.zeros_like(solver._cand), wp.zeros_like(solver._cand_count)
+    cand, count = wp.zeros_like(solver.buffers.cand), wp.zeros_like(solver.buffers.cand_count)
     inputs = [grid.id, state.x, model.masks, model.particle_world, model.nbr_offsets, model.nbr,
               p.collision_dist, cell, 0, 0]
     wp.launch(K.build_candidates, dim=512, inputs=inputs, outputs=[cand, count], device="cpu")

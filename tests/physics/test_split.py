@@ -36,10 +36,10 @@ def _run(threads: int, frames: int = 10, kill_after: int | None = None, collisio
                       pusher + [0.006 * f, 0, 0], 1, [0.006])
         forces.append([solver.mesh_contact_force(k, per_face=True) for k in range(2)])
         if kill_after is not None and f == kill_after:
-            assert solver._split is not None
-            solver._split.proc.kill()
-            solver._split.proc.wait()
-    split_used = solver._split is not None
+            assert solver.executor.name == "split"
+            solver.executor.proc.kill()
+            solver.executor.proc.wait()
+    split_used = solver.executor.name == "split"
     solver.close()
     return out, forces, split_used
 
@@ -91,7 +91,7 @@ def test_a_twin_env_on_two_cores_matches_one_core(monkeypatch):
             obs, _, _, _, info = env.step(a)
             frames.append((obs["pixels"]["front"], env.twin.particles(env.state, "rope"), info["grasp"]))
         runs.append(frames)
-        assert (env.twin.solver._split is not None) == (cores == "2")
+        assert (env.twin.solver.executor.name == "split") == (cores == "2")
         env.twin.solver.close()
     for (p1, x1, g1), (p2, x2, g2) in zip(*runs, strict=True):
         assert np.array_equal(p1, p2) and np.array_equal(x1, x2) and g1 == g2
@@ -148,7 +148,7 @@ def test_contacts_of_both_halves_with_one_mesh_are_summed_in_particle_order():
         for _ in range(8):
             solver.simulate_frame(state, ctl)
             run.append(solver.mesh_contact_force(0, per_face=True))
-        assert (solver._split is not None) == (threads == 2)
+        assert (solver.executor.name == "split") == (threads == 2)
         z, half = state.x.numpy()[:, 2], model.num_particles // 2
         assert z[:half].min() < 0.11 and z[half:].min() < 0.11  # both halves lie on the box (top at 0.1)
         solver.close()

@@ -2,11 +2,8 @@
 
 from __future__ import annotations
 
-import ctypes
 import warnings
-from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass
 
 import numpy as np
 import warp as wp
@@ -15,8 +12,9 @@ from twinbench._runtime import cpu_cores
 from twinbench.errors import SimulationDiverged
 
 from . import kernels as K
+from .frames import FrameBuffers, FrameExecutor, FrameExecutorFailed, Part, replayable, worlds_part
 from .model import Control, SpringMassModel, State
-from .split import SplitFailed, SplitFrame, wants_split
+from .split import SplitFrames, wants_split
 
 
 def check_divergence(state: State, max_speed: float = 100.0) -> np.ndarray:
@@ -28,77 +26,6 @@ def check_divergence(state: State, max_speed: float = 100.0) -> np.ndarray:
     with np.errstate(invalid="ignore", over="ignore"):
         bad |= ~(np.linalg.norm(v.astype(np.float64), axis=1) <= max_speed)
     return np.flatnonzero(bad)
-
-
-@dataclass(frozen=True)
-class _Worlds:
-    """The index ranges of the worlds ``[w0, w1)`` of a model (worlds are laid out world-major)."""
-
-    w0: int
-    w1: int
-    particles: tuple[int, int]
-    springs: tuple[tuple[int, int], ...]  # object springs, then control springs (merged when adjacent)
-    kin_vertices: tuple[int, int]
-    kinematic: tuple[int, ...]  # kinematic mesh ids
-    # a split frame's part: the object springs, then the control springs touching it, in ascending order as
-    # launches (control, first, count, ids): a range [first, first + count) when ids is None
-    touching: tuple[tuple[bool, int, int, wp.array | None], ...] | None = None
-
-
-def _worlds(model: SpringMassModel, w0: int, w1: int) -> _Worlds:
-    nw, W = model.particles_per_world, model.num_worlds
-    so = model.num_object_springs // W
-    sc = (model.num_springs - model.num_object_springs) // W
-    ranges = [(w0 * so, w1 * so), (W * so + w0 * sc, W * so + w1 * sc)]
-    if ranges[0][1] == ranges[1][0]:
-        ranges = [(ranges[0][0], ranges[1][1])]
-    ranges = [r for r in ranges if r[1] > r[0]]
-    mw = model.meshes_per_world
-    mine = range(w0 * mw, w1 * mw)
-    kin = tuple(i for i in mine if model.meshes[i].kinematic)
-    ends = [(model.meshes[i].vertex_offset, model.meshes[i].vertex_offset + model.meshes[i].vertices.shape[0])
-            for i in kin]
-    kv = (ends[0][0], ends[-1][1]) if ends else (0, 0)
-    return _Worlds(w0, w1, (w0 * nw, w1 * nw), tuple(ranges), kv, kin)
-
-
-_ARGS_TYPES: dict = {}  # (kernel, argument types) -> ctypes struct of a CPU kernel's arguments
-
-
-def replayable(launch) -> Callable[[], None]:
-    """A recorded launch (``wp.launch(..., record_cmd=True)``) as a call without arguments.
-
-    On CPU: a direct call of the kernel's compiled entry point with its argument struct packed once. Warp's
-    ``Launch.launch()`` packs a ctypes struct of every argument on each call (2-5 us; the contact struct
-    costs most), and a frame replays thousands of launches. The struct holds what the recorded launch holds
-    (the arrays' addresses, the scalars), so a call is that launch. Where Warp's launch layout is not the
-    one this relies on (CUDA, tiles, the adjoint, another Warp version), ``launch.launch``.
-    """
-    try:
-        if not launch.device.is_cpu or launch.adjoint or launch.block_dim > 1:
-            return launch.launch
-        params = launch.params
-        labels = [a.label for a in launch.kernel.adj.args]
-        if len(params) != len(labels) + 1:
-            return launch.launch
-        key = (launch.kernel, tuple(type(p) for p in params[1:]))
-        args_type = _ARGS_TYPES.get(key)
-        if args_type is None:
-            fields = [(name, type(p)) for name, p in zip(labels, params[1:], strict=True)]
-            args_type = _ARGS_TYPES[key] = type("Args", (ctypes.Structure,), {"_fields_": fields})
-        args = args_type()
-        for name, p in zip(labels, params[1:], strict=True):
-            setattr(args, name, p)
-        forward, bounds, packed = launch.hooks.forward, ctypes.byref(params[0]), ctypes.byref(args)
-    except (AttributeError, TypeError, ValueError):
-        return launch.launch
-
-    def run() -> None:
-        forward(bounds, packed)
-
-    run.launch = launch  # keeps the recorded launch (and the arrays it holds) alive
-    run.args = args
-    return run
 
 
 def default_threads(model: SpringMassModel) -> int:
@@ -129,10 +56,8 @@ class SpringMassSolver:
         self.device = dev
         n = model.num_particles
         self._spring_f = wp.zeros(model.num_springs, dtype=wp.vec3, device=dev)
-        self._ry = wp.zeros(model.num_springs, dtype=wp.vec2, device=dev)  # (rest length, stiffness or -1)
         self._no_list = wp.zeros(0, dtype=int, device=dev)
         self._f = wp.zeros(n, dtype=wp.vec3, device=dev)
-        self._v_star = wp.zeros(n, dtype=wp.vec3, device=dev)
         self._drag_factors: dict[tuple[float, float], float] = {}  # see _drag_factor (CPU)
         self._gravity = wp.vec3(*[float(g) for g in p.gravity])
         self._collide = model.particle_collisions  # fixed topology: decided once, not per substep
@@ -141,9 +66,6 @@ class SpringMassSolver:
         self._scatter = str(dev).startswith("cpu")
         if self._scatter:  # the drag factor of the model's parameters, outside any capture
             self._drag_factor(float(p.dt), float(p.drag_damping))
-        width = p.max_collision_candidates if self._collide else 1
-        self._cand = wp.zeros((n, width), dtype=int, device=dev)
-        self._cand_count = wp.zeros(n, dtype=int, device=dev)
         nm = len(model.meshes)
         nfaces = sum(m.faces.shape[0] for m in model.meshes)
         self._mesh_force = wp.zeros(max(nm, 1), dtype=wp.vec3, device=dev)
@@ -179,28 +101,31 @@ class SpringMassSolver:
         self._kin_count = wp.array([model.meshes[i].vertices.shape[0] for i in kin], dtype=int, device=dev)
         self._kin_mesh = wp.array(kin, dtype=int, device=dev)
         self._cp = cp
-        self._cp_split = None  # split frames: (even, odd) substeps' copies of cp, see physics.split._share
         self._kinematic = kin
-        self._use_graph = use_graph
-        self._graph = None
-        self._graph_key = None
-        self._buf = (model.state(requires_grad=False), model.state(requires_grad=False))
+        width = p.max_collision_candidates if self._collide else 1
+        self._own_buffers = FrameBuffers.allocate(model, width, cp)
+        self._buffers = self._own_buffers
         self._frame_t = np.float32(p.dt) * np.float32(p.substeps)
         # Many worlds on CPU: contiguous groups of worlds, each group's frame on its own thread (worlds never
         # interact, so each array element is written by one thread exactly as with one thread).
         self.threads = default_threads(model) if threads is None else int(threads)
         if self.threads < 1:
             raise ValueError(f"threads must be >= 1, got {threads}")
-        self._all = _worlds(model, 0, model.num_worlds)
+        self._all = worlds_part(model, 0, model.num_worlds)
         cuts = np.linspace(0, model.num_worlds, min(self.threads, model.num_worlds) + 1).round().astype(int)
-        self._groups = [_worlds(model, int(a), int(b)) for a, b in zip(cuts[:-1], cuts[1:], strict=True)]
-        self._pool = ThreadPoolExecutor(len(self._groups) - 1) if len(self._groups) > 1 else None
+        groups = [worlds_part(model, int(a), int(b)) for a, b in zip(cuts[:-1], cuts[1:], strict=True)]
         # one hash grid per group of worlds (w0, w1), points grouped by world: a query sees its own world's
-        parts = [self._all, *self._groups] if self._collide else []
+        parts = [self._all, *groups] if self._collide else []
         self._grids = {(wr.w0, wr.w1): wp.HashGrid(64, 64, 64, device=dev) for wr in parts}
-        # One world on several cores: half of every substep in a helper process (see physics.split).
-        self._split_wanted = wants_split(model, self.threads if threads is not None else cpu_cores())
-        self._split: SplitFrame | None = None
+        self._use_graph = use_graph
+        self._executor: FrameExecutor
+        if len(groups) > 1:
+            self._executor = ThreadedWorlds(self, groups)
+        elif wants_split(model, self.threads if threads is not None else cpu_cores()):
+            # one world on several cores: half of every substep in a helper process (see physics.split)
+            self._executor = SplitFrames(self)
+        else:
+            self._executor = RecordedFrames(self, use_graph)
 
     # ------------------------------------------------------------------ one substep
     def _t(self, substep_index: int) -> float:
@@ -217,7 +142,7 @@ class SpringMassSolver:
             ops.append(replayable(launch))
 
     def _update_kinematic_meshes(self, control: Control, substep_index: int, ops: list | None = None,
-                                 wr: _Worlds | None = None) -> None:
+                                 wr: Part | None = None) -> None:
         """The worlds' kinematic mesh vertices at this substep (one launch), then each mesh's BVH refit."""
         m = self.model
         wr = wr or self._all
@@ -232,7 +157,28 @@ class SpringMassSolver:
             else:
                 ops.append(mesh.refit)
 
-    def _set_mesh_velocities(self, control: Control) -> None:
+    # ------------------------------------------------------------------ for frame executors
+    @property
+    def executor(self) -> FrameExecutor:
+        """What runs this solver's frames (see physics.frames): its ``name`` is "one-core", "threads" or
+        "split"."""
+        return self._executor
+
+    @property
+    def buffers(self) -> FrameBuffers:
+        """The arrays the frames write (the solver's own, or those an executor placed: `use_buffers`)."""
+        return self._buffers
+
+    def use_buffers(self, buffers: FrameBuffers | None) -> None:
+        """Write frames into ``buffers`` (placed by an executor before it records a frame, e.g. in memory
+        shared with another process); None: the solver's own again."""
+        self._buffers = self._own_buffers if buffers is None else buffers
+
+    @property
+    def has_kinematic_meshes(self) -> bool:
+        return bool(self._kinematic)
+
+    def set_mesh_velocities(self, control: Control) -> None:
         """The kinematic meshes' vertex velocities and boxes for this frame's motion."""
         m = self.model
         wp.launch(K.vertex_velocities, dim=m.kin_points.shape[0],
@@ -242,7 +188,7 @@ class SpringMassSolver:
                   inputs=[control.kin_from, control.kin_to, self._kin_first, self._kin_count, self._kin_mesh,
                           self._pad], outputs=[self._cp.mesh_lo, self._cp.mesh_hi], device=self.device)
 
-    def rebuild_collision_candidates(self, state: State, wr: _Worlds | None = None,
+    def rebuild_collision_candidates(self, state: State, wr: Part | None = None,
                                      rows: tuple[int, int] | None = None) -> None:
         """Rebuild the particle-particle candidate lists from ``state.x`` (done once per frame): the lists of
         the particles ``rows`` (default: all of the worlds ``wr``)."""
@@ -265,14 +211,14 @@ class SpringMassSolver:
         wp.launch(K.build_candidates, dim=r1 - r0,
                   inputs=[grid.id, state.x, m.masks, m.particle_world, m.nbr_offsets, m.nbr, cand_r, lookup_r,
                           p0, r0],
-                  outputs=[self._cand, self._cand_count], device=self.device)
+                  outputs=[self._buffers.cand, self._buffers.cand_count], device=self.device)
 
-    def _update_stiffness(self, ops: list | None = None, wr: _Worlds | None = None) -> None:
+    def update_stiffness(self, ops: list | None = None, wr: Part | None = None) -> None:
         m = self.model
         for a, b in (wr or self._all).springs:
             limits = [float(m.params.spring_Y_min), float(m.params.spring_Y_max)]
             inputs = [m.log_y[a:b], m.rest_lengths[a:b], *limits]
-            self._go(K.effective_stiffness, b - a, inputs, [self._ry[a:b]], ops)
+            self._go(K.effective_stiffness, b - a, inputs, [self._buffers.ry[a:b]], ops)
 
     def _drag_factor(self, dt: float, drag: float) -> float:
         """exp(-dt * drag) as the kernels compute it (one Warp launch per new pair, then cached)."""
@@ -286,7 +232,7 @@ class SpringMassSolver:
             self._drag_factors[key] = float(out.numpy()[0])
         return self._drag_factors[key]
 
-    def _zero_forces(self, ops: list | None = None, wr: _Worlds | None = None) -> None:
+    def _zero_forces(self, ops: list | None = None, wr: Part | None = None) -> None:
         """Scatter path: the part's particle forces to zero (each substep's integration zeroes them again
         after reading; this covers a first frame and one cut short). A split frame's part zeroes every
         particle: its process owns `f` and adds the springs across the cut to both ends, the other part's
@@ -298,7 +244,7 @@ class SpringMassSolver:
 
     def _launch_substep(self, state_in: State, state_out: State, control: Control, dt: float,
                         substep_index: int, grad: bool, ops: list | None = None,
-                        wr: _Worlds | None = None, sync=None) -> None:
+                        wr: Part | None = None, sync=None) -> None:
         """One substep's launches over the part `wr` of the model. `sync` (recorded mode): a barrier with the
         process that runs the other part, recorded wherever one stage reads what the other part wrote."""
         m = self.model
@@ -308,7 +254,8 @@ class SpringMassSolver:
         p0, p1 = wr.particles
         t = self._t(substep_index)
         tail = [float(p.dashpot_damping), control.ctrl_from, control.ctrl_to, t, n]
-        cp = self._cp if self._cp_split is None else self._cp_split[substep_index % 2]
+        buf = self._buffers
+        cp = buf.contacts[substep_index % 2]
         spring_f = self._spring_f  # per-spring forces (gather path); unused by the atomic path
         if grad:
             if wr is not self._all:
@@ -325,8 +272,8 @@ class SpringMassSolver:
                 raise ValueError("step(): state_in.x and state_in.v must be contiguous Warp arrays "
                                  "(make states with model.state())")
             f = self._f
-            v_star = self._v_star
-            head = [state_in.x, state_in.v, m.springs, self._ry, float(p.dashpot_damping)]
+            v_star = buf.v_star
+            head = [state_in.x, state_in.v, m.springs, buf.ry, float(p.dashpot_damping)]
             cut = m.num_object_springs  # object springs [0, cut), then control springs
             if wr.touching is not None:  # a split frame's part: the springs touching it
                 runs = [(c, first, count, self._no_list if ids is None else ids)
@@ -344,9 +291,9 @@ class SpringMassSolver:
                     self._go(K.scatter_object_springs, 1, [*head, first, count, ids], [f], ops)
         else:
             f = self._f
-            v_star = self._v_star
+            v_star = buf.v_star
             for a, b in wr.springs:
-                inputs = [state_in.x, state_in.v, m.springs[a:b], self._ry[a:b], *tail]
+                inputs = [state_in.x, state_in.v, m.springs[a:b], buf.ry[a:b], *tail]
                 self._go(K.eval_spring_forces, b - a, inputs, [spring_f[a:b]], ops)
         collide = self._collide
         if self._scatter and not grad:
@@ -362,17 +309,17 @@ class SpringMassSolver:
         if collide and grad:  # the differentiable form (same sums in the same order)
             j_sum = wp.zeros(n, dtype=wp.vec3, device=self.device, requires_grad=True)
             valid = wp.zeros(n, dtype=float, device=self.device, requires_grad=True)
-            wp.launch(K.pair_impulses, dim=(n, self._cand.shape[1]),
-                      inputs=[state_in.x, v_star, m.masses, m.masks, float(p.collision_dist), self._cand,
-                              self._cand_count, self._cp], outputs=[j_sum, valid], device=self.device)
+            wp.launch(K.pair_impulses, dim=(n, buf.cand.shape[1]),
+                      inputs=[state_in.x, v_star, m.masses, m.masks, float(p.collision_dist), buf.cand,
+                              buf.cand_count, self._cp], outputs=[j_sum, valid], device=self.device)
             wp.launch(K.apply_impulses, dim=n,
                       inputs=[state_in.x, v_star, m.masses, j_sum, valid, float(dt), self._cp],
                       outputs=[state_out.x, state_out.v], device=self.device)
         elif collide:
             if sync is not None:
                 ops.append(sync)  # impulses read the other part's v_star
-            args = [state_in.x, v_star, m.masses, m.masks, float(p.collision_dist), self._cand,
-                    self._cand_count, float(dt), cp]
+            args = [state_in.x, v_star, m.masses, m.masks, float(p.collision_dist), buf.cand,
+                    buf.cand_count, float(dt), cp]
             threads, per = (1, p1 - p0) if self._scatter else (p1 - p0, 1)  # CPU: one thread for the part
             self._go(K.collide_and_finish, threads, [*args, p0, p1, per], [state_out.x, state_out.v], ops)
         if sync is not None:
@@ -392,20 +339,24 @@ class SpringMassSolver:
         dt = self.model.params.dt if dt is None else float(dt)
         if self._kinematic:
             if substep_index == 0:
-                self._set_mesh_velocities(control)
+                self.set_mesh_velocities(control)
             self._update_kinematic_meshes(control, substep_index)
         if not self.model.requires_grad:
-            self._update_stiffness()
+            self.update_stiffness()
             self._zero_forces()
         self._launch_substep(state_in, state_out, control, dt, substep_index, grad=self.model.requires_grad)
 
     # ------------------------------------------------------------------ one frame
-    def _frame_launches(self, control: Control, ops: list | None = None, wr: _Worlds | None = None,
-                        sync=None, after_substep=None) -> State:
-        a, b = self._buf
+    def record_frame(self, control: Control, ops: list | None = None, wr: Part | None = None,
+                     sync=None, after_substep=None) -> State:
+        """One frame's launches over the part ``wr`` (default: every world) from ``buffers.states[0]``: run
+        now, or recorded into ``ops`` (see `replayable`). Returns the buffer state that holds the frame's end.
+        ``sync``: a split frame's barrier with the other side (see `_launch_substep`; the stiffness is then
+        updated before the frame, not recorded); ``after_substep``: (even, odd) substeps' closing ops."""
+        a, b = self._buffers.states
         p = self.model.params
         if sync is None:  # (a split frame updates the stiffness before it starts)
-            self._update_stiffness(ops, wr)  # once per frame; a replay reads the current log Y
+            self.update_stiffness(ops, wr)  # once per frame; a replay reads the current log Y
         self._zero_forces(ops, wr)
         for s in range(p.substeps):
             src, dst = (a, b) if s % 2 == 0 else (b, a)
@@ -415,28 +366,6 @@ class SpringMassSolver:
             if after_substep is not None:  # ops for even and odd substeps
                 ops.append(after_substep[s % 2])
         return b if p.substeps % 2 == 1 else a
-
-    def _threaded_frame(self, control: Control) -> State:
-        """One frame with each group of worlds on its own thread (recorded launches, replayed)."""
-        a, _ = self._buf
-        if self._graph is None or self._graph_key is not control:
-            plans = []
-            for wr in self._groups:
-                ops: list = []
-                out = self._frame_launches(control, ops, wr)
-                plans.append(ops)
-            self._graph, self._graph_key, self._graph_out = plans, control, out
-
-        def run(group: int) -> None:
-            self.rebuild_collision_candidates(a, self._groups[group])
-            for op in self._graph[group]:
-                op()
-
-        futures = [self._pool.submit(run, g) for g in range(1, len(self._groups))]
-        run(0)
-        for fut in futures:
-            fut.result()
-        return self._graph_out
 
     def simulate_frame_tape(self, state: State, control: Control) -> list[State]:
         """Differentiable frame: every substep writes a new State (nothing overwritten), so an active
@@ -458,80 +387,39 @@ class SpringMassSolver:
     def simulate_frame(self, state: State, control: Control, *, check: bool = True) -> State:
         """Run all substeps of one frame in place on ``state`` and return it (fast path, not taped).
 
-        Rebuilds the collision candidates from the frame-start positions, replays a captured graph
-        when possible (no kinematic meshes), records the mean contact force per mesh, and raises
+        Rebuilds the collision candidates from the frame-start positions, runs the frame with the solver's
+        executor (`executor`: on one core a captured graph when possible, i.e. no kinematic meshes, else
+        recorded launches; groups of worlds on threads; or one world split over two processes, see
+        physics.frames), records the mean contact force per mesh, and raises
         :class:`SimulationDiverged` when ``check`` and a particle became non-finite or too fast.
         """
         if self._scatter:  # before any capture below
             self._drag_factor(float(self.model.params.dt), float(self.model.params.drag_damping))
-        if self._split_wanted:
-            split = self._split_frame()
-            if split is not None:
-                self._mesh_force.zero_()
-                self._face_force.zero_()
-                try:
-                    state.assign(split.frame(state, control))
-                    if split.oversubscribed:
-                        self._leave_split("other processes keep the CPU cores busy")
-                    return self._frame_end(state, check)
-                except SplitFailed as err:
-                    self._leave_split(err)
-        a, _ = self._buf
-        a.assign(state)
-        self._mesh_force.zero_()
-        self._face_force.zero_()
-        if self._kinematic:
-            self._set_mesh_velocities(control)
-        if self._pool is not None:
-            out = self._threaded_frame(control)
-            state.assign(out)
-            return self._frame_end(state, check)
-        self.rebuild_collision_candidates(a)
-        key = control  # compared by identity; holding it keeps its arrays (baked into the graph) alive
-        if not self._use_graph:
-            out = self._frame_launches(control)
-        elif not self._kinematic:
-            if self._graph is None or self._graph_key is not key:
-                with wp.ScopedCapture(device=self.device, force_module_load=True) as cap:
-                    out = self._frame_launches(control)
-                self._graph, self._graph_key, self._graph_out = cap.graph, key, out
-            wp.capture_launch(self._graph)
-            out = self._graph_out
+        try:
+            retire = self._run_frame(state, control)
+        except FrameExecutorFailed as err:
+            self._fall_back(err)
+            self._run_frame(state, control)
         else:
-            # BVH refits of moving meshes are host calls that a graph cannot hold: replay recorded launches
-            if self._graph is None or self._graph_key is not key:
-                ops: list = []
-                out = self._frame_launches(control, ops)
-                self._graph, self._graph_key, self._graph_out = ops, key, out
-            for op in self._graph:
-                op()
-            out = self._graph_out
-        state.assign(out)
+            if retire is not None:
+                self._fall_back(retire)
         return self._frame_end(state, check)
 
-    def _split_frame(self):
-        """The helper process of split frames, started on first use (None if it cannot start)."""
-        if self._split is None:
-            try:
-                self._split = SplitFrame(self)
-            except Exception as err:  # noqa: BLE001 - one core still works
-                self._leave_split(err)
-        return self._split
+    def _run_frame(self, state: State, control: Control) -> str | None:
+        self._mesh_force.zero_()
+        self._face_force.zero_()
+        return self._executor.run_frame(state, control)
 
-    def _leave_split(self, err: BaseException | str) -> None:
+    def _fall_back(self, err: BaseException | str) -> None:
         warnings.warn(f"physics: running one world on one core from now on ({err})", stacklevel=3)
-        if self._split is not None:
-            self._split.close()
-        self._split, self._split_wanted = None, False
-        self._cp_split = None  # contact forces added directly again
-        self._graph = None
+        self.close()
 
     def close(self) -> None:
-        """Stop the helper process of split frames, if any (also done at exit)."""
-        if self._split is not None:
-            self._split.close()
-            self._split = None
-        self._split_wanted = False
+        """Stop the executor's helper process or threads, if any (also done at exit); later frames run on one
+        core, with the same results."""
+        if self._executor.name != "one-core":
+            self._executor.close()
+            self._executor = RecordedFrames(self, self._use_graph)
 
     def _frame_end(self, state: State, check: bool) -> State:
         nm = len(self.model.meshes)
@@ -555,3 +443,87 @@ class SpringMassSolver:
             return self._last_mesh_force[mesh_id].copy()
         info = self.model.meshes[mesh_id]
         return self._last_face_force[info.face_offset: info.face_offset + info.faces.shape[0]].copy()
+
+
+class RecordedFrames:
+    """Frames on one core (or one CUDA device): the frame's launches captured as a graph when no mesh moves,
+    else recorded launches replayed (BVH refits are host calls that a graph cannot hold); plain launches
+    without ``use_graph``. A recording is reused while the same Control object comes back."""
+
+    name = "one-core"
+
+    def __init__(self, solver: SpringMassSolver, use_graph: bool = True):
+        self.solver, self.use_graph = solver, use_graph
+        self._plan = self._key = self._out = None
+
+    def run_frame(self, state: State, control: Control) -> None:
+        s = self.solver
+        a = s.buffers.states[0]
+        a.assign(state)
+        if s.has_kinematic_meshes:
+            s.set_mesh_velocities(control)
+        s.rebuild_collision_candidates(a)
+        key = control  # compared by identity; holding it keeps its arrays (baked into the plan) alive
+        if not self.use_graph:
+            out = s.record_frame(control)
+        elif not s.has_kinematic_meshes:
+            if self._plan is None or self._key is not key:
+                with wp.ScopedCapture(device=s.device, force_module_load=True) as cap:
+                    out = s.record_frame(control)
+                self._plan, self._key, self._out = cap.graph, key, out
+            wp.capture_launch(self._plan)
+            out = self._out
+        else:
+            if self._plan is None or self._key is not key:
+                ops: list = []
+                out = s.record_frame(control, ops)
+                self._plan, self._key, self._out = ops, key, out
+            for op in self._plan:
+                op()
+            out = self._out
+        state.assign(out)
+
+    def close(self) -> None:
+        self._plan = self._key = self._out = None
+
+
+class ThreadedWorlds:
+    """Frames of a many-world model on CPU: contiguous groups of worlds, each group's recorded launches
+    replayed on its own thread (worlds never interact, so each array element is written by one thread
+    exactly as with one thread; Warp's CPU kernels release the GIL)."""
+
+    name = "threads"
+
+    def __init__(self, solver: SpringMassSolver, groups: list[Part]):
+        self.solver, self.groups = solver, groups
+        self._pool = ThreadPoolExecutor(len(groups) - 1)
+        self._plans = self._key = self._out = None
+
+    def run_frame(self, state: State, control: Control) -> None:
+        s = self.solver
+        a = s.buffers.states[0]
+        a.assign(state)
+        if s.has_kinematic_meshes:
+            s.set_mesh_velocities(control)
+        if self._plans is None or self._key is not control:
+            plans = []
+            for wr in self.groups:
+                ops: list = []
+                out = s.record_frame(control, ops, wr)
+                plans.append(ops)
+            self._plans, self._key, self._out = plans, control, out
+
+        def run(group: int) -> None:
+            s.rebuild_collision_candidates(a, self.groups[group])
+            for op in self._plans[group]:
+                op()
+
+        futures = [self._pool.submit(run, g) for g in range(1, len(self.groups))]
+        run(0)
+        for fut in futures:
+            fut.result()
+        state.assign(self._out)
+
+    def close(self) -> None:
+        self._pool.shutdown()
+        self._plans = self._key = self._out = None

@@ -34,6 +34,7 @@ import warp as wp
 from twinbench._runtime import quiet_warp, watch_parent
 
 from . import kernels as K
+from .frames import FrameBuffers, FrameExecutorFailed, Part, replayable
 from .model import Control, SpringMassModel, State, device_meshes
 
 SPLIT_MIN_WORK = 6000  # springs + 2 * particles below which one core is as fast as a split frame
@@ -46,7 +47,7 @@ _WP_FIELDS = {  # SpringMassModel array fields the helper rebuilds, with their W
 }
 
 
-class SplitFailed(RuntimeError):
+class SplitFailed(FrameExecutorFailed):
     """The helper process of a split frame died or failed."""
 
 
@@ -99,33 +100,33 @@ def _specs(model: SpringMassModel, cand_width: int) -> dict:
         "cand": ((n, cand_width), i32), "cand_count": ((n,), i32),
         "ctrl_from": ((model.num_control_points, 3), f32), "ctrl_to": ((model.num_control_points, 3), f32),
         "kin_from": ((kv, 3), f32), "kin_to": ((kv, 3), f32),
-        # per substep parity (see _share); the lists and counts also per side (0: main, 1: helper)
+        # per substep parity (see _shared_buffers); the lists and counts also per side (0: main, 1: helper)
         "pm_force": ((2, pm, 3), f32), "pm_face": ((2, pm), i32),
         "pm_list": ((2, 2, pm), i32), "pm_count": ((2, 2), i32),
         "sync": ((8,), np.int64),  # 0: main phase, 1: helper phase, 2: helper ready, 3: helper failed
     }
 
 
-def _share(solver, shared: SharedArrays, side: int) -> Control:
-    """Point the solver's frame buffers at the shared arrays; returns the shared Control."""
+def _shared_buffers(solver, shared: SharedArrays, side: int) -> tuple[FrameBuffers, Control]:
+    """The solver's frame buffers in the shared arrays (this process is `side`), and the shared Control."""
     v3 = wp.vec3
-    solver._buf = (State(shared.wp("xa", v3), shared.wp("va", v3)),
-                   State(shared.wp("xb", v3), shared.wp("vb", v3)))
-    solver._ry = shared.wp("ry", wp.vec2)
-    solver._v_star = shared.wp("v_star", v3)
-    solver._cand = shared.wp("cand", int)
-    solver._cand_count = shared.wp("cand_count", int)
     # Per-particle contact forces: each side lists its contacts in particle order, and the main side adds the
     # two lists to the meshes after each substep's last barrier. The helper may already be writing the next
     # substep's contacts then, so even and odd substeps write their own copy.
-    solver._cp_split = tuple(_per_particle_contacts(solver._cp, shared, k, side) for k in (0, 1))
+    cp = solver.buffers.contacts[0]
+    buffers = FrameBuffers(
+        states=tuple(State(shared.wp(f"x{k}", v3), shared.wp(f"v{k}", v3)) for k in "ab"),
+        ry=shared.wp("ry", wp.vec2), v_star=shared.wp("v_star", v3), cand=shared.wp("cand", int),
+        cand_count=shared.wp("cand_count", int),
+        contacts=tuple(_per_particle_contacts(cp, shared, k, side) for k in (0, 1)),
+    )
     ctl = Control(ctrl_from=shared.wp("ctrl_from", v3), ctrl_to=shared.wp("ctrl_to", v3),
                   kin_from=shared.wp("kin_from", v3), kin_to=shared.wp("kin_to", v3))
     for mid, info in enumerate(solver.model.meshes):
         if info.kinematic:
             span = slice(info.vertex_offset, info.vertex_offset + info.vertices.shape[0])
             ctl.mesh_from[mid], ctl.mesh_to[mid] = ctl.kin_from[span], ctl.kin_to[span]
-    return ctl
+    return buffers, ctl
 
 
 def _per_particle_contacts(cp: K.ContactParams, shared: SharedArrays, parity: int, side: int):
@@ -183,8 +184,8 @@ def _spring_runs(ids: np.ndarray, control: bool, device, min_run: int = 256) -> 
     return out
 
 
-def _half(model: SpringMassModel, second: bool, parts) -> object:
-    """The solver's part (see solver._Worlds) for one half of a one-world model."""
+def _half(model: SpringMassModel, second: bool) -> Part:
+    """The part of one half of a one-world model (see physics.frames.Part)."""
     n = model.num_particles
     kin = tuple(i for i, m in enumerate(model.meshes) if m.kinematic)
     kv = (0, int(model.kin_points.shape[0]))
@@ -194,7 +195,7 @@ def _half(model: SpringMassModel, second: bool, parts) -> object:
     cut = model.num_object_springs
     runs = (_spring_runs(touching[touching < cut], False, model.device)
             + _spring_runs(touching[touching >= cut], True, model.device))
-    return parts(0, 0, (p0, p1), (), kv, kin, tuple(runs))  # springs: the runs (the main side sets stiffness)
+    return Part(0, 0, (p0, p1), (), kv, kin, tuple(runs))  # springs: the runs (the main side sets stiffness)
 
 
 class _Barrier:
@@ -220,33 +221,38 @@ class _Barrier:
                 self.alive()
 
 
-class SplitFrame:
-    """The main side of split frames for `solver` (see the module docstring)."""
+class SplitFrames:
+    """The main side of split frames for `solver` (see the module docstring): a frame executor (see
+    physics.frames) whose helper process starts with the first frame."""
+
+    name = "split"
 
     def __init__(self, solver, startup_timeout_s: float = 120.0):
-        from .solver import _Worlds, replayable
+        self.solver, self.startup_timeout_s = solver, startup_timeout_s
+        self.proc: subprocess.Popen | None = None
+        self.started = False
 
-        m = solver.model
-        self.solver = solver
-        self.shared = SharedArrays.create(_specs(m, solver._cand.shape[1]))
-        self.proc = None
+    def _start(self) -> None:
+        solver, m = self.solver, self.solver.model
+        self.shared = SharedArrays.create(_specs(m, solver.buffers.cand.shape[1]))
         try:
-            self.control = _share(solver, self.shared, 0)
+            buffers, self.control = _shared_buffers(solver, self.shared, 0)
+            solver.use_buffers(buffers)
             # A plain interpreter running this module (not multiprocessing's spawn, which would re-run the
-            # user's __main__ script in the helper); the setup travels on its stdin.
+            # user's __main__ script in the helper); the setup (with the solver's class) travels on its stdin.
             env = {**os.environ, "PYTHONPATH": os.pathsep.join(p for p in sys.path if p)}
             self.proc = subprocess.Popen(
                 [sys.executable, "-c", "from twinbench.physics.split import _helper_main; _helper_main()"],
                 stdin=subprocess.PIPE, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, env=env,
             )
-            pickle.dump((self.shared.path, self.shared.layout, _payload(m)), self.proc.stdin)
+            pickle.dump((self.shared.path, self.shared.layout, _payload(m), type(solver)), self.proc.stdin)
             self.proc.stdin.flush()
             sync = self.shared.np["sync"]
             t0 = time.monotonic()
             while sync[2] != 1:
                 self._alive()
-                if time.monotonic() - t0 > startup_timeout_s:
-                    raise SplitFailed(f"the physics helper did not start in {startup_timeout_s:.0f} s")
+                if time.monotonic() - t0 > self.startup_timeout_s:
+                    raise SplitFailed(f"the physics helper did not start in {self.startup_timeout_s:.0f} s")
                 time.sleep(0.005)
         except BaseException:
             self.close()
@@ -263,10 +269,11 @@ class SplitFrame:
                 K.reduce_mesh_forces, dim=1, device="cpu", record_cmd=True,
                 inputs=[cp, wp.array(lists[k], dtype=int, device="cpu", copy=False),
                         wp.array(counts[k], dtype=int, device="cpu", copy=False), m.meshes_per_world]))
-                for k, cp in enumerate(solver._cp_split))
+                for k, cp in enumerate(buffers.contacts))
         self.ops: list = []
-        self.out = solver._frame_launches(self.control, self.ops, _half(m, False, _Worlds), sync=self.barrier,
-                                          after_substep=reduce)
+        self.out = solver.record_frame(self.control, self.ops, _half(m, False), sync=self.barrier,
+                                       after_substep=reduce)
+        self.started = True
 
     def _alive(self) -> None:
         if self.shared.np["sync"][3] or self.proc.poll() is not None:
@@ -275,17 +282,24 @@ class SplitFrame:
             detail = f": {err[-1]}" if err else ""
             raise SplitFailed(f"the physics helper process failed (exit code {self.proc.wait()}){detail}")
 
-    def frame(self, state: State, control: Control) -> State:
-        """One frame from `state` under `control`, split over the two processes; returns the out buffer."""
+    def run_frame(self, state: State, control: Control) -> str | None:
+        """One frame from `state` under `control`, split over the two processes, into `state`."""
+        if not self.started:
+            try:
+                self._start()
+            except SplitFailed:
+                raise
+            except Exception as err:  # noqa: BLE001 - one core still works
+                raise SplitFailed(str(err)) from err
         s = self.solver
-        s._buf[0].assign(state)
+        s.buffers.states[0].assign(state)
         wp.copy(self.control.ctrl_from, control.ctrl_from)
         wp.copy(self.control.ctrl_to, control.ctrl_to)
-        if s._kinematic:
+        if s.has_kinematic_meshes:
             wp.copy(self.control.kin_from, control.kin_from)
             wp.copy(self.control.kin_to, control.kin_to)
-            s._set_mesh_velocities(self.control)
-        s._update_stiffness()
+            s.set_mesh_velocities(self.control)
+        s.update_stiffness()
         try:
             self.proc.stdin.write(b"F")
             self.proc.stdin.flush()
@@ -293,14 +307,15 @@ class SplitFrame:
             raise SplitFailed(f"the physics helper process is gone ({err})") from None
         # each side lists the collision candidates of its own particles (the only lists it reads); the frame's
         # first barrier comes before any side writes the positions they are built from again
-        s.rebuild_collision_candidates(s._buf[0], rows=(0, s.model.num_particles // 2))
+        s.rebuild_collision_candidates(s.buffers.states[0], rows=(0, s.model.num_particles // 2))
         start_phase, self.barrier.slow = self.barrier.phase, 0
         for op in self.ops:
             op()
+        state.assign(self.out)
         # Spin barriers need a core each: if other processes keep taking them, one core is faster.
         contended = self.barrier.slow > 0.1 * (self.barrier.phase - start_phase)
         self.strikes = self.strikes + 1 if contended else 0
-        return self.out
+        return "other processes keep the CPU cores busy" if self.oversubscribed else None
 
     @property
     def oversubscribed(self) -> bool:
@@ -311,6 +326,8 @@ class SplitFrame:
     def close(self) -> None:
         if self.proc is not None:
             _stop(self.proc)
+        self.started = False
+        self.solver.use_buffers(None)  # contact forces added directly again
 
 
 def _stop(proc: subprocess.Popen) -> None:
@@ -330,15 +347,14 @@ def _helper_main() -> None:
     watch_parent()
     quiet_warp()
     stdin = sys.stdin.buffer
-    path, layout, payload = pickle.load(stdin)  # written by our own parent process, never a file
+    path, layout, payload, solver_class = pickle.load(stdin)  # written by our own parent, never a file
     shared = SharedArrays(layout, path, create=False)
     sync = shared.np["sync"]
     try:
-        from .solver import SpringMassSolver, _Worlds
-
         model = _model_from_payload(payload)
-        solver = SpringMassSolver(model, use_graph=False, threads=1)
-        control = _share(solver, shared, 1)
+        solver = solver_class(model, use_graph=False, threads=1)
+        buffers, control = _shared_buffers(solver, shared, 1)
+        solver.use_buffers(buffers)
 
         def parent_alive() -> None:
             if os.getppid() == 1:
@@ -346,13 +362,13 @@ def _helper_main() -> None:
 
         barrier = _Barrier(sync, 1, 0, parent_alive)
         ops: list = []
-        solver._frame_launches(control, ops, _half(model, True, _Worlds), sync=barrier)
+        solver.record_frame(control, ops, _half(model, True), sync=barrier)
         sync[2] = 1
         n = model.num_particles
         while stdin.read(1) == b"F":
-            if solver._kinematic:
-                solver._set_mesh_velocities(control)
-            solver.rebuild_collision_candidates(solver._buf[0], rows=(n // 2, n))
+            if solver.has_kinematic_meshes:
+                solver.set_mesh_velocities(control)
+            solver.rebuild_collision_candidates(solver.buffers.states[0], rows=(n // 2, n))
             for op in ops:
                 op()
     except BaseException:
@@ -360,4 +376,4 @@ def _helper_main() -> None:
         raise
 
 
-__all__ = ["SplitFailed", "SplitFrame", "split_supported", "wants_split"]
+__all__ = ["SplitFailed", "SplitFrames", "split_supported", "wants_split"]
