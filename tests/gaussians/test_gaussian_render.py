@@ -48,7 +48,7 @@ def test_many_tiles_and_tile_boundaries(make_cloud, ref_render):
 
 def test_radix_sort_path_matches_bruteforce_reference_on_cpu(make_cloud, ref_render):
     """The CUDA pipeline's pair sort (Warp radix sorts, scan, tile-range kernel) run on CPU."""
-    from twinbench.gaussians.render import _render_warp_one
+    from twinbench.gaussians.warp_raster import _render_warp_one
 
     cloud = make_cloud(600, degree=2, anisotropic=True, seed=21, spread=0.4, log_scale=(-4.5, -2.3))
     cam = _cam(width=157, height=121, fx=120.0)
@@ -199,7 +199,7 @@ def test_one_launch_per_stage_batch_path_equals_each_view_alone_on_cpu(make_clou
     """render_batch's CUDA path (every view's records, sorts and tiles in one launch per stage) run on
     CPU: each image equals its view rendered alone with the same radix sorts, bit for bit, and matches
     the brute-force reference; views share clouds, differ in size, and one sees nothing."""
-    from twinbench.gaussians.render import _render_warp_batch, _render_warp_one
+    from twinbench.gaussians.warp_raster import _render_warp_batch, _render_warp_one
 
     clouds = [make_cloud(n, degree=2, anisotropic=True, seed=s, spread=0.35).to_device("cpu")
               for n, s in ((300, 11), (170, 12))]

@@ -35,7 +35,7 @@ def test_cuda_matches_golden_and_is_deterministic(phystwin_reference, name):
         assert np.array_equal(a[k], b[k])  # gather in spring order: no atomics, bitwise repeatable
 
 
-@pytest.mark.parametrize("module", ["twinbench.physics.kernels", "twinbench.gaussians.render",
+@pytest.mark.parametrize("module", ["twinbench.physics.kernels", "twinbench.gaussians.warp_raster",
                                     "twinbench.gaussians.skinning"])
 def test_warp_modules_compile_for_cuda_without_a_gpu(module, tmp_path):
     """Warp's NVRTC builds each module's CUDA code (PTX) on a machine without a GPU, so a CPU-only snippet

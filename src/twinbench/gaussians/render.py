@@ -1,719 +1,49 @@
-"""3DGS rendering: a tile-based Warp rasteriser (CPU and CUDA) and an optional gsplat backend.
+"""3DGS rendering: `render` / `render_batch` and the registry of renderer backends.
 
-Math (DESIGN §6): EWA projection with a 0.3 px low-pass added to the 2D covariance, 16x16 tiles,
-front-to-back compositing by camera depth, alpha = min(0.99, o exp(-d^2/2)), skip alpha < 1/255, stop
-a pixel before the Gaussian that would bring its transmittance below 1e-4. Gaussians with z < near are
-culled. A Gaussian's footprint is the bounding box of the ellipse where alpha >= 1/255
-(d^2 <= 2 ln(255 o), at most 3.33 sigma), so tile culling drops nothing the compositing would keep.
-The Jacobian clamps x/z, y/z to 0.3 tan(fov/2) beyond the image (as gsplat does); SH colours are
-max(0, 0.5 + sum c_k Y_k(d)) with d the unit direction from the camera centre; rgb is clipped to [0, 1].
-
-Pipeline: project (packed 64-byte record per Gaussian) -> depth sort -> (tile, Gaussian) pairs in
-depth order -> stable sort by tile -> records gathered into pair order -> one thread per tile walks its
-Gaussians front to back and updates only the pixels of each Gaussian's ellipse, skipping runs of
-stopped pixels (per-row bitmasks) and stopping the tile when every pixel has stopped. On CPU the pair
-sorts run in NumPy; on CUDA (`_render_warp_batch`) they are Warp radix sorts, and a batch of views (every
-camera of every world) runs each stage once for all of them.
+Backends (all follow render_rules: DESIGN §6): "warp", the Warp tile rasteriser on CPU or CUDA
+(warp_raster); "gsplat", CUDA only, optional extra `gsplat` (gsplat_backend); "reference", the brute-force
+NumPy renderer the others are tested against (reference). "auto" is gsplat on CUDA when installed, else
+warp. A backend is a function ``fn(views, background, device, threads) -> list[RenderOutput]``
+(`register_backend`).
 """
 
 from __future__ import annotations
 
 import os
-import threading
-from collections.abc import Sequence
-from dataclasses import dataclass
+from collections.abc import Callable, Sequence
 
 import numpy as np
-import warp as wp
 
+from twinbench.errors import InputError
+from twinbench.gaussians import gsplat_backend, reference, warp_raster
 from twinbench.gaussians.camera import Camera
 from twinbench.gaussians.cloud import DeviceGaussians, GaussianCloud
-from twinbench.gaussians.sh import sh_degree
+from twinbench.gaussians.gsplat_backend import gsplat_available
+from twinbench.gaussians.render_rules import RenderOutput
 
-TILE = 16
-NEAR = 0.01
-LOW_PASS = wp.constant(0.3)  # px^2 added to the 2D covariance diagonal
-ALPHA_MAX = wp.constant(0.99)
-ALPHA_MIN = wp.constant(1.0 / 255.0)
-T_MIN = wp.constant(1.0e-4)
-
-wp.set_module_options({"enable_backward": False})
+Backend = Callable[[list, np.ndarray, str, int], list[RenderOutput]]
+_BACKENDS: dict[str, Backend] = {}
 
 
-@dataclass
-class RenderOutput:
-    """Float32 images: rgb (H, W, 3) in [0, 1], depth (H, W) (alpha-normalised expected camera z,
-    0 where nothing is drawn), alpha (H, W) = 1 - final transmittance. Lists of cameras give lists."""
-
-    rgb: np.ndarray
-    depth: np.ndarray
-    alpha: np.ndarray
-
-    def rgb_uint8(self) -> np.ndarray:
-        """rgb as H x W x 3 uint8 (rounded)."""
-        return np.clip(np.rint(self.rgb * 255.0), 0, 255).astype(np.uint8)
+def register_backend(name: str, fn: Backend) -> None:
+    """Make `fn` available as ``render(..., backend=name)``: it gets the (cloud, Camera) views, the
+    background (3 float32), the device ("cpu", "cuda:0", ...) and the CPU thread count, and returns one
+    RenderOutput per view, in order. A name registered again is replaced."""
+    if not name or name == "auto":
+        raise InputError(f"register_backend: {name!r} cannot name a backend")
+    _BACKENDS[name] = fn
 
 
-# ----- Warp kernels ---------------------------------------------------------------------------------
-# One 64-byte record per projected Gaussian (a single cache line per Gaussian-tile pair):
-# u, v, conic a, b, c, extent x, y, r, g, b, depth, opacity, d2max = 2 ln(255 o), 1 / a, -, -
-vec16 = wp.types.vector(length=16, dtype=wp.float32)
+def backends() -> list[str]:
+    """The registered backends' names."""
+    return list(_BACKENDS)
 
 
-@wp.func
-def _quat_wxyz_to_mat(q: wp.vec4):
-    w = q[0]
-    x = q[1]
-    y = q[2]
-    z = q[3]
-    return wp.mat33(
-        1.0 - 2.0 * (y * y + z * z),
-        2.0 * (x * y - w * z),
-        2.0 * (x * z + w * y),
-        2.0 * (x * y + w * z),
-        1.0 - 2.0 * (x * x + z * z),
-        2.0 * (y * z - w * x),
-        2.0 * (x * z - w * y),
-        2.0 * (y * z + w * x),
-        1.0 - 2.0 * (x * x + y * y),
-    )
+register_backend("warp", warp_raster.render_views)
+register_backend("gsplat", gsplat_backend.render_views)
+register_backend("reference", reference.render_views)
 
 
-@wp.func
-def _sh_colour(sh: wp.array2d(dtype=wp.vec3), i: int, k: int, d: wp.vec3):
-    c = 0.28209479177387814 * sh[i, 0]
-    if k > 1:
-        x = d[0]
-        y = d[1]
-        z = d[2]
-        c = c - 0.4886025119029199 * y * sh[i, 1] + 0.4886025119029199 * z * sh[i, 2]
-        c = c - 0.4886025119029199 * x * sh[i, 3]
-        if k > 4:
-            xx = x * x
-            yy = y * y
-            zz = z * z
-            c = c + 1.0925484305920792 * x * y * sh[i, 4] - 1.0925484305920792 * y * z * sh[i, 5]
-            c = c + 0.31539156525252005 * (2.0 * zz - xx - yy) * sh[i, 6]
-            c = c - 1.0925484305920792 * x * z * sh[i, 7] + 0.5462742152960396 * (xx - yy) * sh[i, 8]
-            if k > 9:
-                c = c - 0.5900435899266435 * y * (3.0 * xx - yy) * sh[i, 9]
-                c = c + 2.890611442640554 * x * y * z * sh[i, 10]
-                c = c - 0.4570457994644658 * y * (4.0 * zz - xx - yy) * sh[i, 11]
-                c = c + 0.3731763325901154 * z * (2.0 * zz - 3.0 * xx - 3.0 * yy) * sh[i, 12]
-                c = c - 0.4570457994644658 * x * (4.0 * zz - xx - yy) * sh[i, 13]
-                c = c + 1.445305721320277 * z * (xx - yy) * sh[i, 14]
-                c = c - 0.5900435899266435 * x * (xx - 3.0 * yy) * sh[i, 15]
-    c = c + wp.vec3(0.5, 0.5, 0.5)
-    return wp.vec3(wp.max(c[0], 0.0), wp.max(c[1], 0.0), wp.max(c[2], 0.0))
-
-
-@wp.struct
-class _View:
-    """One view of a batch: its camera, and where its Gaussians, records, tiles and pixels start."""
-
-    rot_wc: wp.mat33
-    t_wc: wp.vec3
-    cam_pos: wp.vec3
-    fx: float
-    fy: float
-    cx: float
-    cy: float
-    width: int
-    height: int
-    lim: wp.vec4  # Jacobian clamp: x below, x above, y below, y above (tan units)
-    src: int  # first Gaussian of the view's cloud in the batch's cloud
-    item: int  # first record of the view (records: one per Gaussian per view)
-    tile: int  # first tile of the view
-    tiles_x: int
-    pixel: int  # first pixel of the view's image in the batch's images
-    background: wp.vec3
-
-
-@wp.func
-def _view_of(views: wp.array(dtype=_View), k: int, field: int):
-    """The last view whose first record (field 0) or first tile (field 1) is <= k (binary search)."""
-    lo = int(0)  # noqa: UP018 (a Warp dynamic variable)
-    hi = views.shape[0] - 1
-    while lo < hi:
-        mid = (lo + hi + 1) // 2
-        start = views[mid].item
-        if field == 1:
-            start = views[mid].tile
-        if start <= k:
-            lo = mid
-        else:
-            hi = mid - 1
-    return lo
-
-
-@wp.kernel
-def _preprocess(
-    means: wp.array(dtype=wp.vec3),
-    quats: wp.array(dtype=wp.vec4),
-    scales: wp.array(dtype=wp.vec3),
-    opacities: wp.array(dtype=wp.float32),
-    sh: wp.array2d(dtype=wp.vec3),
-    sh_k: int,
-    views: wp.array(dtype=_View),
-    near: float,
-    offset: int,
-    record: wp.array(dtype=vec16),
-    depth: wp.array(dtype=wp.float32),
-    rect: wp.array(dtype=wp.vec4i),
-    n_tiles: wp.array(dtype=wp.int32),
-):
-    """Record `out` = offset + thread: Gaussian i of its view's cloud seen by that view -> packed record,
-    depth, tile rectangle, tile count."""
-    out = wp.tid() + offset
-    vw = views[_view_of(views, out, 0)]
-    i = vw.src + out - vw.item
-    n_tiles[out] = 0
-    depth[out] = 3.0e38
-    p = vw.rot_wc * means[i] + vw.t_wc
-    z = p[2]
-    o = opacities[i]
-    if z < near or o < ALPHA_MIN:
-        return
-    q = quats[i]
-    qn = wp.length(q)
-    if qn > 0.0:
-        q = q / qn
-    r = _quat_wxyz_to_mat(q)
-    s = scales[i]
-    m = r * wp.diag(s)
-    cov_w = m * wp.transpose(m)
-    cov_c = vw.rot_wc * cov_w * wp.transpose(vw.rot_wc)
-    tx = wp.clamp(p[0] / z, -vw.lim[0], vw.lim[1]) * z
-    ty = wp.clamp(p[1] / z, -vw.lim[2], vw.lim[3]) * z
-    j = wp.mat33(vw.fx / z, 0.0, -vw.fx * tx / (z * z), 0.0, vw.fy / z, -vw.fy * ty / (z * z), 0.0, 0.0, 0.0)
-    c2 = j * cov_c * wp.transpose(j)
-    a = c2[0, 0] + LOW_PASS
-    b = c2[0, 1]
-    c = c2[1, 1] + LOW_PASS
-    det = a * c - b * b
-    if det <= 0.0:
-        return
-    u = vw.fx * p[0] / z + vw.cx
-    v = vw.fy * p[1] / z + vw.cy
-    d2max = 2.0 * wp.log(o / ALPHA_MIN)
-    ex = wp.sqrt(d2max * a)
-    ey = wp.sqrt(d2max * c)
-    # pixel centres i + 0.5 inside [u - ex, u + ex]
-    px0 = wp.max(int(wp.ceil(u - ex - 0.5)), 0)
-    px1 = wp.min(int(wp.floor(u + ex - 0.5)), vw.width - 1)
-    py0 = wp.max(int(wp.ceil(v - ey - 0.5)), 0)
-    py1 = wp.min(int(wp.floor(v + ey - 0.5)), vw.height - 1)
-    if px0 > px1 or py0 > py1:
-        return
-    tx0 = px0 / 16
-    tx1 = px1 / 16
-    ty0 = py0 / 16
-    ty1 = py1 / 16
-    col = _sh_colour(sh, i, sh_k, wp.normalize(means[i] - vw.cam_pos))
-    rec = vec16()
-    rec[0] = u
-    rec[1] = v
-    rec[2] = c / det
-    rec[3] = -b / det
-    rec[4] = a / det
-    rec[5] = ex
-    rec[6] = ey
-    rec[7] = col[0]
-    rec[8] = col[1]
-    rec[9] = col[2]
-    rec[10] = z
-    rec[11] = o
-    rec[12] = d2max
-    rec[13] = det / c
-    record[out] = rec
-    depth[out] = z
-    rect[out] = wp.vec4i(tx0, ty0, tx1, ty1)
-    n_tiles[out] = (tx1 - tx0 + 1) * (ty1 - ty0 + 1)
-
-
-@wp.kernel
-def _emit_pairs(
-    order: wp.array(dtype=wp.int32),
-    offsets: wp.array(dtype=wp.int32),
-    rect: wp.array(dtype=wp.vec4i),
-    n_tiles: wp.array(dtype=wp.int32),
-    views: wp.array(dtype=_View),
-    start: int,
-    keys: wp.array(dtype=wp.int32),
-    values: wp.array(dtype=wp.int32),
-):
-    """Pair r of the depth-ordered list writes (tile id, record id) for each tile its box touches; tile
-    ids count the views' tiles one view after another."""
-    r = wp.tid() + start
-    g = order[r]
-    if n_tiles[g] == 0:
-        return
-    vw = views[_view_of(views, g, 0)]
-    n = offsets[r] - n_tiles[g]
-    rc = rect[g]
-    for ty in range(rc[1], rc[3] + 1):
-        for tx in range(rc[0], rc[2] + 1):
-            keys[n] = vw.tile + ty * vw.tiles_x + tx
-            values[n] = g
-            n += 1
-
-
-@wp.kernel
-def _init_depth_sort(
-    depth: wp.array(dtype=wp.float32), keys: wp.array(dtype=wp.float32), ids: wp.array(dtype=wp.int32)
-):
-    """Radix-sort input: keys = depths, values = Gaussian ids 0..n-1 (no host upload per frame)."""
-    i = wp.tid()
-    keys[i] = depth[i]
-    ids[i] = i
-
-
-@wp.kernel
-def _gather_counts(
-    order: wp.array(dtype=wp.int32), n_tiles: wp.array(dtype=wp.int32), out: wp.array(dtype=wp.int32)
-):
-    r = wp.tid()
-    out[r] = n_tiles[order[r]]
-
-
-@wp.kernel
-def _tile_ranges(keys: wp.array(dtype=wp.int32), count: int, ranges: wp.array(dtype=wp.vec2i)):
-    """Start/end of each tile's run in the tile-sorted pair list (Warp does not short-circuit `or`).
-    The first and the last pair of a run are different threads: each stores only its own component
-    (a whole-vector read-modify-write would race on CUDA)."""
-    n = wp.tid()
-    tile = keys[n]
-    first = n == 0
-    if not first:
-        first = keys[n - 1] != tile
-    last = n == count - 1
-    if not last:
-        last = keys[n + 1] != tile
-    if first:
-        ranges[tile][0] = n
-    if last:
-        ranges[tile][1] = n + 1
-
-
-@wp.kernel
-def _gather_records(
-    values: wp.array(dtype=wp.int32), record: wp.array(dtype=vec16), start: int, out: wp.array(dtype=vec16)
-):
-    n = wp.tid() + start
-    out[n] = record[values[n]]
-
-
-@wp.kernel
-def _rasterise(
-    tile_list: wp.array(dtype=wp.int32),
-    ranges: wp.array(dtype=wp.vec2i),
-    record: wp.array(dtype=vec16),
-    views: wp.array(dtype=_View),
-    out_rgb: wp.array(dtype=wp.vec3),
-    out_depth: wp.array(dtype=wp.float32),
-    out_t: wp.array(dtype=wp.float32),
-    row_done: wp.array(dtype=wp.int32),
-):
-    """One thread per tile of `tile_list` (every view's tiles when it is empty), Gaussian-major: each
-    Gaussian (records in pair order, by depth within the tile) updates the pixels of its ellipse in the
-    tile."""
-    tile = wp.tid()
-    if tile_list.shape[0] > 0:
-        tile = tile_list[tile]
-    vw = views[_view_of(views, tile, 1)]
-    local = tile - vw.tile
-    x0 = (local % vw.tiles_x) * 16
-    y0 = (local / vw.tiles_x) * 16
-    x1 = wp.min(x0 + 16, vw.width)
-    y1 = wp.min(y0 + 16, vw.height)
-    for y in range(y0, y1):
-        for x in range(x0, x1):
-            out_rgb[vw.pixel + y * vw.width + x] = wp.vec3(0.0, 0.0, 0.0)
-            out_depth[vw.pixel + y * vw.width + x] = 0.0
-            out_t[vw.pixel + y * vw.width + x] = 1.0
-    # row_done[16 tile + r]: bit j set once pixel (x0 + j, y0 + r) stopped (transmittance < 1e-4);
-    # spans whose pixels have all stopped are skipped without visiting them
-    for r in range(16):
-        row_done[tile * 16 + r] = 0
-    npix = (x1 - x0) * (y1 - y0)
-    ndone = int(0)  # noqa: UP018 (a Warp dynamic variable)
-    rg = ranges[tile]
-    for n in range(rg[0], rg[1]):
-        rec = record[n]
-        m = wp.vec2(rec[0], rec[1])
-        cn = wp.vec3(rec[2], rec[3], rec[4])
-        col = wp.vec3(rec[7], rec[8], rec[9])
-        z = rec[10]
-        o = rec[11]
-        gx0 = wp.max(int(wp.ceil(m[0] - rec[5] - 0.5)), x0)
-        gx1 = wp.min(int(wp.floor(m[0] + rec[5] - 0.5)), x1 - 1)
-        gy0 = wp.max(int(wp.ceil(m[1] - rec[6] - 0.5)), y0)
-        gy1 = wp.min(int(wp.floor(m[1] + rec[6] - 0.5)), y1 - 1)
-        # per row, only the span of the ellipse d^2 <= d2max (alpha >= 1/255), widened by 1e-3 px so
-        # that rounding never drops a pixel the alpha test would keep
-        d2max = rec[12]
-        ia = rec[13]
-        for y in range(gy0, gy1 + 1):
-            dy = float(y) + 0.5 - m[1]
-            disc = cn[1] * cn[1] * dy * dy - cn[0] * (cn[2] * dy * dy - d2max)
-            if disc < 0.0:
-                continue
-            half = wp.sqrt(disc) * ia + 1.0e-3
-            ctr = m[0] - cn[1] * dy * ia
-            sx0 = wp.max(int(wp.ceil(ctr - half - 0.5)), gx0)
-            sx1 = wp.min(int(wp.floor(ctr + half - 0.5)), gx1)
-            span = ((1 << (sx1 - x0 + 1)) - 1) ^ ((1 << (sx0 - x0)) - 1)
-            done_bits = row_done[tile * 16 + y - y0]
-            if (done_bits & span) == span:
-                continue
-            while ((done_bits >> (sx0 - x0)) & 1) == 1:
-                sx0 += 1
-            while ((done_bits >> (sx1 - x0)) & 1) == 1:
-                sx1 -= 1
-            row = vw.pixel + y * vw.width
-            # d^2 along the row, updated incrementally: d2(x + 1) = d2(x) + step, step += 2 a
-            dx = float(sx0) + 0.5 - m[0]
-            d2 = cn[0] * dx * dx + 2.0 * cn[1] * dx * dy + cn[2] * dy * dy
-            step = cn[0] * (2.0 * dx + 1.0) + 2.0 * cn[1] * dy
-            for x in range(sx0, sx1 + 1):
-                d2_here = d2
-                d2 += step
-                step += 2.0 * cn[0]
-                t = out_t[row + x]
-                if t < 0.0:
-                    continue
-                alpha = wp.min(ALPHA_MAX, o * wp.exp(-0.5 * d2_here))
-                if alpha < ALPHA_MIN:
-                    continue
-                test_t = t * (1.0 - alpha)
-                if test_t < T_MIN:
-                    out_t[row + x] = -t
-                    ndone += 1
-                    done_bits = done_bits | (1 << (x - x0))
-                    row_done[tile * 16 + y - y0] = done_bits
-                    continue
-                w = alpha * t
-                out_rgb[row + x] = out_rgb[row + x] + w * col
-                out_depth[row + x] = out_depth[row + x] + w * z
-                out_t[row + x] = test_t
-        if ndone == npix:
-            break
-    for y in range(y0, y1):
-        for x in range(x0, x1):
-            p = vw.pixel + y * vw.width + x
-            t = wp.abs(out_t[p])
-            a = 1.0 - t
-            c = out_rgb[p] + t * vw.background
-            out_rgb[p] = wp.vec3(wp.clamp(c[0], 0.0, 1.0), wp.clamp(c[1], 0.0, 1.0), wp.clamp(c[2], 0.0, 1.0))
-            if a > 0.0:
-                out_depth[p] = out_depth[p] / a
-            out_t[p] = a
-
-
-def _tile_count(cam: Camera) -> int:
-    return ((cam.width + TILE - 1) // TILE) * ((cam.height + TILE - 1) // TILE)
-
-
-def _view(cam: Camera, background, src: int = 0, item: int = 0, tile: int = 0, pixel: int = 0) -> _View:
-    """The kernels' view of `cam`, whose Gaussians, records, tiles and pixels start at the given slots."""
-    w, h = cam.width, cam.height
-    w2c = cam.world_to_cam
-    tan_x, tan_y = 0.5 * w / cam.fx, 0.5 * h / cam.fy
-    v = _View()
-    v.rot_wc = wp.mat33(w2c[:3, :3].astype(np.float32))
-    v.t_wc = wp.vec3(w2c[:3, 3].astype(np.float32))
-    v.cam_pos = wp.vec3(cam.position.astype(np.float32))
-    v.fx, v.fy, v.cx, v.cy = float(cam.fx), float(cam.fy), float(cam.cx), float(cam.cy)
-    v.width, v.height = w, h
-    v.lim = wp.vec4(
-        float(cam.cx / cam.fx + 0.3 * tan_x), float((w - cam.cx) / cam.fx + 0.3 * tan_x),
-        float(cam.cy / cam.fy + 0.3 * tan_y), float((h - cam.cy) / cam.fy + 0.3 * tan_y),
-    )  # fmt: skip
-    v.src, v.item, v.tile, v.tiles_x, v.pixel = src, item, tile, (w + TILE - 1) // TILE, pixel
-    v.background = wp.vec3(*[float(c) for c in background])
-    return v
-
-
-class _Workspace:
-    """Per-call, per-Gaussian buffers (allocated per call, so concurrent renders never share them)."""
-
-    def __init__(self, n: int, device) -> None:
-        self.record = wp.empty(n, dtype=vec16, device=device)
-        self.depth = wp.empty(n, dtype=wp.float32, device=device)
-        self.rect = wp.empty(n, dtype=wp.vec4i, device=device)
-        self.n_tiles = wp.empty(n, dtype=wp.int32, device=device)
-
-
-def _run_threads(fns) -> None:
-    """Call each function, the first in this thread and the others in worker threads; re-raise errors."""
-    if not fns:
-        return
-    if len(fns) == 1:
-        fns[0]()
-        return
-    errors: list[BaseException] = []
-
-    def wrap(fn):
-        try:
-            fn()
-        except BaseException as exc:  # re-raised below in the caller's thread
-            errors.append(exc)
-
-    threads = [threading.Thread(target=wrap, args=(fn,)) for fn in fns[1:]]
-    for th in threads:
-        th.start()
-    wrap(fns[0])
-    for th in threads:
-        th.join()
-    if errors:
-        raise errors[0]
-
-
-def _launch_split(kernel, dim: int, inputs: list, outputs: list, device, threads: int) -> None:
-    """Launch `kernel` over [0, dim) in `threads` contiguous chunks (its last input is the chunk start);
-    on CPU each chunk runs in its own Python thread (Warp releases the GIL)."""
-    parts = threads if (device.is_cpu and threads > 1) else 1
-    cut = np.linspace(0, dim, parts + 1).astype(int)
-    _run_threads(
-        [
-            (
-                lambda lo=lo, hi=hi: wp.launch(
-                    kernel, dim=hi - lo, inputs=inputs + [int(lo)], outputs=outputs, device=device
-                )
-            )
-            for lo, hi in zip(cut[:-1], cut[1:], strict=True)
-            if hi > lo
-        ]
-    )
-
-
-def _render_warp_one(
-    g: DeviceGaussians, cam: Camera, background: np.ndarray, threads: int, host_sort: bool | None = None
-) -> RenderOutput:
-    """One camera. host_sort (default: on CPU) sorts the pairs with NumPy, else it is a batch of one view
-    (Warp's radix sorts: the CUDA path; the tests also run it on CPU)."""
-    device = g.device
-    cpu = device.is_cpu
-    if not (cpu if host_sort is None else host_sort):
-        return _render_warp_batch([(g, cam)], background)[0]
-    n = len(g)
-    w, h = cam.width, cam.height
-    tiles_x, tiles_y = (w + TILE - 1) // TILE, (h + TILE - 1) // TILE
-    n_tile_total = tiles_x * tiles_y
-    views = wp.array([_view(cam, background)], dtype=_View, device=device)
-    ws = _Workspace(n, device)
-    if cpu and threads > 1:
-        wp.load_module(device=device)  # compile once, not concurrently in the worker threads
-
-    # 1. project every Gaussian: packed record, depth, tile rectangle, tile count
-    pre_in = [g.means, g.quats, g.scales, g.opacities, g.sh, g.sh.shape[1], views, NEAR]
-    _launch_split(_preprocess, n, pre_in, [ws.record, ws.depth, ws.rect, ws.n_tiles], device, threads)
-
-    # 2. (tile, Gaussian) pairs sorted by tile, then depth: a depth sort, pairs emitted in depth order,
-    #    then a stable sort by tile id (NumPy)
-    counts = ws.n_tiles.numpy()
-    visible = np.flatnonzero(counts).astype(np.int32)
-    order = visible[np.argsort(ws.depth.numpy()[visible])].astype(np.int32)
-    offsets = np.cumsum(counts[order], dtype=np.int64)
-    total = int(offsets[-1]) if len(offsets) else 0
-    if total >= 2**31:
-        raise ValueError(f"render: {total} Gaussian-tile pairs exceed int32; downsample the cloud")
-    keys = wp.empty(max(total, 1), dtype=wp.int32, device=device)
-    values = wp.empty(max(total, 1), dtype=wp.int32, device=device)
-    emit_in = [
-        wp.array(order, dtype=wp.int32, device=device),
-        wp.array(offsets.astype(np.int32), dtype=wp.int32, device=device),
-        ws.rect, ws.n_tiles, views,
-    ]  # fmt: skip
-    _launch_split(_emit_pairs, len(order), emit_in, [keys, values], device, threads)
-    tile_of_pair = keys.numpy()[:total].astype(np.uint16 if n_tile_total < 65536 else np.int32)
-    perm = np.argsort(tile_of_pair, kind="stable")
-    sorted_values = wp.array(values.numpy()[:total][perm], dtype=wp.int32, device=device)
-    bounds = np.searchsorted(tile_of_pair[perm], np.arange(n_tile_total + 1))
-    ranges_np = np.stack([bounds[:-1], bounds[1:]], axis=1).astype(np.int32)
-    ranges = wp.array(ranges_np, dtype=wp.vec2i, device=device)
-
-    # 3. records copied into pair order, so the rasteriser streams them instead of chasing random ids
-    pair_records = wp.empty(max(total, 1), dtype=vec16, device=device)
-    _launch_split(_gather_records, total, [sorted_values, ws.record], [pair_records], device, threads)
-
-    # 4. rasterise tiles (CPU: tile rows interleaved between threads for load balance)
-    out_rgb = wp.empty(h * w, dtype=wp.vec3, device=device)
-    out_depth = wp.empty(h * w, dtype=wp.float32, device=device)
-    out_t = wp.empty(h * w, dtype=wp.float32, device=device)
-    raster_in = [ranges, pair_records, views]
-    raster_out = [out_rgb, out_depth, out_t, wp.empty(n_tile_total * 16, dtype=wp.int32, device=device)]
-    parts = threads if (cpu and threads > 1) else 1
-    rows = np.arange(tiles_y)
-    lists = []
-    for k in range(parts):
-        sel = rows[rows % parts == k]
-        tl = (sel[:, None] * tiles_x + np.arange(tiles_x)[None, :]).reshape(-1).astype(np.int32)
-        if len(tl):
-            lists.append(wp.array(tl, dtype=wp.int32, device=device))
-    _run_threads(
-        [
-            (
-                lambda tl=tl: wp.launch(
-                    _rasterise, dim=len(tl), inputs=[tl] + raster_in, outputs=raster_out, device=device
-                )
-            )
-            for tl in lists
-        ]
-    )
-    return RenderOutput(
-        rgb=out_rgb.numpy().reshape(h, w, 3),
-        depth=out_depth.numpy().reshape(h, w),
-        alpha=out_t.numpy().reshape(h, w),
-    )
-
-
-def _render_warp_batch(jobs: list[tuple[DeviceGaussians, Camera]], background) -> list[RenderOutput]:
-    """Every view of `jobs` in one launch per stage (render_batch's path on CUDA; it runs on CPU too):
-    the views' clouds in one buffer, a record per (view, Gaussian), one depth sort, pairs keyed by the
-    batch's tile ids (view after view), one stable tile sort, one rasterisation over every view's tiles.
-    Each image equals the view rendered alone with the same (radix) sorts."""
-    device = jobs[0][0].device
-    starts: dict[int, int] = {}
-    clouds: list[DeviceGaussians] = []
-    for g, _ in jobs:
-        if id(g) not in starts:
-            starts[id(g)] = sum(len(c) for c in clouds)
-            clouds.append(g)
-    parents = [g.parent() for g in clouds]
-    if len(clouds) > 1 and len({id(root) for root, _ in parents}) == 1:
-        cloud = parents[0][0]  # segments of one cloud (e.g. a twin's worlds): read it in place
-        starts = {id(g): first for g, (_, first) in zip(clouds, parents, strict=True)}
-    else:
-        cloud = clouds[0] if len(clouds) == 1 else DeviceGaussians.concatenate(clouds)
-    views, shapes = [], []
-    item = tile = pixel = 0
-    for g, cam in jobs:
-        views.append(_view(cam, background, starts[id(g)], item, tile, pixel))
-        shapes.append((pixel, cam.height, cam.width))
-        item, tile, pixel = item + len(g), tile + _tile_count(cam), pixel + cam.width * cam.height
-    vw = wp.array(views, dtype=_View, device=device)
-    n = item
-    ws = _Workspace(n, device)
-    g = cloud
-    inputs = [g.means, g.quats, g.scales, g.opacities, g.sh, g.sh.shape[1], vw, NEAR, 0]
-    wp.launch(_preprocess, dim=n, inputs=inputs, outputs=[ws.record, ws.depth, ws.rect, ws.n_tiles],
-              device=device)
-    dkeys = wp.empty(2 * n, dtype=wp.float32, device=device)
-    order = wp.empty(2 * n, dtype=wp.int32, device=device)
-    wp.launch(_init_depth_sort, dim=n, inputs=[ws.depth], outputs=[dkeys, order], device=device)
-    wp.utils.radix_sort_pairs(dkeys, order, n)
-    counts = wp.empty(n, dtype=wp.int32, device=device)
-    wp.launch(_gather_counts, dim=n, inputs=[order, ws.n_tiles], outputs=[counts], device=device)
-    offsets = wp.empty(n, dtype=wp.int32, device=device)
-    wp.utils.array_scan(counts, offsets, inclusive=True)
-    total = int(offsets.numpy()[-1]) if n else 0  # the one device -> host wait before the images
-    if total < 0:  # the int32 scan overflowed
-        raise ValueError("render: the views' Gaussian-tile pairs exceed int32; render fewer views per call")
-    keys = wp.empty(max(2 * total, 2), dtype=wp.int32, device=device)
-    values = wp.empty(max(2 * total, 2), dtype=wp.int32, device=device)
-    ranges = wp.zeros(tile, dtype=wp.vec2i, device=device)
-    pair_records = wp.empty(max(total, 1), dtype=vec16, device=device)
-    if total:
-        wp.launch(_emit_pairs, dim=n, inputs=[order, offsets, ws.rect, ws.n_tiles, vw, 0],
-                  outputs=[keys, values], device=device)
-        wp.utils.radix_sort_pairs(keys, values, total)
-        wp.launch(_tile_ranges, dim=total, inputs=[keys, total], outputs=[ranges], device=device)
-        wp.launch(_gather_records, dim=total, inputs=[values, ws.record, 0], outputs=[pair_records],
-                  device=device)
-    out_rgb = wp.empty(pixel, dtype=wp.vec3, device=device)
-    out_depth = wp.empty(pixel, dtype=wp.float32, device=device)
-    out_t = wp.empty(pixel, dtype=wp.float32, device=device)
-    every_tile = wp.empty(0, dtype=wp.int32, device=device)
-    wp.launch(_rasterise, dim=tile, inputs=[every_tile, ranges, pair_records, vw],
-              outputs=[out_rgb, out_depth, out_t, wp.empty(tile * 16, dtype=wp.int32, device=device)],
-              device=device)  # fmt: skip
-    rgb, depth, alpha = out_rgb.numpy(), out_depth.numpy(), out_t.numpy()
-    return [
-        RenderOutput(rgb=rgb[p : p + h * w].reshape(h, w, 3), depth=depth[p : p + h * w].reshape(h, w),
-                     alpha=alpha[p : p + h * w].reshape(h, w))
-        for p, h, w in shapes
-    ]  # fmt: skip
-
-
-# ----- gsplat backend -------------------------------------------------------------------------------
-def gsplat_available() -> bool:
-    try:
-        import gsplat  # noqa: F401
-        import torch  # noqa: F401
-    except ImportError:
-        return False
-    return True
-
-
-def _render_gsplat(cloud: GaussianCloud | DeviceGaussians, cams: list[Camera], background, device: str):
-    try:
-        import gsplat
-        import torch
-    except ImportError as exc:
-        raise ImportError(
-            "render(backend='gsplat') needs the optional extra: pip install twinbench[gsplat]"
-        ) from exc
-    if not device.startswith("cuda"):
-        raise ValueError(
-            f"render(backend='gsplat') runs on CUDA only, got device={device!r}; use backend='warp'"
-        )
-    dev = torch.device(device)
-    if isinstance(cloud, DeviceGaussians):  # zero-copy views of the Warp arrays
-        t = {
-            "means": wp.to_torch(cloud.means),
-            "quats": wp.to_torch(cloud.quats),
-            "scales": wp.to_torch(cloud.scales),
-            "opacities": wp.to_torch(cloud.opacities),
-            "sh": wp.to_torch(cloud.sh),
-        }
-        degree = sh_degree(cloud.sh.shape[1])
-    else:
-        arrays = dict(
-            means=cloud.means, quats=cloud.quats, scales=cloud.scales, opacities=cloud.opacities, sh=cloud.sh
-        )
-        t = {k: torch.as_tensor(v, device=dev) for k, v in arrays.items()}
-        degree = cloud.sh_degree
-    outputs: list[RenderOutput | None] = [None] * len(cams)
-    groups: dict[tuple[int, int], list[int]] = {}
-    for i, cam in enumerate(cams):
-        groups.setdefault((cam.width, cam.height), []).append(i)
-    for (w, h), idx in groups.items():
-        viewmats = torch.as_tensor(
-            np.stack([cams[i].world_to_cam for i in idx]), dtype=torch.float32, device=dev
-        )
-        ks = torch.as_tensor(np.stack([cams[i].K for i in idx]), dtype=torch.float32, device=dev)
-        bgs = torch.as_tensor(np.tile(np.asarray(background, dtype=np.float32), (len(idx), 1)), device=dev)
-        colors, alphas, _ = gsplat.rasterization(
-            t["means"],
-            t["quats"],
-            t["scales"],
-            t["opacities"],
-            t["sh"],
-            viewmats,
-            ks,
-            w,
-            h,
-            near_plane=NEAR,
-            eps2d=LOW_PASS,
-            sh_degree=degree,
-            tile_size=TILE,
-            backgrounds=bgs,
-            render_mode="RGB+ED",
-        )
-        colors = colors.detach().cpu().numpy()
-        alphas = alphas.detach().cpu().numpy()
-        for j, i in enumerate(idx):
-            a = alphas[j, :, :, 0]
-            outputs[i] = RenderOutput(
-                rgb=np.clip(colors[j, :, :, :3], 0, 1).astype(np.float32),
-                depth=np.where(a > 0, colors[j, :, :, 3], 0).astype(np.float32),
-                alpha=a.astype(np.float32),
-            )
-    return outputs  # type: ignore[return-value]
-
-
-# ----- public entry -------------------------------------------------------------------------------------
 def render(
     cloud: GaussianCloud | DeviceGaussians,
     cameras: Camera | Sequence[Camera],
@@ -725,10 +55,11 @@ def render(
 ) -> RenderOutput | list[RenderOutput]:
     """Render `cloud` from one camera (returns a RenderOutput) or a list (returns a list).
 
-    backend: "warp" (CPU or CUDA), "gsplat" (CUDA, extra `gsplat`), or "auto" (gsplat on CUDA when
-    installed, else warp). device defaults to the DeviceGaussians' device, else "cpu". On CPU, work is
-    split over `threads` Python threads (default: the core count, at most 8; Warp kernels release the
-    GIL): cameras across threads when there are several, else Gaussians and tile rows.
+    backend: "warp" (CPU or CUDA), "gsplat" (CUDA, extra `gsplat`), "reference" (NumPy, slow), another
+    registered one (`backends()`), or "auto" (gsplat on CUDA when installed, else warp). device defaults
+    to the DeviceGaussians' device, else "cpu". On CPU, work is split over `threads` Python threads
+    (default: the core count, at most 8; Warp kernels release the GIL): cameras across threads when there
+    are several, else Gaussians and tile rows.
     """
     single = isinstance(cameras, Camera)
     cams = [cameras] if single else list(cameras)
@@ -750,9 +81,9 @@ def render_batch(
 ) -> list[RenderOutput]:
     """Render many (cloud, camera) views in one call, e.g. every camera of every world of a many-world
     twin -> one RenderOutput per view, in order. Arguments as `render`. On CUDA (Warp) every stage runs
-    once for all views (`_render_warp_batch`); on CPU the views are dealt to the threads (each thread
-    renders whole views, every stage in parallel), and one view alone is split over the threads by
-    Gaussians and tile rows instead. Each view's pixels are the same as rendering it alone."""
+    once for all views; on CPU the views are dealt to the threads, and one view alone is split over the
+    threads by Gaussians and tile rows instead (see warp_raster.render_views). Each view's pixels are the
+    same as rendering it alone."""
     views = list(views)
     if not views:
         raise ValueError("render: no views to render")
@@ -762,46 +93,16 @@ def render_batch(
     bg = np.asarray(background, dtype=np.float32).reshape(-1)
     if bg.shape != (3,):
         raise ValueError(f"render: background must be 3 floats, got {background!r}")
-    if backend not in ("auto", "warp", "gsplat"):
-        raise ValueError(f"render: backend must be 'auto', 'warp' or 'gsplat', got {backend!r}")
+    if backend != "auto" and backend not in _BACKENDS:
+        raise InputError(f"render: unknown backend {backend!r}; known: 'auto', "
+                         + ", ".join(repr(b) for b in _BACKENDS))
     first = views[0][0]
     if device is None:
         device = str(first.device) if isinstance(first, DeviceGaussians) else "cpu"
     if backend == "auto":
         backend = "gsplat" if (device.startswith("cuda") and gsplat_available()) else "warp"
-    # views of one cloud go together (gsplat renders them in one call; Warp uploads a host cloud once)
-    clouds: dict[int, tuple[GaussianCloud | DeviceGaussians, list[int]]] = {}
-    for i, (cloud, _) in enumerate(views):
-        clouds.setdefault(id(cloud), (cloud, []))[1].append(i)
-    outs: list = [None] * len(views)
-    if backend == "gsplat":
-        for cloud, idx in clouds.values():
-            if isinstance(cloud, DeviceGaussians) and str(cloud.device) != str(device):
-                raise ValueError(f"render: DeviceGaussians live on {cloud.device}, but device={device!r}")
-            done = _render_gsplat(cloud, [views[i][1] for i in idx], bg, device)
-            for i, out in zip(idx, done, strict=True):
-                outs[i] = out
-        return outs
-    jobs: list[tuple[DeviceGaussians, Camera]] = [None] * len(views)  # type: ignore[list-item]
-    for cloud, idx in clouds.values():
-        g = cloud if isinstance(cloud, DeviceGaussians) else cloud.to_device(device)
-        if str(g.device) != str(wp.get_device(device)):
-            raise ValueError(f"render: DeviceGaussians live on {g.device}, but device={device!r}")
-        for i in idx:
-            jobs[i] = (g, views[i][1])
     threads = max(1, min(8, os.cpu_count() or 1) if threads is None else int(threads))
-    if not jobs[0][0].device.is_cpu and len(jobs) > 1:
-        return _render_warp_batch(jobs, bg)  # one launch per stage for every view
-    if jobs[0][0].device.is_cpu and threads > 1 and len(jobs) > 1:
-        # several views on CPU: whole views per thread (every stage runs in parallel, not only kernels)
-        wp.load_module(device=jobs[0][0].device)
+    return _BACKENDS[backend](views, bg, device, threads)
 
-        def work(idx):
-            for i in idx:
-                outs[i] = _render_warp_one(*jobs[i], bg, 1)
 
-        _run_threads([(lambda idx=idx: work(idx)) for idx in (list(range(len(jobs)))[k::threads]
-                                                             for k in range(min(threads, len(jobs))))])
-    else:
-        outs = [_render_warp_one(g, c, bg, threads) for g, c in jobs]
-    return outs
+__all__ = ["RenderOutput", "backends", "gsplat_available", "register_backend", "render", "render_batch"]
