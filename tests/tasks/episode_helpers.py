@@ -2,7 +2,7 @@
 
 import numpy as np
 
-from twinbench.evaluation.runner import policy_observation
+from twinbench.evaluation.rollout import policy_observation
 
 
 def place(env, particles):

@@ -7,9 +7,9 @@ import pytest
 from gymnasium.utils.env_checker import check_env
 
 from twinbench.env import TwinEnv
-from twinbench.evaluation.runner import policy_observation
+from twinbench.evaluation.rollout import policy_observation
 from twinbench.tasks import get_task
-from twinbench.tasks.push_t_expert import PushTExpert
+from twinbench.tasks.push_t import make_expert
 from twinbench.transforms import planar_pose
 from twinbench.twin.cells import PushTCell
 
@@ -119,10 +119,9 @@ def test_bad_actions_options_and_divergence(env):
 def test_success_rules_final_window_or_early_termination(rule, tmp_path):
     """A block that starts on its goal hits on every frame: "final" runs the whole (9-step) episode and
     judges its last frames, "early" stops once the window holds (3 hits > 2 of the last 5)."""
-    from twinbench.evaluation.runner import run_episode
+    from twinbench.evaluation.rollout import run_episode
     from twinbench.tasks.base import offset_pose
-    from twinbench.tasks.push_t_expert import PushTExpert
-    from twinbench.tasks.push_t_geometry import grid_initial_states
+    from twinbench.tasks.push_t import grid_initial_states, make_expert
 
     goal = offset_pose(planar_pose(0.5, 0.0, 0.0), grid_initial_states()[2])
     env = TwinEnv(
@@ -134,7 +133,7 @@ def test_success_rules_final_window_or_early_termination(rule, tmp_path):
         success_min_hits=2,
         goal_pose=(goal[0, 3], goal[1, 3], np.arctan2(goal[1, 0], goal[0, 0])),
     )
-    out = run_episode(env, PushTExpert(env.rules.shape), init_state=2, seed=0)
+    out = run_episode(env, make_expert(env), init_state=2, seed=0)
     assert out.status == "ok" and out.success and out.success_rule == rule
     assert out.steps == (9 if rule == "final" else 3)
     assert out.metrics()["success_rule"] == rule
@@ -178,7 +177,7 @@ def test_presets_are_named_and_validated():
 
 def _run_expert(env, state: int) -> tuple[bool, int]:
     obs, info = env.reset(seed=0, options={"init_state": state})
-    expert = PushTExpert(env.rules.shape)
+    expert = make_expert(env)
     steps = 0
     while True:
         obs, _, term, trunc, info = env.step(expert.select_action(policy_observation(expert, obs, info)))
@@ -190,7 +189,7 @@ def _run_expert(env, state: int) -> tuple[bool, int]:
 def test_expert_needs_the_environment_state(env):
     obs, _ = env.reset(seed=0)
     with pytest.raises(Exception, match="environment_state"):
-        PushTExpert(env.rules.shape).select_action(obs)
+        make_expert(env).select_action(obs)
 
 
 @pytest.mark.parametrize("state", [0, 9])

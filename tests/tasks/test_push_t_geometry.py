@@ -2,13 +2,9 @@ import numpy as np
 import pytest
 
 from twinbench.tasks.base import InitialStates, SuccessWindow, offset_pose
-from twinbench.tasks.push_t_geometry import (
-    TBlockShape,
-    grid_initial_states,
-    mean_squared_distance,
-    sample_block_particles,
-)
+from twinbench.tasks.push_t import grid_initial_states, mean_squared_distance
 from twinbench.transforms import planar_pose, transform_points
+from twinbench.twin.shapes import TBlockShape, sample_block_particles
 
 
 def test_t_mesh_is_closed_with_analytic_volume_and_centroid():

@@ -8,8 +8,7 @@ from gymnasium.utils.env_checker import check_env
 
 from twinbench.env import TwinEnv
 from twinbench.tasks.gripper_expert import TCP_ABOVE_TIPS, grasp_quat
-from twinbench.tasks.rope_expert import RopeExpert
-from twinbench.tasks.rope_routing import count_crossings
+from twinbench.tasks.rope_routing import count_crossings, make_expert
 from twinbench.transforms import planar_pose, transform_points
 
 
@@ -104,10 +103,10 @@ def test_conforms_to_gymnasium_and_is_deterministic(env):
 
 
 def test_expert_routes_the_centre_state(env):
-    assert expert_episode(env, RopeExpert(), 13)
+    assert expert_episode(env, make_expert(env), 13)
 
 
 @pytest.mark.slow
 def test_expert_routes_at_least_70_percent_of_the_grid(env):
-    results = [expert_episode(env, RopeExpert(), i) for i in range(27)]
+    results = [expert_episode(env, make_expert(env), i) for i in range(27)]
     assert sum(results) >= 0.7 * 27, results

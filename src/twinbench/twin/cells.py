@@ -6,7 +6,7 @@ the reference cameras (a fixed front camera and a wrist camera, DESIGN §5), and
 - `push_t_cell(preset)`: the arm with a vertical pusher held at a fixed height above the table (its
   radius is the robot's `tool_radius`), and a T-block made of particles (volume lattice, springs within a
   radius, max 50 neighbours, uniform Y = 3e4) whose coloured surface Gaussians follow its rigid motion;
-  the T's outline is the object's `outline` (`block_scale` scales the T and its lattice). Presets:
+  the T's outline is the object's `outline` (`block_scale` scales the T, its lattice and its Y). Presets:
   `reference` (5 mm lattice, 667 substeps per 30 Hz frame, PhysTwin's dt = 5e-5 s) and `fast` (15 mm
   lattice, 100 substeps, about 50x cheaper; the demo and the tests use it).
 - `rope_routing_cell(preset)`: the arm with its parallel gripper (friction on the finger pads, the force
@@ -80,7 +80,7 @@ class PushTCell:
     ground_friction: float = 0.5
     pusher_friction: float = 0.3
     robot_gaussian_spacing: float = 0.006
-    block_scale: float = 1.0  # the T's size (and its lattice spacing) relative to the reference T
+    block_scale: float = 1.0  # the T's size, lattice spacing and spring Y relative to the reference T
 
     @staticmethod
     def preset(name: str, **overrides) -> PushTCell:
@@ -98,7 +98,7 @@ def push_t_cell(preset: str = "reference", **overrides) -> TwinSpec:
     block = ObjectSpec(
         "tblock",
         sample_block_particles(shape, spacing),
-        spring_Y=3e4,
+        spring_Y=3e4 * cfg.block_scale,  # the springs' stiffness Y / rest length stays the reference's
         spring_radius=cfg.spring_radius_factor * spacing,
         max_neighbors=50,
         gaussians=mesh_surface_gaussians(shape.mesh(), (0.30, 0.42, 0.68)),

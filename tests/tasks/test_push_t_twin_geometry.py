@@ -1,0 +1,93 @@
+"""Push-T reads its geometry from the twin (the block's `outline`, the robot's `tool_radius`): a T 0.7x the
+built-in one is scored with its own outline, and the scripted expert pushes it home."""
+
+import dataclasses
+import types
+
+import numpy as np
+import pytest
+
+from twinbench.env import TwinEnv
+from twinbench.evaluation.rollout import policy_observation
+from twinbench.robot.builtin import PUSHER_RADIUS
+from twinbench.tasks.push_t import PushTTask, make_expert
+from twinbench.twin.cells import push_t_cell
+from twinbench.twin.shapes import TBlockShape
+
+SCALE = 0.7
+
+
+@pytest.fixture(scope="module")
+def small_env():
+    env = TwinEnv("push-t", preset="fast", block_scale=SCALE, success_rule="early")
+    env.reset(seed=0, options={"init_state": 0})
+    return env
+
+
+def shifted_overlap(t: TBlockShape, dx: float) -> float:
+    """The fraction of a T's area that the same T moved by dx along x (|dx| < stem width) covers."""
+    bar, stem = t.bar_length * t.bar_width, t.stem_width * t.stem_length
+    return ((t.bar_length - dx) * t.bar_width + (t.stem_width - dx) * t.stem_length) / (bar + stem)
+
+
+def test_the_scaled_twin_carries_its_own_outline_and_the_pusher_radius(small_env):
+    spec = small_env.twin.spec
+    block = spec.object("tblock")
+    np.testing.assert_allclose(block.outline.polygon, TBlockShape().scaled(SCALE).outline_xy(), atol=1e-15)
+    assert block.outline.height == pytest.approx(0.03 * SCALE)
+    assert block.outline.area == pytest.approx(SCALE**2 * TBlockShape().outline().area, rel=1e-12)
+    # the particles fill that outline (the cell scales the T and its lattice)
+    assert block.outline.contains(block.particles, tol=1e-6).all()
+    assert len(block.particles) == len(push_t_cell("fast").object("tblock").particles)
+    assert spec.robot.tool_radius == PUSHER_RADIUS
+    assert small_env.rules.outline is block.outline and small_env.rules.tool_radius == PUSHER_RADIUS
+
+
+def test_the_scaled_t_is_scored_with_its_own_outline(small_env):
+    twin, state = small_env.twin, small_env.state
+    rules = small_env.rules
+    rules.reset(twin, state, {"block": np.zeros(3)})  # the T resting exactly on its goal
+    hit, metrics = rules.frame(twin, state)
+    assert hit and metrics["coverage"] == 1.0 and metrics["msd"] < 1e-12
+
+    # The goal 2 cm along x: the block covers the part of the goal T that a 0.7x T moved by 2 cm covers
+    # (0.456); the built-in T's outline would say 0.619.
+    moved = PushTTask(goal_pose=(0.52, 0.0, 0.0))
+    moved.setup(twin, state)
+    moved.reset(twin, state, {"block": np.zeros(3)})
+    _, metrics = moved.frame(twin, state)
+    own, builtin = shifted_overlap(TBlockShape().scaled(SCALE), 0.02), shifted_overlap(TBlockShape(), 0.02)
+    assert own == pytest.approx(0.4558, abs=1e-4) and builtin == pytest.approx(0.6190, abs=1e-4)
+    assert metrics["coverage"] == pytest.approx(own, abs=0.02)
+    assert metrics["msd"] == pytest.approx(0.02**2, rel=1e-4)  # every particle 2 cm from its goal
+
+
+def test_the_goal_overlay_is_the_scaled_outline(small_env, fast_env):
+    small, full = small_env.rules._overlay.sum(), fast_env.rules._overlay.sum()
+    assert small / full == pytest.approx(SCALE**2, abs=0.04)
+
+
+def test_a_twin_without_an_outline_or_tool_radius_is_refused():
+    spec = push_t_cell("fast")
+    no_outline = dataclasses.replace(spec, objects=(dataclasses.replace(spec.objects[0], outline=None),))
+    fake_twin = types.SimpleNamespace(spec=no_outline, object_names=["tblock"], collider_names=[])
+    with pytest.raises(ValueError, match=r"needs the outline of object 'tblock'.*twin.json"):
+        PushTTask().setup(fake_twin, None)
+    no_radius = dataclasses.replace(spec, robot=dataclasses.replace(spec.robot, urdf="my_arm.urdf",
+                                                                    tool_radius=None))
+    fake_twin.spec = no_radius
+    with pytest.raises(ValueError, match=r"needs the radius of the pusher tip.*robot.tool_radius"):
+        PushTTask().setup(fake_twin, None)
+
+
+def test_the_expert_pushes_the_scaled_t_home(small_env):
+    expert = make_expert(small_env)
+    assert expert.outline is small_env.rules.outline and expert.pusher_radius == PUSHER_RADIUS
+    obs, info = small_env.reset(seed=0, options={"init_state": 3})
+    expert.reset()
+    steps, term, trunc = 0, False, False
+    while not (term or trunc):
+        action = expert.select_action(policy_observation(expert, obs, info))
+        obs, _, term, trunc, info = small_env.step(action)
+        steps += 1
+    assert info["is_success"] and term, f"not home after {steps} steps: {info}"
