@@ -91,12 +91,12 @@ def test_debug_shows_the_traceback(tmp_path):
 
 
 def test_an_internal_error_is_one_line_exit_1(monkeypatch, capsys):
-    import twinbench.robot.info as info
+    import twinbench.commands.robot_info as info
 
     def boom(config):
         raise ZeroDivisionError("division by zero in a helper")
 
-    monkeypatch.setattr(info, "robot_info", boom)
+    monkeypatch.setattr(info, "main", boom)
     assert main(["robot-info"]) == 1
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "internal error: ZeroDivisionError" in err[0] and "--debug" in err[0]

@@ -6,7 +6,7 @@ import imageio.v3 as iio
 import numpy as np
 
 from twinbench.cli import main
-from twinbench.gaussians.cli import framing_camera
+from twinbench.gaussians.camera import framing_camera
 from twinbench.gaussians.io import save_gaussians
 
 

@@ -5,7 +5,7 @@ from __future__ import annotations
 import imageio.v2 as imageio
 import numpy as np
 
-from twinbench.physics.demo import DemoConfig, main, simulate
+from twinbench.commands.physics_demo import DemoConfig, main, simulate
 
 
 def test_demo_writes_png_and_video(tmp_path, capsys):

@@ -3,10 +3,14 @@
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from twinbench.transforms import invert_pose
+
+if TYPE_CHECKING:
+    from twinbench.gaussians.cloud import GaussianCloud
 
 
 @dataclass(frozen=True, eq=False)
@@ -95,3 +99,31 @@ def look_at_pose(eye, target, up=(0.0, 0.0, 1.0)) -> np.ndarray:
     pose = np.eye(4)
     pose[:3, 0], pose[:3, 1], pose[:3, 2], pose[:3, 3] = right, np.cross(forward, right), forward, eye
     return pose
+
+
+def framing_camera(
+    cloud: GaussianCloud,
+    *,
+    width: int,
+    height: int,
+    fov_deg: float = 60.0,
+    view_dir=(0.0, -1.0, 0.6),
+    up=(0.0, 0.0, 1.0),
+    percentile: float = 95.0,
+) -> Camera:
+    """A camera looking at the median centre from `view_dir`, far enough that the sphere holding
+    `percentile` % of the means fits in the narrower field of view."""
+    if len(cloud) == 0:
+        raise ValueError("cannot frame an empty cloud")
+    if not 0 < fov_deg < 180:
+        raise ValueError(f"fov_deg must be in (0, 180), got {fov_deg}")
+    centre = np.median(cloud.means, axis=0)
+    radius = float(np.percentile(np.linalg.norm(cloud.means - centre, axis=1), percentile))
+    radius = max(radius, 1e-3)
+    fx = 0.5 * width / np.tan(np.radians(fov_deg) / 2)
+    half_fov = min(np.arctan(0.5 * width / fx), np.arctan(0.5 * height / fx))
+    d = np.asarray(view_dir, dtype=np.float64)
+    if np.linalg.norm(d) < 1e-12:
+        raise ValueError("view_dir must be non-zero")
+    eye = centre + d / np.linalg.norm(d) * radius / np.sin(half_fov) * 1.05
+    return Camera.look_at(eye, centre, up, fx=fx, width=width, height=height)

@@ -9,8 +9,6 @@ import numpy as np
 import tyro
 
 from twinbench.errors import InputError
-from twinbench.gaussians.camera import Camera
-from twinbench.gaussians.cloud import GaussianCloud
 
 
 @dataclass(frozen=True)
@@ -39,34 +37,6 @@ class RenderPlyConfig:
     """Warp device: "cpu" or "cuda:N"."""
 
 
-def framing_camera(
-    cloud: GaussianCloud,
-    *,
-    width: int,
-    height: int,
-    fov_deg: float = 60.0,
-    view_dir=(0.0, -1.0, 0.6),
-    up=(0.0, 0.0, 1.0),
-    percentile: float = 95.0,
-) -> Camera:
-    """A camera looking at the median centre from `view_dir`, far enough that the sphere holding
-    `percentile` % of the means fits in the narrower field of view."""
-    if len(cloud) == 0:
-        raise ValueError("cannot frame an empty cloud")
-    if not 0 < fov_deg < 180:
-        raise ValueError(f"fov_deg must be in (0, 180), got {fov_deg}")
-    centre = np.median(cloud.means, axis=0)
-    radius = float(np.percentile(np.linalg.norm(cloud.means - centre, axis=1), percentile))
-    radius = max(radius, 1e-3)
-    fx = 0.5 * width / np.tan(np.radians(fov_deg) / 2)
-    half_fov = min(np.arctan(0.5 * width / fx), np.arctan(0.5 * height / fx))
-    d = np.asarray(view_dir, dtype=np.float64)
-    if np.linalg.norm(d) < 1e-12:
-        raise ValueError("view_dir must be non-zero")
-    eye = centre + d / np.linalg.norm(d) * radius / np.sin(half_fov) * 1.05
-    return Camera.look_at(eye, centre, up, fx=fx, width=width, height=height)
-
-
 MAX_IMAGE_SIDE = 8192  # pixels; 8192 x 8192 float32 RGBA buffers are ~1 GiB
 
 
@@ -93,6 +63,7 @@ def main(config: RenderPlyConfig) -> int:
     """Bad options or files raise InputError / GaussianFileError (one line via `twinbench`, exit code 2)."""
     import imageio.v3 as iio
 
+    from twinbench.gaussians.camera import framing_camera
     from twinbench.gaussians.io import load_gaussians
     from twinbench.gaussians.render import render
 

@@ -55,7 +55,7 @@ def describe(model: RobotModel) -> str:
     return "\n".join(lines)
 
 
-def robot_info(config: RobotInfoConfig) -> int:
+def main(config: RobotInfoConfig) -> int:
     if config.urdf is None:
         if config.tool not in TOOLS:
             raise ValueError(f"--tool: expected one of {TOOLS}, got {config.tool!r}")

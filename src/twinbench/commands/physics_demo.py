@@ -1,4 +1,4 @@
-"""Physics demo (`twinbench physics-demo`): a soft cube dropped, squeezed by two fingers and lifted.
+"""`twinbench physics-demo`: a soft cube dropped, squeezed by two fingers and lifted.
 
 Grasping is pure friction: the fingers close until the contact force on both exceeds a threshold
 (latch), then lift and hold. Writes ``physics_demo.png`` (snapshots, COM height and finger force
