@@ -22,7 +22,7 @@ import numpy as np
 import warp as wp
 
 from twinbench.env import TwinEnv, TwinVectorEnv
-from twinbench.evaluation.runner import policy_observation
+from twinbench.evaluation.rollout import policy_observation
 from twinbench.tasks import get_task
 
 TASKS = {"push-t": "pusht", "rope-routing": "rope", "toy-packing": "toy"}

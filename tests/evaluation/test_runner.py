@@ -163,7 +163,7 @@ def test_ray_backend_matches_local(tmp_path):
 
 
 def test_parse_env_kwargs():
-    from twinbench.evaluation.runner import parse_env_kwargs
+    from twinbench.commands.env_options import parse_env_kwargs
 
     assert parse_env_kwargs("") == {}
     assert parse_env_kwargs('{"step_delay_s": 0.01, "fail_mode": null}') == {"step_delay_s": 0.01,

@@ -14,8 +14,9 @@ import pytest
 
 from twinbench.cli import main as cli_main
 from twinbench.errors import InputError
-from twinbench.evaluation import runner
-from twinbench.evaluation.runner import MAX_EPISODES, episode_set, evaluate, run_episode
+from twinbench.evaluation import video as video_module
+from twinbench.evaluation.rollout import run_episode
+from twinbench.evaluation.runner import MAX_EPISODES, episode_set, evaluate
 from twinbench.evaluation.store import ResultsStore
 from twinbench.tasks import get_task
 from twinbench.tasks.point_reach import PointReachExpert
@@ -153,7 +154,7 @@ def test_a_video_cut_short_by_a_full_disk_is_reported_missing(tmp_path):
     video = tmp_path / "v.mp4"
     code = f"""
 import json, resource, warnings
-from twinbench.evaluation.runner import run_episode
+from twinbench.evaluation.rollout import run_episode
 from twinbench.tasks import get_task
 from twinbench.tasks.point_reach import PointReachExpert
 resource.setrlimit(resource.RLIMIT_FSIZE, (1500, 1500))
@@ -173,15 +174,15 @@ print(json.dumps({{"status": out.status, "success": out.success, "video": out.vi
     # the same episode without the limit writes a complete MP4
     ok = run_episode(get_task("point-reach").make_env(), PointReachExpert(), init_state=0, seed=0,
                      video_path=video)
-    assert ok.video_path == str(video) and ok.video_error is None and runner.mp4_complete(video)
+    assert ok.video_path == str(video) and ok.video_error is None and video_module.mp4_complete(video)
     size = video.stat().st_size
     with video.open("r+b") as fh:
         fh.truncate(size - 100)
-    assert not runner.mp4_complete(video)
+    assert not video_module.mp4_complete(video)
 
 
 def test_eval_warns_and_records_a_missing_video(tmp_path, monkeypatch):
-    monkeypatch.setattr(runner, "mp4_complete", lambda path: False)  # every file looks truncated
+    monkeypatch.setattr(video_module, "mp4_complete", lambda path: False)  # every file looks truncated
     logs = []
     with pytest.warns(UserWarning, match="video missing"):
         recs = evaluate("point-reach", ["expert"], "grid:0,1", 0, "vid", tmp_path / "r.sqlite", video=True,

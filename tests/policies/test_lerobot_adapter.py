@@ -34,7 +34,7 @@ def test_lerobot_checkpoint_runs_as_lerobot_would(tiny_act_checkpoint, fast_env,
     import torch
     from lerobot.envs.utils import preprocess_observation
 
-    from twinbench.evaluation.runner import run_episode
+    from twinbench.evaluation.rollout import run_episode
     from twinbench.policies import make_policy
 
     task = get_task("push-t")

@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from twinbench.evaluation.runner import run_episode
+from twinbench.evaluation.rollout import run_episode
 from twinbench.policies import ChunkedPolicy, DegradedPolicy, PolicyError, make_policy, parse_policy_spec
 from twinbench.policies.degraded import level_to_train_step
 from twinbench.tasks import get_task

@@ -9,7 +9,7 @@ import time
 import numpy as np
 import pytest
 
-from twinbench.evaluation.runner import run_episode
+from twinbench.evaluation.rollout import run_episode
 from twinbench.policies import ChunkedPolicy, PolicyError
 from twinbench.policies.msgpack_numpy import packb, unpackb
 from twinbench.policies.remote import RemotePolicy

@@ -6,7 +6,7 @@ import sys
 
 import numpy as np
 
-from twinbench.evaluation.runner import run_episode
+from twinbench.evaluation.rollout import run_episode
 from twinbench.policies.remote import RemotePolicy
 from twinbench.policies.server import PolicyServer
 from twinbench.tasks import get_task

@@ -1,0 +1,321 @@
+"""Running episodes: one rollout (`run_episode`), the worlds of a many-world env (`run_worlds`), and the
+picklable jobs a worker process or a Ray task runs (`run_job`, `run_batch`) with this process's cache of
+envs and policies.
+
+Status: "sim_error" when the env reports or raises a simulation failure (or emits a non-finite state),
+"policy_error" when the policy raises, cannot be built, or returns a malformed action. The outcome is
+the env's `info["is_success"]` at the episode's last step (the env's success rule, e.g. TwinEnv's
+"final" window judgement or "early" termination, is stored in the episode's metrics).
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from twinbench.errors import InputError, PolicyError
+from twinbench.evaluation.store import EpisodeRecord
+from twinbench.evaluation.video import VideoWriter, error_text
+from twinbench.policies.spec import make_policy, parse_policy_spec
+
+
+@dataclass
+class EpisodeOutcome:
+    """What one rollout produced (before labelling it as an EpisodeRecord)."""
+
+    success: bool
+    status: str
+    steps: int
+    wall_time_s: float
+    sum_reward: float = 0.0
+    max_reward: float = 0.0
+    error: str | None = None
+    video_path: str | None = None
+    started_at: float = 0.0
+    success_rule: str | None = None  # the env's rule that judged the outcome (TwinEnv: "final" or "early")
+    video_error: str | None = None  # why a requested video is missing (the episode itself is unaffected)
+
+    def metrics(self, **extra) -> dict:
+        """The EpisodeRecord.metrics of this outcome: `extra`, rewards, success rule, error text."""
+        out = {**extra, "sum_reward": self.sum_reward, "max_reward": self.max_reward}
+        if self.success_rule:
+            out["success_rule"] = self.success_rule
+        if self.error:
+            out["error"] = self.error
+        if self.video_error:
+            out["video_error"] = self.video_error
+        return out
+
+
+@dataclass(frozen=True)
+class EpisodeJob:
+    """One episode to run: picklable, so it can travel to a worker process or a Ray task."""
+
+    task: str
+    policy: str  # spec string
+    init_state: int
+    seed: int
+    run_id: str
+    env_kwargs: dict = field(default_factory=dict)
+    video_path: str | None = None
+
+
+@dataclass(frozen=True)
+class EpisodeBatch:
+    """Episode jobs of one policy that one process runs together: one at a time in a TwinEnv when
+    `worlds` is 1, else as the worlds of one `worlds`-world TwinVectorEnv (picklable, like EpisodeJob)."""
+
+    jobs: tuple[EpisodeJob, ...]
+    worlds: int = 1
+
+
+def policy_observation(policy, obs: dict, info: dict) -> dict:
+    """The observation `policy` is given: `obs`, plus the privileged `environment_state` from
+    `info["privileged"]` for policies that declare `uses_environment_state` (scripted experts)."""
+    if not getattr(policy, "uses_environment_state", False) or "environment_state" in obs:
+        return obs
+    privileged = info.get("privileged") or {}
+    if "environment_state" not in privileged:
+        raise PolicyError("this policy needs the task's environment_state, which the env does not provide")
+    return {**obs, "environment_state": privileged["environment_state"]}
+
+
+class _Rollout:
+    """One episode's bookkeeping, driven step by step by `run_episode` (one env) or `run_worlds` (the worlds
+    of a vector env): policy calls and their checks, env failures, rewards, the video, the outcome."""
+
+    def __init__(self, env, policy, *, init_state: int, seed: int, max_steps: int | None = None,
+                 video_path: str | Path | None = None):
+        self.env, self.policy, self.init_state, self.seed = env, policy, int(init_state), int(seed)
+        self.t0, self.started = time.perf_counter(), time.time()
+        self.rewards: list[float] = []
+        self.video_path = video_path
+        self.video = VideoWriter(video_path, env) if video_path is not None else None
+        self.success, self.status, self.error, self.steps, self.rule = False, "ok", None, 0, None
+        self.limit = int(max_steps or getattr(env.unwrapped, "_max_episode_steps", 0) or 0)
+        if self.limit <= 0:
+            raise ValueError("run_episode: env has no _max_episode_steps; pass max_steps")
+        self.ended = False
+
+    def start(self) -> None:
+        """Reset the env to this episode's initial state and the policy to its seed."""
+        try:
+            self.obs, self.info = self.env.reset(seed=self.seed, options={"init_state": self.init_state})
+            if self.video is not None:
+                self.video.add(self.env.render())
+        except Exception as err:  # noqa: BLE001 - any env failure is a sim_error, reported with its text
+            self._end("sim_error", f"reset: {error_text(err)}")
+            return
+        try:
+            if hasattr(self.policy, "reseed"):
+                self.policy.reseed(self.seed)
+            else:
+                self.policy.reset()
+        except Exception as err:  # noqa: BLE001
+            self._end("policy_error", f"reset: {error_text(err)}")
+
+    def action(self) -> np.ndarray | None:
+        """The policy's next action, or None once the episode has ended (a policy failure ends it)."""
+        if self.ended:
+            return None
+        if self.steps >= self.limit:
+            self.ended = True
+            return None
+        shape = self.env.action_space.shape
+        try:
+            obs = policy_observation(self.policy, self.obs, self.info)
+            action = np.asarray(self.policy.select_action(obs), dtype=np.float64)
+            if action.shape != shape or not np.all(np.isfinite(action)):
+                raise PolicyError(f"action of shape {action.shape} (expected {shape}) "
+                                  f"or non-finite: {action}")
+        except Exception as err:  # noqa: BLE001
+            self._end("policy_error", error_text(err))
+            return None
+        return action.astype(self.env.action_space.dtype)
+
+    def observe(self, result) -> None:
+        """Take the env's step result (obs, reward, terminated, truncated, info) or the error it raised."""
+        if isinstance(result, BaseException):
+            self._end("sim_error", error_text(result))
+            return
+        self.obs, reward, terminated, truncated, self.info = result
+        self.steps += 1
+        self.rewards.append(float(reward))
+        env_status = self.info.get("status", "ok")
+        if env_status != "ok":
+            self._end("sim_error", f"env status {env_status!r} at step {self.steps}")
+            return
+        if not np.all(np.isfinite(np.asarray(self.obs["agent_pos"], dtype=np.float64))):
+            self._end("sim_error", f"non-finite agent_pos at step {self.steps}")
+            return
+        self.success = bool(self.info.get("is_success", False))  # the final frame's judgement
+        self.rule = self.info.get("success_rule", self.rule)
+        if self.video is not None:
+            self.video.add(self.env.render())
+        if terminated or truncated or self.steps >= self.limit:
+            self.ended = True
+
+    def _end(self, status: str, error: str) -> None:
+        self.status, self.error, self.ended = status, error, True
+
+    def outcome(self) -> EpisodeOutcome:
+        written, video_error = self.video.close() if self.video is not None else (False, None)
+        r = self.rewards
+        return EpisodeOutcome(
+            success=self.success and self.status == "ok", status=self.status, steps=self.steps,
+            wall_time_s=time.perf_counter() - self.t0, sum_reward=float(np.sum(r)) if r else 0.0,
+            max_reward=float(np.max(r)) if r else 0.0, error=self.error,
+            video_path=str(self.video_path) if written else None, started_at=self.started,
+            success_rule=self.rule, video_error=video_error,
+        )
+
+
+def run_episode(env, policy, *, init_state: int, seed: int, max_steps: int | None = None,
+                video_path: str | Path | None = None) -> EpisodeOutcome:
+    """Roll `policy` out in `env` from `init_state`; never raises for env or policy failures."""
+    r = _Rollout(env, policy, init_state=init_state, seed=seed, max_steps=max_steps, video_path=video_path)
+    r.start()
+    while (action := r.action()) is not None:
+        try:
+            result = env.step(action)
+        except Exception as err:  # noqa: BLE001 - any env failure is a sim_error, reported with its text
+            result = err
+        r.observe(result)
+    return r.outcome()
+
+
+def run_worlds(vec_env, policies: list, episodes: list[tuple[int, int, str | None]]) -> list[EpisodeOutcome]:
+    """Roll out `episodes` [(init_state, seed, video_path)] in the worlds of `vec_env` (a TwinVectorEnv),
+    world i with `policies[i]`, all worlds in one physics frame per step. Each episode's outcome is the
+    one `run_episode` gives in a one-world env (same steps, rewards and judgement, bit for bit on CPU);
+    a world whose episode ends waits, held, until every episode has ended. Never raises for env or
+    policy failures."""
+    if len(episodes) > vec_env.num_envs or len(policies) < len(episodes):
+        raise ValueError(f"run_worlds: {len(episodes)} episodes for {vec_env.num_envs} worlds and "
+                         f"{len(policies)} policies")
+    rollouts = [
+        _Rollout(vec_env.envs[i], policies[i], init_state=s, seed=seed, video_path=video)
+        for i, (s, seed, video) in enumerate(episodes)
+    ]
+    for r in rollouts:
+        r.start()
+    while True:
+        actions = [r.action() for r in rollouts]
+        if all(a is None for a in actions):
+            break
+        try:
+            results = vec_env.step_worlds(actions + [None] * (vec_env.num_envs - len(rollouts)))
+        except Exception as err:  # noqa: BLE001 - a failure of the shared frame ends every running episode
+            results = [err] * len(rollouts)
+        for r, a, result in zip(rollouts, actions, results, strict=False):
+            if a is not None:
+                r.observe(result)
+    return [r.outcome() for r in rollouts]
+
+
+# ---- worker side: one job or batch at a time, with this process's envs and policies ------------------
+_CACHE: dict = {}  # per process: envs by (task, env_kwargs), policies by (task, spec)
+
+
+def run_job(job: EpisodeJob) -> EpisodeRecord:
+    """Run one episode job (in a worker or in-process), reusing this process's env and policy."""
+    from twinbench.tasks import get_task
+
+    task = get_task(job.task)
+    spec = parse_policy_spec(job.policy)
+    env_key = (job.task, json.dumps(job.env_kwargs, sort_keys=True))
+    if env_key not in _CACHE:
+        try:
+            _CACHE[env_key] = task.make_env(**job.env_kwargs)
+        except TypeError as err:  # an unknown keyword in --env-kwargs
+            raise InputError(f"--env-kwargs {json.dumps(job.env_kwargs)}: the {job.task!r} env does not "
+                             f"accept them ({err})") from None
+    env = _CACHE[env_key]
+    pol_key = (job.task, job.policy)
+    policy, build_error = _CACHE.get(pol_key), None
+    if policy is None:
+        try:
+            policy = make_policy(spec, task, env, seed=job.seed)
+            _CACHE[pol_key] = policy
+        except Exception as err:  # noqa: BLE001 - a policy that cannot be built is a policy_error
+            build_error = f"building policy {job.policy!r}: {error_text(err)}"
+    if policy is None:
+        out = EpisodeOutcome(False, "policy_error", 0, 0.0, error=build_error, started_at=time.time())
+    else:
+        out = run_episode(env, policy, init_state=job.init_state, seed=job.seed, video_path=job.video_path)
+    return _record(job, out)
+
+
+def _record(job: EpisodeJob, out: EpisodeOutcome) -> EpisodeRecord:
+    spec = parse_policy_spec(job.policy)
+    return EpisodeRecord(
+        run_id=job.run_id, task=job.task, policy=spec.name, checkpoint=spec.checkpoint,
+        train_step=spec.train_step, init_state=job.init_state, seed=job.seed, domain="sim",
+        success=out.success, status=out.status, steps=out.steps, wall_time_s=out.wall_time_s,
+        video_path=out.video_path, metrics=out.metrics(started_at=out.started_at),
+    )
+
+
+def run_batch(batch: EpisodeBatch) -> list[EpisodeRecord]:
+    """Run a batch (in a worker or in-process): one job at a time, or its jobs as the worlds of one
+    many-world env (this process keeps the env and one policy per world for the next batch)."""
+    from twinbench.tasks import get_task
+
+    if batch.worlds == 1:
+        return [run_job(job) for job in batch.jobs]
+    first = batch.jobs[0]
+    if len(batch.jobs) > batch.worlds or any(
+        (j.task, j.policy, j.env_kwargs) != (first.task, first.policy, first.env_kwargs) for j in batch.jobs
+    ):
+        raise ValueError("an EpisodeBatch holds at most `worlds` jobs of one task, policy and env kwargs")
+    task = get_task(first.task)
+    env_key = (first.task, json.dumps(first.env_kwargs, sort_keys=True), "worlds", batch.worlds)
+    if env_key not in _CACHE:
+        try:
+            _CACHE[env_key] = task.make_vector_env(batch.worlds, **first.env_kwargs)
+        except TypeError as err:  # an unknown keyword in --env-kwargs
+            raise InputError(f"--env-kwargs {json.dumps(first.env_kwargs)}: the {first.task!r} env does not "
+                             f"accept them ({err})") from None
+    vec = _CACHE[env_key]
+    policies = []
+    for i, job in enumerate(batch.jobs):
+        key = (job.task, job.policy, "world", i)
+        if key not in _CACHE:
+            try:
+                _CACHE[key] = make_policy(parse_policy_spec(job.policy), task, vec.envs[i], seed=job.seed)
+            except Exception as err:  # noqa: BLE001 - a policy that cannot be built is a policy_error
+                error = f"building policy {job.policy!r}: {error_text(err)}"
+                return [_record(j, EpisodeOutcome(False, "policy_error", 0, 0.0, error=error,
+                                                  started_at=time.time())) for j in batch.jobs]
+        policies.append(_CACHE[key])
+    outs = run_worlds(vec, policies, [(j.init_state, j.seed, j.video_path) for j in batch.jobs])
+    return [_record(j, out) for j, out in zip(batch.jobs, outs, strict=True)]
+
+
+def close_cached_policies() -> None:
+    """Close and forget this process's cached policies (a remote policy's connection is closed here, not
+    from `__del__` at interpreter shutdown, where closing it could hang). Cached envs are kept."""
+    for key in [k for k, v in _CACHE.items() if hasattr(v, "select_action")]:
+        policy = _CACHE.pop(key)
+        close = getattr(policy, "close", None)
+        if callable(close):
+            try:
+                close()
+            except Exception:  # noqa: BLE001 - closing is best effort
+                pass
+
+
+def crash_record(job: EpisodeJob, reason: str) -> EpisodeRecord:
+    """The record of an episode whose process died: status sim_error, with the reason."""
+    spec = parse_policy_spec(job.policy)
+    out = EpisodeOutcome(False, "sim_error", 0, 0.0, error=reason, started_at=time.time())
+    return EpisodeRecord(
+        run_id=job.run_id, task=job.task, policy=spec.name, checkpoint=spec.checkpoint,
+        train_step=spec.train_step, init_state=job.init_state, seed=job.seed, domain="sim",
+        success=False, status="sim_error", steps=0, wall_time_s=0.0, video_path=None,
+        metrics=out.metrics(started_at=out.started_at),
+    )
