@@ -29,6 +29,8 @@ COMMANDS: dict[str, tuple[str, str, str, str]] = {
                     "import real-robot episode outcomes from a CSV into the results store"),
     "report": ("twinbench.commands.report", "ReportConfig", "main",
                "write a self-contained HTML report of an evaluation run"),
+    "serve": ("twinbench.commands.serve", "ServeConfig", "main",
+              "serve a local policy of a task over websocket (openpi's protocol) for remote: specs"),
     "sysid": ("twinbench.commands.sysid", "SysIdConfig", "main",
               "fit an object's physics to observed motion"),
     "segment": ("twinbench.commands.segment", "SegmentConfig", "main",

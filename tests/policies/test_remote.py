@@ -11,7 +11,7 @@ import pytest
 
 from twinbench.evaluation.rollout import run_episode
 from twinbench.policies import ChunkedPolicy, PolicyError
-from twinbench.policies.msgpack_numpy import packb, unpackb
+from twinbench.policies.protocol import packb, unpackb
 from twinbench.policies.remote import RemotePolicy
 from twinbench.policies.server import PolicyServer
 from twinbench.tasks import get_task

@@ -14,9 +14,9 @@ from websockets.exceptions import ConnectionClosedError
 from websockets.sync.client import connect
 
 from twinbench.policies import PolicyError
-from twinbench.policies.msgpack_numpy import MessageError, packb, unpackb
+from twinbench.policies.protocol import API_KEY_ENV, MessageError, packb, unpackb
 from twinbench.policies.remote import RemotePolicy
-from twinbench.policies.server import API_KEY_ENV, PolicyServer, public_error
+from twinbench.policies.server import PolicyServer, public_error
 from twinbench.tasks.point_reach import PointReachExpert
 
 OBS = {"agent_pos": np.zeros(2, np.float32)}

@@ -1,7 +1,7 @@
 """Client for policies served over websocket + msgpack (openpi's protocol).
 
 On connect the server sends a metadata dict; each request is an observation dict (numpy arrays packed
-by `msgpack_numpy`) and each reply a dict holding an `actions` chunk `(T, A)` (or `(A,)`). A text
+by `policies.protocol`) and each reply a dict holding an `actions` chunk `(T, A)` (or `(A,)`). A text
 frame as reply is the server's error report. Failures (refused connection, time-out, dropped
 connection) are retried with exponential backoff; after `retries` retries the call raises
 `PolicyError`. Worst case per call: (retries + 1) * (open_timeout_s + timeout_s) + backoffs.
@@ -22,8 +22,17 @@ import time
 import numpy as np
 
 from twinbench.policies.base import ChunkedPolicy, PolicyError
-from twinbench.policies.msgpack_numpy import MessageError, packb, unpackb
-from twinbench.policies.server import API_KEY_ENV, DEFAULT_MAX_MESSAGE_BYTES
+from twinbench.policies.protocol import (
+    ACTIONS_KEY,
+    API_KEY_ENV,
+    AUTH_HEADER,
+    DEFAULT_MAX_MESSAGE_BYTES,
+    USES_ENVIRONMENT_STATE_KEY,
+    MessageError,
+    api_key_value,
+    packb,
+    unpackb,
+)
 
 
 class RemotePolicy(ChunkedPolicy):
@@ -55,7 +64,7 @@ class RemotePolicy(ChunkedPolicy):
     def _connect(self) -> None:
         from websockets.sync.client import connect
 
-        headers = {"Authorization": f"Api-Key {self._api_key}"} if self._api_key else None
+        headers = {AUTH_HEADER: api_key_value(self._api_key)} if self._api_key else None
         self._conn = connect(self.url, open_timeout=self.open_timeout_s, close_timeout=1.0,
                              compression=None, max_size=self.max_message_bytes, max_queue=2, proxy=None,
                              legacy=True, additional_headers=headers)
@@ -132,8 +141,8 @@ class RemotePolicy(ChunkedPolicy):
                 self._drop()
                 raise PolicyError(f"policy server {self.url} reported an error: {reply}")
             out = self._unpack(reply)
-            if not isinstance(out, dict) or "actions" not in out:
-                raise PolicyError(f"policy server {self.url} replied without an 'actions' entry: "
+            if not isinstance(out, dict) or ACTIONS_KEY not in out:
+                raise PolicyError(f"policy server {self.url} replied without an {ACTIONS_KEY!r} entry: "
                                   f"{type(out).__name__} {list(out) if isinstance(out, dict) else ''}")
             return out
         raise PolicyError(f"policy server {self.url} unreachable after {self.retries + 1} attempts "
@@ -149,7 +158,7 @@ class RemotePolicy(ChunkedPolicy):
             except Exception:  # noqa: BLE001 - the failure is reported by the first select_action
                 self._drop()
                 return False
-        return bool(self.metadata.get("uses_environment_state", False))
+        return bool(self.metadata.get(USES_ENVIRONMENT_STATE_KEY, False))
 
     def predict_chunk(self, obs: dict) -> np.ndarray:
         if self.io is not None:  # per-policy observation mapping and action handling (policies.io)
@@ -161,7 +170,7 @@ class RemotePolicy(ChunkedPolicy):
         request = dict(obs)
         if self.prompt is not None:
             request.setdefault("prompt", self.prompt)
-        return np.asarray(self.infer(request)["actions"])
+        return np.asarray(self.infer(request)[ACTIONS_KEY])
 
     def close(self) -> None:
         """Close the connection (the next request reconnects)."""

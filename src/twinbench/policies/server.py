@@ -1,6 +1,9 @@
-"""Minimal websocket + msgpack policy server (openpi's protocol) serving any local policy.
+"""Minimal websocket + msgpack policy server (openpi's protocol, `policies.protocol`) serving any local
+policy.
 
-    python -m twinbench.policies.server --task point-reach --policy expert@0.2 --port 8000
+    twinbench serve --task point-reach --policy expert@0.2 --port 8000
+
+(`python -m twinbench.policies.server ...` is an alias of `twinbench serve ...`.)
 
 Each connection gets its own policy instance (from `make_policy()`), is sent `metadata` first, then
 every binary message (a packed observation) is answered with `{"actions": (T, A) array}`: the
@@ -25,14 +28,21 @@ import sys
 import threading
 import time
 from collections.abc import Callable
-from dataclasses import dataclass
 
 import numpy as np
 
-from twinbench.policies.msgpack_numpy import MessageError, packb, unpackb
+from twinbench.policies.protocol import (
+    ACTIONS_KEY,
+    API_KEY_ENV,
+    AUTH_HEADER,
+    DEFAULT_MAX_MESSAGE_BYTES,
+    TIMING_KEY,
+    MessageError,
+    api_key_value,
+    packb,
+    unpackb,
+)
 
-API_KEY_ENV = "TWINBENCH_API_KEY"
-DEFAULT_MAX_MESSAGE_BYTES = 64 * 2**20  # an observation: a few camera images (848x480x3 is 1.2 MB)
 DEFAULT_MAX_CONNECTIONS = 16
 DEFAULT_IDLE_TIMEOUT_S = 600.0
 
@@ -72,7 +82,7 @@ class PolicyServer:
         self.max_message_bytes, self.max_connections = int(max_message_bytes), int(max_connections)
         self.idle_timeout_s = idle_timeout_s
         key = os.environ.get(API_KEY_ENV) if api_key is None else api_key
-        self._auth = f"Api-Key {key}".encode() if key else None
+        self._auth = api_key_value(key).encode() if key else None
         self.n_requests = 0
         self.n_rejected = 0
         self._active = 0
@@ -94,7 +104,7 @@ class PolicyServer:
     def _process_request(self, connection, request):
         """HTTP-level checks before the websocket opens: API key, then the connection limit."""
         if self._auth is not None:
-            sent = (request.headers.get("Authorization") or "").encode()
+            sent = (request.headers.get(AUTH_HEADER) or "").encode()
             if not hmac.compare_digest(sent, self._auth):
                 self.n_rejected += 1
                 return connection.respond(http.HTTPStatus.UNAUTHORIZED,
@@ -167,7 +177,7 @@ class PolicyServer:
                     return
                 self.n_requests += 1
                 timing = {"infer_ms": 1e3 * (time.perf_counter() - t0)}
-                ws.send(packb({"actions": actions, "server_timing": timing}))
+                ws.send(packb({ACTIONS_KEY: actions, TIMING_KEY: timing}))
         except ConnectionClosed:
             return  # client left, or sent a message over max_message_bytes (closed with 1009)
 
@@ -192,56 +202,7 @@ class PolicyServer:
         self.close()
 
 
-@dataclass(frozen=True)
-class ServeConfig:
-    """Serve a local policy (spec string, e.g. expert or expert@0.3) of a task over websocket."""
+if __name__ == "__main__":  # the alias of `twinbench serve`
+    from twinbench.cli import main
 
-    task: str = "point-reach"
-    policy: str = "expert"
-    host: str = "127.0.0.1"
-    """interface to bind; 127.0.0.1 (loopback) keeps the server private to this machine"""
-    port: int = 8000
-    seed: int = 0
-    max_message_bytes: int = DEFAULT_MAX_MESSAGE_BYTES
-    max_connections: int = DEFAULT_MAX_CONNECTIONS
-    idle_timeout_s: float = DEFAULT_IDLE_TIMEOUT_S
-    env_kwargs: str = ""  # JSON object of env constructor arguments, as `twinbench eval --env-kwargs`
-
-
-def main(cfg: ServeConfig) -> int:
-    from twinbench.policies.spec import make_policy, parse_policy_spec
-    from twinbench.tasks import get_task
-
-    task = get_task(cfg.task)
-    spec = parse_policy_spec(cfg.policy)
-    if spec.kind == "remote":
-        raise ValueError("--policy: the server serves local policies (expert, expert@LEVEL, lerobot:PATH)")
-    from twinbench._runtime import quiet_warp
-    from twinbench.evaluation.runner import parse_env_kwargs
-
-    quiet_warp()  # the printed url is the first stdout line
-
-    env = task.make_env(**parse_env_kwargs(cfg.env_kwargs))
-    # A scripted expert acts from the environment_state it is sent (the metadata tells the client).
-    uses_state = bool(getattr(make_policy(spec, task, env, seed=cfg.seed), "uses_environment_state", False))
-    server = PolicyServer(lambda: make_policy(spec, task, env, seed=cfg.seed), host=cfg.host, port=cfg.port,
-                          metadata={"task": cfg.task, "policy": cfg.policy,
-                                    "uses_environment_state": uses_state},
-                          max_message_bytes=cfg.max_message_bytes, max_connections=cfg.max_connections,
-                          idle_timeout_s=cfg.idle_timeout_s)
-    key = f" (API key required, from {API_KEY_ENV})" if server.requires_api_key else ""
-    if cfg.host not in ("127.0.0.1", "localhost", "::1") and not server.requires_api_key:
-        print(f"warning: serving on {cfg.host} without an API key: anyone who can reach this port can use "
-              f"the policy; set {API_KEY_ENV}", file=sys.stderr, flush=True)
-    print(f"serving {cfg.policy} for {cfg.task}{key} on {server.url}", flush=True)
-    try:
-        server.serve_forever()
-    except KeyboardInterrupt:
-        server.close()
-    return 0
-
-
-if __name__ == "__main__":
-    import tyro
-
-    raise SystemExit(main(tyro.cli(ServeConfig)))
+    raise SystemExit(main(["serve", *sys.argv[1:]]))

@@ -1,5 +1,15 @@
-"""msgpack with numpy arrays, wire-compatible with openpi's `msgpack_numpy`.
+"""The policy-server wire protocol (openpi's), shared by the client (`policies.remote`) and the server
+(`policies.server`): constants, the API-key header and the msgpack-numpy codec.
 
+A connection is one websocket (`ws://HOST:PORT`, compression off). The server first sends a metadata map
+(`USES_ENVIRONMENT_STATE_KEY`: whether the served policy acts from the task's privileged state); then
+each binary frame from the client is a packed observation map, answered by a map holding the action
+chunk under `ACTIONS_KEY` ((T, A) or (A,)) and `TIMING_KEY` (`{"infer_ms": float}`). A text frame from
+the server is its error report, after which it closes the connection. Frames over the receiver's
+`max_message_bytes` (default `DEFAULT_MAX_MESSAGE_BYTES`) close the connection with code 1009. With an
+API key (`API_KEY_ENV`), every client sends `AUTH_HEADER: api_key_value(key)` (else HTTP 401).
+
+Codec (`packb`, `unpackb`): msgpack with numpy arrays, wire-compatible with openpi's `msgpack_numpy`.
 An ndarray is packed as the map `{b"__ndarray__": True, b"data": bytes, b"dtype": dtype.str,
 b"shape": shape}` and a numpy scalar as `{b"__npgeneric__": True, b"data": value, b"dtype": dtype.str}`
 (a `default` hook on packing, an `object_hook` on unpacking). Only plain bool / integer / float /
@@ -16,12 +26,23 @@ import numpy as np
 
 from twinbench.errors import InputError
 
+API_KEY_ENV = "TWINBENCH_API_KEY"  # the key, on both sides (unset or empty: none)
+AUTH_HEADER = "Authorization"
+DEFAULT_MAX_MESSAGE_BYTES = 64 * 2**20  # an observation: a few camera images (848x480x3 is 1.2 MB)
+ACTIONS_KEY = "actions"  # reply: the action chunk
+TIMING_KEY = "server_timing"  # reply: {"infer_ms": ...}
+USES_ENVIRONMENT_STATE_KEY = "uses_environment_state"  # metadata: send the privileged environment_state
 MAX_CONTAINERS = 100_000  # maps + lists (an ndarray is one map) in one unpacked message
 _KINDS = "biufUS"  # bool, signed, unsigned, float, unicode, bytes
 
 
 class MessageError(InputError):
     """A message that is not valid msgpack-numpy, or exceeds a limit."""
+
+
+def api_key_value(api_key: str) -> str:
+    """The `Authorization` header value that carries `api_key` (openpi's form)."""
+    return f"Api-Key {api_key}"
 
 
 def _check_dtype(dtype: np.dtype, action: str) -> np.dtype:

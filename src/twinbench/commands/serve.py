@@ -1,0 +1,59 @@
+"""`twinbench serve`: serve a local policy of a task over websocket (openpi's protocol).
+
+`python -m twinbench.policies.server ...` is an alias of this command."""
+
+from __future__ import annotations
+
+import sys
+from dataclasses import dataclass
+
+from twinbench._runtime import quiet_warp
+from twinbench.commands.env_options import parse_env_kwargs
+from twinbench.policies.protocol import API_KEY_ENV, DEFAULT_MAX_MESSAGE_BYTES, USES_ENVIRONMENT_STATE_KEY
+from twinbench.policies.server import DEFAULT_IDLE_TIMEOUT_S, DEFAULT_MAX_CONNECTIONS, PolicyServer
+from twinbench.policies.spec import make_policy, parse_policy_spec
+from twinbench.tasks import get_task
+
+
+@dataclass(frozen=True)
+class ServeConfig:
+    """Serve a local policy (spec string, e.g. expert or expert@0.3) of a task over websocket."""
+
+    task: str = "point-reach"
+    policy: str = "expert"
+    host: str = "127.0.0.1"
+    """interface to bind; 127.0.0.1 (loopback) keeps the server private to this machine"""
+    port: int = 8000
+    seed: int = 0
+    max_message_bytes: int = DEFAULT_MAX_MESSAGE_BYTES
+    max_connections: int = DEFAULT_MAX_CONNECTIONS
+    idle_timeout_s: float = DEFAULT_IDLE_TIMEOUT_S
+    env_kwargs: str = ""  # JSON object of env constructor arguments, as `twinbench eval --env-kwargs`
+
+
+def main(cfg: ServeConfig) -> int:
+    task = get_task(cfg.task)
+    spec = parse_policy_spec(cfg.policy)
+    if spec.kind == "remote":
+        raise ValueError("--policy: the server serves local policies (expert, expert@LEVEL, lerobot:PATH)")
+    quiet_warp()  # the printed url is the first stdout line
+
+    env = task.make_env(**parse_env_kwargs(cfg.env_kwargs))
+    # A scripted expert acts from the environment_state it is sent (the metadata tells the client).
+    uses_state = bool(getattr(make_policy(spec, task, env, seed=cfg.seed), "uses_environment_state", False))
+    server = PolicyServer(lambda: make_policy(spec, task, env, seed=cfg.seed), host=cfg.host, port=cfg.port,
+                          metadata={"task": cfg.task, "policy": cfg.policy,
+                                    USES_ENVIRONMENT_STATE_KEY: uses_state},
+                          max_message_bytes=cfg.max_message_bytes, max_connections=cfg.max_connections,
+                          idle_timeout_s=cfg.idle_timeout_s)
+    key = f" (API key required, from {API_KEY_ENV})" if server.requires_api_key else ""
+    if cfg.host not in ("127.0.0.1", "localhost", "::1") and not server.requires_api_key:
+        print(f"warning: serving on {cfg.host} without an API key: anyone who can reach this port can use "
+              f"the policy; set {API_KEY_ENV}", file=sys.stderr, flush=True)
+    print(f"serving {cfg.policy} for {cfg.task}{key} on {server.url}", flush=True)
+    try:
+        server.serve_forever()
+    except KeyboardInterrupt:
+        server.close()
+    return 0
+
