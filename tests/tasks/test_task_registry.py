@@ -1,6 +1,10 @@
 """The task registry: every task is declared once (its class or its env), which yields its gymnasium id,
 its grid size (from the grid itself) and its expert."""
 
+import os
+import subprocess
+import sys
+
 import gymnasium
 import numpy as np
 import pytest
@@ -76,3 +80,21 @@ def test_bad_declarations_are_refused():
     with pytest.raises(ValueError, match="grid"):
         register_task("x", env_id="twinbench/PointReach-v0", make_expert=make_expert, n_grid_states=0)
     assert "no-id" not in _TASKS and "x" not in _TASKS
+
+
+def test_import_twinbench_registers_the_declared_ids_and_stays_light():
+    """The ids come from the declarations (the task modules are imported), yet neither Warp nor the twin
+    layer nor any renderer is imported."""
+    code = (
+        "import sys, twinbench, gymnasium\n"
+        "from twinbench.tasks import _TASKS\n"
+        "print(sorted(t.env_id for t in _TASKS.values()) == sorted(k for k in gymnasium.registry "
+        "if k.startswith('twinbench/')), len(_TASKS))\n"
+        "print(sorted(m for m in ('warp', 'trimesh', 'matplotlib', 'torch', 'twinbench.twin', "
+        "'twinbench.physics', 'twinbench.env') if m in sys.modules))"
+    )
+    env = {k: v for k, v in os.environ.items() if not k.startswith("TWINBENCH_")}
+    out = subprocess.run([sys.executable, "-W", "error", "-c", code], capture_output=True, text=True,
+                         env={**env, "TWINBENCH_NO_GYM_HOOK": "1"}, timeout=300)
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.split("\n")[:2] == ["True 4", "[]"]

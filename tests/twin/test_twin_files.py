@@ -31,7 +31,8 @@ from twinbench.twin import (
     save_object,
     save_twin,
 )
-from twinbench.twin.cells import front_camera, push_t_cell, wrist_camera
+from twinbench.twin.cells import front_camera, push_t_cell, rope_routing_cell, wrist_camera
+from twinbench.twin.shapes import Outline
 
 
 def assert_same(a, b, where="spec"):
@@ -96,6 +97,7 @@ def _rich_spec():
         gaussians=_disc(20, (0.2, 0.3, 0.8), 1),
         binding="rigid",
         rest_pose=planar_pose(0.5, -0.1, 0.0),
+        outline=Outline(np.array([[-0.02, -0.02], [0.02, -0.02], [0.0, 0.03]]), 0.02),
     )
     box = trimesh.creation.box(extents=(0.1, 0.12, 0.05))
     box.vertices += rng.normal(0, 1e-4, box.vertices.shape)
@@ -107,6 +109,7 @@ def _rich_spec():
         ContactSpec(0.1, 0.7),
         _disc(15, (0.4, 0.4, 0.4), 2),
         ColorMap(1, identity_color_map(1)),
+        channel=(0.02, 0.03, 0.04),
     )
     front = dataclasses.replace(front_camera((120, 160)), crop=(100.0, 20.0, 640.0, 440.0), depth=True)
     spec = push_t_cell("fast")
@@ -132,7 +135,7 @@ def _rich_spec():
 
 
 def test_round_trip_is_lossless(tmp_path):
-    for spec in (push_t_cell("fast"), _rich_spec()):
+    for spec in (push_t_cell("fast"), rope_routing_cell("fast"), _rich_spec()):
         save_twin(spec, tmp_path / spec.name)
         assert_same(spec, load_twin(tmp_path / spec.name))
         # saving the loaded spec again writes the same twin.json
@@ -182,11 +185,38 @@ def test_builtin_and_exported_twins_give_bit_identical_episodes(tmp_path):
         np.testing.assert_array_equal(a, b)
 
 
+def test_builtin_cells_write_the_geometry_their_tasks_read(tmp_path):
+    save_twin(push_t_cell("fast"), tmp_path / "t")
+    doc = json.loads((tmp_path / "t" / "twin.json").read_text())
+    assert doc["version"] == 2 and doc["robot"]["tool_radius"] == 0.015
+    outline = doc["objects"][0]["outline"]
+    assert len(outline["polygon"]) == 8 and outline["height"] == 0.03
+    save_twin(rope_routing_cell("fast"), tmp_path / "r")
+    doc = json.loads((tmp_path / "r" / "twin.json").read_text())
+    assert doc["colliders"][0]["channel"] == [0.02, 0.03, 0.04] and doc["robot"]["tool_radius"] is None
+
+
+def test_a_version_1_twin_without_geometry_still_loads(tmp_path):
+    save_twin(push_t_cell("fast"), tmp_path / "t")
+    path = tmp_path / "t" / "twin.json"
+    doc = json.loads(path.read_text())
+    doc["version"] = 1
+    del doc["objects"][0]["outline"], doc["robot"]["tool_radius"]
+    path.write_text(json.dumps(doc))
+    spec = load_twin(tmp_path / "t")
+    assert spec.objects[0].outline is None
+    assert spec.robot.tool_radius == 0.015  # the built-in pusher's rod, filled in
+    with pytest.raises(ValueError, match="needs the outline of object 'tblock'"):
+        TwinEnv("push-t", twin=tmp_path / "t")
+
+
 def test_object_directory_round_trip(tmp_path):
-    rope = _rich_spec().objects[0]
+    rope, block = _rich_spec().objects
     save_object(rope, tmp_path / "rope", sim={"drag_damping": 2.0, "collision_dist": 0.01})
     back, sim = load_object(tmp_path / "rope")
     assert_same(rope, back)
+    save_object(block, tmp_path / "block")
+    assert_same(block, load_object(tmp_path / "block")[0])
     assert sim == {"drag_damping": 2.0, "collision_dist": 0.01}
     with pytest.raises(ValueError, match="unknown SimParams"):
         save_object(rope, tmp_path / "x", sim={"drag": 1.0})
@@ -274,7 +304,29 @@ CASES = {
         dict(edit=_set(["objects", 0, "rest_pose"], [[1, 0, 0], [0, 1, 0]])),
         r"objects\[0\]\(rope\)\.rest_pose: expected a finite array of shape \(4, 4\)",
     ),
-    "wrong version": (dict(edit=_set(["version"], 99)), r"version: this twinbench reads version 1"),
+    "wrong version": (
+        dict(edit=_set(["version"], 99)), r"version: this twinbench reads versions \[1, 2\], got 99"
+    ),
+    "clockwise outline": (
+        dict(edit=_set(["objects", 1, "outline", "polygon"], [[0, 0.03], [0.02, -0.02], [-0.02, -0.02]])),
+        r"objects\[1\]\(block\)\.outline: outline\.polygon: the vertices must go counter-clockwise",
+    ),
+    "outline not 2d": (
+        dict(edit=_set(["objects", 1, "outline", "polygon"], [[0, 0, 0], [1, 0, 0], [0, 1, 0]])),
+        r"objects\[1\]\(block\)\.outline\.polygon: expected a finite array of shape \(3, 2\)",
+    ),
+    "outline without height": (
+        dict(edit=lambda d: d["objects"][1]["outline"].pop("height")),
+        r"objects\[1\]\(block\)\.outline: missing field\(s\) \['height'\]",
+    ),
+    "bad channel": (
+        dict(edit=_set(["colliders", 0, "channel"], [0.02, -0.03, 0.04])),
+        r"colliders\[0\]\(box\): colliders\['box'\]\.channel: expected \(width, depth, length\) > 0",
+    ),
+    "bad tool radius": (
+        dict(edit=_set(["robot", "tool_radius"], "wide")),
+        r"robot\.tool_radius: expected a finite number, got 'wide'",
+    ),
     "bad sim value": (dict(edit=_set(["sim", "dt"], -1.0)), r"sim: SimParams\.dt=-1\.0 is invalid"),
     "missing robot": (dict(edit=lambda d: d.pop("robot")), r"\(top level\): missing field\(s\) \['robot'\]"),
     "bad gaussians": (
