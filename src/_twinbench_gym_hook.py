@@ -6,7 +6,8 @@ installed, without `import twinbench` first (gymnasium >= 1.0 loads no plugin en
 TWINBENCH_NO_GYM_HOOK is set, it puts a stub finder on `sys.meta_path` that does nothing for any module
 but `gymnasium` (nothing is imported at start, not even this module). On `import gymnasium` the stub calls
 `find_spec` here, which removes the stub, lets the real finders locate gymnasium and wraps its loader:
-gymnasium loads as usual, then twinbench is imported (light: the ids are strings) and registers its ids.
+gymnasium loads as usual, then twinbench is imported (light: its task modules declare the ids; Warp loads
+only when an env is made) and registers its ids.
 A failure never breaks the import of gymnasium: it is ignored (TWINBENCH_DEBUG_GYM_HOOK=1 shows it as a
 warning).
 """

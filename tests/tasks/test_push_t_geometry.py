@@ -97,3 +97,34 @@ def test_success_needs_more_than_30_of_the_last_100_frames():
     for _ in range(70):  # the old hits slide out of the window
         win.update(False)
     assert not win.success
+
+
+def test_the_t_outline_agrees_with_its_boxes():
+    """The T as twin data (an Outline polygon) answers as the T's boxes do: inside, nearest point,
+    distance, and the footprint's polar moment (analytic for the T)."""
+    shape = TBlockShape()
+    outline = shape.outline()
+    pts = np.random.default_rng(0).uniform([-0.08, -0.1, -0.01], [0.08, 0.06, 0.04], (4000, 3))
+    np.testing.assert_array_equal(outline.contains(pts), shape.contains(pts))
+    boxes = shape.boxes()
+    rho2 = sum((hi[0] - lo[0]) * (hi[1] - lo[1]) * (((lo[:2] + hi[:2]) / 2) @ ((lo[:2] + hi[:2]) / 2)
+               + ((hi[0] - lo[0]) ** 2 + (hi[1] - lo[1]) ** 2) / 12) for lo, hi in boxes) / outline.area
+    assert outline.polar_radius2() == pytest.approx(rho2, rel=1e-12)
+    assert outline.area == pytest.approx(0.12 * 0.03 + 0.03 * 0.09, rel=1e-12)
+    for p in pts[:300, :2]:
+        nearest = min((np.clip(p, lo[:2], hi[:2]) for lo, hi in boxes), key=lambda q: np.linalg.norm(p - q))
+        np.testing.assert_allclose(outline.nearest(p), nearest, atol=1e-15)
+        assert outline.distance(p) == pytest.approx(np.linalg.norm(p - nearest), abs=1e-15)
+    small = outline.scaled(0.5)
+    assert small.area == pytest.approx(outline.area / 4) and small.height == shape.height / 2
+
+
+def test_outlines_are_validated():
+    from twinbench.twin.shapes import Outline
+
+    with pytest.raises(ValueError, match="counter-clockwise"):
+        Outline(TBlockShape().outline_xy()[::-1], 0.03)
+    with pytest.raises(ValueError, match=r"\(K, 2\)"):
+        Outline(np.zeros((2, 2)), 0.03)
+    with pytest.raises(ValueError, match="height"):
+        Outline(TBlockShape().outline_xy(), 0.0)
