@@ -3,6 +3,7 @@ simulates the frames its arrays describe, export round-trips, and PhysTwin's sel
 
 from __future__ import annotations
 
+import dataclasses
 import io
 import os
 import pickle
@@ -18,6 +19,7 @@ from twinbench.construct.phystwin import (
     import_case,
     load_pickle,
     load_torch_zip,
+    phystwin_config,
     phystwin_springs,
     read_case,
     save_torch_zip,
@@ -112,8 +114,9 @@ PARAMS = {
 FRAMES = 3
 
 
-def _make_case(tmp_path):
-    """A lifted soft bar simulated in the z-up frame, written as a PhysTwin case in its reverse_z frame.
+def _make_case(tmp_path, *, damping=(3.0, 100.0), written=None, n_frames=FRAMES):
+    """A lifted soft bar simulated in the z-up frame with (drag, dashpot) = `damping`, written as a
+    PhysTwin case in its reverse_z frame with `written` (default: the same) as its stage-1 damping.
     Returns (case folder, z-up frames (F+1, N, 3))."""
     rng = np.random.default_rng(0)
     pts = lattice(6, 3, 3, 0.01, origin=(0.0, 0.0, 0.0)).astype(np.float32)
@@ -121,8 +124,8 @@ def _make_case(tmp_path):
     springs = phystwin_springs(pts, PARAMS["object_radius"], PARAMS["object_max_neighbours"])
     cs = controller_springs(pts, ctrl0, PARAMS["controller_radius"], PARAMS["controller_max_neighbours"])
     y = np.exp(rng.uniform(np.log(5e3), np.log(5e4), len(springs) + len(cs))).astype(np.float32)
-    params = SimParams(dashpot_damping=100.0, drag_damping=3.0, ground_restitution=0.4, ground_friction=0.6,
-                       object_restitution=0.7, object_friction=0.3, collision_dist=0.02)
+    params = SimParams(drag_damping=damping[0], dashpot_damping=damping[1], ground_restitution=0.4,
+                       ground_friction=0.6, object_restitution=0.7, object_friction=0.3, collision_dist=0.02)
     b = ModelBuilder(params)
     b.add_body(pts, springs=springs, spring_Y=y[: len(springs)])
     b.add_control_points(ctrl0, springs=cs, spring_Y=y[len(springs):])
@@ -131,7 +134,7 @@ def _make_case(tmp_path):
     state, control = model.state(), model.control()
     frames = [pts.copy()]
     ctrl = [ctrl0]
-    for k in range(1, FRAMES + 1):
+    for k in range(1, n_frames + 1):
         nxt = ctrl0 + [0.0, 0.0, 0.01 * k]
         control.set_control_points(ctrl[-1], nxt)
         solver.simulate_frame(state, control)
@@ -142,9 +145,9 @@ def _make_case(tmp_path):
     n = len(pts)
     final = {
         "object_points": (frames @ flip.T).astype(np.float32),  # PhysTwin frame (reverse_z)
-        "object_colors": np.full((FRAMES + 1, n, 3), 0.5, np.float32),
-        "object_visibilities": np.ones((FRAMES + 1, n), bool),
-        "object_motions_valid": np.ones((FRAMES + 1, n), bool),
+        "object_colors": np.full((n_frames + 1, n, 3), 0.5, np.float32),
+        "object_visibilities": np.ones((n_frames + 1, n), bool),
+        "object_motions_valid": np.ones((n_frames + 1, n), bool),
         "controller_points": (np.stack(ctrl) @ flip.T).astype(np.float32),
         "surface_points": np.zeros((0, 3)),
         "interior_points": np.zeros((0, 3)),
@@ -152,7 +155,9 @@ def _make_case(tmp_path):
     one = {"collide_elas": 0.4, "collide_fric": 0.6, "collide_object_elas": 0.7, "collide_object_fric": 0.3}
     ck = {"spring_Y": y, "num_object_springs": len(springs),
           **{k: np.array([v], np.float32) for k, v in one.items()}}
+    drag, dashpot = written or damping
     op = {k: (np.float64(v) if not k.endswith("neighbours") else int(v)) for k, v in PARAMS.items()}
+    op.update(drag_damping=np.float32(drag), dashpot_damping=np.float32(dashpot))  # CMA-ES writes float32
     write_case(tmp_path / "case", final, op, ck, epoch=7)
     return tmp_path / "case", frames
 
@@ -188,6 +193,24 @@ def test_case_imports_and_simulates_the_frames_it_describes(tmp_path):
     described = case.final_data["object_points"].astype(np.float64) @ flip.T  # back to z up
     np.testing.assert_allclose(sim, described, atol=2e-6)
     assert np.abs(described[-1] - described[0]).max() > 0.02  # the bar really moved
+
+
+def test_fractional_damping_runs_as_phystwins_loader_truncates_it(tmp_path):
+    """PhysTwin's config casts trained drag / dashpot to its int defaults: 2.6 -> 2, 75.5 -> 75."""
+    folder, frames = _make_case(tmp_path, damping=(2.0, 75.0), written=(2.6, 75.5), n_frames=12)
+    case = read_case(folder)
+    cfg = phystwin_config(case.optimal_params)
+    assert (cfg["drag_damping"], cfg["dashpot_damping"]) == (2, 75) and type(cfg["drag_damping"]) is int
+    assert cfg["collision_dist"] == pytest.approx(0.02) and cfg["object_max_neighbours"] == 20
+    assert float(case.optimal_params["drag_damping"]) == pytest.approx(2.6)  # the file keeps its value
+    imp = import_case(case)
+    assert (imp.sim["drag_damping"], imp.sim["dashpot_damping"]) == (2.0, 75.0)
+    ctrl = case.final_data["controller_points"]
+    sim = _simulate_imported(imp, ctrl)
+    assert np.abs(sim - frames).max() < 10e-6  # within 10 um of PhysTwin's rule
+    frac = dict(imp.sim, drag_damping=2.6, dashpot_damping=75.5)
+    kept = _simulate_imported(dataclasses.replace(imp, sim=frac), ctrl)
+    assert np.abs(kept - frames).max() > 20e-6  # keeping the fractions would drift
 
 
 def test_mismatched_checkpoint_is_refused(tmp_path):

@@ -25,6 +25,12 @@ Open3D's hybrid search returns the query point itself among the `object_max_neig
 drops, so each particle links to at most `object_max_neighbours - 1` others
 (`physics.radius_springs(points, object_radius, object_max_neighbours - 1)`); controller points link to
 at most `controller_max_neighbours` particles within `controller_radius`.
+
+PhysTwin's config loader (`qqtt/utils/config.py`, `Config.update_from_dict`) casts every loaded value to
+the type of that field's default. Of the stage-1 scalars, `drag_damping` (default 3), `dashpot_damping`
+(default 100) and the two `*_max_neighbours` have integer defaults, so PhysTwin runs a trained drag of 2.6
+as 2 and a dashpot of 75.5 as 75 (Python `int`, truncation toward zero); the others are floats. Importing
+applies the same rule (`phystwin_config`); the files keep the values as written.
 """
 
 from __future__ import annotations
@@ -67,6 +73,9 @@ OPTIMAL_KEYS = (
 )
 CHECKPOINT_KEYS = ("spring_Y", "collide_elas", "collide_fric", "collide_object_elas", "collide_object_fric",
                    "num_object_springs")
+# stage-1 fields whose PhysTwin default is an int: its loader truncates the trained value with int()
+PHYSTWIN_INT_FIELDS = ("object_max_neighbours", "controller_max_neighbours", "drag_damping",
+                       "dashpot_damping")
 FLIP_Z = np.diag([1.0, -1.0, -1.0, 1.0])  # half a turn about x: PhysTwin reverse_z frame <-> z up
 
 
@@ -499,12 +508,22 @@ def controller_springs(points, controllers, radius: float, max_neighbours: int) 
     return np.asarray(rows, dtype=np.int64).reshape(-1, 2)
 
 
+def phystwin_config(optimal_params: dict) -> dict[str, float | int]:
+    """The stage-1 scalars as PhysTwin's config holds them after loading: int() for the fields whose
+    default is an int (`PHYSTWIN_INT_FIELDS`), float for the rest."""
+    out: dict[str, float | int] = {}
+    for k in OPTIMAL_KEYS:
+        v = np.asarray(optimal_params[k]).reshape(-1)[0].item()
+        out[k] = int(v) if k in PHYSTWIN_INT_FIELDS else float(v)
+    return out
+
+
 def import_case(
     case: PhysTwinCase, *, reverse_z: bool = True, self_collision: bool = False
 ) -> ImportedObject:
     """Rebuild the case's springs in PhysTwin's order, check them against the checkpoint, and express
     the object in twinbench's z-up frame with the simulation settings it was trained with."""
-    op = case.optimal_params
+    op = phystwin_config(case.optimal_params)
     pts = case.structure_points
     springs = phystwin_springs(pts, op["object_radius"], op["object_max_neighbours"])
     ctrl = controller_springs(pts, case.final_data["controller_points"][0], op["controller_radius"],
@@ -522,7 +541,7 @@ def import_case(
     rest = np.linalg.norm(p64[springs[:, 1]] - p64[springs[:, 0]], axis=1).astype(np.float32)
     obj_pts = (p64 @ frame[:3, :3].T).astype(np.float32)
     sim = {
-        "dashpot_damping": float(op["dashpot_damping"]),
+        "dashpot_damping": float(op["dashpot_damping"]),  # int() by PhysTwin's loader
         "drag_damping": float(op["drag_damping"]),
         "ground_restitution": case.scalar("collide_elas"),
         "ground_friction": case.scalar("collide_fric"),
