@@ -4,8 +4,11 @@
     env = gymnasium.make("twinbench/PushT-v0", twin="path/to/twin_dir")     # your twin, same rules
     obs, info = env.reset(seed=0, options={"init_state": 3})
 
-Observation: `{"pixels": {camera: HxWx3 uint8}, "agent_pos": float32}` (+ `"depth": {camera: HxW float32}`
-for cameras with depth, + `"environment_state"` when made with `environment_state=True`). `info` holds
+Observation: `{"pixels": {camera: HxWx3 uint8}, "agent_pos": float32, "joint_position": float32}` (+
+`"gripper_position"` for a robot with a gripper, + `"depth": {camera: HxW float32}` for cameras with depth,
++ `"environment_state"` when made with `environment_state=True`). `joint_position`: the arm's joint angles
+(rad, the URDF's arm joints from base to end effector, e.g. 7 for the built-in xArm-7-like arm);
+`gripper_position`: (1,) how closed the fingers are, 0 = open, 1 = closed (DROID's convention). `info` holds
 `is_success`, `status` ("ok" | "sim_error"), the task's metrics, `grasp` for a gripper ("holding",
 "closed_on_air", "closing", "open") and `privileged` (object poses and the task's `environment_state`
 vector, for scripted experts and offline rescoring).
@@ -33,6 +36,7 @@ import gymnasium
 import numpy as np
 from gymnasium import spaces
 
+from twinbench._runtime import quiet_warp
 from twinbench.physics import SimulationDiverged
 from twinbench.tasks.base import SuccessWindow
 
@@ -101,6 +105,7 @@ class TwinEnv(gymnasium.Env):
     ):
         from twinbench.twin import build_twin
 
+        quiet_warp()  # library use (gymnasium.make) prints no Warp banner; TWINBENCH_WARP_VERBOSE=1 shows it
         rules, twin_spec = resolve_task_twin(task, twin, preset, roles, settings)
         built, state = build_twin(twin_spec, device)
         self._attach(rules, built, state, render_mode, render_views, environment_state, success_rule)
@@ -140,6 +145,12 @@ class TwinEnv(gymnasium.Env):
             if cam.depth:
                 depth[name] = spaces.Box(0.0, np.inf, (h, w), np.float32)
         obs_space = {"pixels": spaces.Dict(pixels), "agent_pos": spaces.Box(low, high, dtype=np.float32)}
+        robot = self.twin.robot
+        arm = robot.arm_q_indices
+        obs_space["joint_position"] = spaces.Box(robot.lower[arm].astype(np.float32),
+                                                 robot.upper[arm].astype(np.float32), dtype=np.float32)
+        if robot.gripper_joint is not None:
+            obs_space["gripper_position"] = spaces.Box(0.0, 1.0, (1,), np.float32)
         if depth:
             obs_space["depth"] = spaces.Dict(depth)
         if self.environment_state:
@@ -259,6 +270,11 @@ class TwinEnv(gymnasium.Env):
         self._frames = frames
         self._privileged = self.rules.privileged(self.twin, self.state, metrics)
         obs = {"pixels": frames, "agent_pos": self.twin.ee_state(self.state).astype(np.float32)}
+        robot, q = self.twin.robot, self.state.robot.q
+        obs["joint_position"] = q[robot.arm_q_indices].astype(np.float32)
+        if robot.gripper_joint is not None:
+            closed = np.clip(robot.gripper_closedness(q), 0.0, 1.0)
+            obs["gripper_position"] = np.array([closed], np.float32)
         depth = {name: outs[name].depth for name, cam in self.twin.cameras.items() if cam.depth}
         if depth:
             obs["depth"] = depth
@@ -314,6 +330,7 @@ class TwinVectorEnv(gymnasium.vector.VectorEnv):
 
         if isinstance(num_envs, bool) or not isinstance(num_envs, int | np.integer) or num_envs < 1:
             raise ValueError(f"num_envs must be a positive integer, got {num_envs!r}")
+        quiet_warp()
         rules, twin_spec = resolve_task_twin(task, twin, preset, roles, settings)
         self.twin, states = build_twin(twin_spec, device, num_worlds=int(num_envs))
         states = states if isinstance(states, list) else [states]
