@@ -13,9 +13,15 @@ Observation: `{"pixels": {camera: HxWx3 uint8}, "agent_pos": float32, "joint_pos
 "closed_on_air", "closing", "open") and `privileged` (object poses and the task's `environment_state`
 vector, for scripted experts and offline rescoring).
 
+Episodes: `reset` places the robot at the task's start configuration and the objects at the grid state,
+then steps the physics `settle_steps` frames (a task setting, 30 for the built-in tasks as in the reference
+study) with the robot held still before the first observation; the episode's steps count from there. In a
+many-world twin (TwinVectorEnv) the worlds settle when they are all reset together; a world reset alone
+(autoreset, `reset_mask`, `envs.envs[i].reset()`) does not settle, as stepping it would step them all.
+
 Success rules (`success_rule`, recorded in `info["success_rule"]` and by the evaluation store):
 - "final" (default, the reference study's rule): every episode runs its full length; the outcome is the
-  task's window criterion (e.g. > 30 hits in the last 100 frames) at the final frame. `info["is_success"]`
+  task's window criterion (e.g. >= 30 hits in the last 100 frames) at the final frame. `info["is_success"]`
   on each step tells whether the criterion holds over the frames so far.
 - "early": the episode terminates as soon as the window criterion holds (a speed option).
 
@@ -166,6 +172,18 @@ class TwinEnv(gymnasium.Env):
 
     # ------------------------------------------------------------------ gymnasium API
     def reset(self, *, seed=None, options=None):
+        self._place(seed, options)
+        if self.twin.num_worlds == 1:
+            settle_worlds(self.twin, [self.state], self.settle_steps)
+        return self._first_observation()
+
+    @property
+    def settle_steps(self) -> int:
+        """Frames the physics runs with the robot held before an episode's first observation."""
+        return int(getattr(self.rules.settings, "settle_steps", 0))
+
+    def _place(self, seed, options) -> None:
+        """Robot at its start configuration, the objects at the grid state (or a sampled one)."""
         super().reset(seed=seed)
         options = dict(options or {})
         unknown = sorted(set(options) - set(RESET_OPTIONS))
@@ -184,6 +202,8 @@ class TwinEnv(gymnasium.Env):
             states.sample_offsets(0 if seed is None else int(seed)) if sampled else states.grid_offsets(index)
         )
         self.rules.reset(self.twin, self.state, offsets)
+
+    def _first_observation(self):
         self._success.reset()
         self._steps, self._status, self._done = 0, "ok", False
         hit, metrics = self.rules.frame(self.twin, self.state)
@@ -284,6 +304,14 @@ class TwinEnv(gymnasium.Env):
         return obs
 
 
+def settle_worlds(twin, states: list, steps: int) -> None:
+    """Advance every world of `twin` (`states`, all of them) `steps` frames with the robots held still."""
+    for _ in range(steps):
+        for result in twin.step_worlds(states, [None] * len(states)):
+            if isinstance(result, SimulationDiverged):
+                raise result
+
+
 class TwinVectorEnv(gymnasium.vector.VectorEnv):
     """`num_envs` worlds of one twin stepped together: one physics launch per kernel for all worlds, each
     world's episode bit-identical to the same episode in a `TwinEnv` (CPU).
@@ -371,10 +399,13 @@ class TwinVectorEnv(gymnasium.vector.VectorEnv):
             seeds = self._per_world("seed", seed)
         per_world = {k: self._per_world(f"options[{k!r}]", v) for k, v in options.items()}
         infos: dict = {}
-        for i in np.flatnonzero(mask):
-            env = self.envs[i]
-            opts = {k: v[i] for k, v in per_world.items()}
-            self._obs[i], info = env.reset(seed=seeds[i], options=opts)
+        chosen = np.flatnonzero(mask)
+        for i in chosen:
+            self.envs[i]._place(seeds[i], {k: v[i] for k, v in per_world.items()})
+        if len(chosen) == self.num_envs:  # every world starts together: they settle together
+            settle_worlds(self.twin, [env.state for env in self.envs], self.envs[0].settle_steps)
+        for i in chosen:
+            self._obs[i], info = self.envs[i]._first_observation()
             self._autoreset[i] = False
             infos = self._add_info(infos, info, i)
         return self._batch(), infos

@@ -55,11 +55,18 @@ class InitialStates:
         return int(next(iter(self.grid.values())).shape[0])
 
     @staticmethod
-    def product(grids: dict[str, np.ndarray], low: dict, high: dict) -> InitialStates:
-        """Every combination of the roles' offsets (the first role varies slowest)."""
+    def product(grids: dict[str, np.ndarray], low: dict, high: dict, fastest: str = "last") -> InitialStates:
+        """Every combination of the roles' offsets: with `fastest="last"` the first role varies slowest,
+        with `fastest="first"` the first role varies fastest (the reference study's order: state i has
+        object offset i % n_object and the collider's offset i // n_object)."""
+        if fastest not in ("first", "last"):
+            raise ValueError(f"fastest must be 'first' or 'last', got {fastest!r}")
         roles = list(grids)
-        idx = np.stack(np.meshgrid(*[np.arange(len(grids[r])) for r in roles], indexing="ij"), -1)
+        order = roles if fastest == "last" else roles[::-1]
+        idx = np.stack(np.meshgrid(*[np.arange(len(grids[r])) for r in order], indexing="ij"), -1)
         idx = idx.reshape(-1, len(roles))
+        if fastest == "first":
+            idx = idx[:, ::-1]
         return InitialStates({r: np.asarray(grids[r])[idx[:, k]] for k, r in enumerate(roles)}, low, high)
 
     def grid_offsets(self, index: int) -> dict[str, np.ndarray]:
@@ -77,11 +84,12 @@ class InitialStates:
 
 
 class SuccessWindow:
-    """Success when the per-frame condition held in more than `min_hits` of the last `window` frames."""
+    """Success when the per-frame condition held in at least `min_hits` of the last `window` frames (the
+    reference study's `count >= 30` over its last 100 frames)."""
 
     def __init__(self, window: int = 100, min_hits: int = 30):
-        if window <= 0 or not 0 <= min_hits < window:
-            raise ValueError(f"need window > 0 and 0 <= min_hits < window, got {window}, {min_hits}")
+        if window <= 0 or not 1 <= min_hits <= window:
+            raise ValueError(f"need window > 0 and 1 <= min_hits <= window, got {window}, {min_hits}")
         self.window, self.min_hits = window, min_hits
         self._hits: list[bool] = []
 
@@ -96,7 +104,7 @@ class SuccessWindow:
 
     @property
     def success(self) -> bool:
-        return sum(self._hits) > self.min_hits
+        return sum(self._hits) >= self.min_hits
 
 
 class TwinTask:

@@ -5,13 +5,15 @@ Rules over a twin with an object in the role `block` (default object name `tbloc
 `tool_radius` (`RobotSpec.tool_radius`; the scripted expert plans with it): state and action are the
 pusher tip's `[x, y]` (absolute target in the robot base frame, planar action mode at the cell's pusher
 height).
-The goal is the block's rest pose in the twin unless `goal_pose` = (x, y, theta) is given; grid states
-move the block by x, y in {-5, +5} cm and theta in {+-45, +-135} deg from its rest pose; success is a
-mean squared particle distance to the goal below 0.002 m^2 in more than 30 of the last 100 frames; the
+The goal is the setting `goal_pose` = (x, y, theta) when given, else the block's `goal_pose` in the twin,
+else its rest pose. Grid: the reference study's 16 states in its order, state i moving the block from its
+rest pose by (x, y) = [(-5, -5), (-5, 5), (5, -5), (5, 5)][i // 4] cm and theta = [45, 135, 225, 315][i % 4]
+deg; success is a mean squared particle distance to the goal below 0.002 m^2 in at least 30 of the last 100
+frames, after 30 settling frames; the
 dense reward is the goal footprint's coverage (the fraction of the outline at the goal that the block's
 outline covers). The goal is drawn into the front camera image as a
-translucent yellow overlay. The built-in cell is `twinbench.twin.cells.push_t_cell` (presets
-`reference` and `fast`).
+translucent yellow overlay. The built-in cell is `twinbench.twin.cells.push_t_cell` (presets `reference`
+and `fast`: the reference study's layout; `small` and `small-fast`: the earlier scaled-down cell).
 
 `environment_state` (privileged, for scripted experts): [x, y, theta, goal_x, goal_y, goal_theta, msd].
 """
@@ -34,27 +36,24 @@ class PushTSettings:
     """Task settings (the twin's are in `twinbench.twin.cells.PushTCell`)."""
 
     episode_seconds: float = 60.0
-    goal_pose: tuple[float, float, float] | None = None  # x, y, theta; None = the block's rest pose
-    pusher_start: tuple[float, float] = (0.30, 0.0)
+    goal_pose: tuple[float, float, float] | None = None  # x, y, theta; None: the twin's (goal or rest pose)
+    pusher_start: tuple[float, float] = (0.30, -0.20)  # the reference study's init_eef_xyz
     workspace: tuple[float, float, float, float] = (0.2, 0.8, -0.3, 0.3)  # x_min, x_max, y_min, y_max
     success_msd: float = 0.002  # m^2, mean squared particle distance to the goal
     success_window: int = 100
     success_min_hits: int = 30
+    settle_steps: int = 30  # physics frames with the robot held before the first observation
     sample_half_range: float = 0.075  # m, large-scale sampling of x and y (any angle)
 
 
-def grid_initial_states() -> np.ndarray:
-    """The 16 reference initial states (dx, dy, dtheta) relative to the nominal pose.
+STUDY_XY = ((-0.05, -0.05), (-0.05, 0.05), (0.05, -0.05), (0.05, 0.05))  # m, the study's cfg/gs/T.yaml
+STUDY_THETA = (45.0, 135.0, 225.0, 315.0)  # deg
 
-    x, y in {-5, +5} cm and theta in {+-45, +-135} degrees (DESIGN §7).
-    """
-    states = [
-        (dx, dy, np.deg2rad(th))
-        for dx in (-0.05, 0.05)
-        for dy in (-0.05, 0.05)
-        for th in (-135.0, -45.0, 45.0, 135.0)
-    ]
-    return np.array(states)
+
+def grid_initial_states() -> np.ndarray:
+    """The reference study's 16 initial states (dx, dy, dtheta) from the block's rest pose, in its index
+    order: state i has xy[i // 4] and theta[i % 4] (its `grid_randomization`, `one_to_one: False`)."""
+    return np.array([(x, y, np.deg2rad(th)) for x, y in STUDY_XY for th in STUDY_THETA])
 
 
 def mean_squared_distance(particles: np.ndarray, goal_particles: np.ndarray) -> float:
@@ -113,7 +112,10 @@ class PushTTask(TwinTask):
                 f"{twin.spec.name!r} has none: set robot.tool_radius (m) in twin.json"
             )
         self.outline, self.tool_radius = spec.outline, twin.spec.robot.tool_radius
-        self.goal = spec.rest_pose.copy() if s.goal_pose is None else planar_pose(*s.goal_pose)
+        if s.goal_pose is not None:
+            self.goal = planar_pose(*s.goal_pose)
+        else:
+            self.goal = (spec.rest_pose if spec.goal_pose is None else spec.goal_pose).copy()
         self.goal_particles = transform_points(self.goal, twin.rest_particles(block))
         # Coverage: centres of a 2 mm grid of cells over the block's footprint (block frame).
         lo, hi = self.outline.bounds()

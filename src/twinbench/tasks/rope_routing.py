@@ -7,10 +7,11 @@ z = 0, open at both ends, of the twin's width, depth and length (the settings `c
 `channel_depth`, `channel_length` override them). State and action are the end-effector pose and gripper,
 `[x, y, z, qw, qx, qy, qz, gripper]` (absolute, robot base frame, gripper 1 = closed).
 
-Grid: 27 states, the rope moved by x, y in {-5, 0, 5} cm and theta in {-10, 0, 10} deg from its rest pose;
-the sampler draws +-7.5 cm and +-15 deg. Episodes last 30 s. Success: at both openings (the channel's
-end planes, within the channel's cross-section) at least `crossing_threshold` rope springs cross, for more
-than 30 of the last 100 frames.
+Grid: the reference study's 27 states in its order, state i moving the rope from its rest pose by (x, y) =
+[(-5, -5), (-5, 0), (-5, 5), (0, -5), ..., (5, 5)][i // 3] cm and theta = [-10, 0, 10][i % 3] deg; the
+sampler draws +-7.5 cm and +-15 deg. Episodes last 30 s after 30 settling frames.
+Success: at both openings (the channel's end planes, within the channel's cross-section) at least
+`crossing_threshold` rope springs cross, in at least 30 of the last 100 frames.
 
 Scaling the reference threshold: the reference study asks for >= 100 crossing springs per opening at its
 rope's resolution. A rope's spring count across a cross-section grows with its particle density, so the
@@ -45,6 +46,7 @@ class RopeRoutingSettings:
     crossing_fraction: float = 0.5
     success_window: int = 100
     success_min_hits: int = 30
+    settle_steps: int = 30
     workspace: tuple[tuple[float, float, float], tuple[float, float, float]] = (
         (0.2, -0.4, 0.0),
         (0.8, 0.4, 0.5),

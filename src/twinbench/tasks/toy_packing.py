@@ -2,11 +2,13 @@
 
 Rules over a twin with a deformable object in the role `toy` (default `toy`) and a collider in the role
 `box` (default `box`). State and action are `[x, y, z, qw, qx, qy, qz, gripper]` (absolute end-effector
-pose in the robot base frame, gripper 1 = closed). Grid: 20 states pairing 5 toy offsets (x in [-5, 5] cm,
-y in [-5, 3] cm, theta in [-5, 5] deg) with 4 box offsets (x in [-5, 5] cm, y in [0, 5] cm); the sampler
-draws uniformly in those ranges. Episodes last 15 s. Success: at least `inside_fraction` of the toy's
-particles (98.5 %, the reference's 3050 of 3095) inside the box's oriented bounding box scaled by 1.05,
-for more than 30 of the last 100 frames.
+pose in the robot base frame, gripper 1 = closed). Grid: the reference study's 20 states in its order,
+state i pairing toy offset i % 5 with box offset i // 5 (the toy varies fastest): toy (x, y cm; theta deg)
+(0, 0; 0), (-5, 0; -5), (5, 0; 5), (0, -5; -5), (0, 3; 5); box (0, 0; 0), (-5, 0; -5), (5, 0; 5), (0, 5; 5);
+the sampler draws uniformly in the study's ranges (toy x in [-5, 5] cm, y in [-5, 3] cm, theta in [-5, 5]
+deg; box x in [-5, 5] cm, y in [0, 5] cm, theta in [-5, 5] deg). Episodes last 15 s after 30 settling
+frames. Success: at least `inside_fraction` of the toy's particles (98.5 %, the reference's 3050 of 3095)
+inside the box's oriented bounding box scaled by 1.05, in at least 30 of the last 100 frames.
 
 `environment_state` (privileged, for the scripted expert): [toy origin x, y, z, toy theta, box x, y,
 theta, fraction of particles inside].
@@ -23,6 +25,11 @@ from twinbench.tasks.base import GraspTask, InitialStates
 from twinbench.tasks.push_t import pose_xytheta
 from twinbench.transforms import invert_pose, transform_points
 
+_D5 = float(np.deg2rad(5.0))
+# The reference study's cfg/gs/sloth.yaml grids (one_to_one): (dx, dy, dtheta) of the toy and of the box.
+STUDY_TOY_GRID = ((0.0, 0.0, 0.0), (-0.05, 0.0, -_D5), (0.05, 0.0, _D5), (0.0, -0.05, -_D5), (0.0, 0.03, _D5))
+STUDY_BOX_GRID = ((0.0, 0.0, 0.0), (-0.05, 0.0, -_D5), (0.05, 0.0, _D5), (0.0, 0.05, _D5))
+
 
 @dataclass(frozen=True)
 class ToyPackingSettings:
@@ -33,6 +40,7 @@ class ToyPackingSettings:
     box_scale: float = 1.05
     success_window: int = 100
     success_min_hits: int = 30
+    settle_steps: int = 30
     workspace: tuple[tuple[float, float, float], tuple[float, float, float]] = (
         (0.2, -0.4, 0.0),
         (0.8, 0.4, 0.5),
@@ -51,14 +59,11 @@ class ToyPackingTask(GraspTask):
     def __init__(self, roles=None, **settings):
         super().__init__(roles, **settings)
         d = np.deg2rad(5.0)
-        toy = np.array(
-            [(-0.05, -0.05, -d), (0.05, -0.05, d), (-0.05, 0.03, d), (0.05, 0.03, -d), (0.0, -0.01, 0.0)]
-        )
-        box = np.array([(-0.05, 0.0, 0.0), (0.05, 0.0, 0.0), (-0.05, 0.05, 0.0), (0.05, 0.05, 0.0)])
         self.initial_states = InitialStates.product(
-            {"toy": toy, "box": box},
-            {"toy": (-0.05, -0.05, -d), "box": (-0.05, 0.0, 0.0)},
-            {"toy": (0.05, 0.03, d), "box": (0.05, 0.05, 0.0)},
+            {"toy": np.array(STUDY_TOY_GRID), "box": np.array(STUDY_BOX_GRID)},
+            {"toy": (-0.05, -0.05, -d), "box": (-0.05, 0.0, -d)},
+            {"toy": (0.05, 0.03, d), "box": (0.05, 0.05, d)},
+            fastest="first",
         )
 
     def default_twin(self, preset: str, **cell_settings):

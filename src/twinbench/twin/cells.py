@@ -40,6 +40,8 @@ from twinbench.twin.spec import CameraSpec, ColliderSpec, ContactSpec, ObjectSpe
 # (fx, fy, cx, cy) of the reference cell's cameras (DESIGN §5); both sensors are 848x480.
 FRONT_INTRINSICS = (427.29, 426.79, 430.00, 242.81)
 WRIST_INTRINSICS = (433.26, 433.26, 425.70, 244.70)
+STUDY_FRONT_K = (427.2920227050781, 426.7926940917969, 429.9993591308594, 242.8115234375)
+STUDY_WRIST_K = (433.2635498046875, 433.2635498046875, 425.69775390625, 244.70132446289062)
 
 
 def front_camera(output_hw=(240, 240), eye=(0.92, -0.42, 0.52), target=(0.46, 0.0, 0.0)) -> CameraSpec:
@@ -58,6 +60,37 @@ def wrist_camera(
         look_at_pose(offset, look, up=(1.0, 0.0, 0.0)),
         mount_link=mount_link,
         output_hw=tuple(output_hw),
+    )
+
+
+# The reference study's cameras (kywind/real2sim-eval cfg/env/xarm_*.yaml): a D455 in front of the table
+# (camera-to-world, OpenCV axes) and a D405 on the flange (`link_eef` = the built-in arm's link7 frame),
+# both 848x480.
+STUDY_FRONT_POSE = np.array([
+    [0.005258014128948334, 0.6125512321694572, -0.7904133989597472, 0.8830263898083726],
+    [0.9999860093046595, -0.0036779908994199082, 0.0038017861441641317, 0.05390846195611962],
+    [-0.000578344501100992, -0.7904223303719503, -0.6125620010799026, 0.3976033855145515],
+    [0.0, 0.0, 0.0, 1.0],
+])
+STUDY_WRIST_POSE = np.array([
+    [-0.00621799798682332, -0.9996882472848673, -0.024181019135736517, 0.070151686668396],
+    [0.9999282360076904, -0.0059682438456119995, -0.010387018683749047, -0.006011864222586155],
+    [0.01023946, -0.02424387, 0.99965361, 0.03072427],
+    [0.0, 0.0, 0.0, 1.0],
+])
+
+
+def study_cameras(front_crop, wrist_crop, output_hw) -> tuple[CameraSpec, CameraSpec]:
+    """The reference study's front and wrist cameras with a task's crops ((x0, y0, w, h) sensor pixels)
+    resized to `output_hw`. The wrist pose is orthonormalised (the study's matrix is rounded)."""
+    u, _, vt = np.linalg.svd(STUDY_WRIST_POSE[:3, :3])
+    wrist = STUDY_WRIST_POSE.copy()
+    wrist[:3, :3] = u @ vt
+    return (
+        CameraSpec("front", STUDY_FRONT_K, STUDY_FRONT_POSE, crop=tuple(front_crop),
+                   output_hw=tuple(output_hw)),
+        CameraSpec("wrist", STUDY_WRIST_K, wrist, mount_link="link7", crop=tuple(wrist_crop),
+                   output_hw=tuple(output_hw)),
     )
 
 
@@ -80,12 +113,37 @@ class PushTCell:
     ground_friction: float = 0.5
     pusher_friction: float = 0.3
     robot_gaussian_spacing: float = 0.006
-    block_scale: float = 1.0  # the T's size, lattice spacing and spring Y relative to the reference T
+    block_scale: float = 1.0  # the T's size, lattice spacing and spring Y relative to `t_shape`
+    # the T: bar length, bar width, stem length, stem width, height (m)
+    t_shape: tuple[float, ...] = (0.12, 0.03, 0.09, 0.03, 0.03)
+    goal_pose: tuple[float, float, float] | None = None  # x, y, theta of the goal; None: the rest pose
+    study_cameras: bool = False  # the reference study's cameras and push-T crops (else the small cell's)
 
     @staticmethod
     def preset(name: str, **overrides) -> PushTCell:
-        presets = {"reference": PushTCell(), "fast": PushTCell(particle_spacing=0.015, substeps=100)}
+        study = PushTCell(**STUDY_PUSH_T)
+        presets = {
+            "reference": study,
+            "fast": replace(study, particle_spacing=0.015, substeps=100),
+            "small": PushTCell(),
+            "small-fast": PushTCell(particle_spacing=0.015, substeps=100),
+        }
         return _check_settings(PushTCell, "push-t", presets, name, overrides)
+
+
+# The reference study's push-T (kywind/real2sim-eval): the T measured from the particles of its goal
+# (experiments/utils/T_final_state.pkl: bar 15 x 4 cm, stem 11 x 4 cm, 3 cm high; their area centroid at
+# (0.4193, 0.0015), stem toward the robot, i.e. the bar along -y), the start pose of cfg/gs/T.yaml (the T at
+# x = 0.43 turned by -90 deg) and the pusher tip 5 mm above the table (flange at z = 0.22, 21.5 cm rod).
+STUDY_PUSH_T = dict(
+    t_shape=(0.15, 0.04, 0.11, 0.04, 0.03),
+    block_pose=(0.43, 0.0, -np.pi / 2),
+    goal_pose=(0.4193, 0.0015, -np.pi / 2 - 0.0034),
+    pusher_height=0.005,
+    study_cameras=True,
+)
+PUSH_T_FRONT_CROP = (184, 100, 440, 280)  # x0, y0, w, h: the study's rows 100-380, cols 184-624
+PUSH_T_WRIST_CROP = (184, 0, 480, 480)  # cols 184-664
 
 
 def push_t_cell(preset: str = "reference", **overrides) -> TwinSpec:
@@ -93,7 +151,7 @@ def push_t_cell(preset: str = "reference", **overrides) -> TwinSpec:
     cfg = PushTCell.preset(preset, **overrides)
     if not cfg.block_scale > 0:
         raise ValueError(f"push-t cell: block_scale must be > 0, got {cfg.block_scale}")
-    shape = TBlockShape().scaled(cfg.block_scale)
+    shape = TBlockShape(*cfg.t_shape).scaled(cfg.block_scale)
     spacing = cfg.particle_spacing * cfg.block_scale
     block = ObjectSpec(
         "tblock",
@@ -105,6 +163,7 @@ def push_t_cell(preset: str = "reference", **overrides) -> TwinSpec:
         binding="rigid",
         rest_pose=planar_pose(*cfg.block_pose),
         outline=shape.outline(),
+        goal_pose=None if cfg.goal_pose is None else planar_pose(*cfg.goal_pose),
     )
     sim = SimParams(
         dt=1.0 / cfg.fps / cfg.substeps,
@@ -124,7 +183,9 @@ def push_t_cell(preset: str = "reference", **overrides) -> TwinSpec:
         name=f"push-t-{preset}",
         robot=robot,
         objects=(block,),
-        cameras=(front_camera(cfg.image_hw), wrist_camera("link7", cfg.image_hw)),
+        cameras=study_cameras(PUSH_T_FRONT_CROP, PUSH_T_WRIST_CROP, cfg.image_hw)
+        if cfg.study_cameras
+        else (front_camera(cfg.image_hw), wrist_camera("link7", cfg.image_hw)),
         background=workcell_background(),
         sim=sim,
         controller=ControllerConfig(action_mode="planar", planar_height=cfg.pusher_height),
@@ -181,6 +242,7 @@ class RopeCell:
             "reference": RopeCell(),
             "fast": RopeCell(axial_spacing=0.006, ring=5, substeps=150, self_collision=False),
         }
+        presets.update({"small": presets["reference"], "small-fast": presets["fast"]})  # not yet the study's
         return _check_settings(RopeCell, "rope-routing", presets, name, overrides)
 
 
@@ -291,6 +353,7 @@ class ToyCell:
     @staticmethod
     def preset(name: str, **overrides) -> ToyCell:
         presets = {"reference": ToyCell(), "fast": ToyCell(spacing=0.008, substeps=150)}
+        presets.update({"small": presets["reference"], "small-fast": presets["fast"]})  # not yet the study's
         return _check_settings(ToyCell, "toy-packing", presets, name, overrides)
 
 

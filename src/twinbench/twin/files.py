@@ -8,7 +8,7 @@ field is in README.md ("Twin directories"). Every problem raises `TwinFormatErro
 the field; a save followed by a load gives back the same spec, array for array.
 
 Versions: 2 added the geometry that task rules read (an object's `outline`, the robot's `tool_radius`, a
-collider's `channel`); version 1 files (without them) still load.
+collider's `channel`) and an object's optional `goal_pose`; version 1 files (without them) still load.
 """
 
 from __future__ import annotations
@@ -201,7 +201,7 @@ def _check_header(r: _Reader, doc, fmt: str, required: set[str], optional: set[s
 # ---------------------------------------------------------------------------------------------- objects
 _OBJECT_FIELDS = (
     {"name", "arrays", "springs", "binding", "rest_pose"},
-    {"spring_Y", "mass", "gaussians", "color_map", "outline"},
+    {"spring_Y", "mass", "gaussians", "color_map", "outline", "goal_pose"},
 )
 
 
@@ -257,6 +257,8 @@ def _read_object(r: _Reader, d, field: str) -> ObjectSpec:
     kw["gaussians"] = r.gaussians(d.get("gaussians"), f"{field}.gaussians")
     kw["color_map"] = r.color_map(d.get("color_map"), f"{field}.color_map")
     kw["outline"] = _read_outline(r, d.get("outline"), f"{field}.outline")
+    if d.get("goal_pose") is not None:
+        kw["goal_pose"] = r.array(d["goal_pose"], f"{field}.goal_pose", (4, 4))
     return r.build(lambda: ObjectSpec(name, **kw), field)
 
 
@@ -293,6 +295,7 @@ def _write_object(obj: ObjectSpec, root: Path, prefix: str) -> dict:
         "outline": None
         if obj.outline is None
         else {"polygon": obj.outline.polygon.tolist(), "height": obj.outline.height},
+        "goal_pose": None if obj.goal_pose is None else np.asarray(obj.goal_pose).tolist(),
     }
     if obj.gaussians is not None:
         save_gaussians(obj.gaussians, root / f"{prefix}.ply")

@@ -154,7 +154,8 @@ class ObjectSpec:
     `spring_Y`). `binding`: "rigid" (Gaussians follow the particles' best-fit rigid motion) or "lbs"
     (linear blend skinning). `rest_pose` places the object frame in the world at rest. `outline`: the
     object's footprint as a prism in its own frame (`twinbench.twin.shapes.Outline`), for tasks that
-    reason about its shape (push-T); None when not given.
+    reason about its shape (push-T); None when not given. `goal_pose`: where a task that moves the object
+    should bring it (push-T's goal), a world pose; None: its rest pose.
     """
 
     name: str
@@ -170,6 +171,7 @@ class ObjectSpec:
     rest_pose: np.ndarray = field(default_factory=lambda: np.eye(4))
     color_map: ColorMap | None = None
     outline: Outline | None = None
+    goal_pose: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         where = f"objects[{self.name!r}]"
@@ -181,6 +183,8 @@ class ObjectSpec:
         if self.binding not in BINDINGS:
             raise ValueError(f"{where}.binding: expected one of {BINDINGS}, got {self.binding!r}")
         object.__setattr__(self, "rest_pose", _pose(f"{where}.rest_pose", self.rest_pose))
+        if self.goal_pose is not None:
+            object.__setattr__(self, "goal_pose", _pose(f"{where}.goal_pose", self.goal_pose))
         if self.outline is not None and not isinstance(self.outline, Outline):
             raise ValueError(f"{where}.outline: expected a twinbench.twin.shapes.Outline or None, "
                              f"got {type(self.outline).__name__}")

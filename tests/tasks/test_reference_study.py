@@ -1,0 +1,117 @@
+"""The built-in cells and tasks against the reference study's numbers (kywind/real2sim-eval: cfg/gs/*.yaml,
+cfg/env/xarm_*.yaml, experiments/utils/calculate_success_*.py, experiments/eval_policy.py, T_final_state.pkl;
+shuosha/policy_training configs/inference/*.json), written out here as the study lists them."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from twinbench.tasks.base import InitialStates, SuccessWindow
+from twinbench.tasks.push_t import PushTTask
+from twinbench.tasks.rope_routing import RopeRoutingTask
+from twinbench.tasks.toy_packing import ToyPackingTask
+from twinbench.transforms import planar_pose
+from twinbench.twin.cells import push_t_cell
+
+
+def study_grid(xy, theta, one_to_one):
+    """The study's gs_renderer index rule: xy[i // len(theta)], theta[i % len(theta)] (or paired)."""
+    if one_to_one:
+        return [(x, y, np.deg2rad(t)) for (x, y), t in zip(xy, theta, strict=True)]
+    return [(*xy[i // len(theta)], np.deg2rad(theta[i % len(theta)])) for i in range(len(xy) * len(theta))]
+
+
+def same_states(ours, theirs):
+    ours, theirs = np.asarray(ours), np.asarray(theirs)
+    assert ours.shape == theirs.shape
+    np.testing.assert_allclose(ours[:, :2], theirs[:, :2], atol=1e-12)
+    dth = np.angle(np.exp(1j * (ours[:, 2] - theirs[:, 2])))  # the same rotation
+    np.testing.assert_allclose(dth, 0.0, atol=1e-12)
+
+
+def test_push_t_grid_is_the_studys_list_index_by_index():
+    xy = [(-0.05, -0.05), (-0.05, 0.05), (0.05, -0.05), (0.05, 0.05)]
+    theirs = study_grid(xy, [45, 135, 225, 315], False)
+    same_states(PushTTask().initial_states.grid["block"], theirs)
+    assert np.rad2deg(PushTTask().initial_states.grid["block"][2, 2]) == pytest.approx(225.0)
+
+
+def test_rope_grid_is_the_studys_list_index_by_index():
+    xy = [(x, y) for x in (-0.05, 0.0, 0.05) for y in (-0.05, 0.0, 0.05)]
+    same_states(RopeRoutingTask().initial_states.grid["rope"], study_grid(xy, [-10, 0, 10], False))
+
+
+def test_toy_grid_is_the_studys_list_with_the_toy_fastest():
+    toy = study_grid([(0, 0), (-0.05, 0), (0.05, 0), (0, -0.05), (0, 0.03)], [0, -5, 5, -5, 5], True)
+    box = study_grid([(0, 0), (-0.05, 0), (0.05, 0), (0, 0.05)], [0, -5, 5, 5], True)
+    grid = ToyPackingTask().initial_states.grid
+    assert len(grid["toy"]) == 20
+    for i in range(20):  # the study: object index i % 5, box index i // 5
+        same_states(grid["toy"][i : i + 1], [toy[i % 5]])
+        same_states(grid["box"][i : i + 1], [box[i // 5]])
+
+
+def test_product_orders():
+    a, b = np.arange(6.0).reshape(2, 3), 10 + np.arange(9.0).reshape(3, 3)
+    lo = {"a": (0, 0, 0), "b": (0, 0, 0)}
+    slow = InitialStates.product({"a": a, "b": b}, lo, lo)
+    fast = InitialStates.product({"a": a, "b": b}, lo, lo, fastest="first")
+    assert [r[0] for r in slow.grid["a"]] == [0, 0, 0, 3, 3, 3]
+    assert [r[0] for r in fast.grid["a"]] == [0, 3, 0, 3, 0, 3]
+    assert [r[0] for r in fast.grid["b"]] == [10, 10, 13, 13, 16, 16]
+    with pytest.raises(ValueError, match="fastest"):
+        InitialStates.product({"a": a}, {"a": lo["a"]}, {"a": lo["a"]}, fastest="middle")
+
+
+def test_window_is_at_least_30_of_the_last_100_and_settling_is_30():
+    win = SuccessWindow(100, 30)
+    for k in range(100):
+        win.update(k < 30)
+    assert win.success  # exactly 30 hits: the study's `count >= 30`
+    win.update(False)  # the oldest hit leaves the window
+    assert not win.success
+    for cls in (PushTTask, RopeRoutingTask, ToyPackingTask):
+        s = cls().settings
+        assert (s.success_window, s.success_min_hits, s.settle_steps) == (100, 30, 30)
+
+
+def test_push_t_reference_cell_matches_the_study():
+    spec = push_t_cell("fast")
+    block = spec.object("tblock")
+    ext = block.particles.max(0) - block.particles.min(0)
+    np.testing.assert_allclose(ext, [0.15, 0.15, 0.03], atol=1e-6)  # T_final_state.pkl: 15.0 x 15.0 x 3 cm
+    assert block.outline.area == pytest.approx(0.15 * 0.04 + 0.11 * 0.04)
+    np.testing.assert_allclose(block.rest_pose, planar_pose(0.43, 0.0, -np.pi / 2), atol=1e-12)  # T.yaml
+    goal = block.goal_pose
+    np.testing.assert_allclose(goal[:2, 3], [0.4193, 0.0015], atol=1e-4)
+    stem = goal[:3, :3] @ [0.0, -1.0, 0.0]  # the stem points along the T frame's -y
+    assert stem[0] < -0.99  # toward the robot
+    assert PushTTask().settings.pusher_start == (0.30, -0.20)  # cfg/env/xarm_pusher.yaml init_eef_xyz
+    front = next(c for c in spec.cameras if c.name == "front")
+    assert front.sensor_size == (848, 480) and front.output_hw == (240, 240)
+    assert front.crop == (184, 100, 440, 280)  # pusht.json fixed_pre_crop [100, 380, 184, 624]
+    np.testing.assert_allclose(front.pose[:3, 3], [0.88302639, 0.05390846, 0.39760339], atol=1e-8)
+    assert front.intrinsics[0] == pytest.approx(427.2920227050781)
+    wrist = next(c for c in spec.cameras if c.name == "wrist")
+    assert wrist.crop == (184, 0, 480, 480) and wrist.mount_link == "link7"  # link_eef = link7 (offset 0)
+    np.testing.assert_allclose(wrist.pose[:3, 3], [0.070151686668396, -0.006011864222586155, 0.03072427])
+
+
+def test_push_t_goal_fits_the_studys_final_state():
+    """The goal outline at the goal pose covers the study's final-state T (the particles' bounds, measured
+    from T_final_state.pkl: x 0.3208-0.4712, y -0.0730-0.0771) within 3 mm."""
+    spec = push_t_cell("fast")
+    block = spec.object("tblock")
+    poly = block.outline.polygon
+    world = poly @ block.goal_pose[:2, :2].T + block.goal_pose[:2, 3]
+    np.testing.assert_allclose(world.min(0), [0.3208, -0.0730], atol=3e-3)
+    np.testing.assert_allclose(world.max(0), [0.4712, 0.0771], atol=3e-3)
+
+
+def test_small_presets_keep_the_earlier_cell():
+    small = push_t_cell("small-fast").object("tblock")
+    ext = small.particles.max(0) - small.particles.min(0)
+    np.testing.assert_allclose(ext, [0.12, 0.12, 0.03], atol=1e-6)
+    assert small.goal_pose is None
+    np.testing.assert_allclose(small.rest_pose, planar_pose(0.5, 0.0, 0.0))
