@@ -29,7 +29,8 @@ def test_two_workers_grid_and_resume(tmp_path):
     assert all(r.success and r.status == "ok" and r.steps == 12 for r in expert)  # analytic: 12 steps
     # rewards 1 - d / 0.25 with d = 0.16, 0.14, ..., 0.02 over steps 1-8, then 0: 8 - 0.72 / 0.25 + 4
     for r in expert:
-        assert set(r.metrics) == {"sum_reward", "max_reward", "started_at"}  # no "error" on success
+        assert set(r.metrics) == {"sum_reward", "max_reward", "started_at", "final"}  # no "error" on success
+        assert r.metrics["final"] == {"distance": pytest.approx(0.0, abs=1e-9)}  # the last frame's metrics
         assert (r.metrics["sum_reward"], r.metrics["max_reward"]) == pytest.approx((9.12, 1.0))
     bad = [r for r in recs if r.checkpoint == "step_0"]
     assert all(r.train_step == 0 and r.status == "ok" for r in bad) and sum(r.success for r in bad) < 8
@@ -106,9 +107,21 @@ def test_videos(tmp_path):
     path = Path(recs[0].video_path)
     assert path == tmp_path / "videos" / "vid" / "expert" / "init0_seed0.mp4"
     frames = iio.imread(path)
-    assert frames.shape == (13, 64, 64, 3)  # reset frame + 12 steps
+    assert frames.shape == (13, 64, 128, 3)  # reset frame + 12 steps; both cameras side by side by default
     info = json.loads((tmp_path / "eval" / "vid" / "expert" / "eval_info.json").read_text())
     assert len(info["video_paths"]) == 8
+    assert not list(tmp_path.rglob("*.partial.mp4"))  # complete videos are renamed from their temporary name
+    logs = []
+    front = evaluate("point-reach", ["expert"], "grid:0", 0, "vid1", store, video=True, output_dir=tmp_path,
+                     video_views="front", log=logs.append)
+    assert iio.imread(front[0].video_path).shape == (13, 64, 64, 3)
+    assert any("videos: cameras front" in m for m in logs)
+    both = iio.imread(path)[0].astype(int)
+    # the left half of the side-by-side video is the front camera's frame (lossy codec: close, not equal)
+    assert np.abs(both[:, :64] - iio.imread(front[0].video_path)[0].astype(int)).mean() < 4
+    with pytest.raises(ValueError, match="unknown camera.*top.*front"):
+        evaluate("point-reach", ["expert"], "grid:0", 0, "vid2", store, video=True, output_dir=tmp_path,
+                 video_views="top")
 
 
 def test_sigint_then_resume_via_cli(tmp_path):

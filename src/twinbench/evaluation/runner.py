@@ -5,7 +5,9 @@ Ray (`backend="ray"`), see `evaluation.backends`; one episode is `evaluation.rol
 each finished episode to the results store at once, so a re-run of the same run id skips finished
 episodes and an interrupted run (SIGINT, or SIGTERM handled the same way) loses at most the episodes in
 flight. A worker process that dies inside an episode records it as "sim_error" and the run goes on with a
-fresh process.
+fresh process. Videos are written under a temporary name and renamed once complete; the temporary files
+of episodes in flight are removed when a run is interrupted (and before a resumed run starts), so no
+partial MP4 is left behind.
 
 Seeds: grid episodes use init_state i with seed `seed + i`; `episodes=N` samples N states, init_state
 `n_grid_states + k` with seed `seed + k` (the env draws the state from that seed).
@@ -23,6 +25,7 @@ from twinbench.evaluation.backends import SigTerm, run_local, run_ray, sigterm_a
 from twinbench.evaluation.export import policy_folder, write_eval_infos
 from twinbench.evaluation.rollout import EpisodeBatch, EpisodeJob
 from twinbench.evaluation.store import DEFAULT_DB, EpisodeRecord, ResultsStore, check_run_id
+from twinbench.evaluation.video import ALL_VIEWS, partial_path
 from twinbench.policies.spec import parse_policy_spec
 from twinbench.progress import progress_bar
 
@@ -80,6 +83,12 @@ def episode_set(n_grid_states: int, episodes: str | int, seed: int) -> list[tupl
     return [(n_grid_states + k, seed + k) for k in range(n)]
 
 
+def _remove_partial_videos(jobs) -> None:
+    for job in jobs:
+        if job.video_path is not None:
+            partial_path(job.video_path).unlink(missing_ok=True)
+
+
 def _versions() -> dict:
     import gymnasium
     import warp
@@ -94,11 +103,14 @@ def evaluate(task: str, policies: Sequence[str], episodes: str | int = "grid", w
              run_id: str = "eval", store: ResultsStore | str | Path = DEFAULT_DB, *, seed: int = 0,
              video: bool = False, backend: str = "local", output_dir: str | Path = "outputs",
              env_kwargs: dict | None = None, retry_errors: bool = False, progress: bool = False,
-             write_eval_info: bool = True, log=None, worlds: int = 1) -> list[EpisodeRecord]:
+             write_eval_info: bool = True, log=None, worlds: int = 1, video_views: str = ALL_VIEWS,
+             policy_timeout_s: float | None = None) -> list[EpisodeRecord]:
     """Evaluate `policies` (spec strings) on `task`; returns the run's records (old and new) in job order.
 
     `worlds` > 1 runs each policy's episodes `worlds` at a time as the worlds of one many-world env
-    (same outcomes as one at a time), in each of the `workers` processes.
+    (same outcomes as one at a time), in each of the `workers` processes. `video_views`: the cameras
+    each video shows side by side ("all", or names joined by "+"). `policy_timeout_s`: seconds per
+    policy call, for policies with a `timeout_s` (remote ones); None keeps theirs.
 
     Finished episodes of `run_id` already in `store` are skipped (episodes that ended in an error
     too, unless `retry_errors`). On SIGINT raises `EvaluationInterrupted` after committing every
@@ -117,6 +129,9 @@ def evaluate(task: str, policies: Sequence[str], episodes: str | int = "grid", w
     if not policies:
         raise ValueError("give at least one policy spec (e.g. 'expert')")
     check_run_id(run_id)  # a name, never a path: it names folders under output_dir
+    if policy_timeout_s is not None and not (isinstance(policy_timeout_s, int | float)
+                                             and 0 < float(policy_timeout_s) <= 86_400):
+        raise InputError(f"--policy-timeout {policy_timeout_s}: give seconds per policy call in (0, 86400]")
     specs = [parse_policy_spec(p) for p in policies]
     keys = [(s.name, s.checkpoint) for s in specs]
     if len(set(keys)) != len(keys):
@@ -139,7 +154,8 @@ def evaluate(task: str, policies: Sequence[str], episodes: str | int = "grid", w
                 folder = out_dir / "videos" / run_id / policy_folder(spec.name, spec.checkpoint)
                 video_path = str(folder / f"init{init_state}_seed{s}.mp4")
             jobs[(spec.name, spec.checkpoint, init_state, s)] = EpisodeJob(
-                task, spec.spec, init_state, s, run_id, env_kwargs, video_path)
+                task, spec.spec, init_state, s, run_id, env_kwargs, video_path, video_views,
+                None if policy_timeout_s is None else float(policy_timeout_s))
     existing = {(r.policy, r.checkpoint, r.init_state, r.seed): r
                 for r in store.episodes(run_id, domain="sim")}
     skip = {k for k, r in existing.items() if r.status == "ok" or not retry_errors}
@@ -155,6 +171,10 @@ def evaluate(task: str, policies: Sequence[str], episodes: str | int = "grid", w
     log(f"run {run_id!r}: {len(jobs)} episodes, {len(jobs) - len(todo)} already finished, {len(todo)} to run "
         f"({backend}, {workers} worker{'s' if workers != 1 else ''}"
         f"{f', {worlds} worlds per env' if worlds > 1 else ''})")
+    if video:
+        shown = "every camera side by side" if video_views == ALL_VIEWS else f"cameras {video_views}"
+        log(f"videos: {shown}, under {out_dir / 'videos' / run_id}")
+    _remove_partial_videos(todo)  # left by a run killed outright (SIGKILL)
     results = {k: existing[k] for k in skip}
     done_count = [len(jobs) - len(todo)]
 
@@ -162,6 +182,7 @@ def evaluate(task: str, policies: Sequence[str], episodes: str | int = "grid", w
         bar_task = bar.add_task(f"eval {run_id}", total=len(jobs), completed=done_count[0])
 
         def on_done(rec: EpisodeRecord) -> None:
+            _remove_partial_videos([jobs[(rec.policy, rec.checkpoint, rec.init_state, rec.seed)]])
             store.record_episode(rec)
             results[(rec.policy, rec.checkpoint, rec.init_state, rec.seed)] = rec
             done_count[0] += 1
@@ -174,6 +195,7 @@ def evaluate(task: str, policies: Sequence[str], episodes: str | int = "grid", w
                 else:
                     run_local(batches, int(workers), on_done)
         except KeyboardInterrupt as err:
+            _remove_partial_videos(todo)  # the episodes in flight: their workers were killed mid-video
             left = len(jobs) - done_count[0]
             what, exc = ("terminated (SIGTERM)", EvaluationTerminated) if isinstance(err, SigTerm) else (
                 "interrupted", EvaluationInterrupted)
