@@ -11,6 +11,7 @@
     state, control = model.state(), model.control()
     control.set_control_points(frm, to); control.set_kinematic_mesh(finger, v_from, v_to)
     solver.simulate_frame(state, control)                # 667 substeps, in place, graph replay
+    solver.executor.name    # who runs frames: "one-core" | "threads" (worlds) | "split" (physics.frames)
     solver.mesh_contact_force(finger)                    # mean force on the particles, N
     solver.step(state_in, state_out, control, substep_index=s)   # one substep
     solver.simulate_frame_tape(state, control)           # taped frame, one State per substep

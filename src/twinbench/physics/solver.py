@@ -38,7 +38,9 @@ def default_threads(model: SpringMassModel) -> int:
 
 class SpringMassSolver:
     """Advances a :class:`SpringMassModel`; one :meth:`step` is one substep, :meth:`simulate_frame`
-    all ``params.substeps`` of one frame (graph-captured when possible).
+    all ``params.substeps`` of one frame, run by the solver's frame executor (`executor`, chosen here:
+    `RecordedFrames` on one core, `ThreadedWorlds` for many worlds on CPU threads, `split.SplitFrames` for one
+    large world over two processes; see physics.frames).
 
     Per substep: spring + dashpot forces (summed per particle in spring order: scattered in one pass on
     CPU, gathered per particle on CUDA; PhysTwin's atomics on the differentiable path), gravity and drag,
@@ -102,9 +104,9 @@ class SpringMassSolver:
         self._kin_mesh = wp.array(kin, dtype=int, device=dev)
         self._cp = cp
         self._kinematic = kin
-        width = p.max_collision_candidates if self._collide else 1
-        self._own_buffers = FrameBuffers.allocate(model, width, cp)
-        self._buffers = self._own_buffers
+        self._cand_width = p.max_collision_candidates if self._collide else 1
+        self._buffers = FrameBuffers.allocate(model, self._cand_width, cp)
+        self._own_buffers = True  # whether _buffers are the solver's own (else an executor placed them)
         self._frame_t = np.float32(p.dt) * np.float32(p.substeps)
         # Many worlds on CPU: contiguous groups of worlds, each group's frame on its own thread (worlds never
         # interact, so each array element is written by one thread exactly as with one thread).
@@ -171,8 +173,12 @@ class SpringMassSolver:
 
     def use_buffers(self, buffers: FrameBuffers | None) -> None:
         """Write frames into ``buffers`` (placed by an executor before it records a frame, e.g. in memory
-        shared with another process); None: the solver's own again."""
-        self._buffers = self._own_buffers if buffers is None else buffers
+        shared with another process; the solver's own are released); None: buffers of its own again."""
+        if buffers is not None:
+            self._buffers, self._own_buffers = buffers, False
+        elif not self._own_buffers:
+            self._buffers = FrameBuffers.allocate(self.model, self._cand_width, self._cp)
+            self._own_buffers = True
 
     @property
     def has_kinematic_meshes(self) -> bool:
