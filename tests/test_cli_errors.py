@@ -105,7 +105,7 @@ def test_an_internal_error_is_one_line_exit_1(monkeypatch, capsys):
 def test_import_real_lists_every_bad_row_under_one_summary(tmp_path, capsys):
     csv = tmp_path / "r.csv"
     csv.write_text("policy,checkpoint,init_state,success\na,,x,yes\na,,1,perhaps\n")
-    assert main(["import-real", str(csv), "--db", str(tmp_path / "r.sqlite")]) == 2
+    assert main(["import-real", str(csv), "--db", str(tmp_path / "r.sqlite"), "--task", "push-t"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert err[0] == f"twinbench import-real: error: 2 problem(s) in {csv}; nothing was imported:"
     assert json.dumps(err[1:]).count("r.csv row") == 2

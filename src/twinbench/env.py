@@ -46,7 +46,7 @@ from twinbench._runtime import quiet_warp
 from twinbench.physics import SimulationDiverged
 from twinbench.tasks.base import SuccessWindow
 
-RESET_OPTIONS = ("init_state", "sampled")
+RESET_OPTIONS = ("init_state", "sampled", "object_poses")
 SUCCESS_RULES = ("final", "early")
 
 
@@ -201,7 +201,30 @@ class TwinEnv(gymnasium.Env):
         offsets = (
             states.sample_offsets(0 if seed is None else int(seed)) if sampled else states.grid_offsets(index)
         )
+        if options.get("object_poses") is not None:
+            offsets = {**offsets, **self._measured_offsets(options["object_poses"])}
         self.rules.reset(self.twin, self.state, offsets)
+
+    def _measured_offsets(self, poses) -> dict[str, np.ndarray]:
+        """`options["object_poses"]` = {role or object name: (x, y, theta)}, measured planar poses of the
+        objects' frames (world, m and rad) -> the offsets from their rest poses that put them there."""
+        if not isinstance(poses, dict):
+            raise ValueError("options['object_poses'] must be a dict {role or object name: (x, y, theta)}")
+        role_of = {obj: role for role, obj in self.rules.roles.items()}
+        out = {}
+        for key, pose in poses.items():
+            role = key if key in self.rules.roles else role_of.get(key)
+            try:
+                values = np.asarray(pose, dtype=np.float64).ravel()
+            except (TypeError, ValueError):
+                values = np.zeros(0)
+            if role is None or values.shape != (3,) or not np.all(np.isfinite(values)):
+                raise ValueError(f"options['object_poses'][{key!r}]: give a role {sorted(self.rules.roles)} "
+                                 f"or object {sorted(role_of)} with a finite (x, y, theta), got {pose!r}")
+            rest = self.rules.rest_pose(self.twin, role)
+            yaw = np.arctan2(rest[1, 0], rest[0, 0])
+            out[role] = values - np.array([rest[0, 3], rest[1, 3], yaw])
+        return out
 
     def _first_observation(self):
         self._success.reset()

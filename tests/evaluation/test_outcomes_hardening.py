@@ -139,7 +139,7 @@ def test_import_real_out_of_range_integer_leaves_nothing_behind(tmp_path):
     csv.write_text("policy,checkpoint,init_state,success,seed\na,,0,yes,99999999999999999999999\n")
     store = ResultsStore(tmp_path / "r.sqlite")
     with pytest.raises(InputError, match="column seed: 99999999999999999999999 must be <="):
-        import_real_csv(csv, store, run_id="lab")
+        import_real_csv(csv, store, run_id="lab", task="push-t")
     assert store.runs() == [] and store.episodes() == []
 
 
@@ -157,10 +157,10 @@ def test_import_real_is_one_transaction(tmp_path, monkeypatch):
 
     monkeypatch.setattr(ResultsStore, "_episode_rows", staticmethod(broken))
     with pytest.raises(OverflowError):
-        import_real_csv(csv, store, run_id="lab")
+        import_real_csv(csv, store, run_id="lab", task="push-t")
     monkeypatch.undo()
     assert store.runs() == [] and store.episodes() == []  # no empty run row, no half import
-    assert len(import_real_csv(csv, store, run_id="lab")) == 2 and store.runs() == ["lab"]
+    assert len(import_real_csv(csv, store, run_id="lab", task="push-t")) == 2 and store.runs() == ["lab"]
     assert real_module.parse_success is parse_success  # one parser, shared
 
 
@@ -170,7 +170,7 @@ def test_run_ids_are_names_for_import_real_and_replay(tmp_path, run_id):
     csv.write_text("policy,checkpoint,init_state,success\na,,0,yes\n")
     store = ResultsStore(tmp_path / "r.sqlite")
     with pytest.raises(InputError, match="run id"):
-        import_real_csv(csv, store, run_id=run_id)
+        import_real_csv(csv, store, run_id=run_id, task="push-t")
     with pytest.raises(InputError, match="run id"):
         replay_episodes("point-reach", load_recorded(_json_log(tmp_path)), store, run_id)
     with pytest.raises(InputError, match="run id"):

@@ -23,6 +23,7 @@ import numpy as np
 from twinbench.errors import InputError
 from twinbench.evaluation.backends import SigTerm, run_local, run_ray, sigterm_as_interrupt
 from twinbench.evaluation.export import policy_folder, write_eval_infos
+from twinbench.evaluation.grids import grid_info
 from twinbench.evaluation.rollout import EpisodeBatch, EpisodeJob
 from twinbench.evaluation.store import DEFAULT_DB, EpisodeRecord, ResultsStore, check_run_id
 from twinbench.evaluation.video import ALL_VIEWS, partial_path
@@ -143,7 +144,7 @@ def evaluate(task: str, policies: Sequence[str], episodes: str | int = "grid", w
     protocol = {"task": task, "episodes": episodes if str(episodes).startswith("grid") else int(episodes),
                 "init_states": [i for i, _ in states], "seeds": [s for _, s in states],
                 "policies": list(policies), "base_seed": int(seed), "env_kwargs": env_kwargs,
-                "env_id": spec_task.env_id, "versions": _versions()}
+                "env_id": spec_task.env_id, "grid": grid_info(task, env_kwargs), "versions": _versions()}
     store.start_run(run_id, task, protocol)
     out_dir = Path(output_dir)
     jobs: dict[tuple[str, str, int, int], EpisodeJob] = {}  # by (policy, checkpoint, init_state, seed)
