@@ -9,6 +9,7 @@ import traceback
 import msgpack
 import numpy as np
 import pytest
+from scipy.spatial.transform import Rotation
 from websockets.exceptions import ConnectionClosed
 from websockets.sync.client import connect
 from websockets.sync.server import serve
@@ -97,8 +98,12 @@ def test_twinbench_client_against_openpi_style_server():
         req = server.requests[0]
         assert set(req) == {"observation/image", "observation/wrist_image", "observation/state", "prompt"}
         assert req["prompt"] == "put the bowl on the plate" and req["observation/image"].dtype == np.uint8
-        expected = CHUNK * np.r_[[0.05] * 3, [0.5] * 3, 1.0]
-        expected[:, 6] = (CHUNK[:, 6] + 1) / 2  # gripper [-1, 1] -> [0, 1]
+        delta = CHUNK * np.r_[[0.05] * 3, [0.5] * 3, 1.0]
+        delta[:, 6] = (CHUNK[:, 6] + 1) / 2  # gripper [-1, 1] -> [0, 1]
+        # per-step deltas from the observed pose (identity rotation): [p + dp, quat(dr), g]
+        quat = Rotation.from_rotvec(delta[:, 3:6]).as_quat()[:, [3, 0, 1, 2]]
+        quat *= np.where(quat[:, :1] < 0, -1.0, 1.0)
+        expected = np.c_[obs["agent_pos"][:3] + delta[:, :3], quat, delta[:, 6]]
         assert np.allclose(got, np.r_[expected[:5], expected[:2]], atol=1e-6)
         pol.close()
         pol = make_policy(f"remote:{server.url}?io=openpi-libero", get_task("point-reach"), _Env())

@@ -151,3 +151,47 @@ def test_silent_server_times_out():
             pol.select_action({"agent_pos": np.zeros(2, np.float32)})
         elapsed = time.monotonic() - t0
         assert 0.6 <= elapsed < 1.4  # two time-outs and one backoff, not the server's 1.5 s
+
+
+class SlowFirst:
+    """A model server whose first call compiles (1.0 s), later calls are quick."""
+
+    calls = 0
+
+    def reset(self):
+        pass
+
+    def select_action(self, obs):
+        SlowFirst.calls += 1
+        time.sleep(1.0 if SlowFirst.calls == 1 else 0.0)
+        return np.zeros(2, np.float32)
+
+
+def test_warm_up_waits_longer_once_then_calls_keep_their_time_out():
+    obs = {"agent_pos": np.zeros(2, np.float32)}
+    SlowFirst.calls = 0
+    with PolicyServer(SlowFirst) as server:
+        pol = RemotePolicy(server.url, timeout_s=0.3, retries=0, warm_up_timeout_s=5.0)
+        pol.warm_up(obs)  # the 1 s first call fits the warm-up's time-out, not the 0.3 s per call
+        assert SlowFirst.calls == 1 and (pol.timeout_s, pol.retries) == (0.3, 0)
+        assert np.array_equal(pol.select_action(obs), [0, 0]) and SlowFirst.calls == 2
+        pol.close()
+    SlowFirst.calls = 0
+    with PolicyServer(SlowFirst) as server:
+        pol = RemotePolicy(server.url, timeout_s=0.3, retries=0)  # without warm-up: the first call fails
+        with pytest.raises(PolicyError, match=r"time-out 0.3 s"):
+            pol.select_action(obs)
+        pol.close()
+
+
+def test_timeout_from_the_spec():
+    from twinbench.policies import make_policy, parse_policy_spec
+
+    assert parse_policy_spec("remote:ws://h:1?timeout_s=90").timeout_s == 90.0
+    for bad in ("remote:ws://h:1?timeout_s=0", "remote:ws://h:1?timeout_s=soon"):
+        with pytest.raises(ValueError, match="timeout_s must be"):
+            parse_policy_spec(bad)
+    env = get_task("point-reach").make_env()
+    pol = make_policy("remote:ws://127.0.0.1:9?timeout_s=2.5", get_task("point-reach"), env)
+    assert pol.timeout_s == 2.5 and make_policy("remote:ws://127.0.0.1:9", get_task("point-reach"),
+                                                env).timeout_s == 30.0

@@ -28,7 +28,9 @@ class ChunkedPolicy:
     """Base class for policies that predict a chunk of actions at once.
 
     Subclasses implement `predict_chunk(obs) -> (T, A)`; `select_action` executes the first
-    `n_action_steps` actions of each chunk (all of it when None) before predicting again.
+    `n_action_steps` actions of each chunk (all of it when None) before predicting again, each passed
+    through `finish_action(action, obs)` with the observation of the step it is executed at (identity
+    here; per-step action modes of `policies.io` convert there).
     """
 
     chunk_size: int | None = None
@@ -59,4 +61,7 @@ class ChunkedPolicy:
             self.n_predictions += 1
             n = len(chunk) if self.n_action_steps is None else min(self.n_action_steps, len(chunk))
             self._queue.extend(chunk[:n])
-        return self._queue.popleft()
+        return self.finish_action(self._queue.popleft(), obs)
+
+    def finish_action(self, action: np.ndarray, obs: dict) -> np.ndarray:
+        return action

@@ -136,4 +136,7 @@ class LeRobotPolicy(ChunkedPolicy):
         with self._torch.inference_mode():
             action = self.policy.select_action(self._batch(obs))
         action = self.postprocessor(action).detach().to("cpu").numpy().reshape(1, -1)
-        return self.io.actions(action, obs)[0]
+        return self.io.step(self.io.actions(action, obs)[0], obs)
+
+    def finish_action(self, action: np.ndarray, obs: dict) -> np.ndarray:
+        return self.io.step(action, obs)

@@ -6,7 +6,9 @@ frame as reply is the server's error report. Failures (refused connection, time-
 connection) are retried with exponential backoff; after `retries` retries the call raises
 `PolicyError`. Worst case per call: (retries + 1) * (open_timeout_s + timeout_s) + backoffs.
 A reply over `max_message_bytes` is refused (the connection is closed before it is read). A server that
-refuses the API key (HTTP 401/403) fails at once, without retries.
+refuses the API key (HTTP 401/403) fails at once, without retries. `timeout_s` (constructor, or
+`?timeout_s=` in a `remote:` spec) bounds each reply; `warm_up(obs)` sends one request before the first
+episode under the longer `warm_up_timeout_s` (a model server's first call compiles the model).
 
 API key: `api_key=` or the TWINBENCH_API_KEY environment variable, sent as openpi's header
 `Authorization: Api-Key <key>`. Close the policy (`close()`, or use it as a context manager) when done:
@@ -46,13 +48,16 @@ class RemotePolicy(ChunkedPolicy):
 
     def __init__(self, url: str, *, timeout_s: float = 30.0, open_timeout_s: float = 5.0, retries: int = 3,
                  backoff_s: float = 0.5, n_action_steps: int | None = None, prompt: str | None = None,
-                 api_key: str | None = None, max_message_bytes: int = DEFAULT_MAX_MESSAGE_BYTES):
+                 api_key: str | None = None, max_message_bytes: int = DEFAULT_MAX_MESSAGE_BYTES,
+                 warm_up_timeout_s: float = 600.0):
         super().__init__(n_action_steps)
         if not url.startswith(("ws://", "wss://")):
             raise ValueError(f"remote policy url must start with ws:// or wss://, got {url!r}")
-        if retries < 0 or timeout_s <= 0 or open_timeout_s <= 0 or backoff_s < 0 or max_message_bytes < 1:
+        if (retries < 0 or timeout_s <= 0 or open_timeout_s <= 0 or backoff_s < 0 or max_message_bytes < 1
+                or warm_up_timeout_s <= 0):
             raise ValueError("RemotePolicy: need retries >= 0, timeout_s > 0, open_timeout_s > 0, "
-                             "backoff_s >= 0, max_message_bytes >= 1")
+                             "backoff_s >= 0, max_message_bytes >= 1, warm_up_timeout_s > 0")
+        self.warm_up_timeout_s = float(warm_up_timeout_s)
         self.url, self.timeout_s, self.open_timeout_s = url, float(timeout_s), float(open_timeout_s)
         self.retries, self.backoff_s, self.prompt = int(retries), float(backoff_s), prompt
         self.max_message_bytes = int(max_message_bytes)
@@ -160,7 +165,21 @@ class RemotePolicy(ChunkedPolicy):
                 return False
         return bool(self.metadata.get(USES_ENVIRONMENT_STATE_KEY, False))
 
-    def predict_chunk(self, obs: dict) -> np.ndarray:
+    def warm_up(self, obs: dict | None = None) -> None:
+        """Before the first episode: connect and, given an observation, send it once (reply discarded),
+        waiting up to `warm_up_timeout_s` (no retries: a server that fails here fails the same way later)."""
+        timeout, retries = self.timeout_s, self.retries
+        self.timeout_s, self.retries = max(self.timeout_s, self.warm_up_timeout_s), 0
+        try:
+            if obs is None:
+                if self._conn is None:
+                    self._connect()
+            else:
+                self._request(obs)
+        finally:
+            self.timeout_s, self.retries = timeout, retries
+
+    def _request(self, obs: dict) -> np.ndarray:
         if self.io is not None:  # per-policy observation mapping and action handling (policies.io)
             reply = self.infer(self.io.request(obs, self.prompt))
             if self.io.action.key not in reply:
@@ -171,6 +190,12 @@ class RemotePolicy(ChunkedPolicy):
         if self.prompt is not None:
             request.setdefault("prompt", self.prompt)
         return np.asarray(self.infer(request)[ACTIONS_KEY])
+
+    def predict_chunk(self, obs: dict) -> np.ndarray:
+        return self._request(obs)
+
+    def finish_action(self, action: np.ndarray, obs: dict) -> np.ndarray:
+        return action if self.io is None else self.io.step(action, obs)
 
     def close(self) -> None:
         """Close the connection (the next request reconnects)."""

@@ -10,8 +10,8 @@ Grammar: `[NAME=]KIND[:TARGET][?OPTIONS]` (and `expert@LEVEL`). Built-in kinds:
   train_step N when PATH contains `checkpoints/<N>/`, else the folder name).
 `NAME=` overrides the policy name stored with the episodes, e.g. `act=lerobot:outputs/.../pretrained_model`.
 `KIND:TARGET` takes options after `?`: `io=PRESET_OR_JSON_FILE` (observation mapping and action
-handling, `twinbench.policies.io`) and `n_action_steps=N`, e.g.
-`pi05=remote:ws://127.0.0.1:8000?io=openpi-libero&n_action_steps=5`.
+handling, `twinbench.policies.io`), `n_action_steps=N` and, for `remote:`, `timeout_s=SECONDS` (per
+reply), e.g. `pi05=remote:ws://127.0.0.1:8000?io=openpi-libero&n_action_steps=5&timeout_s=60`.
 
 Kinds from other packages: an entry point of group `twinbench.policies` whose name is the kind and whose
 object is a factory with the built-in kinds' signature
@@ -58,6 +58,7 @@ class PolicySpec:
     target: str = ""  # url (remote), path (lerobot), TARGET (a plugin's kind)
     io: str = ""  # policies.io preset name or JSON file ("" = the kind's default)
     n_action_steps: int | None = None
+    timeout_s: float | None = None  # per reply (remote policies; None = the policy's default)
 
 
 # (spec, NAME or None, the text after KIND: "", ":TARGET[?OPTIONS]" or "@LEVEL") -> PolicySpec
@@ -122,16 +123,23 @@ def policy_kind(name: str, spec: str | None = None) -> PolicyKind:
 
 
 def _split_options(spec: str, body: str) -> tuple[str, dict]:
-    """`TARGET?io=X&n_action_steps=N` -> (TARGET, {"io": X, "n_action_steps": N})."""
+    """`TARGET?io=X&n_action_steps=N&timeout_s=S` -> (TARGET, {"io": X, "n_action_steps": N, ...})."""
     target, sep, query = body.partition("?")
     if not sep:
         return body, {}
     opts: dict = {}
     for item in query.split("&"):
         key, eq, value = item.partition("=")
-        if not eq or key not in ("io", "n_action_steps") or not value:
-            raise InputError(f"policy spec {spec!r}: options after '?' are io=PRESET_OR_FILE and "
-                             f"n_action_steps=N, got {item!r}")
+        if not eq or key not in ("io", "n_action_steps", "timeout_s") or not value:
+            raise InputError(f"policy spec {spec!r}: options after '?' are io=PRESET_OR_FILE, "
+                             f"n_action_steps=N and timeout_s=SECONDS, got {item!r}")
+        if key == "timeout_s":
+            try:
+                value = float(value)
+            except ValueError:
+                value = -1.0
+            if not value > 0:
+                raise InputError(f"policy spec {spec!r}: timeout_s must be a number of seconds > 0")
         if key == "n_action_steps":
             if not value.isdigit() or int(value) < 1:
                 raise InputError(f"policy spec {spec!r}: n_action_steps must be an integer >= 1")
@@ -218,9 +226,10 @@ def _make_remote(spec: PolicySpec, task, env, *, seed: int):
     from twinbench.policies.io import load_policy_io
     from twinbench.policies.remote import RemotePolicy
 
-    io = load_policy_io(spec.io).with_n_action_steps(spec.n_action_steps)
+    io = load_policy_io(spec.io).with_n_action_steps(spec.n_action_steps).bind(env)
+    timeout = {} if spec.timeout_s is None else {"timeout_s": spec.timeout_s}
     policy = RemotePolicy(spec.target, prompt=getattr(env.unwrapped, "task_description", None),
-                          n_action_steps=io.action.n_action_steps)
+                          n_action_steps=io.action.n_action_steps, **timeout)
     policy.io = io
     return policy
 
@@ -234,11 +243,12 @@ def _parse_lerobot(spec: str, name: str | None, rest: str) -> PolicySpec:
 
 
 def _make_lerobot(spec: PolicySpec, task, env, *, seed: int):
+    from twinbench.policies.io import load_policy_io
     from twinbench.policies.lerobot_adapter import LeRobotPolicy
 
     description = getattr(env.unwrapped, "task_description", None) or ""
-    return LeRobotPolicy(spec.target, task_description=description, io=spec.io or None,
-                         n_action_steps=spec.n_action_steps)
+    io = load_policy_io(spec.io or None).bind(env)
+    return LeRobotPolicy(spec.target, task_description=description, io=io, n_action_steps=spec.n_action_steps)
 
 
 register_policy_kind("expert", _make_expert, parse=_parse_expert)
