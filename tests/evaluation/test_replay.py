@@ -75,6 +75,8 @@ def test_replay_lerobot_v3_folder(tmp_path):
         (True, True), (True, False), (False, True), (False, False), (True, True)]
     assert pairs[0][1].steps == 12 and pairs[1][1].steps == 14  # success terminates; else actions run out
     # rewards 1 - d / 0.25 with d = 0.16, 0.14, ..., 0.02, then 0 for steps 9-12: 8 - 0.72 / 0.25 + 4
+    final = pairs[0][1].metrics.pop("final")
+    assert final == {"distance": pytest.approx(0.0, abs=1e-9)}  # the last frame's task metrics are kept
     assert pairs[0][1].metrics == pytest.approx({"episode_index": 0, "sum_reward": 9.12, "max_reward": 1.0})
     check(store, "rp")
     # a replay that ended in an error is counted in `excluded`, never as a replay failure
@@ -140,3 +142,33 @@ def test_replay_cli(tmp_path, capsys):
     out = capsys.readouterr().out
     assert "act / step_1: TP=1 FP=1 FN=1 TN=0" in out and "point-reach: TP=2 FP=1 FN=1 TN=1" in out
     check(ResultsStore(db), "cli")
+
+
+def test_replay_from_measured_poses_robot_logs_and_an_index_map(tmp_path):
+    """A push-T recording as the reference study keeps it: its own indices (mapped here), the block's
+    measured start pose, and flange poses per frame instead of actions."""
+    from twinbench.tasks import get_task
+
+    env = get_task("push-t").make_env(preset="fast")
+    pose = [0.45, 0.05, 0.3]
+    _, info = env.reset(seed=0, options={"init_state": 0, "object_poses": {"block": pose}})
+    assert info["privileged"]["environment_state"][:3] == pytest.approx(pose, abs=2e-3)  # after settling
+    with pytest.raises(ValueError, match="object_poses.*'lid'.*give a role"):
+        env.reset(options={"object_poses": {"lid": pose}})
+    flange = np.tile([0.30, -0.20, 0.10, 1.0, 0.0, 0.0, 0.0], (3, 1))
+    flange[:, 0] += [0.0, 0.01, 0.02]
+    log = {"episodes": [{"init_state": 7, "ee_poses": flange.tolist(), "success": False, "policy": "dp",
+                         "checkpoint": "", "object_poses": {"tblock": pose}}]}
+    (tmp_path / "log.json").write_text(json.dumps(log))
+    (tmp_path / "map.json").write_text(json.dumps({"7": 2}))
+    store = ResultsStore(tmp_path / "r.sqlite")
+    (real, rep), = replay_episodes("push-t", load_recorded(tmp_path / "log.json"), store, "rp",
+                                   env_kwargs={"preset": "fast"}, index_map=tmp_path / "map.json")
+    assert (real.init_state, rep.init_state, rep.metrics["study_index"]) == (2, 2, 7)
+    assert rep.status == "ok" and rep.steps == 3 and rep.metrics["object_poses"] == {"tblock": pose}
+    assert set(rep.metrics["final"]) >= {"msd", "coverage"}
+    assert store.run_protocol("rp")["grid"]["n_states"] == 16
+    bad = {"episodes": [{**log["episodes"][0], "ee_poses": [[0.3, 0.1, 0.1]]}]}
+    (tmp_path / "bad.json").write_text(json.dumps(bad))
+    with pytest.raises(ValueError, match="'ee_poses' must be \\(T, 7\\)"):
+        load_recorded(tmp_path / "bad.json")

@@ -16,7 +16,9 @@ class ReplayConfig:
     """Replay recorded real rollouts open-loop in the twin; print replay-vs-real confusion matrices."""
 
     source: Path
-    """LeRobotDataset v3 folder, or a .json / .npz log (schemas: twinbench.evaluation.replay)"""
+    """LeRobotDataset v3 folder, or a .json / .npz log (schemas: twinbench.evaluation.replay); a JSON log
+    may give robot logs (ee_poses or joint_positions per frame) instead of actions, and measured start
+    poses of the objects (object_poses)"""
     task: str = "point-reach"
     run_id: str = "replay"
     db: Path = DEFAULT_DB
@@ -26,12 +28,16 @@ class ReplayConfig:
     """JSON dict of extra gymnasium.make keyword arguments"""
     twin: Path | None = None
     """a twin directory to replay in (default: the task's built-in cell)"""
+    index_map: Path | None = None
+    """CSV (study_index,init_state) or JSON map from the recording's init_state values to the task's grid
+    indices; not needed for the reference study's indices (the built-in grids are in its order)"""
 
 
 def main(cfg: ReplayConfig) -> int:
     env_kwargs = env_kwargs_with_twin(parse_env_kwargs(cfg.env_kwargs), cfg.twin)
     episodes = load_recorded(cfg.source, cfg.outcomes)
-    pairs = replay_episodes(cfg.task, episodes, cfg.db, cfg.run_id, env_kwargs=env_kwargs)
+    pairs = replay_episodes(cfg.task, episodes, cfg.db, cfg.run_id, env_kwargs=env_kwargs,
+                            index_map=cfg.index_map)
     print(f"replayed {len(pairs)} episodes of {cfg.source} in {cfg.task} (run {cfg.run_id!r}, {cfg.db})")
     for by in ("checkpoint", "task"):
         for key, c in replay_confusion(cfg.db, cfg.run_id, by=by).items():

@@ -14,7 +14,13 @@ Sources (`load_recorded`):
   `seed`); the outcome columns may instead come from an `outcomes` JSON file (schema as below,
   without `actions`, keyed by `episode_index`);
 - a JSON log: `{"episodes": [{"init_state": int, "actions": [[...], ...] (T x A), "success": bool,
-  "policy": str, "checkpoint": str, optional "seed", "train_step", "episode_index"}]}`;
+  "policy": str, "checkpoint": str, optional "seed", "train_step", "episode_index", "object_poses"}]}`,
+  where a robot log may stand in for "actions": "ee_poses" (T x 7: x, y, z, qw, qx, qy, qz of the twin's
+  end-effector frame in the robot base frame, per frame) or "joint_positions" (T x n_arm_joints, rad),
+  each with an optional "gripper" (T,) for the gripper tasks; they become the task's absolute actions
+  (planar tasks: the pose's x, y; gripper tasks: the pose and the gripper value);
+  "object_poses" = {role or object: [x, y, theta]}: the measured start poses of the objects (world, m and
+  rad), which replace the grid state's (the env's `object_poses` reset option);
 - an NPZ log (read with allow_pickle=False): `init_state (E,)`, `success (E,)`, `policy (E,) str`,
   `checkpoint (E,) str`, `lengths (E,)`, `actions (sum T, A)` (episodes concatenated in order),
   optional `seed (E,)`, `train_step (E,)` (-1 = none).
@@ -54,6 +60,9 @@ class RecordedEpisode:
     checkpoint: str = ""
     train_step: int | None = None
     seed: int | None = None
+    object_poses: dict | None = None  # {role or object: (x, y, theta)} measured at the start
+    robot_log: tuple[str, np.ndarray, np.ndarray | None] | None = None  # (kind, (T, D), gripper (T,))
+    study_index: int | None = None  # the recording's own init_state when an index map translated it
 
     @property
     def key_seed(self) -> int:
@@ -88,16 +97,38 @@ def _episode_from_dict(d: dict, where: str, index: int, actions=None) -> Recorde
     if not isinstance(d, dict):
         raise InputError(f"{where}: episode {index} is a {type(d).__name__}, expected an object with fields "
                          "init_state, actions (T x A), success, policy, checkpoint")
-    missing = [f for f in _OUTCOME_FIELDS + (() if actions is not None else ("actions",)) if f not in d]
+    log_kind = next((k for k in ("ee_poses", "joint_positions") if k in d), None) if actions is None else None
+    needs = () if actions is not None or log_kind else ("actions",)
+    missing = [f for f in _OUTCOME_FIELDS + needs if f not in d]
     if missing:
         raise InputError(f"{where}: episode {index} lacks field(s) {missing}; each episode needs "
-                         f"init_state, actions (T x A), success, policy, checkpoint")
+                         f"init_state, actions (T x A) or a robot log (ee_poses / joint_positions), success, "
+                         "policy, checkpoint")
+    robot_log = None
+    if log_kind and "actions" not in d:
+        log = _finite_2d(d[log_kind], where, index, log_kind)
+        if log_kind == "ee_poses" and log.shape[1] != 7:
+            raise InputError(f"{where}: episode {index} field 'ee_poses' must be (T, 7) (x, y, z, qw, qx, "
+                             f"qy, qz), got shape {log.shape}")
+        grip = None
+        if d.get("gripper") is not None:
+            grip = _finite_2d(np.reshape(np.asarray(d["gripper"], dtype=object), (-1, 1)), where, index,
+                              "gripper")[:, 0]
+            if len(grip) != len(log):
+                raise InputError(f"{where}: episode {index} field 'gripper' has {len(grip)} values for "
+                                 f"{len(log)} frames")
+        robot_log = (log_kind, log, grip)
+        actions = np.zeros((len(log), 0))  # placeholder: the actions come from the log in the twin
+    poses = d.get("object_poses")
+    if poses is not None and not isinstance(poses, dict):
+        raise InputError(f"{where}: episode {index} field 'object_poses' must be an object "
+                         "{role or object: [x, y, theta]}")
     try:
         acts = np.asarray(d["actions"] if actions is None else actions, dtype=np.float64)
     except (TypeError, ValueError, OverflowError) as err:
         raise InputError(f"{where}: episode {index} field 'actions' is not a numeric (T, A) array "
                          f"({err})") from None
-    if acts.ndim != 2 or len(acts) == 0 or not np.all(np.isfinite(acts)):
+    if robot_log is None and (acts.ndim != 2 or len(acts) == 0 or not np.all(np.isfinite(acts))):
         raise InputError(f"{where}: episode {index} field 'actions' must be a finite (T, A) array with "
                          f"T >= 1, got shape {acts.shape}")
     step = d.get("train_step")
@@ -117,7 +148,48 @@ def _episode_from_dict(d: dict, where: str, index: int, actions=None) -> Recorde
         checkpoint="" if checkpoint is None else _field(where, index, "checkpoint", _text, checkpoint),
         train_step=_field(where, index, "train_step", lambda v: _optional_int(v, 0), step),
         seed=_field(where, index, "seed", _optional_int, d.get("seed")),
+        object_poses=None if poses is None else {str(k): v for k, v in poses.items()},
+        robot_log=robot_log,
     )
+
+
+def _finite_2d(value, where: str, index: int, name: str) -> np.ndarray:
+    try:
+        arr = np.asarray(value, dtype=np.float64)
+    except (TypeError, ValueError, OverflowError) as err:
+        raise InputError(f"{where}: episode {index} field {name!r} is not numeric ({err})") from None
+    if arr.ndim != 2 or len(arr) == 0 or not np.all(np.isfinite(arr)):
+        raise InputError(f"{where}: episode {index} field {name!r} must be a finite (T, D) array with "
+                         f"T >= 1, got shape {arr.shape}")
+    return arr
+
+
+def log_actions(env, ep: RecordedEpisode) -> np.ndarray:
+    """The task's absolute actions (T, A) of a robot log: end-effector poses as they are, or joint
+    positions through the twin's forward kinematics (its end-effector frame); planar tasks take x, y,
+    gripper tasks the pose and the gripper value (open when the log has none)."""
+    kind, log, grip = ep.robot_log
+    twin = env.unwrapped.twin
+    shape = env.action_space.shape
+    if kind == "joint_positions":
+        robot = twin.robot
+        n = len(robot.arm_joints)
+        if log.shape[1] != n:
+            raise InputError(f"episode {ep.episode_index}: joint_positions has {log.shape[1]} columns, the "
+                             f"twin's arm has {n} joints")
+        from twinbench.transforms import matrix_to_quat
+
+        q = np.tile(robot.home_q, (len(log), 1))
+        q[:, robot.arm_q_indices] = log
+        poses = robot.ee_pose(q)
+        log = np.concatenate([poses[:, :3, 3], matrix_to_quat(poses[:, :3, :3])], axis=1)
+    if shape == (2,):
+        return log[:, :2].copy()
+    if shape == (8,):
+        g = np.full(len(log), float(env.action_space.low[7])) if grip is None else grip
+        return np.concatenate([log[:, :7], g[:, None]], axis=1)
+    raise InputError(f"episode {ep.episode_index}: a robot log ({kind}) becomes actions of shape (2,) or "
+                     f"(8,); this task's are {shape}: give 'actions' instead")
 
 
 def _read_json(path: Path):
@@ -315,13 +387,20 @@ class OpenLoopPolicy:
 
 def replay_episodes(task: str, episodes: list[RecordedEpisode], store: ResultsStore | str | Path = DEFAULT_DB,
                     run_id: str = "replay", *, env_kwargs: dict | None = None,
-                    ) -> list[tuple[EpisodeRecord, EpisodeRecord]]:
-    """Replay each recorded episode in `task`'s twin; store and return (real, replay) record pairs."""
+                    index_map: str | Path | None = None) -> list[tuple[EpisodeRecord, EpisodeRecord]]:
+    """Replay each recorded episode in `task`'s twin; store and return (real, replay) record pairs.
+    `index_map`: a CSV/JSON map from the recording's init_state values to the task's grid indices
+    (`grids.read_index_map`); an episode with `object_poses` starts from them instead of the grid state's."""
+    from twinbench.evaluation.grids import grid_info, map_index, read_index_map
     from twinbench.evaluation.rollout import run_episode
     from twinbench.tasks import get_task
 
     check_run_id(run_id)
     spec = get_task(task)
+    if index_map is not None:
+        mapping = read_index_map(index_map, spec.n_grid_states)
+        episodes = [replace(ep, init_state=map_index(mapping, ep.init_state, f"episode {ep.episode_index}"),
+                            study_index=ep.init_state) for ep in episodes]
     for ep in episodes:  # a replay starts from the recorded grid state, never from a sampled one
         if not 0 <= ep.init_state < spec.n_grid_states:
             raise InputError(f"episode {ep.episode_index}: init_state {ep.init_state} is not a grid state "
@@ -330,23 +409,33 @@ def replay_episodes(task: str, episodes: list[RecordedEpisode], store: ResultsSt
     store = store if isinstance(store, ResultsStore) else ResultsStore(store)
     env = spec.make_env(**(env_kwargs or {}))
     a_shape = env.action_space.shape
+    episodes = [replace(ep, actions=log_actions(env, ep)) if ep.robot_log is not None else ep
+                for ep in episodes]
     for ep in episodes:
         if ep.actions.shape[1:] != a_shape:
             raise InputError(f"episode {ep.episode_index}: actions of shape {ep.actions.shape[1:]} per step, "
                              f"task {task!r} expects {a_shape}")
     store.start_run(run_id, task, {"task": task, "kind": "replay", "n_episodes": len(episodes),
-                                   "env_kwargs": dict(env_kwargs or {})})
+                                   "env_kwargs": dict(env_kwargs or {}), "grid": grid_info(task, env_kwargs),
+                                   "index_map": None if index_map is None else str(index_map)})
     pairs = []
     for ep in episodes:
+        options = None if ep.object_poses is None else {"object_poses": ep.object_poses}
         out = run_episode(env, OpenLoopPolicy(ep.actions), init_state=ep.init_state, seed=ep.key_seed,
-                          max_steps=len(ep.actions))
+                          max_steps=len(ep.actions), reset_options=options)
+        if out.status == "sim_error" and out.error and "object_poses" in out.error:
+            raise InputError(f"episode {ep.episode_index}: {out.error.removeprefix('reset: ')}")
+        extra = {"episode_index": ep.episode_index}
+        if ep.study_index is not None:
+            extra["study_index"] = ep.study_index
+        if ep.object_poses is not None:
+            extra["object_poses"] = ep.object_poses
         common = dict(run_id=run_id, task=task, policy=ep.policy, checkpoint=ep.checkpoint,
                       train_step=ep.train_step, init_state=ep.init_state, seed=ep.key_seed)
         real = EpisodeRecord(**common, domain="real", success=ep.success, status="ok",
-                             steps=len(ep.actions), metrics={"episode_index": ep.episode_index})
+                             steps=len(ep.actions), metrics=extra)
         rep = EpisodeRecord(**common, domain="replay", success=out.success, status=out.status,
-                            steps=out.steps, wall_time_s=out.wall_time_s,
-                            metrics=out.metrics(episode_index=ep.episode_index))
+                            steps=out.steps, wall_time_s=out.wall_time_s, metrics=out.metrics(**extra))
         store.record_episodes([real, rep])
         pairs.append((real, rep))
     return pairs
