@@ -249,3 +249,44 @@ def test_success_table_shows_train_step_zero(tmp_path):
     page = write_report(store, "e", tmp_path / "r.html", real_run_id=None).read_text()
     assert "<tr><td>expert</td><td>step_0</td><td>0</td><td>0</td><td>0</td><td>–</td>" in page
     assert "<tr><td>noisy</td><td>step_0</td><td>0</td><td>2</td><td>1</td><td><b>50.0%</b></td>" in page
+
+
+def test_real_rows_of_another_task_or_grid_are_flagged_loudly(tmp_path, capsys):
+    store = ResultsStore(tmp_path / "r.sqlite")
+    grid = {"task": "point-reach", "n_states": 8, "id": "point-reach-8"}
+    store.start_run("sim", "point-reach", {"task": "point-reach", "grid": grid})
+    store.record_episodes([EpisodeRecord("sim", "point-reach", "expert", "", None, i, 0, "sim", i < 6, "ok")
+                           for i in range(8)])
+    store.start_run_with_episodes("real", "push-t", {"task": "push-t"}, [
+        EpisodeRecord("real", "push-t", "expert", "", None, i, 0, "real", True, "ok") for i in range(5)])
+    out = tmp_path / "rep.html"
+    assert cli_main(["report", "--run-id", "sim", "--db", str(store.path), "--out", str(out)]) == 0
+    err = capsys.readouterr().err
+    assert "WARNING: episodes of another task are left out of every comparison: 5 real of task 'push-t'" in err
+    page = out.read_text()
+    assert page.count('<div class="warn">Warning: episodes of another task') == 1
+    assert "Real outcomes exist" not in page and "No real outcomes found" in page  # none compared
+    assert cli_main(["report", "--run-id", "sim", "--db", str(store.path), "--out", str(out),
+                     "--strict"]) == 2
+    assert "do not pair with run 'sim'" in capsys.readouterr().err
+    # the same task on another grid: kept, but flagged
+    store.start_run_with_episodes("real2", "point-reach", {"task": "point-reach", "grid": {**grid, "id": "x"}},
+                                  [EpisodeRecord("real2", "point-reach", "expert", "", None, i, 0, "real",
+                                                 True, "ok") for i in range(4)])
+    warned = []
+    write_report(store, "sim", out, real_run_id="real2", warn=warned.append)
+    assert len(warned) == 1 and "run 'real2' indexes another initial-state grid" in warned[0]
+    assert "Warning: run &#x27;real2&#x27; indexes another" in out.read_text()
+    with pytest.raises(ValueError, match="another initial-state grid"):
+        write_report(store, "sim", out, real_run_id="real2", strict=True)
+    # same grid: no warning
+    store.start_run("real3", "point-reach", {"task": "point-reach", "grid": grid})
+    warned.clear()
+    write_report(store, "sim", out, real_run_id="real3", warn=warned.append)
+    assert warned == [] and 'class="warn"' not in out.read_text()
+
+
+def test_training_curve_tick_labels_are_compact():
+    from twinbench.evaluation.report import _step_label
+
+    assert [_step_label(v) for v in (0, 500, 20000, 25000, 1_500_000)] == ["0", "500", "20k", "25k", "1.5M"]

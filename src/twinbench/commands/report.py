@@ -26,13 +26,17 @@ class ReportConfig:
     """output HTML file."""
     max_videos: int = 12
     """most rollout videos embedded."""
+    strict: bool = False
+    """refuse (exit 2) when real or replay episodes come from another task or grid than the run (default:
+    leave them out or flag them, with a warning on the console and a red banner in the report)."""
 
 
 def main(config: ReportConfig) -> int:
     try:
         path = write_report(ResultsStore(config.db), config.run_id, config.out,
                             real_run_id=config.real_run_id, replay_run_id=config.replay_run_id,
-                            videos=VideoLimits(max_videos=config.max_videos))
+                            videos=VideoLimits(max_videos=config.max_videos), strict=config.strict,
+                            warn=lambda m: print(f"twinbench report: WARNING: {m}", file=sys.stderr))
     except ValueError as err:
         print(f"twinbench report: {err}", file=sys.stderr)
         return 2

@@ -4,6 +4,11 @@ protocol and status counts. Plots are base64 PNGs (matplotlib, Agg); videos are 
 
 Success rates count episodes with status "ok" only; sim_error / policy_error episodes are reported
 separately and never folded into failures.
+
+Pairing checks (`pairing_warnings`): real episodes of another task than the run's are left out of every
+comparison, and real or replay runs whose protocol records another initial-state grid than the run's
+(`evaluation.grids.grid_info`) are flagged: each is a red banner at the top of the page and a warning
+returned to the caller (`twinbench report` prints them; `strict=True` refuses to write the report).
 """
 
 from __future__ import annotations
@@ -238,6 +243,7 @@ def _sim_real_section(sim: dict[Key, Cell], real: dict[Key, Cell], real_source: 
 
 def _curves_section(sim: dict[Key, Cell], real: dict[Key, Cell]) -> str:
     import matplotlib.pyplot as plt
+    from matplotlib.ticker import FuncFormatter, MaxNLocator
 
     head = "<h2>Success across training iterations</h2>"
     policies = sorted({c.policy for c in list(sim.values()) + list(real.values())
@@ -264,6 +270,8 @@ def _curves_section(sim: dict[Key, Cell], real: dict[Key, Cell]) -> str:
                 ax.errorbar(x, v, yerr=[v - lo, hi - v], fmt="none", ecolor=line.get_color(), capsize=3)
         ax.set_title(policy, fontsize=10)
         ax.set_ylim(-0.03, 1.03)
+        ax.xaxis.set_major_locator(MaxNLocator(nbins=5, integer=True, min_n_ticks=2))
+        ax.xaxis.set_major_formatter(FuncFormatter(_step_label))  # 20k, not 20000: labels never collide
         ax.set_xlabel("train step")
         ax.set_ylabel("success rate")
         ax.grid(alpha=0.3)
@@ -273,6 +281,14 @@ def _curves_section(sim: dict[Key, Cell], real: dict[Key, Cell]) -> str:
     fig.tight_layout()
     return (head + "<p>Sim: line with 95% Clopper-Pearson band; real: dashed with 95% interval bars.</p>"
             + _fig_html(fig, "success rate across training iterations"))
+
+
+def _step_label(value: float, _pos=None) -> str:
+    """A compact train-step tick label: 500, 20k, 1.5M."""
+    for scale, suffix in ((1e6, "M"), (1e3, "k")):
+        if abs(value) >= scale:
+            return f"{value / scale:.3g}{suffix}"
+    return f"{value:.3g}"
 
 
 def _posterior_section(sim: dict[Key, Cell], real: dict[Key, Cell], max_pairs: int = 12) -> str:
@@ -562,6 +578,8 @@ table { border-collapse: collapse; margin: 10px 0; font-size: 13px; }
 th, td { border: 1px solid #d5dbe1; padding: 4px 8px; text-align: left; vertical-align: top; }
 th { background: #f1f4f7; } table.kv td:first-child { font-weight: 600; background: #fafbfc; }
 table.matrix td { text-align: center; } .hi { color: #0a7a2f; font-weight: 600; } .lo { color: #b3261e; }
+.warn { background: #fdecea; border: 2px solid #b3261e; color: #6b0f0a; padding: 8px 12px; font-size: 15px;
+        font-weight: 600; margin: 10px 0; }
 .note { background: #fff8e1; border-left: 4px solid #f4b400; padding: 6px 10px; font-size: 14px; }
 .meta { color: #5f6b76; font-size: 13px; } .small { font-size: 12px; color: #5f6b76; margin: 2px 0; }
 img { max-width: 100%; display: block; margin: 8px 0; }
@@ -575,9 +593,38 @@ code { font-size: 12px; white-space: pre-wrap; word-break: break-word; }
 """
 
 
+def pairing_warnings(task: str, protocol: dict | None, real_eps: list[EpisodeRecord],
+                     other_protocols: dict[str, dict | None]) -> tuple[list[str], list[EpisodeRecord]]:
+    """(warnings, the real episodes of `task`): real episodes of other tasks are dropped with a warning;
+    a run in `other_protocols` ({run id: protocol}) whose recorded grid differs from `protocol`'s (the
+    evaluated run's) is warned about (its init_state values index other states)."""
+    out = []
+    others = Counter((e.domain, e.task) for e in real_eps if e.task != task)
+    if others:
+        what = ", ".join(f"{n} {d} of task {t!r}" for (d, t), n in sorted(others.items()))
+        out.append(f"episodes of another task are left out of every comparison: {what} (this run is task "
+                   f"{task!r}); import the real outcomes of {task!r} under their own --real-run-id")
+    grid = (protocol or {}).get("grid")
+    for rid, other in other_protocols.items():
+        theirs = (other or {}).get("grid")
+        if not isinstance(grid, dict) or not isinstance(theirs, dict):
+            continue
+        if theirs.get("task", task) == task and theirs.get("id") != grid.get("id"):
+            out.append(f"run {rid!r} indexes another initial-state grid than this run (grid "
+                       f"{theirs.get('id')}, {theirs.get('n_states')} states, vs {grid.get('id')}, "
+                       f"{grid.get('n_states')} states): init_state values do not name the same states; pair "
+                       "them through an index map (import-real / replay --index-map) or evaluate on the "
+                       "same grid")
+    return out, [e for e in real_eps if e.task == task]
+
+
 def write_report(store: ResultsStore, run_id: str, out: str | Path, real_run_id: str | None = None,
-                 videos: VideoLimits | None = None, replay_run_id: str | None = None) -> Path:
+                 videos: VideoLimits | None = None, replay_run_id: str | None = None, *,
+                 strict: bool = False, warn=None) -> Path:
     """Write the HTML report of `run_id` to `out`; returns the path.
+
+    Real or replay episodes that do not pair with the run (another task or grid, see `pairing_warnings`)
+    are flagged in a banner and passed to `warn(message)`; with `strict` they raise ValueError instead.
 
     Real outcomes: episodes with domain "real" in `run_id` and `real_run_id`. Replay episodes: domain
     "replay" in `run_id`, `replay_run_id` and `real_run_id`, each paired with the real episodes of its
@@ -613,9 +660,22 @@ def write_report(store: ResultsStore, run_id: str, out: str | Path, real_run_id:
             replay_sources.append((src, rp, own_real or real_eps,
                                    f"run {src!r}" if own_real else real_source))
             replay_eps += rp
-    sim, real = summarize(sim_eps), summarize(real_eps)
     task = protocol.get("task") if isinstance(protocol, dict) and "task" in protocol else (
-        ", ".join(sorted({e.task for e in episodes})) or "?")
+        ", ".join(sorted({e.task for e in sim_eps or episodes})) or "?")
+    linked = [real_run_id] if real_protocol is not None else []
+    linked += [src for src, *_ in replay_sources if src != run_id]
+    other_protocols = {r: _protocol_or_none(store, r) for r in dict.fromkeys(linked)}
+    warnings, real_eps = pairing_warnings(task, protocol, real_eps + [e for _, rp, _, _ in replay_sources
+                                                                      for e in rp], other_protocols)
+    real_eps = [e for e in real_eps if e.domain == "real"]
+    replay_sources = [(src, [e for e in rp if e.task == task], [e for e in rl if e.task == task], frm)
+                      for src, rp, rl, frm in replay_sources]
+    replay_eps = [e for e in replay_eps if e.task == task]
+    if warnings and strict:
+        raise ValueError(f"real/replay episodes do not pair with run {run_id!r}: " + "; ".join(warnings))
+    for w in warnings:
+        (warn or (lambda m: None))(w)
+    sim, real = summarize(sim_eps), summarize(real_eps)
     now = datetime.now(UTC).strftime("%Y-%m-%d %H:%M UTC")
     status_groups = [(f"{run_id} / sim", sim_eps), ("replay", replay_eps), ("real", real_eps)]
     body = [
@@ -623,6 +683,7 @@ def write_report(store: ResultsStore, run_id: str, out: str | Path, real_run_id:
         f'<p class="meta">task {_e(task)} · {len(sim_eps)} sim, {len(replay_eps)} replay, '
         f"{len(real_eps)} real episodes · store {_e(store.path)} · generated {now} by twinbench "
         f"{__version__} · Python {sys.version.split()[0]}</p>",
+        *(f'<div class="warn">Warning: {_e(w)}</div>' for w in warnings),
         _success_section(sim),
         _sim_real_section(sim, real, real_source),
         _curves_section(sim, real),
