@@ -165,8 +165,8 @@ def real_csv(tmp) -> Target:
     from twinbench.evaluation.real import read_real_csv
 
     text = ("policy,checkpoint,init_state,success,train_step,seed,task,notes\n"
-            "act,step_1000,0,yes,1000,0,push-t,\nact,step_1000,1,no,1000,7,,slipped\n"
-            "expert,,2,TRUE,,,,\n")
+            "act,step_1000,0,yes,1000,0,push-t,\nact,step_1000,1,no,1000,7,push-t,slipped\n"
+            "expert,,2,TRUE,,,push-t,\n")  # one task on every row: import-real never assumes one
     return Target({"real.csv": text.encode()}, "real.csv", read_real_csv, (InputError,), _check_records)
 
 
