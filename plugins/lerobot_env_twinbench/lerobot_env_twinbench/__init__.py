@@ -12,9 +12,14 @@ one registers `TwinbenchEnv` as the env type `twinbench` (and twinbench's gymnas
   `--env.env_kwargs` (a JSON object, as `twinbench eval --env-kwargs`) go to the env's constructor.
 - Episode k of a run starts from grid state `seed mod n_grid` (LeRobot seeds episode k with
   `--seed + k`); the env's `task` / `task_description` is the prompt LeRobot's loop gives the policy.
-- `features` (the policy's inputs and outputs) are read from the env's spaces when the envs are made
-  (`pixels/<camera>` -> `observation.images.<camera>`, `agent_pos` -> `observation.state`,
-  `environment_state` -> `observation.environment_state`), so they match the twin's cameras.
+- `features` (the policy's inputs and outputs: `pixels/<camera>` -> `observation.images.<camera>`,
+  `agent_pos` -> `observation.state`, `environment_state` -> `observation.environment_state`) are
+  declared by the config itself, from the task and its twin's description (cameras, action mode) without
+  making an env, as LeRobot's own env configs do: `make_policy(cfg, env_cfg=...)` works before any env
+  exists. A task with its own env class (not a TwinEnv) makes one env once to read them. `create_envs`
+  checks them against the envs' spaces.
+- `--env.disable_env_checker=false` runs gymnasium's env checker on each sub-env (LeRobot's default:
+  true, skipped).
 - Sub-envs are made by `make_env` (a module-level function, so a forkserver worker of an
   `AsyncVectorEnv` imports twinbench, and with it the env ids, before `gymnasium.make`).
 """
@@ -66,13 +71,49 @@ class LeRobotResetOptions(gym.Wrapper):
         return self.env.reset(seed=seed, options=options or None)
 
 
-def make_env(env_id: str, kwargs: dict) -> gym.Env:
+def make_env(env_id: str, kwargs: dict, disable_env_checker: bool = True) -> gym.Env:
     """One sub-env; importing twinbench here registers its ids in any (spawned) worker process."""
     import twinbench  # noqa: F401 - registers the env ids
     from twinbench._runtime import quiet_warp
 
     quiet_warp()  # no Warp banner or per-module load lines in LeRobot's output
-    return LeRobotResetOptions(gym.make(env_id, disable_env_checker=True, **kwargs))
+    return LeRobotResetOptions(gym.make(env_id, disable_env_checker=disable_env_checker, **kwargs))
+
+
+# TwinEnv's own keyword arguments; the others are the task's or the cell's settings
+_ENV_ARGS = ("twin", "preset", "device", "render_mode", "render_views", "environment_state", "success_rule",
+             "roles")
+
+
+def declared_spaces(env_id: str, kwargs: dict) -> tuple[gym.spaces.Dict, gym.spaces.Box, int]:
+    """(observation space, action space, fps) of the env `gym.make(env_id, **kwargs)` would make, read from
+    the task and its twin's description (TwinEnv tasks: no twin is built), else from one env made here."""
+    import numpy as np
+
+    from twinbench.env import resolve_task_twin
+    from twinbench.tasks import get_task, task_names
+
+    task = next((get_task(n) for n in task_names() if get_task(n).env_id == env_id), None)
+    if task is None or task.task_cls is None:
+        env = make_env(env_id, kwargs)
+        try:
+            return env.observation_space, env.action_space, int(env.metadata["render_fps"])
+        finally:
+            env.close()
+    defaults = gym.spec(env_id).kwargs
+    args = {**defaults, **kwargs}
+    settings = {k: v for k, v in args.items() if k not in (*_ENV_ARGS, "task")}
+    rules, twin = resolve_task_twin(args.get("task", task.name), args.get("twin"),
+                                    args.get("preset", "reference"), args.get("roles"), settings)
+    ctrl = twin.controller
+    state_dim = 2 if ctrl.action_mode == "planar" else 8
+    obs = {"pixels": gym.spaces.Dict({c.name: gym.spaces.Box(0, 255, (*c.output_hw, 3), np.uint8)
+                                      for c in twin.cameras}),
+           "agent_pos": gym.spaces.Box(-np.inf, np.inf, (state_dim,), np.float32)}
+    if args.get("environment_state"):
+        obs["environment_state"] = gym.spaces.Box(-np.inf, np.inf, (rules.environment_state_dim,), np.float32)
+    action = gym.spaces.Box(-np.inf, np.inf, (ctrl.action_dim,), np.float32)
+    return gym.spaces.Dict(obs), action, int(round(ctrl.control_hz))
 
 
 def features_from_spaces(observation_space: gym.spaces.Dict, action_space: gym.spaces.Box
@@ -119,6 +160,9 @@ class TwinbenchEnv(EnvConfig):
         if not isinstance(extra, dict):
             raise ValueError(f"--env.env_kwargs: expected a JSON object, got {type(extra).__name__}")
         self._extra_kwargs = extra
+        if not self.features:  # declared from the task, as LeRobot's own env configs do
+            obs, action, self.fps = declared_spaces(self.env_id, self.gym_kwargs)
+            self.features, self.features_map = features_from_spaces(obs, action)
 
     @property
     def package_name(self) -> str:
@@ -138,13 +182,17 @@ class TwinbenchEnv(EnvConfig):
         self, n_envs: int, use_async_envs: bool = False
     ) -> dict[str, dict[int, gym.vector.VectorEnv]]:
         """`{"twinbench": {0: VectorEnv}}` of `n_envs` sub-envs (async: forkserver workers)."""
-        fns = [partial(make_env, self.env_id, self.gym_kwargs) for _ in range(n_envs)]
+        make = partial(make_env, self.env_id, self.gym_kwargs, self.disable_env_checker)
+        fns = [make] * n_envs
         mode = gym.vector.AutoresetMode.SAME_STEP
         if use_async_envs and n_envs > 1:
             vec = gym.vector.AsyncVectorEnv(fns, context="forkserver", autoreset_mode=mode)
         else:
             vec = gym.vector.SyncVectorEnv(fns, autoreset_mode=mode)
-        self.features, self.features_map = features_from_spaces(vec.single_observation_space,
-                                                                vec.single_action_space)
-        self.fps = int(vec.metadata["render_fps"])
+        features, features_map = features_from_spaces(vec.single_observation_space, vec.single_action_space)
+        fps = int(vec.metadata["render_fps"])
+        if (features, features_map, fps) != (self.features, self.features_map, self.fps):
+            vec.close()
+            raise ValueError(f"--env.task={self.task}: the envs' features {features} at {fps} fps differ "
+                             f"from the config's {self.features} at {self.fps} fps")
         return {self.type: {0: vec}}
