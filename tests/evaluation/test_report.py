@@ -262,7 +262,8 @@ def test_real_rows_of_another_task_or_grid_are_flagged_loudly(tmp_path, capsys):
     out = tmp_path / "rep.html"
     assert cli_main(["report", "--run-id", "sim", "--db", str(store.path), "--out", str(out)]) == 0
     err = capsys.readouterr().err
-    assert "WARNING: episodes of another task are left out of every comparison: 5 real of task 'push-t'" in err
+    assert ("WARNING: episodes of another task are left out of every comparison: 5 real of task "
+            "'push-t'") in err
     page = out.read_text()
     assert page.count('<div class="warn">Warning: episodes of another task') == 1
     assert "Real outcomes exist" not in page and "No real outcomes found" in page  # none compared
@@ -270,9 +271,10 @@ def test_real_rows_of_another_task_or_grid_are_flagged_loudly(tmp_path, capsys):
                      "--strict"]) == 2
     assert "do not pair with run 'sim'" in capsys.readouterr().err
     # the same task on another grid: kept, but flagged
-    store.start_run_with_episodes("real2", "point-reach", {"task": "point-reach", "grid": {**grid, "id": "x"}},
-                                  [EpisodeRecord("real2", "point-reach", "expert", "", None, i, 0, "real",
-                                                 True, "ok") for i in range(4)])
+    other = {"task": "point-reach", "grid": {**grid, "id": "x"}}
+    store.start_run_with_episodes("real2", "point-reach", other, [
+        EpisodeRecord("real2", "point-reach", "expert", "", None, i, 0, "real", True, "ok")
+        for i in range(4)])
     warned = []
     write_report(store, "sim", out, real_run_id="real2", warn=warned.append)
     assert len(warned) == 1 and "run 'real2' indexes another initial-state grid" in warned[0]
