@@ -57,7 +57,7 @@ def bench(task: str, preset: str, device: str, steps: int, warmup: int = 5, core
     print(f"{tag}_render_2cams_240_ms {1e3 * np.median(render):.1f} ms")
     print(f"{tag}_particles {twin.model.num_particles} particles")
     if cores:  # whether this world's frames were split over two processes (large models only)
-        print(f"{tag}_split_frames {int(twin.solver._split is not None)} bool")
+        print(f"{tag}_split_frames {int(twin.solver.executor.name == 'split')} bool")
 
 
 def bench_worlds(device: str, counts: list[int], steps: int, render_steps: int = 3) -> None:
