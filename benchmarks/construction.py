@@ -9,8 +9,8 @@ from __future__ import annotations
 import time
 
 import numpy as np
-import warp as wp
 
+from twinbench._runtime import quiet_warp
 from twinbench.construct.align_color import fit_color_map
 from twinbench.construct.align_robot import RegistrationParams, gaussian_normals, register_robot
 from twinbench.gaussians.colormap import apply_color_map, identity_color_map, map_colors
@@ -22,7 +22,7 @@ N = 200_000
 
 
 def main() -> None:
-    wp.config.quiet = True
+    quiet_warp()
     rng = np.random.default_rng(0)
     model = load_builtin_arm("gripper")
     q = model.set_gripper(model.home_q.copy(), 0.5)

@@ -21,6 +21,7 @@ import time
 import numpy as np
 import warp as wp
 
+from twinbench._runtime import quiet_warp
 from twinbench.env import TwinEnv, TwinVectorEnv
 from twinbench.evaluation.rollout import policy_observation
 from twinbench.tasks import get_task
@@ -110,7 +111,7 @@ def main() -> None:
     parser.add_argument("--tasks", nargs="+", default=list(TASKS), choices=list(TASKS))
     parser.add_argument("--worlds", nargs="*", type=int, default=[1, 4, 16, 64])
     args = parser.parse_args()
-    wp.config.log_level = wp.LOG_WARNING  # no per-module load lines
+    quiet_warp()  # no per-module load lines
     devices = ["cpu"] + (["cuda:0"] if wp.get_cuda_device_count() > 0 else [])
     for device in devices:
         for task in args.tasks:

@@ -13,9 +13,9 @@ import numpy as np
 
 
 def main() -> None:
-    import warp as wp
+    from twinbench._runtime import quiet_warp
 
-    wp.config.log_level = wp.LOG_WARNING
+    quiet_warp()
     from twinbench.physics import SpringMassSolver
     from twinbench.physics.golden import golden_model, load_golden
 
