@@ -234,8 +234,10 @@ def test_stage2_fits_ground_contact_toward_the_hidden_values():
 
 def _check_identification(data, truth, result):
     stage1, final = result.evals["stage1"], result.evals["final"]
-    # stage 1 fits better than the initial guess; stage 2 halves the best single stiffness' error
-    assert stage1.train_loss < result.evals["initial"].train_loss
+    # stage 1 fits better than the initial guess by its objective (Chamfer + tracking: the acceleration
+    # term is stage 2's regulariser, not searched); stage 2 halves the best single stiffness' error
+    ini = result.stage1_history[0]["loss"]
+    assert min(r["loss"] for r in result.stage1_history) < ini and result.params.spring_Y != 1000.0
     assert final.val_error < 0.5 * stage1.val_error, (final.val_error, stage1.val_error)
     # against the noise-free truth as well (the observations carry 1 mm noise per axis)
     n = result.model.num_object_springs
@@ -368,7 +370,7 @@ def test_bad_configuration_is_refused(small):
     with pytest.raises(ValueError, match="LO > 0"):
         parse_ranges(("spring_Y=0:10",))
     assert parse_ranges(("drag_damping=1:2",))["drag_damping"].decode(0.5) == pytest.approx(1.5)
-    assert parse_ranges(())["spring_Y"].decode(0.5) == pytest.approx(1e4)  # log scale midpoint
+    assert parse_ranges(())["spring_Y"].decode(0.5) == pytest.approx(1e3)  # log scale midpoint of 10..1e5
 
 
 @pytest.mark.slow

@@ -5,13 +5,14 @@ from __future__ import annotations
 
 import json
 import math
+import textwrap
 from dataclasses import asdict
 from pathlib import Path
 
 import numpy as np
 
 from twinbench.construct.sysid_io import sim_dict
-from twinbench.physics.sysid import SysIdResult
+from twinbench.physics.sysid import DEFAULT_RANGES, SysIdResult, parse_ranges
 from twinbench.physics.sysid_data import SysIdData
 
 
@@ -43,6 +44,9 @@ def report_dict(result: SysIdResult, data: SysIdData) -> dict:
                            for row in result.stage1_history],
         "stage2_history": [{k: _finite(v) if isinstance(v, float) else v for k, v in row.items()}
                            for row in result.stage2_history],
+        "notes": list(result.notes),
+        "identifiability": {k: {kk: (_finite(vv) if isinstance(vv, float) else vv) for kk, vv in v.items()}
+                            for k, v in result.identifiability.items()},
         "seconds": result.seconds,
         "config": _jsonable(asdict(cfg)) if cfg else None,
     }
@@ -58,9 +62,28 @@ def _jsonable(obj):
     return obj
 
 
+def _identifiability_panel(a, result: SysIdResult) -> None:
+    """Per searched parameter: the interval of stage-1 candidates within 50 % of the best loss, as a
+    fraction of its search range (green: constrained by the motion, grey: not)."""
+    ident = result.identifiability
+    if not ident:
+        a.text(0.5, 0.5, "stage 1 off", ha="center", va="center", transform=a.transAxes)
+        return
+    ranges = parse_ranges(result.config.cma.ranges) if result.config else DEFAULT_RANGES
+    for i, (name, v) in enumerate(ident.items()):
+        r = ranges[name]
+        lo, hi, best = r.encode(v["low"]), r.encode(v["high"]), r.encode(v["best"])
+        a.barh(i, max(hi - lo, 0.005), left=lo, color="C2" if v["constrained"] else "0.7")
+        a.plot([best], [i], "k|", ms=12)
+        a.text(1.01, i, f"{v['best']:.3g} [{v['low']:.3g}, {v['high']:.3g}]", va="center", fontsize=8)
+    a.set_yticks(range(len(ident)), list(ident))
+    a.set_xlim(0.0, 1.0)
+    a.set(title="identifiability: loss within 50 % of best", xlabel="position in search range")
+
+
 def write_report(result: SysIdResult, data: SysIdData, directory: str | Path) -> tuple[Path, Path]:
     """Write ``sysid_report.json`` and ``sysid_report.png`` (loss curves, per-frame tracking error,
-    stiffness histogram) into ``directory``."""
+    stiffness histogram, identifiability intervals, notes) into ``directory``."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -72,7 +95,7 @@ def write_report(result: SysIdResult, data: SysIdData, directory: str | Path) ->
     jpath = directory / "sysid_report.json"
     jpath.write_text(json.dumps(rep, indent=2) + "\n")
 
-    fig, ax = plt.subplots(2, 2, figsize=(11, 7.5))
+    fig, ax = plt.subplots(2, 3, figsize=(16, 7.5))
     a = ax[0, 0]
     if result.stage1_history:
         h = result.stage1_history
@@ -108,6 +131,12 @@ def write_report(result: SysIdResult, data: SysIdData, directory: str | Path) ->
     if ys.size:
         a.hist(np.log10(ys), bins=30)
     a.set(title=f"object spring stiffness ({ys.size} springs)", xlabel="log10 Y", ylabel="springs")
+    _identifiability_panel(ax[0, 2], result)
+    a = ax[1, 2]
+    a.axis("off")
+    a.set_title("notes")
+    a.text(0.0, 1.0, "\n\n".join(textwrap.fill(n, 60) for n in result.notes) or "none", va="top", fontsize=9,
+           transform=a.transAxes)
     fig.suptitle(f"system identification: {data.name}")
     fig.tight_layout()
     ppath = directory / "sysid_report.png"

@@ -108,7 +108,7 @@ class SearchRange:
 
 
 DEFAULT_RANGES: dict[str, SearchRange] = {
-    "spring_Y": SearchRange(1e3, 1e5, log=True),
+    "spring_Y": SearchRange(10.0, 1e5, log=True),
     "spring_radius": SearchRange(0.01, 0.05),
     "spring_max_neighbors": SearchRange(10, 50, integer=True),
     "control_radius": SearchRange(0.01, 0.08),
@@ -197,14 +197,23 @@ class AdamConfig:
 
     epochs: int = 20
     """passes over the training frames (one Adam step per frame)"""
-    lr: float = 1e-3
+    lr: float = 0.02
+    """step in log Y per frame (20 epochs of 24 frames can move a spring by a factor e^10)"""
     betas: tuple[float, float] = (0.9, 0.99)
     eps: float = 1e-12
     """Adam epsilon (the loss is in m^2: its gradients are small)"""
-    y_min: float = 1e3
-    """per-spring stiffness bounds (projected after each step); keep y_max within the solver's
-    stable range for the chosen dt"""
+    y_min: float = 1.0
+    """per-spring stiffness bounds (projected after each step); stage 2 also keeps every spring within
+    ``window`` of stage 1's stiffness, and with automatic substeps simulates stably at the upper bound"""
     y_max: float = 1e5
+    window: float = 10.0
+    """per-spring stiffness stays within [Y1 / window, Y1 * window] of stage 1's global Y1 (0 = off)"""
+    regions: int = 8
+    """stiffness is fitted per spatial region (k-means of the springs' midpoints; control springs one
+    more): per-spring values are rarely supported by a few dozen noisy frames; 0 = per spring"""
+    contact_after: float = 0.5
+    """fraction of the epochs that fit stiffness alone before the contact parameters join (their
+    gradients are noisy until the stiffness explains the motion)"""
     fit_contact: bool = True
     """also fit the contact parameters that act (ground restitution and friction with the ground on,
     object-object ones with self-collision); off: keep them from stage 1 or as given"""
@@ -228,17 +237,29 @@ class FitConfig:
     cma: CMAConfig = CMAConfig()
     adam: AdamConfig = AdamConfig()
     weights: LossWeights = LossWeights()
-    dt: float = 5e-5
+    dt: float = 0.0
+    """simulation substep (s); 0 = automatic (see substeps)"""
     substeps: int = 0
-    """substeps per frame; 0 = round(1 / (fps * dt)) (667 at PhysTwin's dt and 30 fps)"""
+    """substeps per frame; 0 = round(1 / (fps * dt)) (667 at PhysTwin's dt 5e-5 and 30 fps), or with dt 0
+    too, automatic: the fewest that are stable (``stable_substeps``) for each stage-1 candidate's stiffness
+    and dashpot, and for stage 2's upper stiffness bound"""
     ground: bool = True
     self_collision: bool = False
     progress: bool = True
 
-    def base_params(self, fps: float) -> SimParams:
-        substeps = self.substeps or max(1, round(1.0 / (fps * self.dt)))
-        return SimParams(dt=self.dt, substeps=substeps, ground=self.ground,
-                         self_collision=self.self_collision)
+    @property
+    def auto_substeps(self) -> bool:
+        return not self.substeps and not self.dt
+
+    def base_params(self, fps: float, substeps: int = 0) -> SimParams:
+        """The simulation settings; with automatic substeps, ``substeps`` (else PhysTwin's 667)."""
+        if self.auto_substeps:
+            n = substeps or round(1.0 / (fps * 5e-5))
+            return SimParams(dt=1.0 / (fps * n), substeps=n, ground=self.ground,
+                             self_collision=self.self_collision)
+        n = self.substeps or max(1, round(1.0 / (fps * self.dt)))
+        dt = self.dt or 1.0 / (fps * n)
+        return SimParams(dt=dt, substeps=n, ground=self.ground, self_collision=self.self_collision)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -264,6 +285,28 @@ def build_model(data: SysIdData, params: GlobalParams, base: SimParams, device: 
     if log_y is not None:
         model.set_spring_log_y(log_y)
     return model
+
+
+def stable_substeps(model: SpringMassModel, y_max: float, dashpot: float, fps: float,
+                    max_substeps: int = 2000) -> int:
+    """The fewest substeps per frame (dt = 1 / (fps substeps)) at which the semi-implicit Euler step is
+    stable with every spring of ``model`` at stiffness ``y_max`` and the dashpot at ``dashpot``, with
+    margin: per particle, the stiffness eigenvalue is bounded by Gershgorin's 2 sum(Y / L) / m
+    and the dashpot's by 2 n c / m; dt (omega + damp / 2) <= 1.5 (the undamped limit is dt omega < 2)."""
+    n = model.num_particles
+    sp = model.springs_np.astype(np.int64)
+    k = float(y_max) / np.maximum(model.rest_lengths_np.astype(np.float64), 1e-6)
+    stiff = np.zeros(n)
+    count = np.zeros(n)
+    for end in (0, 1):
+        ok = sp[:, end] < n
+        np.add.at(stiff, sp[ok, end], k[ok])
+        np.add.at(count, sp[ok, end], 1.0)
+    m = model.masses_np.astype(np.float64)[:n]
+    omega = math.sqrt(float(np.max(2.0 * stiff / m)))
+    damp = float(np.max(2.0 * count * max(float(dashpot), 0.0) / m))
+    dt = 1.5 / max(omega + 0.5 * damp, 1e-9)
+    return int(min(max(math.ceil(1.0 / (fps * dt)), 1), max_substeps))
 
 
 def _smooth_l1(d: np.ndarray, beta: float) -> tuple[np.ndarray, np.ndarray]:
@@ -403,14 +446,23 @@ def _progress(enabled: bool):
 PENALTY = 1e6  # loss of a candidate whose simulation diverged or whose model cannot be built
 
 
+SCAN_POINTS = 9  # stage 1's stiffness scan (log-spaced over the spring_Y range) before CMA-ES
+
+
 def stage1_cma(data: SysIdData, base: SimParams, initial: GlobalParams, cfg: CMAConfig,
                weights: LossWeights = LossWeights(), device: str = "cpu", progress: bool = False,
-               log: Callable[[str], None] = print) -> tuple[GlobalParams, list[dict]]:
-    """CMA-ES over the searched global parameters (normalised to [0, 1]) starting at ``initial``.
-    Each evaluation simulates the training frames and scores Chamfer + tracking (the acceleration
-    term regularises stage 2's per-spring fit; in a global search it only favours the most damped
-    candidate). Returns the best parameters found and the history (one row per evaluation: index,
-    loss, best-so-far)."""
+               log: Callable[[str], None] = print,
+               base_of: Callable[[GlobalParams], SimParams] | None = None) -> tuple[GlobalParams, list[dict]]:
+    """CMA-ES over the searched global parameters (normalised to [0, 1], stiffness in log space).
+
+    When stiffness is searched, a scan of ``SCAN_POINTS`` log-spaced stiffness values (the other
+    parameters at ``initial``) first picks the scale of the start, so the search does not depend on a
+    hand-set stiffness; CMA-ES then starts from the better of ``initial`` and the scan's best. Each
+    evaluation simulates the training frames (with ``base_of(candidate)`` when given: substeps stable for
+    the candidate's stiffness) and scores Chamfer + tracking (the acceleration term regularises stage 2's
+    per-spring fit; in a global search it only favours the most damped candidate). Returns the best
+    parameters and the history (one row per evaluation: index, loss, best-so-far, the candidate's
+    searched values)."""
     import cma
 
     ranges = parse_ranges(cfg.ranges)
@@ -433,28 +485,33 @@ def stage1_cma(data: SysIdData, base: SimParams, initial: GlobalParams, cfg: CMA
     def objective(params: GlobalParams) -> float:
         nonlocal best
         try:
-            model = build_model(data, params, base, device)
+            model = build_model(data, params, base_of(params) if base_of else base, device)
             ev = evaluate(model, data, loss, frames=n_train, acc=False)
             value = ev.train_loss if math.isfinite(ev.train_loss) else PENALTY
         except ValueError:  # e.g. a rule that gives no springs at all
             value = PENALTY
         if value < best[0]:
             best = (value, params)
-        history.append({"evaluation": len(history), "loss": value, "best": best[0]})
+        history.append({"evaluation": len(history), "loss": value, "best": best[0],
+                        "params": {n: float(getattr(params, n)) for n in names}})
         return value
 
-    x0 = [ranges[n].encode(getattr(initial, n)) for n in names]
     with _progress(progress) as bar:
         task = bar.add_task("stage 1 (CMA-ES)", total=cfg.budget, info="")
         objective(initial)
         bar.advance(task)
-        opts = {"bounds": [0.0, 1.0], "maxfevals": max(cfg.budget - 1, 1), "seed": cfg.seed + 1,
+        if "spring_Y" in names and cfg.budget > 2 * SCAN_POINTS:
+            for u in np.linspace(0.0, 1.0, SCAN_POINTS):
+                objective(replace(initial, spring_Y=ranges["spring_Y"].decode(u)))
+                bar.update(task, advance=1, info=f"best {best[0]:.3e}")
+        x0 = [ranges[n].encode(getattr(best[1], n)) for n in names]
+        opts = {"bounds": [0.0, 1.0], "maxfevals": max(cfg.budget - len(history), 1), "seed": cfg.seed + 1,
                 "verbose": -9, "verb_log": 0, "verb_disp": 0}
         if cfg.popsize:
             opts["popsize"] = cfg.popsize
         es = cma.CMAEvolutionStrategy(x0, cfg.sigma0, opts) if len(names) > 1 else None
         if es is None:  # cma needs >= 2 dimensions: a 1-D search samples the normalised line instead
-            for u in np.linspace(0.0, 1.0, max(cfg.budget - 1, 1)):
+            for u in np.linspace(0.0, 1.0, max(cfg.budget - len(history), 1)):
                 objective(decode([u]))
                 bar.update(task, advance=1, info=f"best {best[0]:.3e}")
         while es is not None and not es.stop() and len(history) < cfg.budget:
@@ -539,6 +596,22 @@ def frame_gradient(model: SpringMassModel, solver: SpringMassSolver, state, cont
     return terms, g, x, v, gc
 
 
+def spring_regions(model: SpringMassModel, regions: int, seed: int = 0) -> np.ndarray:
+    """Region index per spring: the object springs clustered into ``regions`` spatial regions (k-means of
+    their rest midpoints), the control springs one more region; ``regions`` 0 (or at least the number of
+    object springs) gives every spring its own value."""
+    from scipy.cluster.vq import kmeans2
+
+    n_obj, n_all = model.num_object_springs, model.num_springs
+    if regions <= 0 or regions >= n_obj:
+        return np.arange(n_all)
+    sp = model.springs_np[:n_obj]
+    mid = 0.5 * (model.x0_np[sp[:, 0]] + model.x0_np[sp[:, 1]]).astype(np.float64)
+    _, label = kmeans2(mid, regions, seed=seed, minit="++")
+    _, label = np.unique(label, return_inverse=True)  # drop empty clusters
+    return np.concatenate([label, np.full(n_all - n_obj, label.max() + 1)]).astype(np.int64)
+
+
 def stage2_adam(model: SpringMassModel, data: SysIdData, cfg: AdamConfig,
                 weights: LossWeights = LossWeights(), progress: bool = False,
                 log: Callable[[str], None] = print) -> tuple[np.ndarray, list[dict]]:
@@ -558,8 +631,12 @@ def stage2_adam(model: SpringMassModel, data: SysIdData, cfg: AdamConfig,
     eval_solver = SpringMassSolver(model)
     ctl = model.control()
     lo, hi = math.log(cfg.y_min), math.log(cfg.y_max)
-    opt = Adam(np.clip(model.log_y_np.astype(np.float64), lo, hi), cfg.lr, cfg.betas, cfg.eps, lo, hi)
-    model.set_spring_log_y(opt.x)
+    region = spring_regions(model, cfg.regions)
+    n_reg = int(region.max()) + 1
+    start = np.bincount(region, np.clip(model.log_y_np.astype(np.float64), lo, hi), n_reg) \
+        / np.maximum(np.bincount(region, minlength=n_reg), 1)
+    opt = Adam(start, cfg.lr, cfg.betas, cfg.eps, lo, hi)
+    model.set_spring_log_y(opt.x[region])
     fit = fitted_contacts(model) if cfg.fit_contact else []
     coeffs = model.contact_coeffs.numpy().astype(np.float64)
     frac = np.clip(coeffs[fit] / CONTACT_MAX[fit], 1e-4, 1.0 - 1e-4)
@@ -572,7 +649,7 @@ def stage2_adam(model: SpringMassModel, data: SysIdData, cfg: AdamConfig,
     if fit:
         set_contacts(opt_c.x)
     ev = evaluate(model, data, loss, solver=eval_solver)
-    best = (ev.train_loss, opt.x.copy(), opt_c.x.copy())
+    best = (ev.train_loss, opt.x[region], opt_c.x.copy())
 
     def row(epoch: int, taped: float, ev, per_iter: float) -> dict:
         out = {"epoch": epoch, "taped_loss": taped, "train_loss": ev.train_loss,
@@ -593,8 +670,8 @@ def stage2_adam(model: SpringMassModel, data: SysIdData, cfg: AdamConfig,
                         ctl.set_control_points(data.controls[k - 1], data.controls[k])
                     terms, g, x, v, gc = frame_gradient(model, solver, state, ctl, loss, k, prev_v, prev_acc)
                     total += terms["total"]
-                    model.set_spring_log_y(opt.step(g))
-                    if fit:  # chain rule through c = max * sigmoid(u)
+                    model.set_spring_log_y(opt.step(np.bincount(region, g, n_reg))[region])
+                    if fit and epoch > cfg.contact_after * cfg.epochs:  # chain rule: c = max sigmoid(u)
                         sig = coeffs[fit] / CONTACT_MAX[fit]
                         set_contacts(opt_c.step(gc[fit] * CONTACT_MAX[fit] * sig * (1.0 - sig)))
                     state = model.state()
@@ -611,7 +688,7 @@ def stage2_adam(model: SpringMassModel, data: SysIdData, cfg: AdamConfig,
             per_iter = (time.perf_counter() - t0) / len(train)
             ev = evaluate(model, data, loss, solver=eval_solver)
             if ev.train_loss < best[0]:
-                best = (ev.train_loss, opt.x.copy(), opt_c.x.copy())
+                best = (ev.train_loss, opt.x[region], opt_c.x.copy())
             history.append(row(epoch, total / len(train), ev, per_iter))
     model.set_spring_log_y(best[1])
     if fit:
@@ -638,6 +715,11 @@ class SysIdResult:
     stage2_history: list[dict] = field(default_factory=list)
     seconds: dict[str, float] = field(default_factory=dict)
     config: FitConfig | None = None
+    notes: list[str] = field(default_factory=list)
+    """what the user must know: a stage that did not improve on its start, a bound that was hit"""
+    identifiability: dict[str, dict] = field(default_factory=dict)
+    """per searched global parameter: the interval of stage-1 candidates within 50 % of the best loss
+    and whether the motion constrains it (see :func:`identifiability`)"""
 
     @property
     def object_spring_Y(self) -> np.ndarray:
@@ -647,10 +729,47 @@ class SysIdResult:
         return np.clip(y, self.sim.spring_Y_min, self.sim.spring_Y_max)
 
 
+def identifiability(history: list[dict], ranges: dict[str, SearchRange] | None = None,
+                    tol: float = 0.5, constrained_width: float = 0.3) -> dict[str, dict]:
+    """Which global parameters stage 1's motion constrains: for each searched parameter, the interval
+    of the candidates whose loss is within ``tol`` (relative) of the best, and its width as a fraction
+    of the search range (normalised, log scale for stiffness); ``constrained`` when the width is below
+    ``constrained_width`` and at least 5 candidates fall within the tolerance (else too few to say)."""
+    ranges = ranges or DEFAULT_RANGES
+    rows = [r for r in history if "params" in r and math.isfinite(r["loss"]) and r["loss"] < PENALTY]
+    if not rows:
+        return {}
+    best = min(r["loss"] for r in rows)
+    near = [r for r in rows if r["loss"] <= best * (1.0 + tol)]
+    out = {}
+    for name in rows[0]["params"]:
+        vals = [r["params"][name] for r in near]
+        rng = ranges[name]
+        width = rng.encode(max(vals)) - rng.encode(min(vals))
+        out[name] = {"best": min(rows, key=lambda r: r["loss"])["params"][name], "low": min(vals),
+                     "high": max(vals), "width": width, "samples": len(vals),
+                     "constrained": bool(width < constrained_width and len(vals) >= 5)}
+    return out
+
+
 def identify(data: SysIdData, cfg: FitConfig, *, base: SimParams | None = None,
              log: Callable[[str], None] = print) -> SysIdResult:
-    """Run the configured stages on ``data``; ``base`` overrides the SimParams built from ``cfg``."""
-    base = base or cfg.base_params(data.fps)
+    """Run the configured stages on ``data``; ``base`` overrides the SimParams built from ``cfg``.
+
+    With automatic substeps (``cfg.dt == cfg.substeps == 0``, the default), every simulation runs at the
+    fewest substeps stable for its stiffness and dashpot (``stable_substeps``): stage 1's candidates
+    cannot diverge, and stage 2 runs stably at its upper stiffness bound."""
+    topo = build_model(data, cfg.initial, SimParams(), cfg.device) if base is None and cfg.auto_substeps \
+        else None
+
+    def base_of(params: GlobalParams, y_top: float | None = None) -> SimParams:
+        if topo is None:
+            return base or cfg.base_params(data.fps)
+        dash = max(params.dashpot_damping, cfg.initial.dashpot_damping)
+        return cfg.base_params(data.fps, stable_substeps(topo, y_top or params.spring_Y, dash, data.fps))
+
+    notes: list[str] = []
+    base = base_of(cfg.initial)
     frame_dt = base.dt * base.substeps
     if abs(frame_dt * data.fps - 1.0) > 0.05:
         raise SysIdFormatError(f"{data.source}: field 'fps' is {data.fps} (frame {1 / data.fps:.5f} s) but "
@@ -661,20 +780,39 @@ def identify(data: SysIdData, cfg: FitConfig, *, base: SimParams | None = None,
     params = cfg.initial
     evals = {"initial": evaluate(build_model(data, params, base, cfg.device), data, loss)}
     history1: list[dict] = []
+    ident: dict[str, dict] = {}
     if cfg.stage1:
         t0 = time.perf_counter()
-        params, history1 = stage1_cma(data, base, params, cfg.cma, cfg.weights, cfg.device, cfg.progress, log)
+        params, history1 = stage1_cma(data, base, params, cfg.cma, cfg.weights, cfg.device, cfg.progress, log,
+                                      base_of=base_of if topo is not None else None)
         seconds["stage1"] = time.perf_counter() - t0
-        evals["stage1"] = evaluate(build_model(data, params, base, cfg.device), data, loss)
+        evals["stage1"] = evaluate(build_model(data, params, base_of(params), cfg.device), data, loss)
+        ident = identifiability(history1, parse_ranges(cfg.cma.ranges))
+        if params == cfg.initial:
+            notes.append(f"stage 1 did not improve on its start: none of {len(history1) - 1} candidates "
+                         "beat the initial values (widen cma.ranges or check the data)")
+    adam = cfg.adam
+    if cfg.stage2 and adam.window > 0:
+        adam = replace(adam, y_min=max(adam.y_min, params.spring_Y / adam.window),
+                       y_max=min(adam.y_max, params.spring_Y * adam.window))
+    if topo is not None and cfg.stage2:
+        base = base_of(params, adam.y_max)
+    elif topo is not None:
+        base = base_of(params)
     model = build_model(data, params, base, cfg.device, requires_grad=cfg.stage2)
     history2: list[dict] = []
     if cfg.stage2:
         t0 = time.perf_counter()
-        _, history2 = stage2_adam(model, data, cfg.adam, cfg.weights, cfg.progress, log)
+        _, history2 = stage2_adam(model, data, adam, cfg.weights, cfg.progress, log)
+        first = history2[0]["train_loss"]
+        if len(history2) > 1 and not any(r.get("train_loss", math.inf) < first for r in history2[1:]):
+            notes.append("stage 2 did not improve on stage 1's training loss; its start is returned")
         seconds["stage2"] = time.perf_counter() - t0
         c = model.contact_coeffs.numpy().astype(np.float64)
         params = replace(params, **{CONTACT_NAMES[i]: float(c[i]) for i in fitted_contacts(model)
                                     if cfg.adam.fit_contact})
     evals["final"] = evaluate(model, data, loss)
+    for note in notes:
+        log(f"note: {note}")
     return SysIdResult(params, params.sim_params(base), model.log_y_np.copy(), model, evals, history1,
-                       history2, seconds, cfg)
+                       history2, seconds, cfg, notes, ident)
