@@ -25,14 +25,13 @@ import numpy as np
 
 
 def run_case(i: int, seed: int) -> dict:
-    import warp as wp
     from scipy.stats import spearmanr
 
+    from twinbench._runtime import quiet_warp
     from twinbench.construct.sysid_family import family_case
     from twinbench.physics.sysid import FitConfig, identify
 
-    wp.config.log_level = wp.LOG_WARNING
-    wp.config.quiet = True
+    quiet_warp()
     data, truth = family_case(i, seed)
     t0 = time.perf_counter()
     try:

@@ -47,5 +47,10 @@ def main(cfg: SysIdConfig) -> int:
     for name, e in result.evals.items():
         say(f"{name:>8}: training loss {e.train_loss:.4e}, tracking error: training "
             f"{1e3 * e.train_error:.2f} mm, validation {1e3 * e.val_error:.2f} mm")
+    if result.identifiability:
+        fixed = [k for k, v in result.identifiability.items() if v["constrained"]]
+        loose = [k for k, v in result.identifiability.items() if not v["constrained"]]
+        say(f"constrained by the motion: {', '.join(fixed) or 'none'}; weakly: {', '.join(loose) or 'none'} "
+            "(intervals in the report)")
     say(f"object: {obj}\nreport: {jpath}, {ppath}")
     return 0
