@@ -19,7 +19,7 @@ import argparse
 import math
 import statistics
 import time
-from concurrent.futures import ProcessPoolExecutor
+from concurrent.futures import ProcessPoolExecutor, as_completed
 
 import numpy as np
 
@@ -56,6 +56,18 @@ def run_case(i: int, seed: int) -> dict:
     return out
 
 
+def _print_case(r: dict) -> None:
+    if "error" in r:
+        print(f"sysid_case_{r['case']}_failed 1 count  # {r['error']}", flush=True)
+        return
+    extra = "".join(f" {k} {r[k]:.3f}" for k in ("friction_error", "restitution_error") if k in r)
+    print(f"sysid_case_{r['case']} val_mm {1e3 * r['val_initial']:.2f}/{1e3 * r['val_stage1']:.2f}/"
+          f"{1e3 * r['val_final']:.2f} floor_mm {1e3 * r['floor']:.2f} "
+          f"ratio {r['val_final'] / r['floor']:.2f} spearman {r['spearman']:.3f}{extra} "
+          f"({r['pattern']}, {r['seconds']:.0f} s)"
+          f"{' notes: ' + '; '.join(r['notes']) if r['notes'] else ''}", flush=True)
+
+
 def _spread(name: str, vals: list[float], unit: str, scale: float = 1.0) -> None:
     vals = [v for v in vals if math.isfinite(v)]
     if not vals:
@@ -74,18 +86,12 @@ def main() -> None:
     args = ap.parse_args()
     ids = list(range(args.first, args.first + args.cases))
     t0 = time.perf_counter()
+    rows = []
     with ProcessPoolExecutor(max_workers=max(args.jobs, 1)) as pool:
-        rows = list(pool.map(run_case, ids, [args.seed] * len(ids)))
+        for fut in as_completed([pool.submit(run_case, i, args.seed) for i in ids]):
+            rows.append(fut.result())
+            _print_case(rows[-1])
     ok = [r for r in rows if "error" not in r]
-    for r in rows:
-        if "error" in r:
-            print(f"sysid_case_{r['case']}_failed 1 count  # {r['error']}")
-            continue
-        extra = "".join(f" {k} {1e0 * r[k]:.3f}" for k in ("friction_error", "restitution_error") if k in r)
-        print(f"sysid_case_{r['case']} val_mm {1e3 * r['val_initial']:.2f}/{1e3 * r['val_stage1']:.2f}/"
-              f"{1e3 * r['val_final']:.2f} floor_mm {1e3 * r['floor']:.2f} ratio "
-              f"{r['val_final'] / r['floor']:.2f} spearman {r['spearman']:.3f}{extra} ({r['pattern']}, "
-              f"{r['seconds']:.0f} s){' notes: ' + '; '.join(r['notes']) if r['notes'] else ''}")
     print(f"sysid_family_cases {len(rows)} count")
     print(f"sysid_family_failed_or_diverged {len(rows) - len(ok) + sum(r['diverged'] for r in ok)} count")
     _spread("val_error_final", [r["val_final"] for r in ok], "mm", 1e3)
