@@ -4,22 +4,25 @@ before and after.
 
     python benchmarks/episode_hashes.py                 # every task, presets fast and reference
     python benchmarks/episode_hashes.py --steps 20 --tasks push-t --presets fast
+    python benchmarks/episode_hashes.py --tasks push-t --presets small-fast --init-state 3 \
+        --env-kwargs '{"settle_steps": 0, "pusher_start": [0.30, 0.0]}'   # the cell before the study's layout
 """
 
 from __future__ import annotations
 
 import argparse
 import hashlib
+import json
 import time
 
 import numpy as np
 
 
-def episode_hash(task: str, preset: str, init_state: int, steps: int) -> str:
+def episode_hash(task: str, preset: str, init_state: int, steps: int, env_kwargs: dict | None = None) -> str:
     from twinbench.tasks import get_task
 
     spec = get_task(task)
-    env = spec.make_env(preset=preset, environment_state=True)
+    env = spec.make_env(preset=preset, environment_state=True, **(env_kwargs or {}))
     expert = spec.make_expert(env)
     h = hashlib.sha256()
     obs, _ = env.reset(seed=0, options={"init_state": init_state})
@@ -45,6 +48,9 @@ def main() -> None:
     p.add_argument("--presets", nargs="+", default=["fast", "reference"])
     p.add_argument("--steps", type=int, default=8)
     p.add_argument("--init-state", type=int, default=1)
+    p.add_argument("--env-kwargs", type=json.loads, default={},
+                   help="JSON object of env keyword arguments (task and cell settings), e.g. "
+                   '\'{"settle_steps": 0}\'')
     args = p.parse_args()
     import warp as wp
 
@@ -52,7 +58,7 @@ def main() -> None:
     for task in args.tasks:
         for preset in args.presets:
             t0 = time.perf_counter()
-            digest = episode_hash(task, preset, args.init_state, args.steps)
+            digest = episode_hash(task, preset, args.init_state, args.steps, args.env_kwargs)
             print(f"episode_hash {task} {preset} init{args.init_state} steps{args.steps}: {digest} "
                   f"({time.perf_counter() - t0:.1f} s)", flush=True)
 

@@ -16,8 +16,9 @@ vector, for scripted experts and offline rescoring).
 Episodes: `reset` places the robot at the task's start configuration and the objects at the grid state,
 then steps the physics `settle_steps` frames (a task setting, 30 for the built-in tasks as in the reference
 study) with the robot held still before the first observation; the episode's steps count from there. In a
-many-world twin (TwinVectorEnv) the worlds settle when they are all reset together; a world reset alone
-(autoreset, `reset_mask`, `envs.envs[i].reset()`) does not settle, as stepping it would step them all.
+many-world twin (TwinVectorEnv) the worlds reset together settle together; a world reset alone (autoreset,
+`reset_mask`, `envs.envs[i].reset()`) settles alone: the frames step every world and the others' particles
+are put back, so each world's episode stays the one a TwinEnv runs.
 
 Success rules (`success_rule`, recorded in `info["success_rule"]` and by the evaluation store):
 - "final" (default, the reference study's rule): every episode runs its full length; the outcome is the
@@ -128,6 +129,7 @@ class TwinEnv(gymnasium.Env):
             raise ValueError(f"success_rule must be one of {SUCCESS_RULES}, got {success_rule!r}")
         self.success_rule = success_rule
         self.rules, self.twin, self.state = rules, twin, state
+        self._worlds = [state]  # every world state of the twin (TwinVectorEnv sets its list)
         self.rules.setup(self.twin, self.state)
 
         self.render_mode = render_mode
@@ -173,8 +175,7 @@ class TwinEnv(gymnasium.Env):
     # ------------------------------------------------------------------ gymnasium API
     def reset(self, *, seed=None, options=None):
         self._place(seed, options)
-        if self.twin.num_worlds == 1:
-            settle_worlds(self.twin, [self.state], self.settle_steps)
+        settle_worlds(self.twin, self._worlds, self.settle_steps, [self.state.world])
         return self._first_observation()
 
     @property
@@ -327,12 +328,30 @@ class TwinEnv(gymnasium.Env):
         return obs
 
 
-def settle_worlds(twin, states: list, steps: int) -> None:
-    """Advance every world of `twin` (`states`, all of them) `steps` frames with the robots held still."""
+def settle_worlds(twin, states: list, steps: int, worlds=None) -> None:
+    """Advance the worlds `worlds` (indices; default all) of `twin` (`states`: all its world states, in
+    order) `steps` frames with the robots held still, and refit their object poses. A frame steps every
+    world: the other worlds' particles are put back as they were."""
+    worlds = list(range(len(states))) if worlds is None else [int(w) for w in worlds]
+    if steps <= 0 or not worlds:
+        return
+    physics = states[0].physics
+    others = [s.world for s in states if s.world not in worlds]
+    kept = (physics.x.numpy().copy(), physics.v.numpy().copy()) if others else None  # numpy(): a view on CPU
     for _ in range(steps):
-        for result in twin.step_worlds(states, [None] * len(states)):
-            if isinstance(result, SimulationDiverged):
+        for w, result in enumerate(twin.step_worlds(states, [None] * len(states))):
+            if w in worlds and isinstance(result, SimulationDiverged):
                 raise result
+    x = physics.x.numpy()
+    if kept is not None:
+        v = physics.v.numpy()
+        for w in others:
+            span = twin._span(states[w])
+            x[span], v[span] = kept[0][span], kept[1][span]
+        physics.x.assign(x)
+        physics.v.assign(v)
+    for w in worlds:
+        twin._fit_poses(states[w], x)
 
 
 class TwinVectorEnv(gymnasium.vector.VectorEnv):
@@ -390,6 +409,8 @@ class TwinVectorEnv(gymnasium.vector.VectorEnv):
             TwinEnv._world(rules if i == 0 else copy.deepcopy(rules), self.twin, st, *args)
             for i, st in enumerate(states)
         ]
+        for env in self.envs:
+            env._worlds = states
         first = self.envs[0]
         self.num_envs = len(self.envs)
         self.render_mode = render_mode
@@ -425,8 +446,7 @@ class TwinVectorEnv(gymnasium.vector.VectorEnv):
         chosen = np.flatnonzero(mask)
         for i in chosen:
             self.envs[i]._place(seeds[i], {k: v[i] for k, v in per_world.items()})
-        if len(chosen) == self.num_envs:  # every world starts together: they settle together
-            settle_worlds(self.twin, [env.state for env in self.envs], self.envs[0].settle_steps)
+        settle_worlds(self.twin, self.envs[0]._worlds, self.envs[0].settle_steps, chosen)
         for i in chosen:
             self._obs[i], info = self.envs[i]._first_observation()
             self._autoreset[i] = False

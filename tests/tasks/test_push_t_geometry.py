@@ -29,11 +29,14 @@ def test_particles_fill_the_t_on_a_lattice():
 
 
 def test_grid_states_are_the_16_reference_states():
+    """The reference study's order: xy[i // 4], theta[i % 4]."""
     states = grid_initial_states()
     assert states.shape == (16, 3)
     assert len({tuple(np.round(s, 6)) for s in states}) == 16
-    assert set(np.round(states[:, 0], 6)) == {-0.05, 0.05}
-    assert set(np.round(np.rad2deg(states[:, 2]), 6)) == {-135.0, -45.0, 45.0, 135.0}
+    xy = [(-0.05, -0.05), (-0.05, 0.05), (0.05, -0.05), (0.05, 0.05)]
+    for i, (dx, dy, th) in enumerate(states):
+        assert (dx, dy) == pytest.approx(xy[i // 4], abs=1e-12)
+        assert np.rad2deg(th) == pytest.approx([45.0, 135.0, 225.0, 315.0][i % 4], abs=1e-9)
 
 
 def test_initial_states_are_data_with_a_seeded_sampler_and_products():
@@ -87,15 +90,17 @@ def test_mean_squared_distance_matches_rigid_motion_formula():
     assert mean_squared_distance(moved, pts) == pytest.approx(2 * (1 - np.cos(th)) * r2, rel=1e-9)
 
 
-def test_success_needs_more_than_30_of_the_last_100_frames():
+def test_success_needs_at_least_30_of_the_last_100_frames():
     win = SuccessWindow()
     for _ in range(70):
         win.update(False)
-    for _ in range(30):
+    for _ in range(29):
         assert not win.update(True)
-    assert win.update(True)  # 31 hits
-    for _ in range(70):  # the old hits slide out of the window
+    assert win.update(True)  # 30 hits
+    for _ in range(70):  # the window slides: still the same 30 hits
         win.update(False)
+    assert win.success
+    win.update(False)  # the oldest hit leaves the window
     assert not win.success
 
 

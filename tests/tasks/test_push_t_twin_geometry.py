@@ -1,5 +1,6 @@
 """Push-T reads its geometry from the twin (the block's `outline`, the robot's `tool_radius`): a T 0.7x the
-built-in one is scored with its own outline, and the scripted expert pushes it home."""
+built-in one (the reference study's, preset fast) is scored with its own outline, and the scripted expert
+pushes it home."""
 
 import dataclasses
 import types
@@ -11,10 +12,12 @@ from twinbench.env import TwinEnv
 from twinbench.evaluation.rollout import policy_observation
 from twinbench.robot.builtin import PUSHER_RADIUS
 from twinbench.tasks.push_t import PushTTask, make_expert
-from twinbench.twin.cells import push_t_cell
+from twinbench.transforms import planar_pose
+from twinbench.twin.cells import PushTCell, push_t_cell
 from twinbench.twin.shapes import TBlockShape
 
 SCALE = 0.7
+STUDY_T = TBlockShape(*PushTCell.preset("fast").t_shape)
 
 
 @pytest.fixture(scope="module")
@@ -33,9 +36,9 @@ def shifted_overlap(t: TBlockShape, dx: float) -> float:
 def test_the_scaled_twin_carries_its_own_outline_and_the_pusher_radius(small_env):
     spec = small_env.twin.spec
     block = spec.object("tblock")
-    np.testing.assert_allclose(block.outline.polygon, TBlockShape().scaled(SCALE).outline_xy(), atol=1e-15)
+    np.testing.assert_allclose(block.outline.polygon, STUDY_T.scaled(SCALE).outline_xy(), atol=1e-15)
     assert block.outline.height == pytest.approx(0.03 * SCALE)
-    assert block.outline.area == pytest.approx(SCALE**2 * TBlockShape().outline().area, rel=1e-12)
+    assert block.outline.area == pytest.approx(SCALE**2 * STUDY_T.outline().area, rel=1e-12)
     # the particles fill that outline (the cell scales the T and its lattice)
     assert block.outline.contains(block.particles, tol=1e-6).all()
     assert len(block.particles) == len(push_t_cell("fast").object("tblock").particles)
@@ -45,19 +48,22 @@ def test_the_scaled_twin_carries_its_own_outline_and_the_pusher_radius(small_env
 
 def test_the_scaled_t_is_scored_with_its_own_outline(small_env):
     twin, state = small_env.twin, small_env.state
-    rules = small_env.rules
-    rules.reset(twin, state, {"block": np.zeros(3)})  # the T resting exactly on its goal
-    hit, metrics = rules.frame(twin, state)
+    rest = PushTCell.preset("fast").block_pose  # (0.43, 0, -90 deg): the T's x axis along world -y
+    on_rest = PushTTask(goal_pose=rest)
+    on_rest.setup(twin, state)
+    on_rest.reset(twin, state, {"block": np.zeros(3)})  # the T resting exactly on its goal
+    hit, metrics = on_rest.frame(twin, state)
     assert hit and metrics["coverage"] == 1.0 and metrics["msd"] < 1e-12
+    np.testing.assert_allclose(twin.object_pose(state, "tblock"), planar_pose(*rest), atol=1e-6)
 
-    # The goal 2 cm along x: the block covers the part of the goal T that a 0.7x T moved by 2 cm covers
-    # (0.456); the built-in T's outline would say 0.619.
-    moved = PushTTask(goal_pose=(0.52, 0.0, 0.0))
+    # The goal 2 cm along the T's x axis: the block covers the part of the goal T that a 0.7x T moved by
+    # 2 cm covers (0.588); the built-in T's outline would say 0.712.
+    moved = PushTTask(goal_pose=(rest[0], rest[1] - 0.02, rest[2]))
     moved.setup(twin, state)
     moved.reset(twin, state, {"block": np.zeros(3)})
     _, metrics = moved.frame(twin, state)
-    own, builtin = shifted_overlap(TBlockShape().scaled(SCALE), 0.02), shifted_overlap(TBlockShape(), 0.02)
-    assert own == pytest.approx(0.4558, abs=1e-4) and builtin == pytest.approx(0.6190, abs=1e-4)
+    own, builtin = shifted_overlap(STUDY_T.scaled(SCALE), 0.02), shifted_overlap(STUDY_T, 0.02)
+    assert own == pytest.approx(0.5879, abs=1e-4) and builtin == pytest.approx(0.7115, abs=1e-4)
     assert metrics["coverage"] == pytest.approx(own, abs=0.02)
     assert metrics["msd"] == pytest.approx(0.02**2, rel=1e-4)  # every particle 2 cm from its goal
 

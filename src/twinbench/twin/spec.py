@@ -284,6 +284,7 @@ class CameraSpec:
                 f"got {self.sensor_size}, {self.output_hw}"
             )
         if self.crop is not None:
+            object.__setattr__(self, "crop", tuple(float(v) for v in self.crop))  # as twin.json reads it back
             x0, y0, w, h = self.crop
             if w <= 0 or h <= 0 or x0 < 0 or y0 < 0 or x0 + w > sw + 1e-9 or y0 + h > sh + 1e-9:
                 raise ValueError(f"{where}.crop: [x0, y0, w, h] must lie inside the {sw}x{sh} sensor")
