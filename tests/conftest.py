@@ -80,3 +80,15 @@ def tiny_act_checkpoint(tmp_path_factory):
     pre.save_pretrained(out)
     post.save_pretrained(out)
     return out
+
+
+@pytest.fixture(autouse=True)
+def _task_registry_restored():
+    """Tasks a test registers (test doubles) are forgotten after it, so no test sees another's tasks."""
+    from twinbench import tasks
+
+    tasks.task_names()  # the package's own tasks, discovered once before the snapshot
+    saved = dict(tasks._TASKS)
+    yield
+    tasks._TASKS.clear()
+    tasks._TASKS.update(saved)
