@@ -115,3 +115,19 @@ def test_small_presets_keep_the_earlier_cell():
     np.testing.assert_allclose(ext, [0.12, 0.12, 0.03], atol=1e-6)
     assert small.goal_pose is None
     np.testing.assert_allclose(small.rest_pose, planar_pose(0.5, 0.0, 0.0))
+
+
+def test_rope_and_toy_cells_use_the_studys_cameras_and_crops():
+    from twinbench.twin.cells import rope_routing_cell, toy_packing_cell
+
+    for spec, crop, hw in [
+        (rope_routing_cell("fast"), (0, 0, 848, 480), (120, 212)),  # rope policy: full frame -> 120 x 212
+        (toy_packing_cell("fast"), (100, 0, 648, 480), (240, 240)),  # sloth policy: cols 100-748 -> 240 x 240
+    ]:
+        front, wrist = (next(c for c in spec.cameras if c.name == n) for n in ("front", "wrist"))
+        assert front.sensor_size == (848, 480) and front.crop == crop and front.output_hw == hw
+        np.testing.assert_allclose(front.pose[:3, 3], [0.88302639, 0.05390846, 0.39760339], atol=1e-8)
+        assert wrist.mount_link == "link7" and wrist.output_hw == hw
+        np.testing.assert_allclose(wrist.pose[:3, 3], [0.070151686668396, -0.006011864222586155, 0.03072427])
+    for spec in (rope_routing_cell("small-fast"), toy_packing_cell("small-fast")):  # the earlier cells
+        assert all(c.crop is None and c.output_hw == (240, 240) for c in spec.cameras)

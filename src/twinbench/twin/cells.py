@@ -1,14 +1,19 @@
 """Built-in procedural cells (no download), produced as TwinSpecs like any twin loaded from disk.
 
 The reference workcell: a procedural table and backdrop (Gaussians), the built-in xArm-7-like arm with
-the reference cameras (a fixed front camera and a wrist camera, DESIGN §5), and the task's objects.
+the reference study's cameras (`study_cameras`: its front D455 and its wrist D405 on the flange, their
+intrinsics, 848x480 sensors and each task's crops), and the task's objects. Every cell has the presets
+`reference` (the default) and `fast` (cheaper physics), which follow the study's layout as far as it is
+public, and `small` / `small-fast`, the earlier scaled-down cells with their own cameras. Rope and toy:
+only the cameras and crops are the study's so far; the objects are procedural stand-ins.
 
 - `push_t_cell(preset)`: the arm with a vertical pusher held at a fixed height above the table (its
   radius is the robot's `tool_radius`), and a T-block made of particles (volume lattice, springs within a
   radius, max 50 neighbours, uniform Y = 3e4) whose coloured surface Gaussians follow its rigid motion;
   the T's outline is the object's `outline` (`block_scale` scales the T, its lattice and its Y). Presets:
   `reference` (5 mm lattice, 667 substeps per 30 Hz frame, PhysTwin's dt = 5e-5 s) and `fast` (15 mm
-  lattice, 100 substeps, about 50x cheaper; the demo and the tests use it).
+  lattice, 100 substeps, about 50x cheaper; the demo and the tests use it): the study's 15 x 15 cm T, its
+  start and goal poses; `small` / `small-fast`: a 12 x 12 cm T resting at (0.5, 0) as its own goal.
 - `rope_routing_cell(preset)`: the arm with its parallel gripper (friction on the finger pads, the force
   latch of DESIGN §5), a 32 cm cotton-like rope (a 1 cm thick cylinder of particles, springs within a
   radius; its marked end is red) lying on the table, and a clip: two walls on the table forming a
@@ -235,15 +240,24 @@ class RopeCell:
     self_collision: bool = True
     image_hw: tuple[int, int] = (240, 240)
     robot_gaussian_spacing: float = 0.006
+    study_cameras: bool = False  # the reference study's cameras, full 848x480 frames (else the small cell's)
 
     @staticmethod
     def preset(name: str, **overrides) -> RopeCell:
+        small = RopeCell()
+        small_fast = RopeCell(axial_spacing=0.006, ring=5, substeps=150, self_collision=False)
+        study = {"study_cameras": True, "image_hw": ROPE_IMAGE_HW}  # the rope and clip: not yet the study's
         presets = {
-            "reference": RopeCell(),
-            "fast": RopeCell(axial_spacing=0.006, ring=5, substeps=150, self_collision=False),
+            "reference": replace(small, **study),
+            "fast": replace(small_fast, **study),
+            "small": small,
+            "small-fast": small_fast,
         }
-        presets.update({"small": presets["reference"], "small-fast": presets["fast"]})  # not yet the study's
         return _check_settings(RopeCell, "rope-routing", presets, name, overrides)
+
+
+ROPE_CROP = (0, 0, 848, 480)  # the study's rope policy: the full frame resized to 120 x 212
+ROPE_IMAGE_HW = (120, 212)
 
 
 def rope_particles(length: float, axial_spacing: float, ring: int, radius: float) -> np.ndarray:
@@ -320,7 +334,9 @@ def rope_routing_cell(preset: str = "reference", **overrides) -> TwinSpec:
         robot=gripper_robot(cfg.finger_friction, cfg.robot_gaussian_spacing),
         objects=(rope,),
         colliders=(clip,),
-        cameras=(front_camera(cfg.image_hw), wrist_camera("link7", cfg.image_hw)),
+        cameras=study_cameras(ROPE_CROP, ROPE_CROP, cfg.image_hw)
+        if cfg.study_cameras
+        else (front_camera(cfg.image_hw), wrist_camera("link7", cfg.image_hw)),
         background=workcell_background(),
         sim=sim,
     )
@@ -349,12 +365,21 @@ class ToyCell:
     ground_friction: float = 0.6
     image_hw: tuple[int, int] = (240, 240)
     robot_gaussian_spacing: float = 0.006
+    study_cameras: bool = False  # the reference study's cameras and toy crops (else the small cell's)
 
     @staticmethod
     def preset(name: str, **overrides) -> ToyCell:
-        presets = {"reference": ToyCell(), "fast": ToyCell(spacing=0.008, substeps=150)}
-        presets.update({"small": presets["reference"], "small-fast": presets["fast"]})  # not yet the study's
+        small, small_fast = ToyCell(), ToyCell(spacing=0.008, substeps=150)
+        presets = {  # the toy and box: not yet the study's
+            "reference": replace(small, study_cameras=True),
+            "fast": replace(small_fast, study_cameras=True),
+            "small": small,
+            "small-fast": small_fast,
+        }
         return _check_settings(ToyCell, "toy-packing", presets, name, overrides)
+
+
+TOY_CROP = (100, 0, 648, 480)  # the study's sloth policy: cols 100-748, resized to 240 x 240
 
 
 def toy_particles(cfg: ToyCell) -> tuple[np.ndarray, np.ndarray]:
@@ -454,7 +479,9 @@ def toy_packing_cell(preset: str = "reference", **overrides) -> TwinSpec:
         robot=gripper_robot(cfg.finger_friction, cfg.robot_gaussian_spacing),
         objects=(toy,),
         colliders=(box,),
-        cameras=(front_camera(cfg.image_hw), wrist_camera("link7", cfg.image_hw)),
+        cameras=study_cameras(TOY_CROP, TOY_CROP, cfg.image_hw)
+        if cfg.study_cameras
+        else (front_camera(cfg.image_hw), wrist_camera("link7", cfg.image_hw)),
         background=workcell_background(),
         sim=sim,
     )
