@@ -25,7 +25,7 @@ def _calibration(spec) -> dict:
     cams = []
     for c in spec.cameras:
         d = {"name": c.name, "intrinsics": list(c.intrinsics), "sensor_size": list(c.sensor_size),
-             "output_hw": list(c.output_hw)}
+             "output_hw": list(c.output_hw), "crop": None if c.crop is None else list(c.crop)}
         if c.mount_link is None:
             d["camera_to_world"] = c.pose.tolist()
         else:
@@ -66,7 +66,7 @@ def test_chain_rebuilds_the_cell(tmp_path):
     boxes = {
         "transform": (off @ coarse).tolist(),
         "robot": {"center": [0.1, 0.0, 0.56], "half_extents": [0.32, 0.3, 0.52]},
-        "objects": {"tblock": {"center": [0.5, 0.0, 0.02], "half_extents": [0.1, 0.1, 0.035]}},
+        "objects": {"tblock": {"center": [*block.rest_pose[:2, 3], 0.02], "half_extents": [0.1, 0.1, 0.035]}},
     }
     (tmp_path / "boxes.json").write_text(json.dumps(boxes))
     assert cli(["segment", str(tmp_path / "scan.ply"), "--boxes", str(tmp_path / "boxes.json"),
