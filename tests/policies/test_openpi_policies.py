@@ -7,9 +7,9 @@ gripper position, (50, 14) absolute joint angles. Each drives episodes of a buil
 import threading
 import traceback
 
-import msgpack
 import numpy as np
 import pytest
+from openpi_codec import pack, unpack
 from scipy.spatial.transform import Rotation
 from websockets.exceptions import ConnectionClosed
 from websockets.sync.server import serve
@@ -18,24 +18,6 @@ from twinbench.policies import make_policy
 from twinbench.policies.io import load_policy_io
 from twinbench.robot.builtin import load_builtin_arm
 from twinbench.tasks import get_task
-
-
-def _pack(obj):  # openpi_client's msgpack_numpy, written here from the protocol
-    def default(o):
-        if isinstance(o, np.ndarray):
-            return {b"__ndarray__": True, b"data": o.tobytes(), b"dtype": o.dtype.str, b"shape": o.shape}
-        raise TypeError(type(o))
-
-    return msgpack.packb(obj, default=default)
-
-
-def _unpack(data):
-    def hook(d):
-        if b"__ndarray__" in d:
-            return np.ndarray(buffer=d[b"data"], dtype=np.dtype(d[b"dtype"]), shape=d[b"shape"])
-        return d
-
-    return msgpack.unpackb(data, object_hook=hook)
 
 
 def _image(x, chw=False):
@@ -87,16 +69,16 @@ class OpenpiServer:
         threading.Thread(target=self._server.serve_forever, daemon=True).start()
 
     def _handle(self, ws):
-        ws.send(_pack({}))
+        ws.send(pack({}))
         while True:
             try:
-                obs = _unpack(ws.recv())
+                obs = unpack(ws.recv())
             except ConnectionClosed:
                 return
             try:
                 self.requests.append(obs)
                 actions = self.answer(obs, self._rng)
-                ws.send(_pack({"actions": actions, "server_timing": {"infer_ms": 1.0}}))
+                ws.send(pack({"actions": actions, "server_timing": {"infer_ms": 1.0}}))
             except Exception:  # noqa: BLE001 - reported to the client as openpi does
                 self.errors.append(traceback.format_exc())
                 ws.send(self.errors[-1])

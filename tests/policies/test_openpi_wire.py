@@ -6,9 +6,9 @@ traceback followed by close code 1011."""
 import threading
 import traceback
 
-import msgpack
 import numpy as np
 import pytest
+from openpi_codec import pack, unpack
 from scipy.spatial.transform import Rotation
 from websockets.exceptions import ConnectionClosed
 from websockets.sync.client import connect
@@ -17,27 +17,6 @@ from websockets.sync.server import serve
 from twinbench.policies import PolicyError, make_policy
 from twinbench.policies.server import PolicyServer
 from twinbench.tasks import get_task
-
-
-def _pack(obj):
-    def default(o):
-        if isinstance(o, np.ndarray):
-            return {b"__ndarray__": True, b"data": o.tobytes(), b"dtype": o.dtype.str, b"shape": o.shape}
-        if isinstance(o, np.generic):
-            return {b"__npgeneric__": True, b"data": o.item(), b"dtype": o.dtype.str}
-        raise TypeError(type(o))
-
-    return msgpack.packb(obj, default=default)
-
-
-def _unpack(data):
-    def hook(d):
-        if b"__ndarray__" in d:
-            return np.ndarray(buffer=d[b"data"], dtype=np.dtype(d[b"dtype"]), shape=d[b"shape"])
-        return d
-
-    return msgpack.unpackb(data, object_hook=hook)
-
 
 CHUNK = np.linspace(-1, 1, 70, dtype=np.float32).reshape(10, 7)
 
@@ -52,10 +31,10 @@ class OpenpiStyleServer:
         threading.Thread(target=self._server.serve_forever, daemon=True).start()
 
     def _handle(self, ws):
-        ws.send(_pack({"server": "openpi-style"}))
+        ws.send(pack({"server": "openpi-style"}))
         while True:
             try:
-                obs = _unpack(ws.recv())
+                obs = unpack(ws.recv())
             except ConnectionClosed:
                 return
             try:
@@ -64,7 +43,7 @@ class OpenpiStyleServer:
                     raise RuntimeError("model exploded")
                 assert obs["observation/image"].shape == (224, 224, 3)
                 assert obs["observation/state"].shape == (8,)
-                ws.send(_pack({"actions": CHUNK, "server_timing": {"infer_ms": 1.0}}))
+                ws.send(pack({"actions": CHUNK, "server_timing": {"infer_ms": 1.0}}))
             except Exception:
                 ws.send(traceback.format_exc())
                 ws.close(1011, "Internal server error. Traceback included in previous frame.")
@@ -129,11 +108,11 @@ def test_openpi_style_client_against_twinbench_server():
     with PolicyServer(Doubler, metadata={"policy": "doubler"}) as server:
         with connect(server.url, compression=None, max_size=None) as ws:
             meta = ws.recv()
-            assert isinstance(meta, bytes) and _unpack(meta) == {"policy": "doubler"}  # metadata first
-            ws.send(_pack({"agent_pos": np.array([0.25, -1.5], np.float32), "prompt": "go"}))
-            reply = _unpack(ws.recv())
+            assert isinstance(meta, bytes) and unpack(meta) == {"policy": "doubler"}  # metadata first
+            ws.send(pack({"agent_pos": np.array([0.25, -1.5], np.float32), "prompt": "go"}))
+            reply = unpack(ws.recv())
             assert reply["actions"].dtype == np.float32 and reply["actions"].tolist() == [[0.5, -3.0]]
-            ws.send(_pack({"agent_pos": np.zeros(2, np.float32), "prompt": "crash"}))
+            ws.send(pack({"agent_pos": np.zeros(2, np.float32), "prompt": "crash"}))
             err = ws.recv()
             assert isinstance(err, str) and "ValueError: bad observation" in err
             with pytest.raises(ConnectionClosed) as closed:
