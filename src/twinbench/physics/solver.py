@@ -184,6 +184,15 @@ class SpringMassSolver:
     def has_kinematic_meshes(self) -> bool:
         return bool(self._kinematic)
 
+    def begin_frame(self, state: State, control: Control) -> State:
+        """A frame's start: `state` copied into the frame's first buffer (returned) and the kinematic
+        meshes' velocities for the frame's motion."""
+        a = self.buffers.states[0]
+        a.assign(state)
+        if self.has_kinematic_meshes:
+            self.set_mesh_velocities(control)
+        return a
+
     def set_mesh_velocities(self, control: Control) -> None:
         """The kinematic meshes' vertex velocities and boxes for this frame's motion."""
         m = self.model
@@ -464,10 +473,7 @@ class RecordedFrames:
 
     def run_frame(self, state: State, control: Control) -> None:
         s = self.solver
-        a = s.buffers.states[0]
-        a.assign(state)
-        if s.has_kinematic_meshes:
-            s.set_mesh_velocities(control)
+        a = s.begin_frame(state, control)
         s.rebuild_collision_candidates(a)
         key = control  # compared by identity; holding it keeps its arrays (baked into the plan) alive
         if not self.use_graph:
@@ -507,10 +513,7 @@ class ThreadedWorlds:
 
     def run_frame(self, state: State, control: Control) -> None:
         s = self.solver
-        a = s.buffers.states[0]
-        a.assign(state)
-        if s.has_kinematic_meshes:
-            s.set_mesh_velocities(control)
+        a = s.begin_frame(state, control)
         if self._plans is None or self._key is not control:
             plans = []
             for wr in self.groups:
