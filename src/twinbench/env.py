@@ -130,6 +130,10 @@ class TwinEnv(gymnasium.Env):
         self.success_rule = success_rule
         self.rules, self.twin, self.state = rules, twin, state
         self._worlds = [state]  # every world state of the twin (TwinVectorEnv sets its list)
+        # cameras with a response (a real camera's colour, noise, blur) applied after rendering; noise seeded
+        # by reset(seed)
+        self._responses = {n: c.response for n, c in twin.cameras.items() if c.response is not None}
+        self._response_rng = np.random.default_rng(0)
         self.rules.setup(self.twin, self.state)
 
         self.render_mode = render_mode
@@ -186,6 +190,8 @@ class TwinEnv(gymnasium.Env):
     def _place(self, seed, options) -> None:
         """Robot at its start configuration, the objects at the grid state (or a sampled one)."""
         super().reset(seed=seed)
+        if seed is not None:
+            self._response_rng = np.random.default_rng(int(seed))
         options = dict(options or {})
         unknown = sorted(set(options) - set(RESET_OPTIONS))
         if unknown:
@@ -311,6 +317,8 @@ class TwinEnv(gymnasium.Env):
         outs = self.twin.render(self.state) if images is None else images
         frames = {name: out.rgb_uint8() for name, out in outs.items()}
         self.rules.decorate(frames)
+        for name, response in self._responses.items():
+            frames[name] = response.apply(frames[name], self._response_rng)
         self._frames = frames
         self._privileged = self.rules.privileged(self.twin, self.state, metrics)
         obs = {"pixels": frames, "agent_pos": self.twin.ee_state(self.state).astype(np.float32)}

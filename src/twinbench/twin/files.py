@@ -25,6 +25,7 @@ import numpy as np
 from twinbench.errors import InputError
 from twinbench.gaussians.cloud import GaussianCloud
 from twinbench.gaussians.io import load_gaussians, save_gaussians
+from twinbench.gaussians.response import CameraResponse
 from twinbench.physics import SimParams
 from twinbench.robot.controller import ControllerConfig
 from twinbench.twin.shapes import Outline
@@ -351,7 +352,10 @@ _ROBOT_FIELDS = (
         "tool_radius",
     },
 )
-_CAMERA_FIELDS = ({"name", "intrinsics", "pose"}, {"sensor_size", "mount_link", "crop", "output_hw", "depth"})
+_CAMERA_FIELDS = (
+    {"name", "intrinsics", "pose"},
+    {"sensor_size", "mount_link", "crop", "output_hw", "depth", "response"},
+)
 _COLLIDER_FIELDS = (
     {"name", "mesh", "pose"},
     {"restitution", "friction", "gaussians", "color_map", "channel"},
@@ -426,6 +430,8 @@ def _read_camera(r: _Reader, d, field: str) -> CameraSpec:
         if not isinstance(d["depth"], bool):
             r.fail(f"{field}.depth", f"expected true or false, got {d['depth']!r}")
         kw["depth"] = d["depth"]
+    if d.get("response") is not None:
+        kw["response"] = r.build(lambda: CameraResponse.from_dict(d["response"]), f"{field}.response")
     return r.build(lambda: CameraSpec(name, **kw), field)
 
 
@@ -609,6 +615,7 @@ def save_twin(spec: TwinSpec, folder) -> Path:
             "crop": None if c.crop is None else list(c.crop),
             "output_hw": list(c.output_hw),
             "depth": c.depth,
+            **({} if c.response is None else {"response": c.response.to_dict()}),
         }
         for c in spec.cameras
     ]

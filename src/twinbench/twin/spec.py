@@ -21,6 +21,7 @@ import numpy as np
 
 from twinbench.gaussians.cloud import GaussianCloud
 from twinbench.gaussians.colormap import apply_color_map, check_color_map
+from twinbench.gaussians.response import CameraResponse
 from twinbench.physics import SimParams
 from twinbench.robot.controller import ControllerConfig
 from twinbench.twin.shapes import Outline
@@ -258,7 +259,8 @@ class CameraSpec:
     `pose` is camera-to-world (OpenCV axes: x right, y down, z forward), or, for a camera on the robot
     (`mount_link`), the camera pose in that link's frame. The image is the sensor's `crop` (x0, y0, w, h
     in sensor pixels; None = the largest centre crop of the output's aspect ratio) resized to
-    `output_hw` = (H, W); the twin renders it directly with the equivalent intrinsics.
+    `output_hw` = (H, W); the twin renders it directly with the equivalent intrinsics. `response`: the
+    camera's response (`twinbench.gaussians.response`), applied by TwinEnv after rendering; None = none.
     """
 
     name: str
@@ -269,9 +271,13 @@ class CameraSpec:
     crop: tuple[float, float, float, float] | None = None
     output_hw: tuple[int, int] = (240, 240)
     depth: bool = False
+    response: CameraResponse | None = None
 
     def __post_init__(self) -> None:
         where = f"cameras[{self.name!r}]"
+        if self.response is not None and not isinstance(self.response, CameraResponse):
+            raise ValueError(f"{where}.response: expected a CameraResponse or None, "
+                             f"got {type(self.response).__name__}")
         k = np.asarray(self.intrinsics, dtype=np.float64)
         if k.shape != (4,) or not np.all(np.isfinite(k)) or k[0] <= 0 or k[1] <= 0:
             raise ValueError(f"{where}.intrinsics: expected [fx, fy, cx, cy] with fx, fy > 0")
