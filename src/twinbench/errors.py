@@ -12,7 +12,11 @@
 
 from __future__ import annotations
 
+import re
+
 import numpy as np
+
+_NAME_RE = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.\-]{0,127}$")
 
 
 class TwinbenchError(Exception):
@@ -38,3 +42,13 @@ class SimulationDiverged(TwinbenchError, RuntimeError):
 
 class PolicyError(TwinbenchError, RuntimeError):
     """A policy failed to produce an action (crash, unreachable server, bad output): policy_error."""
+
+
+def check_name(value, what: str) -> str:
+    """The one rule for a name that becomes a file or folder name (run ids, twin, object, collider, camera
+    and box names): letters, digits, '_', '.', '-', at most 128, not starting with '.' or '-', so it can
+    never be a path. Returns it; `InputError` naming `what` otherwise."""
+    if not isinstance(value, str) or not _NAME_RE.fullmatch(value):
+        raise InputError(f"{what} {value!r}: use a name of letters, digits, '_', '.', '-' (no '/', no "
+                         "leading '.' or '-', at most 128 characters), e.g. 'push-t_2024-05-01'")
+    return value

@@ -10,6 +10,7 @@ from typing import Annotated
 import tyro
 
 from twinbench.construct.phystwin import import_case_to_object
+from twinbench.errors import check_name
 
 
 @dataclass(frozen=True)
@@ -33,6 +34,7 @@ class ImportPhysTwinConfig:
 
 
 def main(cfg: ImportPhysTwinConfig) -> int:
+    check_name(cfg.name, "--name")  # it names the object's files
     imp = import_case_to_object(cfg.case_dir, cfg.out, name=cfg.name, final_data=cfg.final_data,
                                 optimal_params=cfg.optimal_params, checkpoint=cfg.checkpoint,
                                 reverse_z=cfg.reverse_z, self_collision=cfg.self_collision,

@@ -10,6 +10,7 @@ from typing import Annotated
 import tyro
 
 from twinbench.construct.mesh_object import load_mesh, mesh_to_object
+from twinbench.errors import check_name
 from twinbench.twin import save_object
 
 
@@ -32,6 +33,7 @@ class MeshToObjectConfig:
 
 
 def main(cfg: MeshToObjectConfig) -> int:
+    check_name(cfg.name, "--name")  # it names the object's files
     obj = mesh_to_object(load_mesh(cfg.mesh), name=cfg.name, spacing=cfg.spacing, spring_Y=cfg.spring_Y,
                          radius_factor=cfg.radius_factor, max_neighbors=cfg.max_neighbors, rgb=cfg.rgb)
     save_object(obj, cfg.out, sim={})

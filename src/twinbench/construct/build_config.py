@@ -11,6 +11,7 @@ import numpy as np
 from twinbench.construct.align_robot import read_aligned_robot
 from twinbench.construct.calibration import load_calibration
 from twinbench.construct.mesh_object import load_mesh
+from twinbench.errors import check_name
 from twinbench.gaussians.io import load_gaussians
 
 _BUILD_FIELDS = {"name", "robot", "background", "objects", "colliders", "cameras", "sim", "controller",
@@ -99,7 +100,7 @@ def build_spec_from_config(config_path):
             sim = dict(osim)
         changes = {}
         if o.get("name"):
-            changes["name"] = o["name"]
+            changes["name"] = check_name(o["name"], f"{config}: objects[{i}].name")
         if o.get("rest_pose") is not None:
             changes["rest_pose"] = np.asarray(o["rest_pose"], dtype=np.float64)
         rest = changes.get("rest_pose", obj.rest_pose)
@@ -113,6 +114,7 @@ def build_spec_from_config(config_path):
     for i, c in enumerate(doc.get("colliders") or []):
         fields = {"name", "mesh", "pose", "restitution", "friction", "gaussians"}
         c = _known(c, fields, f"colliders[{i}]", config)
+        check_name(c.get("name"), f"{config}: colliders[{i}].name")
         mesh = load_mesh(root / c["mesh"])
         colliders.append(ColliderSpec(
             c["name"], np.asarray(mesh.vertices), np.asarray(mesh.faces),

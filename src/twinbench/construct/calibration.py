@@ -22,6 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
+from twinbench.errors import check_name
 from twinbench.twin.spec import CameraSpec
 
 OPENGL_TO_OPENCV = np.diag([1.0, -1.0, -1.0, 1.0])
@@ -81,6 +82,7 @@ def load_calibration(path) -> list[CameraSpec]:
         where = f"{path}: cameras[{i}]"
         if not isinstance(c, dict) or "name" not in c:
             raise ValueError(f"{where}: expected an object with a 'name'")
+        check_name(c["name"], f"{where}.name")  # it names image files (align-color)
         where = f"{path}: cameras[{c['name']!r}]"
         unknown = set(c) - _FIELDS
         if unknown:

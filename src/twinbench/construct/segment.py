@@ -21,6 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
+from twinbench.errors import check_name
 from twinbench.gaussians.cloud import GaussianCloud
 
 
@@ -111,6 +112,8 @@ def load_boxes(
     objects = doc.get("objects") or {}
     if not isinstance(objects, dict):
         raise ValueError(f"{path}: objects must map names to boxes")
+    for name in objects:  # each names a file <name>.ply
+        check_name(name, f"{path}: objects: name")
     try:
         robot = _boxes(doc.get("robot"), "robot")
         objs = {name: _boxes(b, f"objects.{name}") for name, b in objects.items()}
@@ -170,6 +173,7 @@ def segment_files(scan_path, boxes_path, out) -> dict[str, int]:
     save_gaussians(scan.subset(seg.background), out / "background.ply")
     arrays = {"robot": seg.robot, "background": seg.background, "dropped": seg.dropped}
     for name, idx in seg.objects.items():
+        check_name(name, "objects: name")
         files[name] = f"objects/{name}.ply"
         (out / "objects").mkdir(exist_ok=True)
         save_gaussians(scan.subset(idx), out / files[name])

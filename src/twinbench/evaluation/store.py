@@ -18,7 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
-from twinbench.errors import InputError
+from twinbench.errors import InputError, check_name
 
 DEFAULT_DB = Path("outputs/results.sqlite")
 DOMAINS = ("sim", "real", "replay")
@@ -26,7 +26,6 @@ STATUSES = ("ok", "sim_error", "policy_error")
 TRUE_WORDS = ("1", "true", "yes", "success")
 FALSE_WORDS = ("0", "false", "no", "failure")
 INT64 = (-(2**63), 2**63 - 1)  # what an SQLite INTEGER holds
-_RUN_ID_RE = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.\-]{0,127}$")
 
 
 # ---- the one way outcomes and indices enter the store ------------------------------------------------
@@ -78,12 +77,9 @@ def parse_int(value, *, minimum: int | None = None, maximum: int | None = None) 
 
 
 def check_run_id(run_id) -> str:
-    """A run id is a name, never a path: letters, digits, '_', '.', '-' (at most 128, not starting with
-    '.' or '-'), since it names folders under the output directory. InputError otherwise."""
-    if not isinstance(run_id, str) or not _RUN_ID_RE.fullmatch(run_id):
-        raise InputError(f"run id {run_id!r}: use a name of letters, digits, '_', '.', '-' (no '/', no "
-                         "leading '.' or '-', at most 128 characters), e.g. 'push-t_2024-05-01'")
-    return run_id
+    """A run id is a name, never a path (`twinbench.errors.check_name`): it names folders under the
+    output directory. InputError otherwise."""
+    return check_name(run_id, "run id")
 
 _SCHEMA = """
 CREATE TABLE IF NOT EXISTS runs (

@@ -397,6 +397,26 @@ def _resolve_filename(
     return (p if p.is_file() else None), tried
 
 
+def urdf_mesh_files(urdf_path: str | Path) -> list[tuple[str, Path]]:
+    """(filename as written, resolved file) of every <mesh> a URDF references (visual and collision;
+    resolved as `load_robot` does, with no package_dirs); a mesh not found is left out."""
+    urdf_path = Path(urdf_path).resolve()
+    try:
+        root = ElementTree.fromstring(urdf_path.read_bytes())
+    except ElementTree.ParseError as exc:
+        raise URDFError(f"{urdf_path}: malformed XML ({exc}); fix the file") from exc
+    out = {}
+    for mesh in root.iter("mesh"):
+        name = mesh.get("filename", "")
+        try:
+            path, _ = _resolve_filename(name, urdf_path.parent, ())
+        except URDFError as exc:
+            raise URDFError(f"{urdf_path}: {exc}") from None
+        if path is not None:
+            out[name] = path
+    return list(out.items())
+
+
 def _check_size(urdf_path: Path, link: str, what: str, values, n: int) -> np.ndarray:
     try:
         arr = np.asarray(values, dtype=np.float64).reshape(-1)

@@ -545,9 +545,8 @@ def _robot_json(spec: RobotSpec, root: Path) -> dict:
         src = Path(spec.urdf).resolve()
         if src.is_relative_to(root.resolve()):
             out["urdf"] = src.relative_to(root.resolve()).as_posix()
-        else:  # copy the URDF's folder (its meshes are referenced relative to it)
-            dest = root / "robot"
-            shutil.copytree(src.parent, dest, dirs_exist_ok=True)
+        else:  # copy the URDF and the meshes it references (nothing else of its folder)
+            _copy_urdf(src, root / "robot")
             out["urdf"] = f"robot/{src.name}"
     if spec.gaussians is not None:
         (root / "robot").mkdir(exist_ok=True)
@@ -560,6 +559,24 @@ def _robot_json(spec: RobotSpec, root: Path) -> dict:
             "q": None if spec.gaussians_q is None else list(spec.gaussians_q),
         }
     return out
+
+
+def _copy_urdf(src: Path, dest: Path) -> None:
+    """Copy a URDF and each mesh it references to `dest`, where the copy finds them as the original does:
+    a relative path at the same place under `dest`, package://PKG/REL at `dest`/PKG/REL."""
+    from twinbench.robot.model import urdf_mesh_files
+
+    dest.mkdir(parents=True, exist_ok=True)
+    shutil.copyfile(src, dest / src.name)
+    for name, path in urdf_mesh_files(src):
+        if name.startswith("package://"):
+            rel = Path(name[len("package://"):])
+        elif path.resolve().is_relative_to(src.parent):
+            rel = path.resolve().relative_to(src.parent)
+        else:  # an absolute path the copy still reads where it is
+            continue
+        (dest / rel).parent.mkdir(parents=True, exist_ok=True)
+        shutil.copyfile(path, dest / rel)
 
 
 def _write_mesh(vertices, faces, path: Path) -> None:

@@ -19,6 +19,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from twinbench.errors import check_name
 from twinbench.gaussians.cloud import GaussianCloud
 from twinbench.gaussians.colormap import apply_color_map, check_color_map
 from twinbench.gaussians.response import CameraResponse
@@ -176,8 +177,7 @@ class ObjectSpec:
 
     def __post_init__(self) -> None:
         where = f"objects[{self.name!r}]"
-        if not isinstance(self.name, str) or not self.name:
-            raise ValueError("objects: every object needs a non-empty name")
+        check_name(self.name, "objects: name")  # it names the object's files
         p = np.asarray(self.particles)
         if p.ndim != 2 or p.shape[1] != 3 or len(p) == 0 or not np.all(np.isfinite(p)):
             raise ValueError(f"{where}.particles: expected a finite (P, 3) array, got shape {p.shape}")
@@ -237,7 +237,7 @@ class ColliderSpec:
     channel: tuple[float, float, float] | None = None
 
     def __post_init__(self) -> None:
-        where = f"colliders[{self.name!r}]"
+        where = f"colliders[{check_name(self.name, 'colliders: name')!r}]"  # it names files
         v, f = np.asarray(self.vertices), np.asarray(self.faces)
         if v.ndim != 2 or v.shape[1] != 3 or len(v) < 3 or not np.all(np.isfinite(v)):
             raise ValueError(f"{where}.mesh: expected finite (V, 3) vertices, got {v.shape}")
@@ -274,7 +274,7 @@ class CameraSpec:
     response: CameraResponse | None = None
 
     def __post_init__(self) -> None:
-        where = f"cameras[{self.name!r}]"
+        where = f"cameras[{check_name(self.name, 'cameras: name')!r}]"  # it names image files
         if self.response is not None and not isinstance(self.response, CameraResponse):
             raise ValueError(f"{where}.response: expected a CameraResponse or None, "
                              f"got {type(self.response).__name__}")
@@ -329,6 +329,7 @@ class TwinSpec:
     render_background: tuple[float, float, float] = (0.45, 0.45, 0.47)
 
     def __post_init__(self) -> None:
+        check_name(self.name, "name")  # it names output folders
         object.__setattr__(self, "objects", tuple(self.objects))
         object.__setattr__(self, "cameras", tuple(self.cameras))
         object.__setattr__(self, "colliders", tuple(self.colliders))
