@@ -28,7 +28,9 @@ from twinbench.robot.controller import ControllerConfig
 from twinbench.twin.shapes import Outline
 
 BINDINGS = ("rigid", "lbs")
-BUILTIN_ROBOTS = {"builtin:xarm7_pusher": "pusher", "builtin:xarm7_gripper": "gripper"}
+BUILTIN_ROBOTS = {
+    "builtin:xarm7_pusher": "pusher", "builtin:xarm7_pusher20": "pusher20", "builtin:xarm7_gripper": "gripper"
+}
 
 
 def _pose(name: str, value) -> np.ndarray:
@@ -77,15 +79,16 @@ class ContactSpec:
 
 @dataclass(frozen=True, eq=False)
 class RobotSpec:
-    """The robot: its URDF (a path, or a built-in name `builtin:xarm7_pusher` / `builtin:xarm7_gripper`),
-    end-effector and contact links, gripper joint, and its Gaussians.
+    """The robot: its URDF (a path, or a built-in name `builtin:xarm7_pusher`, `builtin:xarm7_pusher20` (the
+    reference study's 20 cm pusher) or `builtin:xarm7_gripper`), end-effector and contact links, gripper
+    joint, and its Gaussians.
 
     Gaussians: a registered scan in the world frame at configuration `gaussians_q` (default `home_q`),
     each labelled with a link (`gaussian_labels` index `gaussian_links`); or, when `gaussians` is None,
     discs sampled on the URDF's visual meshes every `scan_spacing` metres (built-in robots).
 
     `tool_radius`: the radius (m) of the tool tip that pushes (a pusher rod; None for other tools). The
-    built-in pusher's is its rod's (`twinbench.robot.builtin.PUSHER_RADIUS`), filled in when omitted.
+    built-in pushers' is their rod's (`twinbench.robot.builtin.PUSHERS`), filled in when omitted.
     """
 
     urdf: str
@@ -131,14 +134,15 @@ class RobotSpec:
             raise ValueError(
                 f"robot.tool_radius: expected a finite radius > 0 (m) or null, got {self.tool_radius!r}"
             )
-        if self.builtin_tool == "pusher":
-            from twinbench.robot.builtin import PUSHER_RADIUS
+        if self.builtin_tool in ("pusher", "pusher20"):
+            from twinbench.robot.builtin import PUSHERS
 
+            radius = PUSHERS[self.builtin_tool][0]
             if self.tool_radius is None:
-                object.__setattr__(self, "tool_radius", PUSHER_RADIUS)
-            elif self.tool_radius != PUSHER_RADIUS:
+                object.__setattr__(self, "tool_radius", radius)
+            elif self.tool_radius != radius:
                 raise ValueError(
-                    f"robot.tool_radius: the built-in pusher's rod has radius {PUSHER_RADIUS} m, got "
+                    f"robot.tool_radius: the built-in pusher's rod has radius {radius} m, got "
                     f"{self.tool_radius}; omit it, or give the URDF of your own tool"
                 )
 
