@@ -37,6 +37,7 @@ from __future__ import annotations
 
 import io
 import json
+import math
 import pickle
 import re
 import zipfile
@@ -77,6 +78,14 @@ CHECKPOINT_KEYS = ("spring_Y", "collide_elas", "collide_fric", "collide_object_e
 PHYSTWIN_INT_FIELDS = ("object_max_neighbours", "controller_max_neighbours", "drag_damping",
                        "dashpot_damping")
 FLIP_Z = np.diag([1.0, -1.0, -1.0, 1.0])  # half a turn about x: PhysTwin reverse_z frame <-> z up
+
+
+# What the restricted reader builds at most (a trained case holds a few arrays of some MB): bytes of array
+# data per file, values in the loaded tree (a value shared by several parents counted at each), nesting.
+MAX_BYTES = 1 << 29
+MAX_VALUES = 1_000_000
+MAX_DEPTH = 64
+MAX_TORCH_PICKLE = 16 << 20  # a torch archive's data.pkl (its tensors' data are separate records)
 
 
 class PhysTwinFormatError(InputError):
@@ -150,7 +159,10 @@ def _rebuild_tensor(storage, storage_offset, size, stride, requires_grad=False, 
     if len(size) != len(stride) or off < 0 or any(s < 0 for s in size) or any(s < 0 for s in stride):
         raise PhysTwinFormatError(f"tensor with invalid size {size} / stride {stride} / offset {off}")
     n = storage.data.shape[0]
-    if int(np.prod(size)) == 0:
+    count = math.prod(size)
+    if count * storage.data.itemsize > MAX_BYTES:
+        raise PhysTwinFormatError(f"tensor of size {size} exceeds {MAX_BYTES >> 20} MiB")
+    if count == 0:
         return np.zeros(size, dtype=storage.data.dtype)
     last = off + sum((sz - 1) * st for sz, st in zip(size, stride, strict=True))
     if last >= n:
@@ -173,9 +185,35 @@ _TORCH_GLOBALS = {
 }
 
 
+class _Records:
+    """A torch archive's storage records, each read (decompressed) only as far as its tensor needs, all of
+    them together at most MAX_BYTES: a record that inflates without bound is never read whole."""
+
+    def __init__(self, zf: zipfile.ZipFile, prefix: str, source: str):
+        self._zf, self._source = zf, source
+        self._infos = {i.filename[len(prefix) + 5:]: i for i in zf.infolist()
+                       if i.filename.startswith(prefix + "data/")}
+        self._read: dict[str, bytes] = {}
+        self._left = MAX_BYTES
+
+    def get(self, key: str, nbytes: int) -> bytes | None:
+        info = self._infos.get(key)
+        if info is None:
+            return None
+        have = self._read.get(key, b"")
+        if len(have) < nbytes:
+            if nbytes - len(have) > self._left:
+                raise PhysTwinFormatError(f"{self._source}: data/{key}: the tensors need more than "
+                                          f"{MAX_BYTES >> 20} MiB; not a PhysTwin checkpoint")
+            with self._zf.open(info) as f:
+                have = f.read(nbytes)
+            self._left -= len(have) - len(self._read.get(key, b""))
+            self._read[key] = have
+        return have[:nbytes]
+
+
 class _RestrictedUnpickler(pickle.Unpickler):
-    def __init__(self, file, *, source: str, records: dict[str, bytes] | None = None,
-                 byteorder: str = "little"):
+    def __init__(self, file, *, source: str, records: _Records | None = None, byteorder: str = "little"):
         super().__init__(file)
         self._source = source
         self._records = records
@@ -202,7 +240,11 @@ class _RestrictedUnpickler(pickle.Unpickler):
         _, stype, key, _location, numel = pid
         if not isinstance(stype, _StorageType):
             raise PhysTwinFormatError(f"{self._source}: storage of unknown type {stype!r:.80}")
-        raw = self._records.get(str(key))
+        if isinstance(numel, bool) or not isinstance(numel, int) or numel < 0:
+            raise PhysTwinFormatError(f"{self._source}: data/{key}: element count {type(numel).__name__} "
+                                      "is not a count")
+        nbytes = numel * (2 if stype.dtype is None else stype.dtype.itemsize)
+        raw = self._records.get(str(key), nbytes)
         if raw is None:
             raise PhysTwinFormatError(f"{self._source}: the archive has no data/{key} record")
         if stype.dtype is None:  # bfloat16 -> float32 (upper 16 bits)
@@ -218,77 +260,134 @@ class _RestrictedUnpickler(pickle.Unpickler):
         return _Storage(data)
 
 
-def _check_plain(obj, source: str, where: str = "") -> None:
-    """Reject anything but plain values and non-object numpy arrays/scalars in the loaded tree."""
-    if obj is None or isinstance(obj, (bool, int, float, str, bytes)):
-        return
-    if isinstance(obj, np.ndarray | np.generic):
-        if obj.dtype.hasobject:
-            raise PhysTwinFormatError(f"{source}: {where or 'value'} is an object array; only plain arrays")
-        return
-    if isinstance(obj, dict):
-        for k, v in obj.items():
-            _check_plain(k, source, where)
-            _check_plain(v, source, f"{where}[{k!r}]")
-        return
-    if isinstance(obj, (list, tuple)):
-        for i, v in enumerate(obj):
-            _check_plain(v, source, f"{where}[{i}]")
-        return
-    raise PhysTwinFormatError(
-        f"{source}: {where or 'value'} has type {type(obj).__name__}, not a plain value"
-    )
+def _label(key) -> str:
+    return repr(key)[:40] if isinstance(key, (str, int, float, bytes)) else type(key).__name__
+
+
+def _check_plain(obj, source: str) -> None:
+    """Reject anything but plain values and non-object numpy arrays/scalars in the loaded tree, a tree
+    deeper than MAX_DEPTH, one that contains itself, and one of more than MAX_VALUES values or MAX_BYTES
+    of arrays counting a shared value at each of its parents (a small file of shared references can
+    stand for 2^60 values). Iterative and linear in the distinct values."""
+    sizes: dict[int, tuple[int, int]] = {}  # id -> (values, array bytes) of the value's expanded tree
+    open_: set[int] = set()
+    stack = [(obj, "", 0, False)]
+    while stack:
+        value, where, depth, done = stack.pop()
+        key = id(value)
+        if value is None or isinstance(value, (bool, int, float, str, bytes)):
+            sizes[key] = (1, 0)
+            continue
+        if isinstance(value, np.ndarray | np.generic):
+            if value.dtype.hasobject:
+                raise PhysTwinFormatError(f"{source}: {where or 'value'} is an object array; "
+                                          "only plain arrays")
+            sizes[key] = (1, value.nbytes)
+            continue
+        if not isinstance(value, (dict, list, tuple)):
+            raise PhysTwinFormatError(f"{source}: {where or 'value'} has type {type(value).__name__}, "
+                                      "not a plain value")
+        items = [(v, f"{where}[{_label(k)}]") for k, v in value.items()] + [(k, where) for k in value] \
+            if isinstance(value, dict) else [(v, f"{where}[{i}]") for i, v in enumerate(value)]
+        if done:
+            open_.discard(key)
+            n = 1 + sum(sizes[id(v)][0] for v, _ in items)
+            b = sum(sizes[id(v)][1] for v, _ in items)
+            if n > MAX_VALUES or b > MAX_BYTES:
+                raise PhysTwinFormatError(
+                    f"{source}: {where or 'the file'} expands to more than {MAX_VALUES} values or "
+                    f"{MAX_BYTES >> 20} MiB of arrays (shared references); not a PhysTwin case file")
+            sizes[key] = (n, b)
+            continue
+        if key in sizes:
+            continue
+        if key in open_:
+            raise PhysTwinFormatError(f"{source}: {where or 'value'} contains itself; "
+                                      "not a PhysTwin case file")
+        if depth >= MAX_DEPTH:
+            raise PhysTwinFormatError(f"{source}: {where[:80] or 'value'}...: nested more than {MAX_DEPTH} "
+                                      "deep; not a PhysTwin case file")
+        open_.add(key)
+        stack.append((value, where, depth, True))
+        stack.extend((v, w, depth + 1, False) for v, w in items if id(v) not in sizes)
+
+
+def _scan_opcodes(data: bytes, source: str) -> None:
+    """Refuse a pickle stream whose memo slots are far beyond its length before unpickling it (the
+    unpickler sizes its memo to the largest slot: a 1 kB file could ask for gigabytes)."""
+    import pickletools
+
+    try:
+        for count, (op, arg, _) in enumerate(pickletools.genops(data)):
+            if op.name in ("PUT", "BINPUT", "LONG_BINPUT", "GET", "BINGET", "LONG_BINGET") and (
+                not isinstance(arg, int) or not 0 <= arg <= count
+            ):
+                raise PhysTwinFormatError(f"{source}: memo slot {arg!r:.40} at opcode {count} is out of "
+                                          "range; not a pickle written by pickle.dump")
+    except PhysTwinFormatError:
+        raise
+    except Exception as exc:  # noqa: BLE001 - malformed streams raise many types
+        raise PhysTwinFormatError(f"{source}: not a readable pickle ({type(exc).__name__}: {exc})") from None
+
+
+def _unpickle(data: bytes, source: str, what: str, **kw) -> object:
+    _scan_opcodes(data, source)
+    try:
+        obj = _RestrictedUnpickler(io.BytesIO(data), source=source, **kw).load()
+    except PhysTwinFormatError:
+        raise
+    except Exception as exc:  # noqa: BLE001 - malformed streams raise many types
+        raise PhysTwinFormatError(f"{source}: not a readable {what} ({type(exc).__name__}: {exc})") from None
+    _check_plain(obj, source)
+    return obj
 
 
 def load_pickle(path) -> object:
     """Safely read a pickle of numpy arrays and plain values (e.g. final_data.pkl, optimal_params.pkl)."""
     path = Path(path)
     try:
+        if path.stat().st_size > MAX_BYTES:
+            raise PhysTwinFormatError(f"{path}: larger than {MAX_BYTES >> 20} MiB; not a PhysTwin case file")
         data = path.read_bytes()
     except OSError as exc:
         raise PhysTwinFormatError(f"{path}: cannot read ({exc})") from exc
-    try:
-        obj = _RestrictedUnpickler(io.BytesIO(data), source=str(path)).load()
-    except PhysTwinFormatError:
-        raise
-    except Exception as exc:  # noqa: BLE001 - malformed streams raise many types
-        raise PhysTwinFormatError(f"{path}: not a readable pickle ({type(exc).__name__}: {exc})") from exc
-    _check_plain(obj, str(path))
-    return obj
+    return _unpickle(data, str(path), "pickle")
 
 
 def load_torch_zip(path) -> object:
-    """Safely read a `torch.save` zip archive (tensors come back as numpy arrays; torch not needed)."""
+    """Safely read a `torch.save` zip archive (tensors come back as numpy arrays; torch not needed). A
+    damaged archive or one whose records inflate beyond what its tensors need is a PhysTwinFormatError."""
     path = Path(path)
     if not zipfile.is_zipfile(path):
         raise PhysTwinFormatError(
             f"{path}: not a torch zip archive (the legacy pre-1.6 format is not read); re-save it with "
             "torch.save in a current torch"
         )
-    with zipfile.ZipFile(path) as zf:
-        names = zf.namelist()
-        pkl = [n for n in names if n.endswith("data.pkl") and n.count("/") == 1]
-        if len(pkl) != 1:
-            raise PhysTwinFormatError(f"{path}: expected one PREFIX/data.pkl in the archive, found {pkl}")
-        prefix = pkl[0][: -len("data.pkl")]
-        records = {n[len(prefix) + 5:]: zf.read(n) for n in names if n.startswith(prefix + "data/")}
-        byteorder = "little"
-        if prefix + "byteorder" in names:
-            byteorder = zf.read(prefix + "byteorder").decode("ascii", "replace").strip()
-            if byteorder not in ("little", "big"):
-                raise PhysTwinFormatError(f"{path}: unknown byteorder {byteorder!r}")
-        data = zf.read(pkl[0])
     try:
-        obj = _RestrictedUnpickler(io.BytesIO(data), source=str(path), records=records,
-                                   byteorder=byteorder).load()
+        with zipfile.ZipFile(path) as zf:
+            names = zf.namelist()
+            pkl = [n for n in names if n.endswith("data.pkl") and n.count("/") == 1]
+            if len(pkl) != 1:
+                raise PhysTwinFormatError(f"{path}: expected one PREFIX/data.pkl in the archive, found {pkl}")
+            prefix = pkl[0][: -len("data.pkl")]
+            byteorder = "little"
+            if prefix + "byteorder" in names:
+                with zf.open(prefix + "byteorder") as f:
+                    byteorder = f.read(16).decode("ascii", "replace").strip()
+                if byteorder not in ("little", "big"):
+                    raise PhysTwinFormatError(f"{path}: unknown byteorder {byteorder!r}")
+            with zf.open(pkl[0]) as f:
+                data = f.read(MAX_TORCH_PICKLE + 1)
+            if len(data) > MAX_TORCH_PICKLE:
+                raise PhysTwinFormatError(f"{path}: {pkl[0]} inflates beyond {MAX_TORCH_PICKLE >> 20} MiB")
+            return _unpickle(data, str(path), "torch archive", records=_Records(zf, prefix, str(path)),
+                             byteorder=byteorder)
     except PhysTwinFormatError:
         raise
-    except Exception as exc:  # noqa: BLE001
+    except Exception as exc:  # noqa: BLE001 - a damaged archive (BadZipFile, zlib.error, EOFError, ...)
         raise PhysTwinFormatError(
-            f"{path}: not a readable torch archive ({type(exc).__name__}: {exc})"
-        ) from exc
-    _check_plain(obj, str(path))
-    return obj
+            f"{path}: a damaged zip archive ({type(exc).__name__}: {exc}); re-save it with torch.save"
+        ) from None
 
 
 # ------------------------------------------------------------------------------------------------
