@@ -1,0 +1,86 @@
+"""Perception controllers (twinbench.study.policies): the T's pose estimated from the front camera image of
+the push-T fast cell, against the true pose (known answers), and the config file's checks."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from twinbench.errors import InputError
+from twinbench.study import policies as P
+
+POS_TOL_M = 0.008  # measured: <= 5 mm on the 16 grid states
+ANGLE_TOL_RAD = np.deg2rad(3.0)  # measured: <= 2.5 deg
+
+
+@pytest.fixture(scope="module")
+def scene():
+    from twinbench.tasks import get_task
+
+    env = get_task("push-t").make_env(preset="fast", environment_state=True)
+    u = env.unwrapped
+    cam = u.twin.camera(u.state, "front")
+    frames = {}
+    for i in (0, 6, 9, 15):
+        obs, _ = env.reset(seed=0, options={"init_state": i})
+        frames[i] = (obs["pixels"]["front"], np.asarray(obs["environment_state"][:3], np.float64))
+    yield u, cam, frames
+    env.close()
+
+
+def _colors(u, cam, frames, state=0):
+    """The colour model from one labelled image (the block's pixels from its known pose)."""
+    overlay = P._overlay(u, "front")
+    probe = P.TPoseEstimator(u.rules.outline, cam, {"plain": {"mean": [0, 0, 0], "cov": np.eye(3).tolist()}})
+    img, pose = frames[state]
+    mask = P.label_mask(probe, pose)
+    return P.fit_colors({"plain": [img[mask & ~overlay]], "overlay": [img[mask & overlay]]})
+
+
+def _angle(a: float) -> float:
+    return abs((a + np.pi) % (2 * np.pi) - np.pi)
+
+
+def test_pose_from_clean_images_matches_the_true_pose(scene):
+    u, cam, frames = scene
+    est = P.TPoseEstimator(u.rules.outline, cam, _colors(u, cam, frames), overlay=P._overlay(u, "front"))
+    for i in (6, 9, 15):  # states the colours were not fitted on: 3 positions, 3 headings of the grid
+        img, true = frames[i]
+        got = est.estimate(img)
+        assert got is not None, i
+        assert np.linalg.norm(got[:2] - true[:2]) < POS_TOL_M, (i, got, true)
+        assert _angle(got[2] - true[2]) < ANGLE_TOL_RAD, (i, got, true)
+        tracked = est.estimate(img, previous=true + [0.01, -0.01, 0.15])  # tracking from a stale estimate
+        assert np.linalg.norm(tracked[:2] - true[:2]) < POS_TOL_M and _angle(tracked[2] - true[2]) < ANGLE_TOL_RAD
+
+
+def test_wrong_colours_are_not_seen(scene):
+    """A camera whose colours differ from the calibration (here R and B swapped) loses the block: what makes
+    a twin's appearance matter to these policies."""
+    u, cam, frames = scene
+    est = P.TPoseEstimator(u.rules.outline, cam, _colors(u, cam, frames), overlay=P._overlay(u, "front"))
+    img, _ = frames[6]
+    assert est.segment(img).sum() > 1000
+    assert est.estimate(img[..., ::-1].copy()) is None
+
+
+def test_config_round_trip_and_errors(tmp_path):
+    cfgs = P.levels({"plain": {"mean": [1, 2, 3], "cov": np.eye(3).tolist()}})
+    assert len(cfgs) >= 8
+    path = P.write_config(cfgs["p2-lag5"], tmp_path / "p.json")
+    assert P.read_config(path) == cfgs["p2-lag5"]
+    (tmp_path / "bad.json").write_text('{"colors": {}, "gain": 0}')
+    with pytest.raises(InputError, match="gain must be > 0"):
+        P.read_config(tmp_path / "bad.json")
+    (tmp_path / "odd.json").write_text('{"colours": {}}')
+    with pytest.raises(InputError, match="colors"):
+        P.read_config(tmp_path / "odd.json")
+    with pytest.raises(InputError, match="does not exist"):
+        P.read_config(tmp_path / "missing.json")
+
+
+def test_policy_kind_parses_through_the_registry():
+    from twinbench.policies.spec import parse_policy_spec
+
+    spec = parse_policy_spec("p0=perceive:/some/where/p0.json")
+    assert (spec.kind, spec.name, spec.target) == ("perceive", "p0", "/some/where/p0.json")
