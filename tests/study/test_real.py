@@ -1,0 +1,70 @@
+"""make_real: the hidden real workcell differs from the task's cell as issue #24 asks (finer object with
+stiffness varying over 3 regions, other mass and contact, camera responses), is a loadable twin, and is
+reproducible from its seed."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from twinbench.study.real import make_real, task_cell
+from twinbench.twin import load_twin
+
+
+@pytest.fixture(scope="module")
+def real(tmp_path_factory):
+    return make_real("push-t", 0, tmp_path_factory.mktemp("real") / "REAL", "small")
+
+
+def test_real_workcell_differs_from_the_cell(real):
+    hidden = json.loads((real / "hidden.json").read_text())
+    spec, cell = load_twin(real / "world"), task_cell("push-t", "small")
+    obj, cell_obj = spec.objects[0], cell.objects[0]
+    # a finer layout than the cell's (a reconstruction works at the cell's spacing)
+    assert obj.num_particles > 2 * cell_obj.num_particles == 2 * hidden["object"]["cell_particles"]
+    # stiffness: 3 regions along the long axis, factors 0.3-3x of the cell's Y, one soft and one stiff
+    factors = np.asarray(hidden["object"]["regions"]["factors"])
+    assert len(factors) == 3 and factors.min() < 0.6 and factors.max() > 1.6
+    assert np.all((factors >= 0.3) & (factors <= 3.0))
+    ratio = np.asarray(obj.spring_Y) / cell_obj.spring_Y
+    assert np.allclose(np.unique(ratio.round(9)), np.sort(factors).round(9))
+    assert min(hidden["object"]["regions"]["springs_per_region"]) > 100
+    # explicit springs between near neighbours of the finer lattice
+    lengths = np.linalg.norm(obj.particles[obj.springs[:, 0]] - obj.particles[obj.springs[:, 1]], axis=1)
+    assert lengths.max() < 2.0 * hidden["object"]["spacing"] < hidden["object"]["cell_spacing"] * 1.5
+    total = float(np.sum(np.broadcast_to(obj.mass, (obj.num_particles,))))
+    assert total == pytest.approx(hidden["object"]["mass_total"])
+    assert total != pytest.approx(cell_obj.num_particles * 1.0, rel=0.05)
+    for key in ("ground_friction", "ground_restitution", "drag_damping", "dashpot_damping"):
+        assert getattr(spec.sim, key) == pytest.approx(hidden["sim"][key])
+        assert getattr(spec.sim, key) != pytest.approx(getattr(cell.sim, key), rel=0.02)
+    assert spec.sim.substeps >= cell.sim.substeps
+    assert spec.sim.dt * spec.sim.substeps == pytest.approx(cell.sim.dt * cell.sim.substeps)
+    assert spec.robot.tool_contact.friction == pytest.approx(hidden["tool_contact"]["friction"])
+    # every camera has a response that is not the identity, and sits slightly off the cell's pose
+    for cam, cell_cam in zip(spec.cameras, cell.cameras, strict=True):
+        assert cam.response is not None and not cam.response.is_identity
+        assert cam.response.to_dict() == hidden["cameras"][cam.name]["response"]
+        shift = np.linalg.norm(cam.pose[:3, 3] - cell_cam.pose[:3, 3])
+        assert 0.001 < shift < 0.02
+    # the task's geometry stays the task's (outline, goal)
+    assert obj.outline is not None and np.allclose(obj.goal_pose, cell_obj.goal_pose)
+
+
+def test_real_is_reproducible_from_its_seed(real, tmp_path):
+    again = make_real("push-t", 0, tmp_path / "again", "small")
+    other = make_real("push-t", 1, tmp_path / "other", "small")
+    assert (again / "hidden.json").read_text() == (real / "hidden.json").read_text()
+    assert (again / "world/twin.json").read_text() == (real / "world/twin.json").read_text()
+    assert (other / "hidden.json").read_text() != (real / "hidden.json").read_text()
+
+
+def test_bad_task_and_size_named(tmp_path):
+    from twinbench.errors import InputError
+
+    with pytest.raises(InputError, match="study task"):
+        make_real("push-x", 0, tmp_path / "x")
+    with pytest.raises(InputError, match="study size"):
+        make_real("push-t", 0, tmp_path / "x", size="huge")
