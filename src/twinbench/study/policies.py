@@ -34,7 +34,7 @@ class PerceptionConfig:
     colors: dict  # {"plain" | "overlay": {"mean": [3], "cov": [[3x3]]}} (0-255 RGB), see calibrate_colors
     camera: str = "front"
     threshold: float = CHI2_3_999  # squared Mahalanobis distance to the T's colour
-    camera_model: dict | None = None  # {"fx", "fy", "cx", "cy", "width", "height", "cam_to_world"}; None: env's
+    camera_model: dict | None = None  # {fx, fy, cx, cy, width, height, cam_to_world}; None: the env's
     noise_m: float = 0.0
     noise_rad: float = 0.0
     latency: int = 0
@@ -54,7 +54,7 @@ class PerceptionConfig:
             raise InputError(f"{where}: fields must be among {sorted(known)} with 'colors' required "
                              f"(write it with twinbench.study.policies.write_config); unknown: {unknown}")
         cfg = cls(**d)
-        if not (cfg.gain > 0 and cfg.period >= 1 and cfg.latency >= 0 and cfg.noise_m >= 0 and cfg.noise_rad >= 0):
+        if not (cfg.gain > 0 and cfg.period >= 1 and min(cfg.latency, cfg.noise_m, cfg.noise_rad) >= 0):
             raise InputError(f"{where}: gain must be > 0, period >= 1, latency, noise_m, noise_rad >= 0")
         return cfg
 
@@ -279,7 +279,7 @@ def _overlay(u, camera: str) -> np.ndarray:
     return np.zeros((h, w), bool)
 
 
-# ---- the controller -----------------------------------------------------------------------------------------
+# ---- the controller ----------------------------------------------------------------------------------
 class PerceptionPushT:
     """The push-T expert acting on poses estimated from images (see the module docstring)."""
 
@@ -292,13 +292,14 @@ class PerceptionPushT:
         self.cfg, self.seed = cfg, int(seed)
         self.expert = make_expert(env)
         cam = _camera(cfg.camera_model) if cfg.camera_model else u.twin.camera(u.state, cfg.camera)
-        self.estimator = TPoseEstimator(u.rules.outline, cam, cfg.colors, cfg.threshold, _overlay(u, cfg.camera),
-                                        cfg.min_pixels)
+        self.estimator = TPoseEstimator(u.rules.outline, cam, cfg.colors, cfg.threshold,
+                                        _overlay(u, cfg.camera), cfg.min_pixels)
         self.goal = pose_xytheta(u.rules.goal)
         lo, hi = u.rules.outline.bounds()
         g = np.mgrid[lo[0]:hi[0]:0.005, lo[1]:hi[1]:0.005].reshape(2, -1).T
         self._area = g[u.rules.outline.contains(g, tol=1e-6)]  # footprint samples for the estimated msd
-        self.low, self.high = env.action_space.low.astype(np.float64), env.action_space.high.astype(np.float64)
+        space = env.action_space
+        self.low, self.high = np.asarray(space.low, np.float64), np.asarray(space.high, np.float64)
         self.reset()
 
     def reset(self) -> None:

@@ -1,0 +1,128 @@
+"""`twinbench study make-real | evidence | reconstruct | evaluate | run`: a predictive-validity study on a
+hidden "real" workcell (twinbench.study). `run` does every stage into one folder:
+
+    twinbench study run --task push-t --out study_pusht --size small
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Annotated
+
+import tyro
+
+
+@dataclass(frozen=True)
+class MakeRealConfig:
+    """Write the hidden real workcell REAL/world (a twin directory) and REAL/hidden.json."""
+
+    out: Path
+    """the folder REAL"""
+    task: str = "push-t"
+    seed: int = 0
+    size: str = "small"
+    """small (the fast cell) | full (the reference cell)"""
+
+
+@dataclass(frozen=True)
+class EvidenceConfig:
+    """Write the evidence a user would have of REAL (scan, boxes, calibration, paired images, motion)."""
+
+    real: tyro.conf.Positional[Path]
+    """the folder make-real wrote"""
+    out: Path
+    seed: int = 0
+    size: str = "small"
+
+
+@dataclass(frozen=True)
+class ReconstructConfig:
+    """Rebuild twins from the evidence with the public CLI (printing each command), one per variant."""
+
+    evidence: tyro.conf.Positional[Path]
+    out: Path
+    variants: tuple[str, ...] = ("full", "no-color", "no-physics", "neither")
+
+
+@dataclass(frozen=True)
+class EvaluateConfig:
+    """Calibrate the perception policies on the real workcell, evaluate them on it and on every twin of
+    DIR/twins, write DIR/study.json and DIR/report.html (DIR as `study run` lays it out)."""
+
+    out: tyro.conf.Positional[Path]
+    """the study folder: DIR/real/world and DIR/twins/<variant> must exist"""
+    task: str = "push-t"
+    size: str = "small"
+    workers: int = 1
+
+
+@dataclass(frozen=True)
+class RunConfig:
+    """Every stage: make-real, evidence, reconstruct, policies, evaluate, report (timed in study.json)."""
+
+    out: Path
+    task: str = "push-t"
+    size: str = "small"
+    """small: the fast cell, 4 grid states, 15 s episodes | full: the reference cell, every grid state"""
+    seed: int = 0
+    workers: int = 1
+    """evaluation worker processes"""
+
+
+StudyCommand = (
+    Annotated[MakeRealConfig, tyro.conf.subcommand("make-real")]
+    | Annotated[EvidenceConfig, tyro.conf.subcommand("evidence")]
+    | Annotated[ReconstructConfig, tyro.conf.subcommand("reconstruct")]
+    | Annotated[EvaluateConfig, tyro.conf.subcommand("evaluate")]
+    | Annotated[RunConfig, tyro.conf.subcommand("run")]
+)
+
+
+def _evaluate(cfg: EvaluateConfig) -> int:
+    from twinbench.errors import InputError
+    from twinbench.study.evaluate import format_table, make_policies, run_evaluations, write_study_json
+    from twinbench.study.report import write_study_report
+
+    real, twins_dir = cfg.out / "real" / "world", cfg.out / "twins"
+    twins = {p.name: p for p in sorted(twins_dir.iterdir()) if (p / "twin.json").is_file()} if (
+        twins_dir.is_dir()) else {}
+    if not real.is_dir() or not twins:
+        raise InputError(f"{cfg.out}: needs real/world (study make-real) and twins/<variant> (study "
+                         "reconstruct); `twinbench study run` makes them")
+    order = ("full", "no-color", "no-physics", "neither")
+    twins = dict(sorted(twins.items(), key=lambda kv: (order.index(kv[0]) if kv[0] in order else 9, kv[0])))
+    policies = make_policies(cfg.task, real, cfg.out / "policies", cfg.size, twins.get("full"))
+    times = run_evaluations(cfg.task, real, twins, policies, cfg.out, cfg.size, cfg.workers)
+    doc = write_study_json(cfg.out, cfg.task, cfg.size, list(twins), times, {"policies": policies})
+    write_study_report(cfg.out, doc)
+    print(format_table(doc))
+    print(f"wrote {cfg.out / 'study.json'} and {cfg.out / 'report.html'}")
+    return 0
+
+
+def main(cfg) -> int:
+    if isinstance(cfg, MakeRealConfig):
+        from twinbench.study.real import make_real
+
+        print(f"wrote {make_real(cfg.task, cfg.seed, cfg.out, cfg.size)}")
+    elif isinstance(cfg, EvidenceConfig):
+        from twinbench.study.evidence import make_evidence
+
+        print(f"wrote {make_evidence(cfg.real, cfg.out, cfg.seed, cfg.size)}")
+    elif isinstance(cfg, ReconstructConfig):
+        from twinbench.study.reconstruct import reconstruct
+
+        for variant, path in reconstruct(cfg.evidence, cfg.out, cfg.variants).items():
+            print(f"{variant}: {path}")
+    elif isinstance(cfg, EvaluateConfig):
+        return _evaluate(cfg)
+    else:
+        from twinbench.study.evaluate import format_table
+        from twinbench.study.run import run_study
+
+        doc = run_study(cfg.task, cfg.out, cfg.size, cfg.seed, cfg.workers)
+        print(format_table(doc))
+        print("stage wall times: " + ", ".join(f"{k} {v:.0f} s" for k, v in doc["stage_seconds"].items()))
+        print(f"wrote {cfg.out / 'study.json'} and {cfg.out / 'report.html'}")
+    return 0

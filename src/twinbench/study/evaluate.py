@@ -1,0 +1,184 @@
+"""A study's evaluation: every policy on the real workcell (real rollouts) and on each twin variant, through
+the evaluation runner and one results store, then per variant Pearson r and MMRV with their intervals,
+computed from the store.
+
+Store layout (DIR/results/results.sqlite): run `real-rollouts` (the runner's episodes in REAL/world),
+copied as domain "real" into run `real` (as `import-real` stores a robot's outcomes, so `twinbench report
+--real-run-id real` pairs them), and one run `twin-<variant>` per twin.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from dataclasses import asdict, dataclass, replace
+from pathlib import Path
+
+import numpy as np
+
+from twinbench.errors import InputError
+from twinbench.evaluation import metrics
+from twinbench.evaluation.runner import evaluate
+from twinbench.evaluation.store import ResultsStore
+
+REAL_ROLLOUTS, REAL = "real-rollouts", "real"
+
+
+@dataclass(frozen=True)
+class StudySize:
+    """How much a study evaluates: grid states (None: all), episode length (None: the task's) and the
+    number of colour-calibration images."""
+
+    states: tuple[int, ...] | None
+    episode_seconds: float | None
+    calibration_images: int
+
+
+SIZES = {
+    "small": StudySize((0, 6, 9, 15), 15.0, 4),
+    "full": StudySize(None, None, 8),
+}
+
+
+def study_size(size: str) -> StudySize:
+    if size not in SIZES:
+        raise InputError(f"--size {size!r}: give one of {sorted(SIZES)}")
+    return SIZES[size]
+
+
+def episodes_arg(size: StudySize) -> str:
+    return "grid" if size.states is None else "grid:" + ",".join(str(i) for i in size.states)
+
+
+def env_kwargs(world: Path, size: StudySize) -> dict:
+    out = {"twin": str(world)}
+    if size.episode_seconds is not None:
+        out["episode_seconds"] = float(size.episode_seconds)
+    return out
+
+
+def twin_run_id(variant: str) -> str:
+    return f"twin-{variant}"
+
+
+def make_policies(task: str, real_world: Path, out: Path, size: str = "small",
+                  camera_twin: Path | None = None, log=print) -> list[str]:
+    """Write the study's perception controllers to OUT (one JSON config each, plus calibration.json) and
+    return their policy specs. The T's colours are calibrated on labelled images of `real_world`; the
+    camera is `camera_twin`'s front camera (the reconstructed, calibrated one; None: each env's own)."""
+    from twinbench.study import policies as perception
+
+    if task != "push-t":
+        raise InputError(f"study policies: perception controllers exist for push-t only, not {task!r}")
+    sz = study_size(size)
+    from twinbench.tasks import get_task
+
+    n = get_task(task).n_grid_states
+    images = np.linspace(0, n - 1, sz.calibration_images).round().astype(int).tolist()
+    t0 = time.perf_counter()
+    colors = perception.calibrate_colors({"twin": str(real_world)}, images)
+    camera = None
+    if camera_twin is not None:
+        camera = perception.twin_camera(camera_twin, "front")
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "calibration.json").write_text(json.dumps(
+        {"colors": colors, "images": images, "camera_model": camera, "source": "real workcell, labelled"},
+        indent=1))
+    log(f"colour calibration on {len(images)} real images: {time.perf_counter() - t0:.1f} s")
+    specs = []
+    for name, cfg in perception.levels(colors, camera).items():
+        path = perception.write_config(cfg, out / f"{name}.json")
+        specs.append(f"{name}=perceive:{path}")
+    return specs
+
+
+def _real_records(store: ResultsStore, task: str, recs) -> None:
+    """Copy the real rollouts' records as domain "real" into run `real` (replacing earlier copies)."""
+    ok = [replace(r, run_id=REAL, domain="real") for r in recs if r.status == "ok"]
+    protocol = {"kind": "study real rollouts", "task": task, "source_run": REAL_ROLLOUTS}
+    store.start_run_with_episodes(REAL, task, protocol, ok)
+
+
+def run_evaluations(task: str, real_world: Path, twins: dict[str, Path], policies: list[str], out: Path,
+                    size: str = "small", workers: int = 1, log=print) -> dict[str, float]:
+    """Every policy on the real workcell and on each twin (resumable: the runner skips finished episodes).
+    Returns the wall time (s) of each evaluation."""
+    sz = study_size(size)
+    store = ResultsStore(out / "results" / "results.sqlite")
+    times = {}
+    for run_id, world in ((REAL_ROLLOUTS, real_world), *((twin_run_id(v), p) for v, p in twins.items())):
+        t0 = time.perf_counter()
+        recs = evaluate(task, policies, episodes=episodes_arg(sz), workers=workers, run_id=run_id,
+                        store=store, env_kwargs=env_kwargs(world, sz), output_dir=out / "results", log=log)
+        times[run_id] = time.perf_counter() - t0
+        bad = [r for r in recs if r.status != "ok"]
+        log(f"{run_id}: {sum(r.success for r in recs)}/{len(recs)} successes, {len(bad)} errors, "
+            f"{times[run_id]:.0f} s")
+        if run_id == REAL_ROLLOUTS:
+            _real_records(store, task, recs)
+    return times
+
+
+def _outcomes(store: ResultsStore, run_id: str, domain: str) -> dict[tuple[str, str], list[int]]:
+    out: dict[tuple[str, str], list[int]] = {}
+    for r in store.episodes(run_id, domain=domain):
+        if r.status == "ok":
+            out.setdefault((r.policy, r.checkpoint), []).append(int(r.success))
+    return out
+
+
+def variant_metrics(store: ResultsStore, variant: str) -> dict:
+    """Per-policy success rates in the twin `variant` and in the real workcell, Pearson r (Fisher-z
+    interval) and MMRV (bootstrap interval) over the policies both have, from the store."""
+    sim = _outcomes(store, twin_run_id(variant), "sim")
+    real = _outcomes(store, REAL, "real")
+    keys = sorted(set(sim) & set(real))
+    row: dict = {"variant": variant, "n_policies": len(keys),
+                 "n_episodes": {"sim": sum(len(sim[k]) for k in keys),
+                                "real": sum(len(real[k]) for k in keys)},
+                 "policies": [{"policy": p, "checkpoint": c, "sim": float(np.mean(sim[(p, c)])),
+                               "real": float(np.mean(real[(p, c)])), "n_sim": len(sim[(p, c)]),
+                               "n_real": len(real[(p, c)])} for p, c in keys]}
+    s = [d["sim"] for d in row["policies"]]
+    r = [d["real"] for d in row["policies"]]
+    try:
+        pr = metrics.pearson(sim=s, real=r)
+        row["pearson"] = {"r": pr.r, "low": pr.low, "high": pr.high}
+    except ValueError as err:  # fewer than 3 policies or a constant vector: r is undefined, said why
+        row["pearson"] = {"r": None, "low": None, "high": None, "why": str(err)}
+    if keys:
+        est = metrics.mmrv_bootstrap(sim=[sim[k] for k in keys], real=[real[k] for k in keys])
+        row["mmrv"] = {"value": est.value, "low": est.low, "high": est.high}
+    else:
+        row["mmrv"] = {"value": None, "low": None, "high": None}
+    return row
+
+
+def study_table(store: ResultsStore, variants) -> list[dict]:
+    return [variant_metrics(store, v) for v in variants]
+
+
+def write_study_json(out: Path, task: str, size: str, variants, stages: dict[str, float],
+                     extra: dict | None = None) -> dict:
+    """DIR/study.json: the table (per variant r with interval, MMRV with interval, n policies, n episodes)
+    from the store, the per-stage wall times and the study's settings."""
+    store = ResultsStore(out / "results" / "results.sqlite")
+    doc = {"task": task, "size": size, "settings": asdict(study_size(size)),
+           "variants": study_table(store, variants),
+           "stage_seconds": {k: round(v, 1) for k, v in stages.items()}, **(extra or {})}
+    text = json.dumps(doc, indent=1)
+    (out / "study.json").write_text(text)
+    return json.loads(text)  # as a reader of study.json sees it (lists, not tuples)
+
+
+def format_table(doc: dict) -> str:
+    """The study table as Markdown (the README's form)."""
+    lines = ["| task | variant | Pearson r [95% CI] | MMRV [95% CI] | policies | episodes (sim / real) |",
+             "|---|---|---|---|---|---|"]
+    for row in doc["variants"]:
+        p, m = row["pearson"], row["mmrv"]
+        r = "undefined" if p["r"] is None else f"{p['r']:.3f} [{p['low']:.2f}, {p['high']:.2f}]"
+        mm = "-" if m["value"] is None else f"{m['value']:.3f} [{m['low']:.3f}, {m['high']:.3f}]"
+        lines.append(f"| {doc['task']} | {row['variant']} | {r} | {mm} | {row['n_policies']} | "
+                     f"{row['n_episodes']['sim']} / {row['n_episodes']['real']} |")
+    return "\n".join(lines)

@@ -1,0 +1,117 @@
+"""The study page (DIR/report.html): the table (Pearson r and MMRV with intervals per variant), a sim-vs-real
+scatter per variant, example frame pairs real | twin (the front camera at the first grid state, as each
+env renders it, camera response included), stage times; and the evaluation report of each variant
+(`evaluation.report.write_report` of run `twin-<variant>` against the real rollouts) linked from it."""
+
+from __future__ import annotations
+
+import base64
+import io
+from pathlib import Path
+
+import numpy as np
+
+from twinbench.evaluation.report import _CSS, _e, _fig_html, _note, _table, write_report
+from twinbench.evaluation.store import ResultsStore
+
+
+def _num(x, fmt: str = ".3f") -> str:
+    return "–" if x is None else format(x, fmt)
+
+
+def _table_section(doc: dict) -> str:
+    rows = []
+    for row in doc["variants"]:
+        p, m = row["pearson"], row["mmrv"]
+        r = (_e(p.get("why", "undefined")) if p["r"] is None
+             else f"{p['r']:.3f} [{_num(p['low'], '.2f')}, {_num(p['high'], '.2f')}]")
+        mm = "–" if m["value"] is None else f"{m['value']:.3f} [{m['low']:.3f}, {m['high']:.3f}]"
+        rows.append([_e(row["variant"]), r, mm, str(row["n_policies"]),
+                     f"{row['n_episodes']['sim']} / {row['n_episodes']['real']}",
+                     f'<a href="reports/{_e(row["variant"])}.html">report</a>'])
+    return ("<h2>Sim vs real, per twin variant</h2>" + _table(
+        ["variant", "Pearson r [95% CI]", "MMRV [95% bootstrap CI]", "policies", "episodes sim / real", ""],
+        rows) + _note("r: Fisher-z interval over the policies' success rates; MMRV: mean maximum rank "
+                      "violation, 0 = the twin ranks the policies as the real workcell does."))
+
+
+def _scatter_section(doc: dict) -> str:
+    import matplotlib.pyplot as plt
+
+    rows = doc["variants"]
+    if not rows:
+        return ""
+    fig, axes = plt.subplots(1, len(rows), figsize=(3.2 * len(rows), 3.2), squeeze=False)
+    for ax, row in zip(axes[0], rows, strict=True):
+        sim = [d["sim"] for d in row["policies"]]
+        real = [d["real"] for d in row["policies"]]
+        ax.plot([0, 1], [0, 1], color="0.7", lw=1)
+        ax.scatter(sim, real, s=28)
+        for d in row["policies"]:
+            ax.annotate(d["policy"].split("-")[0], (d["sim"], d["real"]), fontsize=7, xytext=(3, 3),
+                        textcoords="offset points")
+        r = row["pearson"]["r"]
+        mm = _num(row["mmrv"]["value"], ".2f")
+        ax.set_title(f"{row['variant']}  r={_num(r, '.2f')}  MMRV={mm}", fontsize=9)
+        ax.set_xlim(-0.05, 1.05)
+        ax.set_ylim(-0.05, 1.05)
+        ax.set_xlabel("twin success rate")
+        ax.set_ylabel("real success rate")
+    fig.tight_layout()
+    return "<h2>Success rates, twin vs real</h2>" + _fig_html(fig, "sim vs real scatter per variant")
+
+
+def _png(img: np.ndarray) -> str:
+    from PIL import Image
+
+    buf = io.BytesIO()
+    Image.fromarray(np.asarray(img, np.uint8)).save(buf, format="PNG")
+    return f'<img alt="frame" src="data:image/png;base64,{base64.b64encode(buf.getvalue()).decode()}">'
+
+
+def first_frame(task: str, world: Path, camera: str = "front", init_state: int = 0) -> np.ndarray:
+    """The camera image at the first observation of grid state `init_state` in the twin directory `world`."""
+    from twinbench.tasks import get_task
+
+    env = get_task(task).make_env(twin=str(world))
+    try:
+        obs, _ = env.reset(seed=0, options={"init_state": init_state})
+        return obs["pixels"][camera]
+    finally:
+        env.close()
+
+
+def _frames_section(task: str, real_world: Path, twins: dict[str, Path]) -> str:
+    real = first_frame(task, real_world)
+    cells = []
+    for variant, world in twins.items():
+        twin = first_frame(task, world)
+        cells.append(f"<figure>{_png(np.concatenate([real, twin], axis=1))}"
+                     f"<figcaption>real | {_e(variant)}</figcaption></figure>")
+    return "<h2>Frames, real | twin (front camera, grid state 0)</h2>" + "".join(cells)
+
+
+def write_study_report(out: Path, doc: dict, frames: bool = True) -> Path:
+    """DIR/report.html (the study page) and DIR/reports/<variant>.html (each variant's evaluation report)."""
+    import matplotlib
+
+    from twinbench.study.evaluate import REAL, twin_run_id
+
+    matplotlib.use("Agg")
+    out = Path(out)
+    store = ResultsStore(out / "results" / "results.sqlite")
+    twins = {row["variant"]: out / "twins" / row["variant"] for row in doc["variants"]}
+    for variant in twins:
+        write_report(store, twin_run_id(variant), out / "reports" / f"{variant}.html", real_run_id=REAL)
+    stages = "".join(f"<tr><td>{_e(k)}</td><td>{v:.0f} s</td></tr>" for k, v in doc["stage_seconds"].items())
+    body = [f"<h1>twinbench study — {_e(doc['task'])} ({_e(doc['size'])})</h1>",
+            _table_section(doc), _scatter_section(doc)]
+    if frames and (out / "real" / "world").is_dir() and all(p.is_dir() for p in twins.values()):
+        body.append(_frames_section(doc["task"], out / "real" / "world", twins))
+    body.append(f"<h2>Stage wall times</h2><table><tbody>{stages}</tbody></table>")
+    page = ("<!DOCTYPE html>\n<html lang=\"en\"><head><meta charset=\"utf-8\">"
+            f"<title>twinbench study — {_e(doc['task'])}</title><link rel=\"icon\" href=\"data:,\">"
+            f"<style>{_CSS}</style></head><body>\n" + "\n".join(body) + "\n</body></html>\n")
+    path = out / "report.html"
+    path.write_text(page, encoding="utf-8")
+    return path

@@ -1,0 +1,81 @@
+"""Study metrics from the results store (twinbench.study.evaluate) with known answers, study.json, the study
+page (and its rendering in headless Chromium)."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+
+from twinbench.evaluation.report_browser import CHROMIUM, check_page
+from twinbench.evaluation.store import EpisodeRecord, ResultsStore
+from twinbench.study import evaluate as E
+
+REAL_RATES = {"a": [0, 0, 0, 0], "b": [1, 0, 0, 0], "c": [1, 1, 1, 0], "d": [1, 1, 1, 1]}  # 0, .25, .75, 1
+
+
+def _records(run_id: str, domain: str, rates: dict) -> list[EpisodeRecord]:
+    return [EpisodeRecord(run_id, "push-t", p, f"{p}.json", None, i, i, domain, bool(s), "ok")
+            for p, outcomes in rates.items() for i, s in enumerate(outcomes)]
+
+
+@pytest.fixture
+def study(tmp_path) -> Path:
+    """A study folder whose store holds real outcomes and three twins: one that agrees (same outcomes), one
+    that ranks the policies backwards, one where every policy succeeds."""
+    store = ResultsStore(tmp_path / "results" / "results.sqlite")
+    store.start_run_with_episodes(E.REAL, "push-t", {"task": "push-t"}, _records(E.REAL, "real", REAL_RATES))
+    backwards = dict(zip(REAL_RATES, reversed(list(REAL_RATES.values())), strict=True))
+    for variant, rates in (("full", REAL_RATES), ("no-color", backwards),
+                           ("neither", {p: [1, 1, 1, 1] for p in REAL_RATES})):
+        run = E.twin_run_id(variant)
+        store.start_run_with_episodes(run, "push-t", {"task": "push-t"}, _records(run, "sim", rates))
+    # an errored episode is left out of the rates, never counted as a failure
+    store.record_episode(EpisodeRecord(E.twin_run_id("full"), "push-t", "a", "a.json", None, 9, 9, "sim",
+                                       True, "sim_error"))
+    return tmp_path
+
+
+def test_metrics_from_the_store(study):
+    store = ResultsStore(study / "results" / "results.sqlite")
+    full, backwards, constant = E.study_table(store, ["full", "no-color", "neither"])
+    assert full["n_policies"] == 4 and full["n_episodes"] == {"sim": 16, "real": 16}
+    assert [d["real"] for d in full["policies"]] == [0.0, 0.25, 0.75, 1.0]
+    assert full["pearson"]["r"] == pytest.approx(1.0) and full["mmrv"]["value"] == 0.0
+    assert backwards["pearson"]["r"] == pytest.approx(-1.0)
+    # MMRV: every pair is ranked the other way; max |R_i - R_j| per policy = 1, .75, .75, 1 -> mean 0.875
+    assert backwards["mmrv"]["value"] == pytest.approx(0.875)
+    assert backwards["mmrv"]["low"] <= 0.875 <= backwards["mmrv"]["high"]
+    assert constant["pearson"]["r"] is None and "zero variance" in constant["pearson"]["why"]
+    # every sim rate 1: a pair is violated where real ranks i above j; max |R_i - R_j| = 0, .25, .75, 1
+    assert constant["mmrv"]["value"] == pytest.approx((0 + 0.25 + 0.75 + 1) / 4)
+
+
+def test_study_json_table_and_page(study):
+    doc = E.write_study_json(study, "push-t", "small", ["full", "no-color", "neither"],
+                             {"make-real": 1.0, "evaluate": 2.0})
+    assert json.loads((study / "study.json").read_text()) == doc
+    table = E.format_table(doc)
+    assert "| push-t | full | 1.000 [1.00, 1.00] | 0.000 [0.000, " in table and "| 4 | 16 / 16 |" in table
+    assert "| push-t | neither | undefined |" in table
+
+    from twinbench.study.report import write_study_report
+
+    page = write_study_report(study, doc, frames=False)
+    text = page.read_text()
+    assert "Sim vs real, per twin variant" in text and "0.875" in text and "stage" in text.lower()
+    for variant in ("full", "no-color", "neither"):
+        assert (study / "reports" / f"{variant}.html").is_file()
+    if Path(CHROMIUM).exists():
+        res = check_page(page)
+        assert res.errors == []
+        assert len(res.images) == 1 and res.images[0]["naturalWidth"] > 0
+
+
+def test_bad_size_is_refused():
+    from twinbench.errors import InputError
+
+    with pytest.raises(InputError, match="--size 'huge'"):
+        E.study_size("huge")
+    assert E.episodes_arg(E.study_size("small")) == "grid:0,6,9,15"
