@@ -68,8 +68,8 @@ def test_wrong_colours_are_not_seen(scene):
 def test_config_round_trip_and_errors(tmp_path):
     cfgs = P.levels({"plain": {"mean": [1, 2, 3], "cov": np.eye(3).tolist()}})
     assert len(cfgs) >= 8
-    path = P.write_config(cfgs["p2-lag5"], tmp_path / "p.json")
-    assert P.read_config(path) == cfgs["p2-lag5"]
+    path = P.write_config(cfgs["p3-lag15"], tmp_path / "p.json")
+    assert P.read_config(path) == cfgs["p3-lag15"]
     (tmp_path / "bad.json").write_text('{"colors": {}, "gain": 0}')
     with pytest.raises(InputError, match="gain must be > 0"):
         P.read_config(tmp_path / "bad.json")

@@ -12,6 +12,8 @@ from typing import Annotated
 
 import tyro
 
+from twinbench.study.reconstruct import VARIANTS
+
 
 @dataclass(frozen=True)
 class MakeRealConfig:
@@ -42,7 +44,7 @@ class ReconstructConfig:
 
     evidence: tyro.conf.Positional[Path]
     out: Path
-    variants: tuple[str, ...] = ("full", "no-color", "no-physics", "neither")
+    variants: tuple[str, ...] = VARIANTS
 
 
 @dataclass(frozen=True)
@@ -90,8 +92,8 @@ def _evaluate(cfg: EvaluateConfig) -> int:
     if not real.is_dir() or not twins:
         raise InputError(f"{cfg.out}: needs real/world (study make-real) and twins/<variant> (study "
                          "reconstruct); `twinbench study run` makes them")
-    order = ("full", "no-color", "no-physics", "neither")
-    twins = dict(sorted(twins.items(), key=lambda kv: (order.index(kv[0]) if kv[0] in order else 9, kv[0])))
+    rank = {v: i for i, v in enumerate(VARIANTS)}
+    twins = dict(sorted(twins.items(), key=lambda kv: (rank.get(kv[0], len(rank)), kv[0])))
     policies = make_policies(cfg.task, real, cfg.out / "policies", cfg.size, twins.get("full"))
     times = run_evaluations(cfg.task, real, twins, policies, cfg.out, cfg.size, cfg.workers)
     doc = write_study_json(cfg.out, cfg.task, cfg.size, list(twins), times, {"policies": policies})

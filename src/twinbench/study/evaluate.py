@@ -35,12 +35,15 @@ class StudySize:
 
 
 SIZES = {
-    "small": StudySize((0, 6, 9, 15), 15.0, 4),
+    "small": StudySize((0, 9), 10.0, 4),  # the expert's successes take <= 299 steps (10 s)
     "full": StudySize(None, None, 8),
 }
 
 
-def study_size(size: str) -> StudySize:
+def study_size(size: str | StudySize) -> StudySize:
+    """The named size (or `size` itself when it is a StudySize, e.g. a test's tiny one)."""
+    if isinstance(size, StudySize):
+        return size
     if size not in SIZES:
         raise InputError(f"--size {size!r}: give one of {sorted(SIZES)}")
     return SIZES[size]
@@ -61,11 +64,12 @@ def twin_run_id(variant: str) -> str:
     return f"twin-{variant}"
 
 
-def make_policies(task: str, real_world: Path, out: Path, size: str = "small",
-                  camera_twin: Path | None = None, log=print) -> list[str]:
+def make_policies(task: str, real_world: Path, out: Path, size: str | StudySize = "small",
+                  camera_twin: Path | None = None, log=print, names=None) -> list[str]:
     """Write the study's perception controllers to OUT (one JSON config each, plus calibration.json) and
     return their policy specs. The T's colours are calibrated on labelled images of `real_world`; the
-    camera is `camera_twin`'s front camera (the reconstructed, calibrated one; None: each env's own)."""
+    camera is `camera_twin`'s front camera (the reconstructed, calibrated one; None: each env's own).
+    `names`: a subset of `policies.levels` (None: all)."""
     from twinbench.study import policies as perception
 
     if task != "push-t":
@@ -87,6 +91,8 @@ def make_policies(task: str, real_world: Path, out: Path, size: str = "small",
     log(f"colour calibration on {len(images)} real images: {time.perf_counter() - t0:.1f} s")
     specs = []
     for name, cfg in perception.levels(colors, camera).items():
+        if names is not None and name not in names:
+            continue
         path = perception.write_config(cfg, out / f"{name}.json")
         specs.append(f"{name}=perceive:{path}")
     return specs
@@ -100,7 +106,7 @@ def _real_records(store: ResultsStore, task: str, recs) -> None:
 
 
 def run_evaluations(task: str, real_world: Path, twins: dict[str, Path], policies: list[str], out: Path,
-                    size: str = "small", workers: int = 1, log=print) -> dict[str, float]:
+                    size: str | StudySize = "small", workers: int = 1, log=print) -> dict[str, float]:
     """Every policy on the real workcell and on each twin (resumable: the runner skips finished episodes).
     Returns the wall time (s) of each evaluation."""
     sz = study_size(size)
@@ -158,13 +164,13 @@ def study_table(store: ResultsStore, variants) -> list[dict]:
     return [variant_metrics(store, v) for v in variants]
 
 
-def write_study_json(out: Path, task: str, size: str, variants, stages: dict[str, float],
+def write_study_json(out: Path, task: str, size: str | StudySize, variants, stages: dict[str, float],
                      extra: dict | None = None) -> dict:
     """DIR/study.json: the table (per variant r with interval, MMRV with interval, n policies, n episodes)
     from the store, the per-stage wall times and the study's settings."""
     store = ResultsStore(out / "results" / "results.sqlite")
-    doc = {"task": task, "size": size, "settings": asdict(study_size(size)),
-           "variants": study_table(store, variants),
+    doc = {"task": task, "size": size if isinstance(size, str) else "custom",
+           "settings": asdict(study_size(size)), "variants": study_table(store, variants),
            "stage_seconds": {k: round(v, 1) for k, v in stages.items()}, **(extra or {})}
     text = json.dumps(doc, indent=1)
     (out / "study.json").write_text(text)

@@ -91,8 +91,10 @@ def _frames_section(task: str, real_world: Path, twins: dict[str, Path]) -> str:
     return "<h2>Frames, real | twin (front camera, grid state 0)</h2>" + "".join(cells)
 
 
-def write_study_report(out: Path, doc: dict, frames: bool = True) -> Path:
-    """DIR/report.html (the study page) and DIR/reports/<variant>.html (each variant's evaluation report)."""
+def write_study_report(out: Path, doc: dict, frames: bool = True,
+                       twins: dict[str, Path] | None = None) -> Path:
+    """DIR/report.html (the study page) and DIR/reports/<variant>.html (each variant's evaluation report).
+    `twins`: the twin directory of each variant (default DIR/twins/<variant>), for the frame pairs."""
     import matplotlib
 
     from twinbench.study.evaluate import REAL, twin_run_id
@@ -100,7 +102,7 @@ def write_study_report(out: Path, doc: dict, frames: bool = True) -> Path:
     matplotlib.use("Agg")
     out = Path(out)
     store = ResultsStore(out / "results" / "results.sqlite")
-    twins = {row["variant"]: out / "twins" / row["variant"] for row in doc["variants"]}
+    twins = twins or {row["variant"]: out / "twins" / row["variant"] for row in doc["variants"]}
     for variant in twins:
         write_report(store, twin_run_id(variant), out / "reports" / f"{variant}.html", real_run_id=REAL)
     stages = "".join(f"<tr><td>{_e(k)}</td><td>{v:.0f} s</td></tr>" for k, v in doc["stage_seconds"].items())
