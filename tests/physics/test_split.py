@@ -3,6 +3,8 @@ contact forces included, and a helper that dies leaves the run on one core with 
 
 from __future__ import annotations
 
+import os
+import signal
 import time
 
 import numpy as np
@@ -24,7 +26,8 @@ def _split_small_models_and_stay_split(monkeypatch):
     monkeypatch.setattr(S, "CONTENDED_FRAMES", 10**9)  # a busy CI machine must not end the split
 
 
-def _run(threads: int, frames: int = 10, kill_after: int | None = None, collisions: bool = True):
+def _run(threads: int, frames: int = 10, kill_after: int | None = None, collisions: bool = True,
+         stop_after: int | None = None):
     b, mid, _ = _builder(collisions)
     model = b.finalize()
     solver = SpringMassSolver(model, threads=threads)
@@ -39,8 +42,14 @@ def _run(threads: int, frames: int = 10, kill_after: int | None = None, collisio
             assert solver.executor.name == "split"
             solver.executor.proc.kill()
             solver.executor.proc.wait()
+        if stop_after is not None and f == stop_after:
+            assert solver.executor.name == "split"
+            stopped = solver.executor.proc
+            os.kill(stopped.pid, signal.SIGSTOP)  # alive but never running again
     split_used = solver.executor.name == "split"
     solver.close()
+    if stop_after is not None:
+        assert stopped.poll() is not None  # the stopped helper was killed, not left behind
     return out, forces, split_used
 
 
@@ -64,6 +73,20 @@ def test_a_dead_helper_falls_back_to_one_core_with_the_same_results():
     assert not used
     for a, b in zip(one, two, strict=True):
         assert np.array_equal(a, b)
+
+
+def test_a_stopped_helper_is_detected_and_the_run_falls_back_with_the_same_results(monkeypatch):
+    monkeypatch.setattr(S, "STALL_TIMEOUT_S", 1.0)  # max(10 s, 50 frames) by default: a quick test here
+    monkeypatch.setattr(S, "STALL_FRAMES", 2)
+    one, f1, _ = _run(1)
+    with pytest.warns(UserWarning, match="one core.*stalled"):
+        two, f2, used = _run(2, stop_after=3)
+    assert not used
+    for a, b in zip(one, two, strict=True):
+        assert np.array_equal(a, b)
+    for a, b in zip(f1, f2, strict=True):
+        for x, y in zip(a, b, strict=True):
+            assert np.array_equal(x, y)
 
 
 def test_small_models_and_many_worlds_do_not_split(monkeypatch):

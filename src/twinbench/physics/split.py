@@ -10,7 +10,8 @@ two meet at spin barriers on shared counters (a few us) wherever a stage reads w
 Each array element is written by exactly one process with the same arithmetic, and the mesh contact forces
 are listed by each process in particle order and added list after list by `reduce_mesh_forces`, so a split
 frame is bit-identical to a frame on one core. Between frames the helper blocks on a pipe (no spinning). If
-the helper dies, the frame is run on one core and the solver stays there.
+the helper dies, or stalls (stopped, e.g. SIGSTOP: a wait at a barrier longer than max(STALL_TIMEOUT_S,
+STALL_FRAMES median frames)), it is killed, the frame is run on one core and the solver stays there.
 
 Spin barriers rely on x86's ordered stores (TSO): the split is only used on x86-64.
 """
@@ -39,6 +40,7 @@ from .model import Control, SpringMassModel, State, device_meshes
 
 SPLIT_MIN_WORK = 6000  # springs + 2 * particles below which one core is as fast as a split frame
 CONTENDED_FRAMES = 3  # frames in a row with over 10 % of barriers waiting for a descheduled process
+STALL_TIMEOUT_S, STALL_FRAMES = 10.0, 50  # a wait longer than max(these s, these median frames): stalled
 _ALIGN = 64
 _WP_FIELDS = {  # SpringMassModel array fields the helper rebuilds, with their Warp dtypes
     "springs": wp.vec2i, "rest_lengths": float, "log_y": float, "masses": float, "masks": int,
@@ -201,8 +203,10 @@ def _half(model: SpringMassModel, second: bool) -> Part:
 class _Barrier:
     """Spin barrier of two processes on shared counters: `mine` counts this side's arrivals."""
 
-    def __init__(self, sync: np.ndarray, mine: int, other: int, alive):
+    def __init__(self, sync: np.ndarray, mine: int, other: int, alive, stalled=None):
         self.sync, self.mine, self.other, self.alive = sync, mine, other, alive
+        self.stalled = stalled  # called with the seconds waited once a wait exceeds timeout_s
+        self.timeout_s = STALL_TIMEOUT_S
         self.phase = int(sync[mine])
         self.slow = 0  # waits long enough to yield the core (the other side was not running)
 
@@ -210,7 +214,7 @@ class _Barrier:
         self.phase += 1
         sync, other, phase = self.sync, self.other, self.phase
         sync[self.mine] = phase
-        spins = 0
+        spins, t0 = 0, 0.0
         while sync[other] < phase:
             spins += 1
             if spins > 2000:  # the other side is not running (more busy processes than cores): let it
@@ -219,6 +223,10 @@ class _Barrier:
                 time.sleep(0)
             if spins & 0x3FFF == 0:
                 self.alive()
+                now = time.monotonic()
+                t0 = t0 or now
+                if self.stalled is not None and now - t0 > self.timeout_s:
+                    self.stalled(now - t0)
 
 
 class SplitFrames:
@@ -261,7 +269,8 @@ class SplitFrames:
             os.unlink(self.shared.path)  # both processes hold the mapping; the file is not needed any more
         self._finalizer = weakref.finalize(self, _stop, self.proc)
         self.strikes = 0
-        self.barrier = _Barrier(self.shared.np["sync"], 0, 1, self._alive)
+        self.frame_s: list[float] = []  # the last frames' times, for the stall time-out
+        self.barrier = _Barrier(self.shared.np["sync"], 0, 1, self._alive, self._stalled)
         reduce = None
         if m.meshes:  # even and odd substeps' contact forces
             lists, counts = self.shared.np["pm_list"], self.shared.np["pm_count"]
@@ -282,6 +291,12 @@ class SplitFrames:
             detail = f": {err[-1]}" if err else ""
             raise SplitFailed(f"the physics helper process failed (exit code {self.proc.wait()}){detail}")
 
+    def _stalled(self, waited: float) -> None:
+        self.proc.kill()  # e.g. stopped (SIGSTOP) or starved: waiting on would block the run forever
+        self.proc.wait()
+        raise SplitFailed(f"the physics helper process stalled (no progress in {waited:.0f} s; a frame takes "
+                          f"{1e3 * float(np.median(self.frame_s or [0.0])):.1f} ms)")
+
     def run_frame(self, state: State, control: Control) -> str | None:
         """One frame from `state` under `control`, split over the two processes, into `state`."""
         if not self.started:
@@ -291,6 +306,9 @@ class SplitFrames:
                 raise
             except Exception as err:  # noqa: BLE001 - one core still works
                 raise SplitFailed(str(err)) from err
+        t_frame = time.monotonic()
+        if self.frame_s:
+            self.barrier.timeout_s = max(STALL_TIMEOUT_S, STALL_FRAMES * float(np.median(self.frame_s)))
         s = self.solver
         s.buffers.states[0].assign(state)
         wp.copy(self.control.ctrl_from, control.ctrl_from)
@@ -312,6 +330,7 @@ class SplitFrames:
         for op in self.ops:
             op()
         state.assign(self.out)
+        self.frame_s = [*self.frame_s[-99:], time.monotonic() - t_frame]
         # Spin barriers need a core each: if other processes keep taking them, one core is faster.
         contended = self.barrier.slow > 0.1 * (self.barrier.phase - start_phase)
         self.strikes = self.strikes + 1 if contended else 0
