@@ -56,13 +56,15 @@ def test_pose_from_clean_images_matches_the_true_pose(scene):
 
 
 def test_wrong_colours_are_not_seen(scene):
-    """A camera whose colours differ from the calibration (here R and B swapped) loses the block: what makes
-    a twin's appearance matter to these policies."""
+    """An image whose colours are off (red +60 levels, as a twin without colour alignment may render) loses
+    the block: what makes a twin's appearance matter to these policies."""
     u, cam, frames = scene
     est = P.TPoseEstimator(u.rules.outline, cam, _colors(u, cam, frames), overlay=P._overlay(u, "front"))
     img, _ = frames[6]
     assert est.segment(img).sum() > 1000
-    assert est.estimate(img[..., ::-1].copy()) is None
+    off = np.clip(img.astype(int) + [60, 0, 0], 0, 255).astype(np.uint8)
+    assert est.segment(off).sum() < est.min_pixels
+    assert est.estimate(off) is None
 
 
 def test_config_round_trip_and_errors(tmp_path):

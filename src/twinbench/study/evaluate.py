@@ -101,7 +101,8 @@ def make_policies(task: str, real_world: Path, out: Path, size: str | StudySize 
 def _real_records(store: ResultsStore, task: str, recs) -> None:
     """Copy the real rollouts' records as domain "real" into run `real` (replacing earlier copies)."""
     ok = [replace(r, run_id=REAL, domain="real") for r in recs if r.status == "ok"]
-    protocol = {"kind": "study real rollouts", "task": task, "source_run": REAL_ROLLOUTS}
+    protocol = {"kind": "study real rollouts", "task": task, "source_run": REAL_ROLLOUTS,
+                "grid": store.run_protocol(REAL_ROLLOUTS).get("grid")}  # for the report's pairing check
     store.start_run_with_episodes(REAL, task, protocol, ok)
 
 

@@ -25,6 +25,8 @@ import numpy as np
 from twinbench.errors import InputError
 
 CHI2_3_999 = 16.27  # chi-square, 3 degrees of freedom, 99.9 %: a pixel within this of the T's colour is T
+COLOR_TOLERANCE = 8.0  # 0-255 levels (a std) added to the calibrated colour spread: the drift a detector
+# tuned on a few images must tolerate (the spread of those images is mostly sensor noise, ~3 levels)
 TRACK_COST_PX = -1.0  # a tracked fit worse than this (mean signed pixel distance) restarts the search
 
 
@@ -230,7 +232,7 @@ def label_mask(estimator: TPoseEstimator, pose_xyth) -> np.ndarray:
 
 def fit_colors(samples: dict[str, list[np.ndarray]]) -> dict:
     """Robust RGB Gaussian per region from labelled pixels (two passes: pixels beyond the 99.9 % ellipsoid of
-    the first fit, e.g. the pusher in front of the block, are dropped)."""
+    the first fit, e.g. the pusher in front of the block, are dropped), widened by COLOR_TOLERANCE."""
     out = {}
     for region, parts in samples.items():
         x = np.concatenate(parts).astype(np.float64) if parts else np.zeros((0, 3))
@@ -242,7 +244,8 @@ def fit_colors(samples: dict[str, list[np.ndarray]]) -> dict:
             keep = np.einsum("ni,ij,nj->n", d, np.linalg.inv(cov), d) < CHI2_3_999
             if keep.sum() >= 10:
                 x = x[keep]
-        out[region] = {"mean": x.mean(0).tolist(), "cov": (np.cov(x.T) + np.eye(3)).tolist()}
+        cov = np.cov(x.T) + np.eye(3) * COLOR_TOLERANCE**2
+        out[region] = {"mean": x.mean(0).tolist(), "cov": cov.tolist()}
     if "plain" not in out:
         raise ValueError("colour calibration: too few labelled block pixels outside the goal overlay")
     return out
