@@ -4,11 +4,14 @@
 
 from __future__ import annotations
 
+import errno
+import socket
 import sys
 from dataclasses import dataclass
 
 from twinbench._runtime import quiet_warp
 from twinbench.commands.env_options import parse_env_kwargs
+from twinbench.errors import InputError
 from twinbench.policies.protocol import API_KEY_ENV, DEFAULT_MAX_MESSAGE_BYTES, USES_ENVIRONMENT_STATE_KEY
 from twinbench.policies.server import DEFAULT_IDLE_TIMEOUT_S, DEFAULT_MAX_CONNECTIONS, PolicyServer
 from twinbench.policies.spec import make_policy, parse_policy_spec
@@ -31,7 +34,27 @@ class ServeConfig:
     env_kwargs: str = ""  # JSON object of env constructor arguments, as `twinbench eval --env-kwargs`
 
 
+# (lowest, highest) of each numeric option: a connection holds a policy instance, a message its bytes
+RANGES = {"port": (0, 65535), "max_connections": (1, 1024), "max_message_bytes": (1, 1 << 30),
+          "idle_timeout_s": (1e-3, 7 * 86400.0)}
+
+
+def check_options(cfg: ServeConfig) -> None:
+    """InputError naming the option for a value out of its range (`RANGES`) or a host that does not
+    resolve."""
+    for name, (lo, hi) in RANGES.items():
+        value = getattr(cfg, name)
+        if not lo <= value <= hi:  # NaN fails too
+            raise InputError(f"--{name.replace('_', '-')} {value}: must be in [{lo}, {hi}]")
+    try:
+        socket.getaddrinfo(cfg.host, cfg.port, type=socket.SOCK_STREAM)
+    except (OSError, UnicodeError) as err:
+        raise InputError(f"--host {cfg.host!r}: not an address or a known host name ({err}); e.g. 127.0.0.1 "
+                         "(this machine only) or 0.0.0.0 (every interface)") from None
+
+
 def main(cfg: ServeConfig) -> int:
+    check_options(cfg)
     task = get_task(cfg.task)
     spec = parse_policy_spec(cfg.policy)
     if spec.kind == "remote":
@@ -41,11 +64,17 @@ def main(cfg: ServeConfig) -> int:
     env = task.make_env(**parse_env_kwargs(cfg.env_kwargs))
     # A scripted expert acts from the environment_state it is sent (the metadata tells the client).
     uses_state = bool(getattr(make_policy(spec, task, env, seed=cfg.seed), "uses_environment_state", False))
-    server = PolicyServer(lambda: make_policy(spec, task, env, seed=cfg.seed), host=cfg.host, port=cfg.port,
-                          metadata={"task": cfg.task, "policy": cfg.policy,
-                                    USES_ENVIRONMENT_STATE_KEY: uses_state},
-                          max_message_bytes=cfg.max_message_bytes, max_connections=cfg.max_connections,
-                          idle_timeout_s=cfg.idle_timeout_s)
+    try:
+        server = PolicyServer(lambda: make_policy(spec, task, env, seed=cfg.seed), host=cfg.host,
+                              port=cfg.port, metadata={"task": cfg.task, "policy": cfg.policy,
+                                                       USES_ENVIRONMENT_STATE_KEY: uses_state},
+                              max_message_bytes=cfg.max_message_bytes, max_connections=cfg.max_connections,
+                              idle_timeout_s=cfg.idle_timeout_s)
+    except OSError as err:
+        if err.errno not in (errno.EADDRINUSE, errno.EADDRNOTAVAIL, errno.EACCES):
+            raise
+        raise InputError(f"--host {cfg.host} --port {cfg.port}: cannot listen there ({err.strerror}); choose "
+                         "another --port (0: any free one) or --host") from None
     key = f" (API key required, from {API_KEY_ENV})" if server.requires_api_key else ""
     if cfg.host not in ("127.0.0.1", "localhost", "::1") and not server.requires_api_key:
         print(f"warning: serving on {cfg.host} without an API key: anyone who can reach this port can use "

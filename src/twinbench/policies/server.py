@@ -13,8 +13,10 @@ replaced by <path>; the full traceback goes to this process's log), then the con
 
 Limits (all configurable): binds 127.0.0.1 by default; messages over `max_message_bytes` close the
 connection (code 1009) before they are read; at most `max_connections` clients at once (more get HTTP
-503); an idle client is dropped after `idle_timeout_s`; with an `api_key` (or TWINBENCH_API_KEY set)
-every client must send openpi's header `Authorization: Api-Key <key>` (else HTTP 401).
+503); an idle client is dropped after `idle_timeout_s`, and one that has begun a message but not sent all
+of it within `read_timeout_s` (a slow sender holding a connection) too; with an `api_key` (or
+TWINBENCH_API_KEY set) every client must send openpi's header `Authorization: Api-Key <key>` (else HTTP
+401).
 """
 
 from __future__ import annotations
@@ -45,6 +47,8 @@ from twinbench.policies.protocol import (
 
 DEFAULT_MAX_CONNECTIONS = 16
 DEFAULT_IDLE_TIMEOUT_S = 600.0
+DEFAULT_READ_TIMEOUT_S = 30.0  # from a message's first byte to its last
+_POLL_S = 0.25  # how often a waiting connection looks for a message begun but not finished
 
 log = logging.getLogger(__name__)
 _PATH_RE = re.compile(r"(?:[A-Za-z]:)?(?:[\\/][^\s\\/'\":,()\[\]]+){2,}[\\/]?")
@@ -55,6 +59,14 @@ def public_error(err: BaseException) -> str:
     text = f"{type(err).__name__}: {err}".strip()
     text = _PATH_RE.sub("<path>", text)
     return text if len(text) <= 2000 else text[:2000] + " ..."
+
+
+def _partial_message(ws) -> bool:
+    """Whether a message has begun to arrive but is not whole: a partial frame in the protocol's read
+    buffer, or the first fragments of a fragmented message."""
+    reader = getattr(getattr(ws, "protocol", None), "reader", None)
+    frames = getattr(getattr(ws, "recv_messages", None), "frames", None)
+    return bool(len(getattr(reader, "buffer", b""))) or (frames is not None and not frames.empty())
 
 
 def _predict(policy, obs: dict) -> np.ndarray:
@@ -71,13 +83,17 @@ class PolicyServer:
     def __init__(self, make_policy: Callable[[], object], *, host: str = "127.0.0.1", port: int = 0,
                  metadata: dict | None = None, max_message_bytes: int = DEFAULT_MAX_MESSAGE_BYTES,
                  max_connections: int = DEFAULT_MAX_CONNECTIONS,
-                 idle_timeout_s: float | None = DEFAULT_IDLE_TIMEOUT_S, api_key: str | None = None):
+                 idle_timeout_s: float | None = DEFAULT_IDLE_TIMEOUT_S, api_key: str | None = None,
+                 read_timeout_s: float = DEFAULT_READ_TIMEOUT_S):
         from websockets.sync.server import serve
 
         if int(max_message_bytes) < 1 or int(max_connections) < 1:
             raise ValueError("PolicyServer: max_message_bytes and max_connections must be >= 1")
         if idle_timeout_s is not None and not idle_timeout_s > 0:
             raise ValueError(f"PolicyServer: idle_timeout_s must be > 0 or None, got {idle_timeout_s}")
+        if not 0 < read_timeout_s < float("inf"):
+            raise ValueError(f"PolicyServer: read_timeout_s must be finite and > 0, got {read_timeout_s}")
+        self.read_timeout_s = float(read_timeout_s)
         self.make_policy, self.metadata = make_policy, dict(metadata or {})
         self.max_message_bytes, self.max_connections = int(max_message_bytes), int(max_connections)
         self.idle_timeout_s = idle_timeout_s
@@ -89,7 +105,8 @@ class PolicyServer:
         self._lock = threading.Lock()
         # max_queue=2: requests are answered one at a time, so a client cannot park many big frames here
         self._server = serve(self._handle, host, port, compression=None, max_size=self.max_message_bytes,
-                             max_queue=2, process_request=self._process_request, open_timeout=10)
+                             max_queue=2, process_request=self._process_request, open_timeout=10,
+                             close_timeout=2)
         self.host, self.port = self._server.socket.getsockname()[:2]
         self._thread: threading.Thread | None = None
 
@@ -152,10 +169,8 @@ class PolicyServer:
         try:
             ws.send(packb(self.metadata))
             while True:
-                try:
-                    message = ws.recv(timeout=self.idle_timeout_s)
-                except TimeoutError:
-                    ws.close(1000, "idle time-out")
+                message = self._receive(ws)
+                if message is None:
                     return
                 if isinstance(message, str):
                     self._fail(ws, "bad request", MessageError("text frame; send msgpack (binary) frames"),
@@ -180,6 +195,25 @@ class PolicyServer:
                 ws.send(packb({ACTIONS_KEY: actions, TIMING_KEY: timing}))
         except ConnectionClosed:
             return  # client left, or sent a message over max_message_bytes (closed with 1009)
+
+    def _receive(self, ws):
+        """The next message, or None once the client was idle for idle_timeout_s, or took longer than
+        read_timeout_s to send a message it had begun (the connection is closed then)."""
+        idle_end = None if self.idle_timeout_s is None else time.monotonic() + self.idle_timeout_s
+        begun = None
+        while True:
+            try:
+                return ws.recv(timeout=min(_POLL_S, self.read_timeout_s))
+            except TimeoutError:
+                now = time.monotonic()
+            if _partial_message(ws):
+                begun = begun or now
+                if now - begun > self.read_timeout_s:
+                    ws.close(1008, f"a message took over {self.read_timeout_s:g} s to arrive")
+                    return None
+            elif idle_end is not None and now >= idle_end:
+                ws.close(1000, "idle time-out")
+                return None
 
     def serve_forever(self) -> None:
         self._server.serve_forever()
