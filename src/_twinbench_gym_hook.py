@@ -8,8 +8,9 @@ but `gymnasium` (nothing is imported at start, not even this module). On `import
 `find_spec` here, which removes the stub, lets the real finders locate gymnasium and wraps its loader:
 gymnasium loads as usual, then twinbench is imported (light: its task modules declare the ids; Warp loads
 only when an env is made) and registers its ids.
-A failure never breaks the import of gymnasium: it is ignored (TWINBENCH_DEBUG_GYM_HOOK=1 shows it as a
-warning).
+A failure never breaks or ends the import of gymnasium: an exception or a SystemExit of twinbench's import
+is ignored (TWINBENCH_DEBUG_GYM_HOOK=1 shows it as a warning), and the .pth's stub drops itself and lets
+gymnasium load when this module is missing or broken.
 """
 
 import os
@@ -35,7 +36,7 @@ def find_spec(fullname: str):
 
         spec.loader.exec_module = exec_module
         return spec
-    except Exception as err:  # noqa: BLE001 - never break `import gymnasium`
+    except (Exception, SystemExit) as err:  # noqa: BLE001 - never break `import gymnasium`
         _debug(err)
         return None
 
@@ -46,7 +47,7 @@ def register() -> None:
         import twinbench
 
         twinbench.register_envs()
-    except Exception as err:  # noqa: BLE001 - a broken twinbench must not break gymnasium
+    except (Exception, SystemExit) as err:  # noqa: BLE001 - a broken twinbench must not break gymnasium
         _debug(err)
 
 

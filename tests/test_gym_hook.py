@@ -65,3 +65,26 @@ def test_a_broken_twinbench_never_breaks_import_gymnasium(tmp_path):
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300,
                          env={**os.environ, "PYTHONPATH": str(tmp_path), "TWINBENCH_DEBUG_GYM_HOOK": "1"})
     assert out.returncode == 0 and "broken install" in out.stderr
+
+
+@pytest.mark.parametrize("init", ["import sys\nsys.exit(3)\n", "raise SystemExit('bye')\n",
+                                  "raise KeyError(1)\n"])
+def test_twinbench_ending_its_import_never_ends_import_gymnasium(tmp_path, init):
+    (tmp_path / "twinbench").mkdir()
+    (tmp_path / "twinbench" / "__init__.py").write_text(init)
+    out = _python("import gymnasium\nprint('alive', gymnasium.__name__)", PYTHONPATH=str(tmp_path))
+    assert out.returncode == 0 and out.stdout.strip() == "alive gymnasium", out.stderr
+
+
+@pytest.mark.parametrize("hook", [None, "def find_spec(:\n", "raise SystemExit(4)\n",
+                                  "raise ImportError('x')\n"],
+                         ids=["missing", "syntax-error", "system-exit", "import-error"])
+def test_a_missing_or_broken_hook_module_never_breaks_import_gymnasium(tmp_path, hook):
+    if hook is None:  # a half-uninstalled twinbench: the .pth is there, the module is not
+        code = "import sys\nsys.modules['_twinbench_gym_hook'] = None\n"
+        env = {}
+    else:  # a broken module of that name found first
+        (tmp_path / "_twinbench_gym_hook.py").write_text(hook)
+        code, env = "", {"PYTHONPATH": str(tmp_path)}
+    out = _python(code + "import gymnasium, json\nprint('alive', json.dumps(2))", **env)
+    assert out.returncode == 0 and out.stdout.strip() == "alive 2", out.stderr
