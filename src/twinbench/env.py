@@ -49,6 +49,31 @@ from twinbench.tasks.base import SuccessWindow
 
 RESET_OPTIONS = ("init_state", "sampled", "object_poses")
 SUCCESS_RULES = ("final", "early")
+# (type, lowest, highest) of the keyword arguments a built-in cell turns into its physics step
+SETTING_RANGES = {"substeps": (int, 1, 100_000), "fps": (float, 1.0, 1000.0)}
+
+
+def check_settings(settings: dict) -> None:
+    """ValueError naming the keyword argument for a setting out of its range (`SETTING_RANGES`)."""
+    for name, (kind, lo, hi) in SETTING_RANGES.items():
+        if name not in settings:
+            continue
+        value = settings[name]
+        types = (int, np.integer) if kind is int else (int, float, np.integer, np.floating)
+        ok = not isinstance(value, bool) and isinstance(value, types)
+        if not ok or not lo <= value <= hi:  # NaN fails too
+            raise ValueError(f"{name}={value!r}: expected {'an integer' if kind is int else 'a number'} in "
+                             f"[{lo}, {hi}]")
+
+
+def check_reset_options(options) -> dict:
+    """reset(options=...) as a dict; ValueError naming the argument otherwise."""
+    if options is None:
+        return {}
+    if not isinstance(options, dict):
+        raise ValueError(f"reset(options=...): expected a dict such as {{'init_state': 3}} or None, got "
+                         f"{type(options).__name__}")
+    return dict(options)
 
 
 def _split_settings(task_cls, settings: dict) -> tuple[dict, dict]:
@@ -72,6 +97,7 @@ def resolve_task_twin(task, twin, preset: str, roles: dict | None, settings: dic
         task_cls = spec.task_cls
     else:
         task_cls = type(task)
+    check_settings(settings)
     task_settings, cell_settings = _split_settings(task_cls, settings)
     rules = task if not isinstance(task, str) else task_cls(roles, **task_settings)
     if twin is None:
@@ -192,7 +218,7 @@ class TwinEnv(gymnasium.Env):
         super().reset(seed=seed)
         if seed is not None:
             self._response_rng = np.random.default_rng(int(seed))
-        options = dict(options or {})
+        options = check_reset_options(options)
         unknown = sorted(set(options) - set(RESET_OPTIONS))
         if unknown:
             raise ValueError(f"reset options: unknown key(s) {unknown}; known: {list(RESET_OPTIONS)}")
@@ -270,7 +296,11 @@ class TwinEnv(gymnasium.Env):
             raise RuntimeError(
                 f"{self.rules.name}: the episode is over (terminated or truncated); call reset()"
             )
-        a = np.asarray(action, dtype=np.float64)
+        try:
+            a = np.asarray(action, dtype=np.float64)
+        except (TypeError, ValueError):
+            raise ValueError(f"action: expected an array of shape {self.action_space.shape}, got "
+                             f"{type(action).__name__}") from None
         if a.shape != self.action_space.shape:
             raise ValueError(f"action: expected shape {self.action_space.shape}, got {a.shape}")
         if not np.all(np.isfinite(a)):
@@ -439,7 +469,7 @@ class TwinVectorEnv(gymnasium.vector.VectorEnv):
 
     def reset(self, *, seed=None, options=None):
         super().reset(seed=seed)
-        options = dict(options or {})
+        options = check_reset_options(options)
         mask = np.asarray(options.pop("reset_mask", np.ones(self.num_envs, bool)), dtype=bool)
         if mask.shape != (self.num_envs,):
             raise ValueError(
