@@ -1,0 +1,177 @@
+"""Reconstruction of a workcell from its evidence with the public CLI, as a user would run it, and the
+study's ablation twins.
+
+    twins = reconstruct(Path("study/evidence"), Path("study/twins"))   # {variant: twin directory}
+
+The chain (each command printed as typed): `twinbench segment` (scan -> robot / background / objects),
+`twinbench align-robot` (scan frame -> robot base frame, Gaussians labelled with links), `twinbench
+align-color` (the scan's colours -> the real cameras' colours), `twinbench sysid` (each object's physics
+from its tracked motion; once with the fit, once at its initial guess), then one build config per variant
+and `twinbench twin build`. Between sysid and the build, the identified object (particles in the world
+frame) is put in its own frame at the rest pose found by registering the task's object template to the
+segmented scan (`estimate_rest_pose`); the task's public definition supplies what the evidence does not
+hold: the object's outline and goal, the controller and the tool's contact.
+
+Variants (`VARIANTS`): "full"; "no-color" (identity colour map); "no-physics" (stiffness and contact at
+sysid's initial guess, without its optimisation); "neither". Work files go to OUT/construction/.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import shlex
+from collections.abc import Callable
+from pathlib import Path
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+VARIANTS = ("full", "no-color", "no-physics", "neither")
+_COLOR = {"full": True, "no-color": False, "no-physics": True, "neither": False}
+_PHYSICS = {"full": "fitted", "no-color": "fitted", "no-physics": "initial", "neither": "initial"}
+# settings of the simulation that are the task cell's modelling choices, not the object's physics
+_CELL_SIM = ("object_collision", "self_collision", "collision_dist", "collision_exclusion",
+             "max_collision_candidates", "candidate_radius_scale", "mesh_margin")
+
+
+def _rot2(yaw: float) -> np.ndarray:
+    c, s = np.cos(yaw), np.sin(yaw)
+    return np.array([[c, -s], [s, c]])
+
+
+def estimate_rest_pose(observed: np.ndarray, template: np.ndarray, z: float = 0.0) -> np.ndarray:
+    """The planar pose (x, y, yaw; height `z`) that puts `template` (points in the object's frame) onto
+    `observed` (world points of the object, floaters allowed): every 3 deg of yaw with the centroids
+    matched, then trimmed 2D ICP from the best."""
+    from twinbench.transforms import planar_pose
+
+    obs = np.asarray(observed, np.float64)[:, :2]
+    centre = np.median(obs, axis=0)
+    dist = np.linalg.norm(obs - centre, axis=1)
+    obs = obs[dist <= 2.5 * np.median(dist) + 1e-9]
+    tmpl = np.asarray(template, np.float64)[:, :2]
+    rng = np.random.default_rng(0)
+    few_obs = obs[rng.permutation(len(obs))[:1000]]  # the coarse search on at most 1000 points each
+    few_tmpl = tmpl[rng.permutation(len(tmpl))[:1000]]
+    tree_obs, tree_tmpl = cKDTree(obs), cKDTree(tmpl)
+    c_obs, c_tmpl = obs.mean(axis=0), tmpl.mean(axis=0)
+
+    def score(yaw, t):  # symmetric mean nearest distance (template -> scan, scan -> template)
+        r = _rot2(yaw)
+        return tree_obs.query(few_tmpl @ r.T + t)[0].mean() + tree_tmpl.query((few_obs - t) @ r)[0].mean()
+
+    yaws = np.radians(np.arange(0.0, 360.0, 3.0))
+    yaw = min(yaws, key=lambda a: score(a, c_obs - _rot2(a) @ c_tmpl))
+    t = c_obs - _rot2(yaw) @ c_tmpl
+    for _ in range(15):  # trimmed ICP: the template's points matched to their nearest observed points
+        moved = tmpl @ _rot2(yaw).T + t
+        d, j = tree_obs.query(moved)
+        keep = d <= np.quantile(d, 0.8)
+        a, b = tmpl[keep], obs[j[keep]]
+        ca, cb = a.mean(axis=0), b.mean(axis=0)
+        h = (a - ca).T @ (b - cb)
+        yaw = float(np.arctan2(h[0, 1] - h[1, 0], h[0, 0] + h[1, 1]))
+        t = cb - _rot2(yaw) @ ca
+    pose = planar_pose(float(t[0]), float(t[1]), yaw)
+    pose[2, 3] = z
+    return pose
+
+
+def _place_object(identified: Path, template, rest_pose: np.ndarray, sim_over: dict, out: Path) -> Path:
+    """The identified object (world-frame particles, from `twinbench sysid`) in its own frame at
+    `rest_pose`, with the template's name, binding, outline and goal; its sim with `sim_over`."""
+    from twinbench.transforms import invert_pose, transform_points
+    from twinbench.twin import load_object, save_object
+
+    obj, sim = load_object(identified)
+    placed = dataclasses.replace(
+        obj, name=template.name, particles=transform_points(invert_pose(rest_pose), obj.particles),
+        rest_pose=rest_pose, binding=template.binding, outline=template.outline, goal_pose=template.goal_pose,
+    )
+    save_object(placed, out, sim={**sim, **sim_over})
+    return out
+
+
+def reconstruct(evidence: Path, out: Path, variants=VARIANTS, log: Callable[[str], None] = print,
+                sysid_args: tuple[str, ...] = ()) -> dict[str, Path]:
+    """Rebuild the workcell of EVIDENCE (made by `make_evidence`) into OUT/<variant>/ twin directories,
+    through the CLI; `sysid_args` are extra `twinbench sysid` options (default: none, its defaults)."""
+    from twinbench.cli import main as cli
+    from twinbench.construct._json import write_json
+    from twinbench.errors import InputError
+    from twinbench.gaussians.io import load_gaussians
+    from twinbench.study.real import task_cell
+    from twinbench.twin import load_object
+
+    evidence, out = Path(evidence), Path(out)
+    unknown = sorted(set(variants) - set(VARIANTS))
+    if unknown:
+        raise InputError(f"reconstruct variants: unknown {unknown}; known: {list(VARIANTS)}")
+    index = json.loads((evidence / "evidence.json").read_text())
+    work = out / "construction"
+    work.mkdir(parents=True, exist_ok=True)
+
+    def run(*args) -> None:
+        argv = [str(a) for a in args]
+        log("twinbench " + shlex.join(argv))
+        code = cli(argv)
+        if code != 0:
+            raise RuntimeError(f"twinbench {argv[0]} failed with exit code {code} (command above)")
+
+    objects = index["objects"]
+    seg, aligned, color = work / "seg", work / "aligned", work / "color"
+    run("segment", evidence / index["scan"], "--boxes", evidence / index["boxes"], "--out", seg)
+    run("align-robot", seg / "robot.ply", "--urdf", index["urdf"], "--out", aligned, "--also",
+        seg / "background.ply", *[seg / "objects" / f"{o}.ply" for o in objects])
+    parts = [aligned / "robot.ply", aligned / "aligned" / "background.ply",
+             *[aligned / "aligned" / f"{o}.ply" for o in objects]]
+    if any(_COLOR[v] for v in variants):
+        run("align-color", "--scan", *parts, "--calibration", evidence / index["calibration"], "--real",
+            evidence / index["real_images"], "--out", color)
+    physics = sorted({_PHYSICS[v] for v in variants})
+    for kind in physics:
+        flags = ("--no-stage1", "--no-stage2") if kind == "initial" else ()
+        for o in objects:
+            run("sysid", "--data", evidence / index["motion"][o], "--out-dir", work / "sysid" / kind,
+                "--no-progress", *flags, *sysid_args)
+
+    # the task's public definition: object templates (shape, outline, goal), controller, tool contact
+    cell = task_cell(index["task"], index["size"])
+    frame_dt = cell.sim.dt * cell.sim.substeps
+    write_json(work / "calibration.json", json.loads((evidence / index["calibration"]).read_text()))
+    rest = {}
+    for o in objects:
+        template = cell.object(o)
+        scanned = load_gaussians(aligned / "aligned" / f"{o}.ply").means
+        rest[o] = estimate_rest_pose(scanned, template.gaussians.means, float(template.rest_pose[2, 3]))
+        log(f"# {o}: rest pose from the scan x={rest[o][0, 3]:.4f} y={rest[o][1, 3]:.4f} "
+            f"yaw={np.degrees(np.arctan2(rest[o][1, 0], rest[o][0, 0])):.2f} deg")
+        for kind in physics:
+            sim = load_object(work / "sysid" / kind / o)[1]
+            substeps = max(int(sim["substeps"]), cell.sim.substeps)
+            over = {k: getattr(cell.sim, k) for k in _CELL_SIM}
+            over.update(substeps=substeps, dt=frame_dt / substeps)
+            over = {k: (list(v) if isinstance(v, tuple) else v) for k, v in over.items()}
+            _place_object(work / "sysid" / kind / o, template, rest[o], over, work / "objects" / kind / o)
+
+    twins = {}
+    for v in variants:
+        cmap = "color/color_map.json" if _COLOR[v] else None
+        config = {
+            "name": f"{index['task']}-{v}",
+            "robot": {"aligned": "aligned", "color_map": cmap,
+                      "tool_contact": dataclasses.asdict(cell.robot.tool_contact)},
+            "background": {"gaussians": "aligned/aligned/background.ply", "color_map": cmap},
+            "objects": [{"dir": f"objects/{_PHYSICS[v]}/{o}", "rest_pose": rest[o].tolist(),
+                         "gaussians": f"aligned/aligned/{o}.ply", "color_map": cmap} for o in objects],
+            "cameras": "calibration.json",
+            "controller": json.loads(json.dumps(dataclasses.asdict(cell.controller))),
+            "render": {"background": list(cell.render_background)},
+        }
+        path = work / f"build-{v}.json"
+        write_json(path, config)
+        run("twin", "build", path, "--out", out / v)
+        twins[v] = out / v
+    return twins
+
