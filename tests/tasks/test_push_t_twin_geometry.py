@@ -10,7 +10,7 @@ import pytest
 
 from twinbench.env import TwinEnv
 from twinbench.evaluation.rollout import policy_observation
-from twinbench.robot.builtin import PUSHER_RADIUS
+from twinbench.robot.builtin import PUSHERS
 from twinbench.tasks.push_t import PushTTask, make_expert
 from twinbench.transforms import planar_pose
 from twinbench.twin.cells import PushTCell, push_t_cell
@@ -18,6 +18,7 @@ from twinbench.twin.shapes import TBlockShape
 
 SCALE = 0.7
 STUDY_T = TBlockShape(*PushTCell.preset("fast").t_shape)
+STUDY_PUSHER_RADIUS = PUSHERS["pusher20"][0]  # the study's 20 cm pusher
 
 
 @pytest.fixture(scope="module")
@@ -42,8 +43,8 @@ def test_the_scaled_twin_carries_its_own_outline_and_the_pusher_radius(small_env
     # the particles fill that outline (the cell scales the T and its lattice)
     assert block.outline.contains(block.particles, tol=1e-6).all()
     assert len(block.particles) == len(push_t_cell("fast").object("tblock").particles)
-    assert spec.robot.tool_radius == PUSHER_RADIUS
-    assert small_env.rules.outline is block.outline and small_env.rules.tool_radius == PUSHER_RADIUS
+    assert spec.robot.tool_radius == STUDY_PUSHER_RADIUS
+    assert small_env.rules.outline is block.outline and small_env.rules.tool_radius == STUDY_PUSHER_RADIUS
 
 
 def test_the_scaled_t_is_scored_with_its_own_outline(small_env):
@@ -88,7 +89,7 @@ def test_a_twin_without_an_outline_or_tool_radius_is_refused():
 
 def test_the_expert_pushes_the_scaled_t_home(small_env):
     expert = make_expert(small_env)
-    assert expert.outline is small_env.rules.outline and expert.pusher_radius == PUSHER_RADIUS
+    assert expert.outline is small_env.rules.outline and expert.pusher_radius == STUDY_PUSHER_RADIUS
     obs, info = small_env.reset(seed=0, options={"init_state": 3})
     expert.reset()
     steps, term, trunc = 0, False, False

@@ -131,3 +131,124 @@ def test_rope_and_toy_cells_use_the_studys_cameras_and_crops():
         np.testing.assert_allclose(wrist.pose[:3, 3], [0.070151686668396, -0.006011864222586155, 0.03072427])
     for spec in (rope_routing_cell("small-fast"), toy_packing_cell("small-fast")):  # the earlier cells
         assert all(c.crop is None and c.output_hw == (240, 240) for c in spec.cameras)
+
+
+def test_push_t_pusher_is_the_studys():
+    """xarm7_with_pusher.urdf: pusher_base_link 15 mm below link_eef, pusher_20cm.stl a 200 mm rod of radius
+    ~10.2 mm; cfg/env/xarm_pusher.yaml: the flange at z = 0.22, so the tip 5 mm above the table."""
+    from twinbench.tasks.base import tool_offset
+    from twinbench.twin.build import load_spec_robot
+
+    spec = push_t_cell("fast")
+    assert spec.robot.urdf == "builtin:xarm7_pusher20" and spec.robot.tool_radius == pytest.approx(0.0102)
+    robot = load_spec_robot(spec.robot)
+    q = robot.home_q
+    tip = np.linalg.inv(robot.link_pose(q, "link7")) @ robot.ee_pose(q)
+    np.testing.assert_allclose(tip[:3, 3], [0.0, 0.0, 0.215], atol=1e-12)  # the ee is the tip
+    assert tool_offset(robot) == pytest.approx([0.0, 0.0, 0.0])
+    assert spec.controller.planar_height + 0.215 == pytest.approx(0.22)
+    assert push_t_cell("small-fast").robot.tool_radius == 0.015  # the earlier cell keeps its 15 mm rod
+
+
+def test_gripper_cells_act_on_the_flange_as_the_study():
+    """The study's state and actions are the flange (`link_eef` = link7) pose; the small cells keep the tool
+    point (`tcp`, 13 cm below it), as do twins that name no end-effector (twin.json v1/v2)."""
+    from twinbench.tasks.base import tool_offset
+    from twinbench.tasks.gripper_expert import GripperExpert, Leg
+    from twinbench.twin.build import load_spec_robot
+    from twinbench.twin.cells import RopeCell, ToyCell, gripper_robot
+    from twinbench.twin.spec import RobotSpec
+
+    for cell in (RopeCell, ToyCell):
+        assert [cell.preset(p).ee_frame for p in ("reference", "fast", "small", "small-fast")] == [
+            "flange", "flange", "tool", "tool"]
+    robot = load_spec_robot(gripper_robot(ee_frame="flange"))
+    assert robot.ee_link == "link7"
+    np.testing.assert_allclose(tool_offset(robot), [0.0, 0.0, 0.13], atol=1e-12)
+    old = load_spec_robot(RobotSpec("builtin:xarm7_gripper"))
+    assert old.ee_link == "tcp" and tool_offset(old) == pytest.approx([0.0, 0.0, 0.0])
+
+    class OneLeg(GripperExpert):  # the tool point 5 cm above (0.5, 0.1), pointing down
+        def plan(self, s):
+            return [Leg("hold", np.array([0.5, 0.1, 0.05]), np.array([0.0, 1.0, 0.0, 0.0]), 0.0)]
+
+    obs = {"environment_state": np.zeros(1), "agent_pos": np.r_[0.4, 0.0, 0.3, 0.0, 1.0, 0.0, 0.0, 0.0]}
+    np.testing.assert_allclose(OneLeg(0.01, (0.0, 0.0, 0.13)).select_action(obs)[:3], [0.5, 0.1, 0.18],
+                               atol=1e-6)  # the flange 13 cm above the tool point
+    np.testing.assert_allclose(OneLeg(0.01).select_action(obs)[:3], [0.5, 0.1, 0.05], atol=1e-6)
+
+
+def study_rope_crossings(x, springs, center=(0.62, 0.05, 0.0)):
+    """calculate_success_rope.py as the study writes it: every spring segment, the planes y = y_min and
+    y = y_max of the world-aligned box center +- (1.75, 1.75) cm in x, y and z in [0, 3] cm, hits within
+    the box's x-z rectangle (segments in the plane counted when an end lies in the rectangle)."""
+    lo = np.array(center) - [0.0175, 0.0175, 0.0]
+    hi = np.array(center) + [0.0175, 0.0175, 0.03]
+    p0, p1 = x[springs[:, 0]], x[springs[:, 1]]
+    out = []
+    for y in (lo[1], hi[1]):
+        dy = p1[:, 1] - p0[:, 1]
+        par = np.isclose(dy, 0.0, atol=1e-12)
+        t = np.where(par, 0.0, (y - p0[:, 1]) / np.where(par, 1.0, dy))
+        pt = p0 + t[:, None] * (p1 - p0)
+        rect = (pt[:, 0] >= lo[0]) & (pt[:, 0] <= hi[0]) & (pt[:, 2] >= lo[2]) & (pt[:, 2] <= hi[2])
+        out.append(int(np.sum(~par & (t >= 0) & (t <= 1) & rect)))
+    return out
+
+
+def test_rope_cell_clip_box_and_rule_match_the_study():
+    """cfg/gs/rope.yaml: the clip at (0.62, 0.05) turned -2 deg, the rope at (0.36, 0); the success box of
+    calculate_success_rope.py and its 100 springs per opening, on the rope laid through the box."""
+    from twinbench.physics.model import radius_springs
+    from twinbench.tasks.rope_routing import count_crossings
+    from twinbench.transforms import invert_pose, transform_points
+    from twinbench.twin.cells import rope_routing_cell
+
+    for preset in ("reference", "fast"):
+        spec = rope_routing_cell(preset)
+        clip = spec.colliders[0]
+        np.testing.assert_allclose(clip.pose, planar_pose(0.62, 0.05, 0.0), atol=1e-12)  # the box's frame
+        assert clip.channel == (0.035, 0.03, 0.035)
+        v = clip.vertices  # the walls: parallel to the channel axis turned by -2 deg
+        wall = v[v[:, 0] > 0.02]
+        edge = wall[np.argsort(wall[:, 1])][[0, -1]]
+        assert np.rad2deg(np.arctan2(*(edge[1] - edge[0])[[0, 1]])) == pytest.approx(2.0, abs=0.3)
+        rope = spec.objects[0]
+        np.testing.assert_allclose(rope.rest_pose[:2, 3], [0.36, 0.0])
+        assert spec.robot.ee_link == "link7" and front_crop(spec) == (0, 0, 848, 480)
+        # the rope laid along y through the box's centre on the table
+        springs = radius_springs(rope.particles, rope.spring_radius, rope.max_neighbors)
+        laid = transform_points(planar_pose(0.62, 0.05, np.pi / 2), rope.particles)
+        theirs = study_rope_crossings(laid, springs)
+        local = transform_points(invert_pose(clip.pose), laid)
+        ours = [count_crossings(local, springs, y, 0.0175, 0.03) for y in (-0.0175, 0.0175)]
+        assert ours == theirs and min(theirs) == {"reference": 204, "fast": 180}[preset]  # the whole section
+        # 1.5 cm to the side: only part of the section lies in the openings
+        side = study_rope_crossings(laid + [0.0215, 0.0, 0.0], springs)
+        assert 0 < max(side) < 100
+    assert RopeRoutingTask().settings.crossing_threshold == 100
+
+
+def front_crop(spec):
+    return next(c for c in spec.cameras if c.name == "front").crop
+
+
+def test_toy_cell_matches_the_studys_sizes():
+    """cfg/gs/sloth.yaml: the sloth at (0.5, -0.17), the box at (0.45, 0.18); calculate_success_sloth.py:
+    3,095 particles, the box's bounding box 0.2 x 0.13 x 0.27 m (its volume checked to 1e-6 m^3), 3,050
+    inside."""
+    from twinbench.twin.cells import toy_packing_cell
+
+    spec = toy_packing_cell("reference")
+    toy, box = spec.objects[0], spec.colliders[0]
+    assert len(toy.particles) == 3095
+    ext = np.ptp(toy.particles, 0)
+    assert 0.09 < ext[0] < 0.11 and 0.15 < ext[1] < 0.17 and 0.04 < ext[2] < 0.06
+    box_ext = np.ptp(box.vertices, 0)
+    np.testing.assert_allclose(sorted(box_ext), sorted([0.2, 0.13, 0.27]), atol=1e-9)
+    assert abs(np.prod(box_ext) - 0.2 * 0.13 * 0.27) < 1e-6
+    np.testing.assert_allclose(toy.rest_pose[:2, 3], [0.5, -0.17])
+    np.testing.assert_allclose(box.pose[:2, 3], [0.45, 0.18])
+    assert ToyPackingTask().settings.inside_fraction * 3095 == pytest.approx(3050)
+    assert len(toy_packing_cell("fast").objects[0].particles) < 3095  # the fast lattice is coarser
+    assert spec.robot.ee_link == "link7" and front_crop(spec) == (100, 0, 648, 480)

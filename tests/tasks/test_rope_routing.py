@@ -39,25 +39,29 @@ def test_gripper_lifts_the_rope_by_friction_it_hangs_and_drops_when_released(env
     twin, state = env.twin, env.state
     assert info["grasp"] == "open"
     rope = twin.particles(state, "rope")
-    end = rope[np.argmax(rope[:, 1])]  # the rope lies along +y; grasp 1 cm in from its +y end
-    quat = grasp_quat((0.0, 1.0))
-    grasp = np.array([end[0], end[1] - 0.01, TCP_ABOVE_TIPS + 0.002])
+    end = rope[np.argmax(rope[:, 0])]  # the rope lies along +x; grasp 1 cm in from its +x end
+    quat = grasp_quat((1.0, 0.0))
+    grasp = np.array([end[0] - 0.01, end[1], TCP_ABOVE_TIPS + 0.002])
+    flange = env.rules.tool_offset  # actions and agent_pos are the flange's, 13 cm above the tool point
+    assert flange == pytest.approx([0.0, 0.0, 0.13])
 
     def act(p, g):
-        return np.r_[p, quat, g].astype(np.float32)
+        return np.r_[p + flange, quat, g].astype(np.float32)
 
     for _ in range(60):  # over the end, then down to it (the velocity-control mimic lags its targets)
         obs, *_, info = env.step(act(grasp + [0, 0, 0.06], 0.0))
     for _ in range(25):
         obs, *_, info = env.step(act(grasp, 0.0))
-    assert np.linalg.norm(obs["agent_pos"][:3] - grasp) < 0.006
+    assert np.linalg.norm(obs["agent_pos"][:3] - flange - grasp) < 0.006
+    tool = info["privileged"]["tool_pose"][:3, 3]  # the tool point stays available
+    np.testing.assert_allclose(tool, obs["agent_pos"][:3] - flange, atol=1e-5)
     for _ in range(25):
         obs, *_, info = env.step(act(grasp, 1.0))
     assert info["grasp"] == "holding"  # the thin rope never loads the fingers to the latch: a closed pinch
     for k in range(50):
         obs, *_, info = env.step(act(grasp + [0, 0, 0.004 * (k + 1)], 1.0))
     rope = twin.particles(state, "rope")
-    held, free = rope[np.argmax(rope[:, 1])], rope[np.argmin(rope[:, 1])]
+    held, free = rope[np.argmax(rope[:, 2])], rope[np.argmin(rope[:, 2])]
     assert held[2] > 0.15  # the grasped end rose with the hand (pure friction: no particle is attached)
     assert free[2] < held[2] - 0.1  # the rope hangs: its free end far below the grasped end
     assert info["grasp"] == "holding"
@@ -70,7 +74,7 @@ def test_gripper_lifts_the_rope_by_friction_it_hangs_and_drops_when_released(env
 def test_closing_on_air_is_reported(env):
     obs, info = env.reset(seed=0, options={"init_state": 13})
     for _ in range(20):  # close high above the rope
-        obs, *_, info = env.step(np.r_[0.35, 0.0, 0.2, grasp_quat((1.0, 0.0)), 1.0].astype(np.float32))
+        obs, *_, info = env.step(np.r_[0.35, 0.0, 0.33, grasp_quat((1.0, 0.0)), 1.0].astype(np.float32))
     assert info["grasp"] == "closed_on_air"
 
 

@@ -31,6 +31,7 @@ from twinbench.twin import (
     save_object,
     save_twin,
 )
+from twinbench.twin.build import load_spec_robot
 from twinbench.twin.cells import front_camera, push_t_cell, rope_routing_cell, wrist_camera
 from twinbench.twin.shapes import Outline
 
@@ -188,12 +189,18 @@ def test_builtin_and_exported_twins_give_bit_identical_episodes(tmp_path):
 def test_builtin_cells_write_the_geometry_their_tasks_read(tmp_path):
     save_twin(push_t_cell("fast"), tmp_path / "t")
     doc = json.loads((tmp_path / "t" / "twin.json").read_text())
-    assert doc["version"] == 2 and doc["robot"]["tool_radius"] == 0.015
+    assert doc["version"] == 2 and doc["robot"]["tool_radius"] == 0.0102  # the study's 20 cm pusher
+    assert doc["robot"]["urdf"] == "builtin:xarm7_pusher20"
     outline = doc["objects"][0]["outline"]
     assert len(outline["polygon"]) == 8 and outline["height"] == 0.03
     save_twin(rope_routing_cell("fast"), tmp_path / "r")
     doc = json.loads((tmp_path / "r" / "twin.json").read_text())
-    assert doc["colliders"][0]["channel"] == [0.02, 0.03, 0.04] and doc["robot"]["tool_radius"] is None
+    assert doc["colliders"][0]["channel"] == [0.035, 0.03, 0.035] and doc["robot"]["tool_radius"] is None
+    assert doc["robot"]["ee_link"] == "link7"  # the flange: the study's end-effector frame
+    del doc["robot"]["ee_link"]  # a file written before (v1 or v2, no ee_link): the tool point, as then
+    (tmp_path / "r" / "twin.json").write_text(json.dumps(doc))
+    assert load_twin(tmp_path / "r").robot.ee_link is None
+    assert load_spec_robot(load_twin(tmp_path / "r").robot).ee_link == "tcp"
 
 
 def test_a_version_1_twin_without_geometry_still_loads(tmp_path):
@@ -205,7 +212,7 @@ def test_a_version_1_twin_without_geometry_still_loads(tmp_path):
     path.write_text(json.dumps(doc))
     spec = load_twin(tmp_path / "t")
     assert spec.objects[0].outline is None
-    assert spec.robot.tool_radius == 0.015  # the built-in pusher's rod, filled in
+    assert spec.robot.tool_radius == 0.0102  # the built-in pusher's rod, filled in
     with pytest.raises(ValueError, match="needs the outline of object 'tblock'"):
         TwinEnv("push-t", twin=tmp_path / "t")
 
@@ -327,7 +334,10 @@ CASES = {
         dict(edit=_set(["robot", "tool_radius"], "wide")),
         r"robot\.tool_radius: expected a finite number, got 'wide'",
     ),
-    "bad sim value": (dict(edit=_set(["sim", "dt"], -1.0)), r"sim: SimParams\.dt=-1\.0 is invalid"),
+    "bad sim value": (
+        dict(edit=_set(["sim", "dt"], -1.0)),
+        r"twin\.json: sim\.dt: expected a number in \[1e-07, 0\.1\], got -1\.0$",
+    ),
     "missing robot": (dict(edit=lambda d: d.pop("robot")), r"\(top level\): missing field\(s\) \['robot'\]"),
     "bad gaussians": (
         dict(files=lambda r: (r / "objects" / "block.ply").write_bytes(b"ply\nformat nonsense\n")),

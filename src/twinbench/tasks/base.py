@@ -215,18 +215,52 @@ class TwinTask:
         return res.q
 
 
+TOOL_LINK = "tcp"  # the tool point's link in the built-in arms (the gripper's: 15 mm above its fingertips)
+DOWN_QUAT = (0.0, 1.0, 0.0, 0.0)  # wxyz: the tool pointing down, its x along world x
+
+
+def tool_offset(robot) -> np.ndarray:
+    """(3,) position of the tool point (link `tcp`) in the end-effector frame: where the end-effector is
+    the flange (the reference study's `link_eef`), the tool point 13 cm below it on the built-in gripper;
+    zeros where the end-effector is the tool point itself or the robot has no `tcp` link."""
+    if TOOL_LINK not in robot.link_names or robot.ee_link == TOOL_LINK:
+        return np.zeros(3)
+    q = robot.home_q
+    return (np.linalg.inv(robot.ee_pose(q)) @ robot.link_pose(q, TOOL_LINK))[:3, 3].copy()
+
+
 class GraspTask(TwinTask):
-    """A task for the gripper arm: absolute `[x, y, z, qw, qx, qy, qz, gripper]` actions within the
-    settings' `workspace` box, starting at the settings' `start_position`, pointing down, gripper open."""
+    """A task for the gripper arm: absolute `[x, y, z, qw, qx, qy, qz, gripper]` actions of the twin's
+    end-effector frame (`RobotSpec.ee_link`: the flange in the reference cells, as in the reference study;
+    the tool point `tcp` in the small cells and in twins that name no end-effector). The settings'
+    `workspace` box and `start_position` (pointing down, gripper open) are of the tool point: with the
+    gripper pointing down, the end-effector's box and start are shifted by the tool offset (`tool_offset`;
+    13 cm up for the flange). `info["privileged"]["tool_pose"]` is the tool point's world pose."""
 
     def controller_overrides(self) -> dict:
         return {"action_mode": "absolute"}
 
+    def _down_shift(self, twin) -> np.ndarray:
+        """The end-effector's position minus the tool point's with the tool pointing down."""
+        from twinbench.transforms import quat_to_matrix
+
+        return -quat_to_matrix(np.array(DOWN_QUAT)) @ tool_offset(twin.robot)
+
     def action_bounds(self, twin) -> tuple[np.ndarray, np.ndarray]:
-        lo, hi = self.settings.workspace
+        shift = self._down_shift(twin)
+        lo, hi = (np.asarray(b, np.float64) + shift for b in self.settings.workspace)
         return np.array([*lo, -1, -1, -1, -1, 0], np.float32), np.array([*hi, 1, 1, 1, 1, 1], np.float32)
 
     def setup(self, twin, state) -> None:
         super().setup(twin, state)
-        q = self.start_configuration(twin, self.settings.start_position, (0.0, 1.0, 0.0, 0.0))
+        start = np.asarray(self.settings.start_position, np.float64) + self._down_shift(twin)
+        q = self.start_configuration(twin, start, DOWN_QUAT)
         self.q_start = twin.robot.set_gripper(q, 0.0)
+        self.tool_offset = tool_offset(twin.robot)
+
+    def privileged(self, twin, state, metrics: dict) -> dict:
+        out = super().privileged(twin, state, metrics)
+        ee = twin.robot.ee_pose(state.robot.q)
+        ee[:3, 3] += ee[:3, :3] @ self.tool_offset
+        out["tool_pose"] = ee
+        return out

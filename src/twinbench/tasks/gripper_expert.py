@@ -3,7 +3,9 @@ waypoint (held deformable objects move without jerks: the grasp is friction only
 
 An expert plans once, from the first `environment_state` of an episode, a list of `Leg`s (go to a pose
 with a gripper command until the end-effector is within `tol` of it, or for a number of steps), and
-`GripperExpert.select_action` walks through it.
+`GripperExpert.select_action` walks through it. Legs are positions of the tool point (`tcp`); the expert
+commands the twin's end-effector frame (the flange in the reference cells), `tool_offset` away
+(`tasks.base.tool_offset`, which the tasks' `make_expert` reads from the env's twin).
 """
 
 from __future__ import annotations
@@ -13,7 +15,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from twinbench.errors import PolicyError
-from twinbench.transforms import quat_multiply
+from twinbench.transforms import quat_multiply, quat_to_matrix
 
 DOWN = np.array([0.0, 1.0, 0.0, 0.0])  # tcp z down, tcp x = world x (wxyz)
 TCP_ABOVE_TIPS = 0.015  # the built-in gripper's tcp sits 15 mm above its fingertips
@@ -69,12 +71,14 @@ class Leg:
 
 
 class GripperExpert:
-    """Walks a plan of Legs made by `plan(environment_state)` (a subclass's). `phase` names the leg."""
+    """Walks a plan of Legs made by `plan(environment_state)` (a subclass's). `phase` names the leg.
+    `tool_offset`: the tool point in the end-effector frame (zeros: the end-effector is the tool point)."""
 
     uses_environment_state = True
 
-    def __init__(self, holding_speed: float):
+    def __init__(self, holding_speed: float, tool_offset=(0.0, 0.0, 0.0)):
         self.holding_speed = holding_speed
+        self.tool_offset = np.asarray(tool_offset, dtype=np.float64)
         self.reset()
 
     def reset(self) -> None:
@@ -97,10 +101,12 @@ class GripperExpert:
             )
         if self._plan is None:
             self._plan = self.plan(np.asarray(obs["environment_state"], dtype=np.float64))
-        ee = np.asarray(obs["agent_pos"], dtype=np.float64)[:3]
+        ee = np.asarray(obs["agent_pos"], dtype=np.float64)
+        tool = ee[:3] + quat_to_matrix(ee[3:7]) @ self.tool_offset
         self._t += 1
-        while self._leg < len(self._plan) - 1 and self._plan[self._leg].done(ee, self._t):
+        while self._leg < len(self._plan) - 1 and self._plan[self._leg].done(tool, self._t):
             self._leg, self._t = self._leg + 1, 0
         leg = self._plan[self._leg]
         target = self._wp.toward(leg.position, self.holding_speed, leg.slow)
+        target = target - quat_to_matrix(np.asarray(leg.quat, np.float64)) @ self.tool_offset
         return np.r_[target, leg.quat, leg.gripper].astype(np.float32)

@@ -1,6 +1,7 @@
 """Scripted rope-routing expert: grasp the marked end, lift, carry it to the channel's axis before the
 near opening, drag it along the axis just above the clip (the hanging rope trails into the channel),
-lower it beyond the far opening, release, and keep clear.
+lower it beyond the far opening, release, and keep clear. A rope lying beside the channel's axis is towed
+along the axis from farther back (`lead`), so that it lines up behind the hand before the clip.
 
 It plans from `obs["environment_state"]` (see tasks.rope_routing): the marked end, a rope point 4 cm from
 it (the rope's direction at the end, for the finger orientation), the rope's centroid and the clip pose.
@@ -21,11 +22,13 @@ class RopeExpert(GripperExpert):
 
     def __init__(self, *, channel_length: float, channel_depth: float, grip_inset: float = 0.012,
                  carry_height: float = 0.12, beyond: float = 0.07, close_steps: int = 20,
-                 settle_steps: int = 25, holding_speed: float = 0.006, squeeze: float = 0.92):
+                 settle_steps: int = 25, holding_speed: float = 0.006, squeeze: float = 0.92,
+                 lead: float = 0.03, max_lead: float = 0.2, tool_offset=(0.0, 0.0, 0.0)):
         self.channel_length, self.channel_depth = channel_length, channel_depth
+        self.lead, self.max_lead = lead, max_lead
         self.grip_inset, self.carry_height, self.beyond = grip_inset, carry_height, beyond
         self.close_steps, self.settle_steps, self.squeeze = close_steps, settle_steps, squeeze
-        super().__init__(holding_speed)
+        super().__init__(holding_speed, tool_offset)
 
     def plan(self, s: np.ndarray) -> list[Leg]:
         end, along, centroid, clip = s[0:3], s[3:6], s[6:9], s[9:12]
@@ -36,7 +39,11 @@ class RopeExpert(GripperExpert):
         axis = np.array([-np.sin(clip[2]), np.cos(clip[2])])  # the channel: clip frame y in the world
         if axis @ (clip[:2] - centroid[:2]) < 0:
             axis = -axis
-        near = clip[:2] - axis * (self.channel_length / 2 + 0.03)  # before the near opening
+        # the drag starts `lead` before the near opening: farther back (up to max_lead) the farther the rope
+        # lies beside the channel's axis, so that the towed rope lines up behind the hand before the clip
+        side = abs(axis[0] * (centroid[1] - clip[1]) - axis[1] * (centroid[0] - clip[0]))
+        lead = float(np.clip(side, self.lead, self.max_lead))
+        near = clip[:2] - axis * (self.channel_length / 2 + lead)  # before the near opening
         goal = clip[:2] + axis * (self.channel_length / 2 + self.beyond)  # beyond the far one
         skim = self.channel_depth + 0.02 + TCP_ABOVE_TIPS  # fingertips 2 cm above the clip's walls
         low = self.channel_depth * 0.5 + TCP_ABOVE_TIPS

@@ -13,12 +13,14 @@ sampler draws +-7.5 cm and +-15 deg. Episodes last 30 s after 30 settling frames
 Success: at both openings (the channel's end planes, within the channel's cross-section) at least
 `crossing_threshold` rope springs cross, in at least 30 of the last 100 frames.
 
-Scaling the reference threshold: the reference study asks for >= 100 crossing springs per opening at its
-rope's resolution. A rope's spring count across a cross-section grows with its particle density, so the
-threshold here is a fraction (`crossing_fraction`, default 0.5) of the springs that cross one cross-section
-of this twin's straight rope at rest, computed at setup (13 springs cross a section of the `fast` rope and
-49 of the `reference` rope: thresholds 7 and 25). It reads "about half of the rope's section lies inside
-each opening", whatever the resolution.
+The threshold: the reference study's `crossing_threshold` = 100 springs per opening (its
+calculate_success_rope.py: every spring of the rope, the planes y = y_min and y = y_max of its 3.5 x 3.5 x
+3 cm box, within the box's x-z rectangle), capped at a fraction (`crossing_fraction`, default 0.5) of the
+springs that cross one cross-section of this twin's straight rope at rest (computed at setup): a rope's
+spring count across a section grows with its particle density, and a coarse rope could never reach 100.
+The `reference` rope is dense enough (204 springs cross a section: threshold 100); the `fast` rope (180)
+gets 90, the small cells' ropes (49 and 13) 25 and 7 ("about half of the rope's section lies inside each
+opening").
 
 `environment_state` (privileged, for the scripted expert): [marked end (3), the rope point 4 cm from it
 (3), the rope's centroid (3), clip x, y, theta (3), crossings at the two openings (2)].
@@ -43,6 +45,7 @@ class RopeRoutingSettings:
     channel_width: float | None = None  # m; None: the clip's channel in the twin
     channel_depth: float | None = None
     channel_length: float | None = None
+    crossing_threshold: int = 100
     crossing_fraction: float = 0.5
     success_window: int = 100
     success_min_hits: int = 30
@@ -104,7 +107,8 @@ class RopeRoutingTask(GraspTask):
         k = len(xs) // 2
         mid = 0.5 * (xs[k - 1] + xs[k])  # between two rings near the middle
         per_section = count_crossings(rest[:, [1, 0, 2]] - [0, mid, 0], self.springs, 0.0, np.inf, np.inf)
-        self.crossing_threshold = max(1, int(np.ceil(self.settings.crossing_fraction * per_section)))
+        cap = max(1, int(np.ceil(self.settings.crossing_fraction * per_section)))
+        self.crossing_threshold = min(self.settings.crossing_threshold, cap)
         self.marked = int(
             np.argmax(rest[:, 0] - 1e-3 * np.abs(rest[:, 1]) - 1e-3 * np.abs(rest[:, 2] - rest[:, 2].mean()))
         )
@@ -158,7 +162,7 @@ def make_expert(env):
     from twinbench.tasks.rope_expert import RopeExpert
 
     _, depth, length = env.unwrapped.rules.channel
-    return RopeExpert(channel_length=length, channel_depth=depth)
+    return RopeExpert(channel_length=length, channel_depth=depth, tool_offset=env.unwrapped.rules.tool_offset)
 
 
 register_task(RopeRoutingTask, make_expert=make_expert)

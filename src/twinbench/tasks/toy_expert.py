@@ -18,10 +18,10 @@ class ToyExpert(GripperExpert):
 
     def __init__(self, *, grip_height: float = 0.012, carry_height: float = 0.12, drop_height: float = 0.0,
                  close_steps: int = 20, settle_steps: int = 20, holding_speed: float = 0.006,
-                 hover_steps: int = 15):
+                 hover_steps: int = 15, tool_offset=(0.0, 0.0, 0.0)):
         self.grip_height, self.carry_height, self.drop_height = grip_height, carry_height, drop_height
         self.close_steps, self.settle_steps, self.hover_steps = close_steps, settle_steps, hover_steps
-        super().__init__(holding_speed)
+        super().__init__(holding_speed, tool_offset)
 
     def plan(self, s: np.ndarray) -> list[Leg]:
         toy, toy_th, box = s[0:3], s[3], s[4:7]

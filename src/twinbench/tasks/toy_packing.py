@@ -77,6 +77,7 @@ class ToyPackingTask(GraspTask):
         lo, hi = box.vertices.min(0), box.vertices.max(0)
         self.box_center = (lo + hi) / 2  # the box's bounding box in its own frame
         self.box_half = (hi - lo) / 2 * self.settings.box_scale
+        self.box_height = float(hi[2])  # the walls' top above the table (the expert carries above it)
 
     def inside(self, twin, state) -> float:
         """Fraction of the toy's particles inside the box's scaled oriented bounding box."""
@@ -104,7 +105,9 @@ def make_expert(env):
     """The scripted expert; it acts from `environment_state` (never the env's internals)."""
     from twinbench.tasks.toy_expert import ToyExpert
 
-    return ToyExpert()
+    rules = env.unwrapped.rules
+    # the tool point 7 cm above the walls: the held toy's bottom clears them by 2-3 cm
+    return ToyExpert(carry_height=max(0.12, rules.box_height + 0.07), tool_offset=rules.tool_offset)
 
 
 register_task(ToyPackingTask, make_expert=make_expert)

@@ -4,8 +4,10 @@ The reference workcell: a procedural table and backdrop (Gaussians), the built-i
 the reference study's cameras (`study_cameras`: its front D455 and its wrist D405 on the flange, their
 intrinsics, 848x480 sensors and each task's crops), and the task's objects. Every cell has the presets
 `reference` (the default) and `fast` (cheaper physics), which follow the study's layout as far as it is
-public, and `small` / `small-fast`, the earlier scaled-down cells with their own cameras. Rope and toy:
-only the cameras and crops are the study's so far; the objects are procedural stand-ins.
+public (object sizes and poses, its 20 cm pusher, the flange as the gripper tasks' end-effector frame), and
+`small` / `small-fast`, the earlier scaled-down cells with their own cameras, tools and frames. The study's
+scanned rope, clip, sloth and box are not public: here they are procedural stand-ins of their sizes (and,
+for the sloth, its particle count).
 
 - `push_t_cell(preset)`: the arm with a vertical pusher held at a fixed height above the table (its
   radius is the robot's `tool_radius`), and a T-block made of particles (volume lattice, springs within a
@@ -16,8 +18,13 @@ only the cameras and crops are the study's so far; the objects are procedural st
   start and goal poses; `small` / `small-fast`: a 12 x 12 cm T resting at (0.5, 0) as its own goal.
 - `rope_routing_cell(preset)`: the arm with its parallel gripper (friction on the finger pads, the force
   latch of DESIGN §5), a 32 cm cotton-like rope (a 1 cm thick cylinder of particles, springs within a
-  radius; its marked end is red) lying on the table, and a clip: two walls on the table forming a
-  2 cm wide, 3 cm deep, 4 cm long channel along y with an opening at each end (the collider's `channel`).
+  radius; its marked end is red) lying on the table, and a clip: two walls on the table forming a channel
+  along y with an opening at each end (the collider's `channel`): the study's 3.5 x 3 x 3.5 cm success box
+  at (0.62, 0.05) in `reference`/`fast` (`STUDY_ROPE`), a 2 x 3 x 4 cm channel at (0.45, 0.12) in the small
+  cells.
+- `toy_packing_cell(preset)`: the gripper arm, a plush toy (a torso and four softer limbs) and an open box:
+  the study's sizes in `reference`/`fast` (`STUDY_TOY`), a 7 x 5 x 4 cm toy and a 9 x 7.5 x 7 cm box in
+  the small cells.
 """
 
 from __future__ import annotations
@@ -29,7 +36,7 @@ import numpy as np
 from twinbench.gaussians.camera import look_at_pose
 from twinbench.gaussians.cloud import GaussianCloud
 from twinbench.physics import SimParams
-from twinbench.robot.builtin import PUSHER_RADIUS
+from twinbench.robot.builtin import PUSHERS
 from twinbench.robot.controller import ControllerConfig
 from twinbench.transforms import planar_pose
 from twinbench.twin.assets import (
@@ -123,6 +130,7 @@ class PushTCell:
     t_shape: tuple[float, ...] = (0.12, 0.03, 0.09, 0.03, 0.03)
     goal_pose: tuple[float, float, float] | None = None  # x, y, theta of the goal; None: the rest pose
     study_cameras: bool = False  # the reference study's cameras and push-T crops (else the small cell's)
+    pusher: str = "pusher"  # the built-in pusher tool: "pusher" (15 mm rod) or "pusher20" (the study's)
 
     @staticmethod
     def preset(name: str, **overrides) -> PushTCell:
@@ -139,8 +147,10 @@ class PushTCell:
 # The reference study's push-T (kywind/real2sim-eval): the T measured from the particles of its goal
 # (experiments/utils/T_final_state.pkl: bar 15 x 4 cm, stem 11 x 4 cm, 3 cm high; their area centroid at
 # (0.4193, 0.0015), stem toward the robot, i.e. the bar along -y), the start pose of cfg/gs/T.yaml (the T at
-# x = 0.43 turned by -90 deg) and the pusher tip 5 mm above the table (flange at z = 0.22, 21.5 cm rod).
+# x = 0.43 turned by -90 deg), its 20 cm pusher (a 10.2 mm rod, tip 21.5 cm below the flange) with the tip
+# 5 mm above the table (flange at z = 0.22).
 STUDY_PUSH_T = dict(
+    pusher="pusher20",
     t_shape=(0.15, 0.04, 0.11, 0.04, 0.03),
     block_pose=(0.43, 0.0, -np.pi / 2),
     goal_pose=(0.4193, 0.0015, -np.pi / 2 - 0.0034),
@@ -178,11 +188,13 @@ def push_t_cell(preset: str = "reference", **overrides) -> TwinSpec:
         object_collision=False,
         mesh_margin=0.6 * spacing,
     )
+    if cfg.pusher not in PUSHERS:
+        raise ValueError(f"push-t cell: pusher must be one of {sorted(PUSHERS)}, got {cfg.pusher!r}")
     robot = RobotSpec(
-        "builtin:xarm7_pusher",
+        f"builtin:xarm7_{cfg.pusher}",
         scan_spacing=cfg.robot_gaussian_spacing,
         tool_contact=ContactSpec(0.0, cfg.pusher_friction),
-        tool_radius=PUSHER_RADIUS,
+        tool_radius=PUSHERS[cfg.pusher][0],
     )
     return TwinSpec(
         name=f"push-t-{preset}",
@@ -208,10 +220,21 @@ def _check_settings(cls, name: str, presets: dict, preset: str, overrides: dict)
     return replace(presets[preset], **overrides)
 
 
-def gripper_robot(finger_friction: float = 1.0, scan_spacing: float = 0.006) -> RobotSpec:
-    """The built-in arm with its parallel gripper; finger pads with friction `finger_friction`."""
+EE_FRAMES = {"flange": "link7", "tool": "tcp"}  # a gripper cell's `ee_frame` -> RobotSpec.ee_link
+
+
+def gripper_robot(finger_friction: float = 1.0, scan_spacing: float = 0.006, ee_frame: str = "tool"
+                  ) -> RobotSpec:
+    """The built-in arm with its parallel gripper; finger pads with friction `finger_friction`. `ee_frame`:
+    the frame of the policy's state and actions, "flange" (the reference study's `link_eef`) or "tool"
+    (the `tcp` point 13 cm below it, 15 mm above the fingertips)."""
+    if ee_frame not in EE_FRAMES:
+        raise ValueError(f"ee_frame must be one of {sorted(EE_FRAMES)}, got {ee_frame!r}")
     return RobotSpec(
-        "builtin:xarm7_gripper", scan_spacing=scan_spacing, tool_contact=ContactSpec(0.0, finger_friction)
+        "builtin:xarm7_gripper",
+        ee_link=EE_FRAMES[ee_frame],
+        scan_spacing=scan_spacing,
+        tool_contact=ContactSpec(0.0, finger_friction),
     )
 
 
@@ -225,12 +248,15 @@ class RopeCell:
 
     length: float = 0.32  # m
     axial_spacing: float = 0.004  # m between particle rings along the rope
-    ring: int = 9  # particles per cross-section: 5 (centre + 4) or 9 (3 x 3)
+    ring: int = 9  # particles per cross-section: 5 (centre + 4) or n * n (a square grid, n >= 2)
     radius: float = 0.005  # m, half the rope's thickness
     spring_Y: float = 1e4
+    spring_radius: float | None = None  # m, springs within it; None: 1.3 x the larger lattice spacing
+    max_neighbors: int = 30
     substeps: int = 667
     rope_pose: tuple[float, float, float] = (0.45, -0.12, 1.5707963267948966)  # x, y, theta: along +y
     clip_pose: tuple[float, float, float] = (0.45, 0.12, 0.0)  # channel along the clip frame's y
+    clip_yaw: float = 0.0  # rad, the clip's walls turned about the channel's centre (the frame is not)
     channel_width: float = 0.02
     channel_depth: float = 0.03
     channel_length: float = 0.04
@@ -241,15 +267,15 @@ class RopeCell:
     image_hw: tuple[int, int] = (240, 240)
     robot_gaussian_spacing: float = 0.006
     study_cameras: bool = False  # the reference study's cameras, full 848x480 frames (else the small cell's)
+    ee_frame: str = "tool"  # state and actions of the "flange" (the study's) or the "tool" point
 
     @staticmethod
     def preset(name: str, **overrides) -> RopeCell:
         small = RopeCell()
         small_fast = RopeCell(axial_spacing=0.006, ring=5, substeps=150, self_collision=False)
-        study = {"study_cameras": True, "image_hw": ROPE_IMAGE_HW}  # the rope and clip: not yet the study's
         presets = {
-            "reference": replace(small, **study),
-            "fast": replace(small_fast, **study),
+            "reference": replace(small, **STUDY_ROPE),
+            "fast": replace(small, **{**STUDY_ROPE, **STUDY_ROPE_FAST}),
             "small": small,
             "small-fast": small_fast,
         }
@@ -258,19 +284,44 @@ class RopeCell:
 
 ROPE_CROP = (0, 0, 848, 480)  # the study's rope policy: the full frame resized to 120 x 212
 ROPE_IMAGE_HW = (120, 212)
+# The reference study's rope routing (kywind/real2sim-eval cfg/gs/rope.yaml, calculate_success_rope.py): its
+# clip at (0.62, 0.05) turned -2 deg, its success box 3.5 x 3.5 x 3 cm (x, y, z) around (0.62, 0.05), on the
+# table and aligned with the world axes, whose y faces are the openings; the rope's origin at (0.36, 0). The
+# clip frame here is that box (the channel = the box; the stand-in clip's walls are turned -2 deg in it), and
+# the rope is denser than the small cell's so that the study's 100 crossing springs per opening can be reached
+# (reference: a 4 x 4 section every 4 mm, springs within 8 mm, 204 springs cross a section of the straight
+# rope; fast: every 6 mm, springs within 9 mm, 180; springs reach 2 and 1.5 sections: the rope still bends).
+STUDY_ROPE = dict(
+    ring=16,
+    spring_radius=0.008,
+    max_neighbors=40,
+    rope_pose=(0.36, 0.0, 0.0),
+    clip_pose=(0.62, 0.05, 0.0),
+    clip_yaw=float(np.deg2rad(-2.0)),
+    channel_width=0.035,
+    channel_length=0.035,
+    study_cameras=True,
+    image_hw=ROPE_IMAGE_HW,
+    ee_frame="flange",
+)
+STUDY_ROPE_FAST = dict(axial_spacing=0.006, spring_radius=0.009, max_neighbors=50, substeps=150,
+                       self_collision=False)
 
 
 def rope_particles(length: float, axial_spacing: float, ring: int, radius: float) -> np.ndarray:
     """(P, 3) particles of a straight rope along x in its own frame (centred, lying on z = 0): rings of
-    `ring` particles (5: centre and 4 at 0.8 radius; 9: a 3 x 3 grid) every `axial_spacing` metres."""
-    if ring not in (5, 9):
-        raise ValueError(f"ring must be 5 or 9, got {ring}")
+    `ring` particles (5: centre and 4 at 0.8 radius; n * n: a square grid spanning +-0.8 radius) every
+    `axial_spacing` metres."""
+    side = int(round(np.sqrt(ring)))
+    if ring != 5 and (side < 2 or side * side != ring):
+        raise ValueError(f"ring must be 5 or a square n * n >= 4 (9, 16, ...), got {ring}")
     n = int(round(length / axial_spacing)) + 1
     d = 0.8 * radius
     if ring == 5:
         section = [(0, 0), (d, 0), (-d, 0), (0, d), (0, -d)]
     else:
-        section = [(a, b) for a in (-d, 0, d) for b in (-d, 0, d)]
+        grid = np.linspace(-d, d, side)
+        section = [(a, b) for a in grid for b in grid]
     xs = np.linspace(-length / 2, length / 2, n)
     return np.array([(x, y, radius + z) for x in xs for (y, z) in section])
 
@@ -291,8 +342,8 @@ def rope_routing_cell(preset: str = "reference", **overrides) -> TwinSpec:
         "rope",
         pts,
         spring_Y=cfg.spring_Y,
-        spring_radius=1.3 * max(spacing, 0.8 * cfg.radius * 1.42),
-        max_neighbors=30,
+        spring_radius=cfg.spring_radius or 1.3 * max(spacing, 0.8 * cfg.radius * 1.42),
+        max_neighbors=cfg.max_neighbors,
         gaussians=skin,
         binding="lbs",
         rest_pose=planar_pose(*cfg.rope_pose),
@@ -308,6 +359,7 @@ def rope_routing_cell(preset: str = "reference", **overrides) -> TwinSpec:
         box_mesh((w, -half_len, 0.0), (w + t, half_len, depth)),
     ]
     clip_mesh = trimesh.util.concatenate(walls)
+    clip_mesh.apply_transform(trimesh.transformations.rotation_matrix(cfg.clip_yaw, (0, 0, 1)))
     clip = ColliderSpec(
         "clip",
         np.asarray(clip_mesh.vertices),
@@ -331,7 +383,7 @@ def rope_routing_cell(preset: str = "reference", **overrides) -> TwinSpec:
     )
     return TwinSpec(
         name=f"rope-routing-{preset}",
-        robot=gripper_robot(cfg.finger_friction, cfg.robot_gaussian_spacing),
+        robot=gripper_robot(cfg.finger_friction, cfg.robot_gaussian_spacing, cfg.ee_frame),
         objects=(rope,),
         colliders=(clip,),
         cameras=study_cameras(ROPE_CROP, ROPE_CROP, cfg.image_hw)
@@ -351,6 +403,7 @@ class ToyCell:
     """Settings of the built-in toy-packing cell. `ToyCell.preset(name, **overrides)` gives the presets."""
 
     spacing: float = 0.004  # m, particle lattice of the plush toy
+    particles: int | None = None  # keep this many (the torso's top corners go first); None: the lattice's
     torso: tuple[float, float, float] = (0.07, 0.05, 0.04)  # m, x y z extents
     limb_length: float = 0.04  # m, four limbs sticking out along +-y
     limb_radius: float = 0.011
@@ -366,13 +419,14 @@ class ToyCell:
     image_hw: tuple[int, int] = (240, 240)
     robot_gaussian_spacing: float = 0.006
     study_cameras: bool = False  # the reference study's cameras and toy crops (else the small cell's)
+    ee_frame: str = "tool"  # state and actions of the "flange" (the study's) or the "tool" point
 
     @staticmethod
     def preset(name: str, **overrides) -> ToyCell:
         small, small_fast = ToyCell(), ToyCell(spacing=0.008, substeps=150)
-        presets = {  # the toy and box: not yet the study's
-            "reference": replace(small, study_cameras=True),
-            "fast": replace(small_fast, study_cameras=True),
+        presets = {
+            "reference": replace(small, **STUDY_TOY),
+            "fast": replace(small_fast, **{**STUDY_TOY, "spacing": small_fast.spacing, "particles": None}),
             "small": small,
             "small-fast": small_fast,
         }
@@ -380,6 +434,24 @@ class ToyCell:
 
 
 TOY_CROP = (100, 0, 648, 480)  # the study's sloth policy: cols 100-748, resized to 240 x 240
+# The reference study's toy packing (kywind/real2sim-eval cfg/gs/sloth.yaml, calculate_success_sloth.py): a
+# scanned plush sloth of 3,095 particles at (0.5, -0.17) and a scanned box at (0.45, 0.18) whose minimal
+# oriented bounding box is 0.2 x 0.13 x 0.27 m. Neither scan is public: the stand-ins are a procedural plush
+# (a 10 x 6 x 5 cm torso, four 5 cm limbs, 16 cm across; 3,095 particles in `reference`, the 8 mm lattice's
+# in `fast`) and an open box of 0.2 (x) x 0.27 (y) x 0.13 (z) m outside (which extent is the height is our
+# reading: 13 cm).
+STUDY_TOY = dict(
+    spacing=0.0052,
+    particles=3095,
+    torso=(0.10, 0.06, 0.05),
+    limb_length=0.05,
+    limb_radius=0.014,
+    toy_pose=(0.5, -0.17, 0.0),
+    box_pose=(0.45, 0.18, 0.0),
+    box_inner=(0.18, 0.25, 0.13),
+    study_cameras=True,
+    ee_frame="flange",
+)
 
 
 def toy_particles(cfg: ToyCell) -> tuple[np.ndarray, np.ndarray]:
@@ -406,7 +478,22 @@ def toy_particles(cfg: ToyCell) -> tuple[np.ndarray, np.ndarray]:
             & (np.abs(g[:, 1]) <= reach + 1e-9)
         )
     keep = torso | limb
-    return g[keep], limb[keep]
+    pts, limb = g[keep], limb[keep]
+    if cfg.particles is not None:
+        extra = len(pts) - cfg.particles
+        if extra < 0:
+            raise ValueError(f"toy-packing cell: the lattice has {len(pts)} particles, fewer than "
+                             f"particles={cfg.particles}; use a smaller spacing")
+        # the torso's top layer, corners (farthest from the torso's axis) first
+        top = np.flatnonzero(~limb & (pts[:, 2] > pts[:, 2].max() - 1e-9))
+        if extra > len(top):
+            raise ValueError(f"toy-packing cell: {len(pts)} lattice particles, {extra} too many for "
+                             f"particles={cfg.particles}; use a larger spacing")
+        order = top[np.lexsort((top, -np.hypot(pts[top, 0], pts[top, 1])))]
+        drop = np.zeros(len(pts), bool)
+        drop[order[:extra]] = True
+        pts, limb = pts[~drop], limb[~drop]
+    return pts, limb
 
 
 def toy_packing_cell(preset: str = "reference", **overrides) -> TwinSpec:
@@ -476,7 +563,7 @@ def toy_packing_cell(preset: str = "reference", **overrides) -> TwinSpec:
     )
     return TwinSpec(
         name=f"toy-packing-{preset}",
-        robot=gripper_robot(cfg.finger_friction, cfg.robot_gaussian_spacing),
+        robot=gripper_robot(cfg.finger_friction, cfg.robot_gaussian_spacing, cfg.ee_frame),
         objects=(toy,),
         colliders=(box,),
         cameras=study_cameras(TOY_CROP, TOY_CROP, cfg.image_hw)
