@@ -4,53 +4,17 @@ naming the file, within seconds and a bounded peak memory (issue 25)."""
 
 from __future__ import annotations
 
-import io
 import pickle
 import struct
-import subprocess
-import sys
 import zipfile
 import zlib
 
 import numpy as np
 import pytest
+from bombs import GIB, peak_mb, write_zip, zeros_bomb
 
 from twinbench.cli import main as cli
 from twinbench.construct.phystwin import PhysTwinFormatError, load_pickle, load_torch_zip, save_torch_zip
-
-GIB = 1 << 30
-
-
-def _zip(path, members):
-    """A zip archive written by hand: members are (name, bytes) stored, or (name, (deflated raw stream,
-    crc, uncompressed size)) so a bomb is written without inflating it here."""
-    out, central = io.BytesIO(), []
-    for name, data in members:
-        if isinstance(data, bytes):
-            method, raw, crc, usize = 0, data, zlib.crc32(data), len(data)
-        else:
-            method, (raw, crc, usize) = 8, data
-        offset = out.tell()
-        head = struct.pack("<IHHHHHIIIHH", 0x04034B50, 20, 0, method, 0, 0, crc, len(raw), usize,
-                           len(name), 0)
-        out.write(head + name.encode() + raw)
-        central.append(struct.pack("<IHHHHHHIIIHHHHHII", 0x02014B50, 20, 20, 0, method, 0, 0, crc,
-                                   len(raw), usize, len(name), 0, 0, 0, 0, 0, offset) + name.encode())
-    start = out.tell()
-    for c in central:
-        out.write(c)
-    out.write(struct.pack("<IHHHHIIH", 0x06054B50, 0, 0, len(central), len(central), out.tell() - start,
-                          start, 0))
-    path.write_bytes(out.getvalue())
-    return path
-
-
-def _zeros_bomb(size: int) -> tuple[bytes, int, int]:
-    """A raw deflate stream of `size` zero bytes (a multiple of 1 MiB) in a few kB, without inflating it:
-    full-flush segments are independent, so one 1 MiB segment repeats. The CRC is not computed (0)."""
-    c = zlib.compressobj(9, zlib.DEFLATED, -15)
-    seg = c.compress(bytes(1 << 20)) + c.flush(zlib.Z_FULL_FLUSH)
-    return seg * (size >> 20) + c.flush(), 0, size
 
 
 def _archive_members(tmp_path, numel=None):
@@ -66,16 +30,6 @@ def _archive_members(tmp_path, numel=None):
     return [("plain/data.pkl", data), ("plain/byteorder", b"little")]
 
 
-def _peak_mb(code: str) -> tuple[int, str]:
-    """Run `code` in a fresh interpreter; (its peak resident memory in MB, its last output line)."""
-    run = subprocess.run([sys.executable, "-c", code + "\nimport resource\n"
-                          "print(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss // 1024)"],
-                         capture_output=True, text=True, timeout=120)
-    assert run.returncode == 0, run.stderr
-    lines = run.stdout.strip().splitlines()
-    return int(lines[-1]), lines[-2]
-
-
 def _try(call: str) -> str:
     return ("from twinbench.construct.phystwin import *\n"
             f"try:\n    {call}\n    print('loaded')\n"
@@ -83,29 +37,29 @@ def _try(call: str) -> str:
 
 
 def test_a_deflate_bomb_record_is_never_inflated_whole(tmp_path):
-    members = _archive_members(tmp_path) + [("plain/data/0", _zeros_bomb(3 * GIB))]
-    bomb = _zip(tmp_path / "best_1.pth", members)
-    peak, said = _peak_mb(_try(f"print(load_torch_zip({str(bomb)!r})['spring_Y'].tolist())"))
+    members = _archive_members(tmp_path) + [("plain/data/0", zeros_bomb(3 * GIB))]
+    bomb = write_zip(tmp_path / "best_1.pth", members)
+    peak, said = peak_mb(_try(f"print(load_torch_zip({str(bomb)!r})['spring_Y'].tolist())"))
     assert said == "loaded" and peak < 400, (said, peak)  # 3 elements read of 3 GiB; base ~150 MB
 
 
 def test_a_tensor_declaring_gigabytes_is_refused_before_reading(tmp_path):
-    members = _archive_members(tmp_path, numel=2**31 - 1) + [("plain/data/0", _zeros_bomb(3 * GIB))]
-    bomb = _zip(tmp_path / "best_1.pth", members)
-    peak, said = _peak_mb(_try(f"load_torch_zip({str(bomb)!r})"))
+    members = _archive_members(tmp_path, numel=2**31 - 1) + [("plain/data/0", zeros_bomb(3 * GIB))]
+    bomb = write_zip(tmp_path / "best_1.pth", members)
+    peak, said = peak_mb(_try(f"load_torch_zip({str(bomb)!r})"))
     assert said.startswith("refused:") and "best_1.pth" in said and "MiB" in said and peak < 400, (said, peak)
 
 
 def test_a_data_pkl_bomb_is_refused(tmp_path):
-    bomb = _zip(tmp_path / "best_1.pth", [("plain/data.pkl", _zeros_bomb(GIB))])
-    peak, said = _peak_mb(_try(f"load_torch_zip({str(bomb)!r})"))
+    bomb = write_zip(tmp_path / "best_1.pth", [("plain/data.pkl", zeros_bomb(GIB))])
+    peak, said = peak_mb(_try(f"load_torch_zip({str(bomb)!r})"))
     assert said.startswith("refused:") and "data.pkl inflates" in said and peak < 400, (said, peak)
 
 
 def test_a_far_memo_slot_is_refused_before_the_memo_grows(tmp_path):
     path = tmp_path / "optimal_params.pkl"
     path.write_bytes(b"\x80\x02}r" + struct.pack("<I", 508_269_683) + b".")  # 1.4 kB in the issue: 12 B
-    peak, said = _peak_mb(_try(f"load_pickle({str(path)!r})"))
+    peak, said = peak_mb(_try(f"load_pickle({str(path)!r})"))
     assert said.startswith("refused:") and "memo slot 508269683" in said and peak < 400, (said, peak)
 
 
@@ -155,10 +109,10 @@ def test_a_damaged_archive_names_the_file(tmp_path):
     stream[len(stream) // 2] ^= 0xFF  # damaged compressed data
     members = [(n, (bytes(stream), zlib.crc32(record), len(record)) if n == "ok/data/0" else d)
                for n, d in members]
-    path = _zip(tmp_path / "best_3.pth", members)
+    path = write_zip(tmp_path / "best_3.pth", members)
     with pytest.raises(PhysTwinFormatError, match=r"best_3\.pth"):
         load_torch_zip(path)
-    bad_crc = _zip(tmp_path / "best_4.pth", [(n, d) for n, d in members if n != "ok/data/0"]
+    bad_crc = write_zip(tmp_path / "best_4.pth", [(n, d) for n, d in members if n != "ok/data/0"]
                    + [("ok/data/0", (zlib.compress(record)[2:-4], 1234, len(record)))])
     with pytest.raises(PhysTwinFormatError, match=r"best_4\.pth"):
         load_torch_zip(bad_crc)

@@ -43,6 +43,30 @@ TWIN_FORMAT, OBJECT_FORMAT, VERSION = "twinbench-twin", "twinbench-object", 2
 READABLE_VERSIONS = (1, 2)
 
 
+MAX_NPZ_BYTES = 1 << 30  # the arrays of one .npz together, as their headers declare them
+MAX_JSON_BYTES = 64 << 20
+# The range of every number of `sim` (SimParams) and `controller` (ControllerConfig), checked at load:
+# field -> (lowest, highest, integer). Contact coefficients as the kernels clamp them (DESIGN section 4).
+FIELD_RANGES = {
+    "sim": {
+        "dt": (1e-7, 0.1, False), "substeps": (1, 100_000, True), "gravity": (-1e3, 1e3, False),
+        "dashpot_damping": (0.0, 1e6, False), "drag_damping": (0.0, 1e6, False),
+        "ground_restitution": (0.0, 1.0, False), "ground_friction": (0.0, 2.0, False),
+        "object_restitution": (0.0, 1.0, False), "object_friction": (0.0, 2.0, False),
+        "collision_dist": (1e-6, 1.0, False), "max_collision_candidates": (1, 10_000, True),
+        "candidate_radius_scale": (1.0, 100.0, False), "mesh_margin": (0.0, 1.0, False),
+        "spring_Y_min": (0.0, 1e15, False), "spring_Y_max": (0.0, 1e15, False),
+    },
+    "controller": {
+        "max_joint_delta": (1e-6, 10.0, False), "velocity_gain": (1e-6, 100.0, False),
+        "velocity_dt": (1e-6, 10.0, False), "control_hz": (0.1, 1000.0, False),
+        "gripper_rate": (1e-6, 1.0, False), "grasp_force_threshold": (0.0, 1e12, False),
+        "planar_height": (-10.0, 10.0, False), "planar_quat": (-1.0, 1.0, False),
+        "ik_max_iters": (1, 10_000, True), "ik_restarts": (0, 100, True),
+    },
+}
+
+
 class TwinFormatError(InputError):
     """A twin or object directory that cannot be loaded; the message names the file, the field and the fix."""
 
@@ -105,18 +129,11 @@ class _Reader:
     def npz(self, value, field: str, required: tuple[str, ...], optional: tuple[str, ...] = ()) -> dict:
         path = self.path(value, field)
         try:
-            with np.load(path, allow_pickle=False) as z:
-                arrays = {k: z[k] for k in z.files}
+            arrays = _read_npz(path)
         except ValueError as err:
-            if "pickle" in str(err):
-                self.fail(
-                    field,
-                    f"{value} holds pickled Python objects, which twinbench never loads; "
-                    "save plain numeric arrays (np.savez)",
-                )
-            self.fail(field, f"{value} is not a readable .npz ({err})")
-        except (OSError, zipfile.BadZipFile, EOFError) as err:
-            self.fail(field, f"{value} is not a readable .npz ({err})")
+            self.fail(field, f"{value} {err}")
+        except Exception as err:  # noqa: BLE001 - a damaged archive (BadZipFile, zlib.error, EOFError, ...)
+            self.fail(field, f"{value} is not a readable .npz ({type(err).__name__}: {err})")
         unknown = sorted(set(arrays) - set(required) - set(optional))
         missing = sorted(set(required) - set(arrays))
         if missing or unknown:
@@ -159,23 +176,38 @@ class _Reader:
             self.fail(f"{field}.coeffs", str(err))
 
     def dataclass(self, cls, value, field: str):
-        """A frozen config dataclass (SimParams, ControllerConfig) from a JSON object of its fields."""
+        """A frozen config dataclass (SimParams, ControllerConfig) from a JSON object of its fields, each
+        number in its range (`FIELD_RANGES[field]`)."""
         names = {f.name for f in dataclasses.fields(cls)}
         d = self.section(value, field, set(), names)
         kwargs = {}
         for f in dataclasses.fields(cls):
             if f.name in d:
                 v = d[f.name]
+                if f.name in FIELD_RANGES.get(field, {}):
+                    self.in_range(v, f"{field}.{f.name}", *FIELD_RANGES[field][f.name])
+                elif isinstance(f.default, bool) and not isinstance(v, bool):
+                    self.fail(f"{field}.{f.name}", f"expected true or false, got {v!r}")
                 kwargs[f.name] = tuple(v) if isinstance(v, list) else v
         try:
             return cls(**kwargs)
         except (TypeError, ValueError) as err:
             self.fail(field, str(err))
 
+    def in_range(self, value, field: str, lo: float, hi: float, integer: bool) -> None:
+        """A number (or a list of numbers) within [lo, hi], integers where `integer`."""
+        for v in value if isinstance(value, list) else [value]:
+            ok = isinstance(v, int if integer else int | float) and not isinstance(v, bool)
+            if not ok or not lo <= v <= hi:  # NaN and infinities fail too
+                self.fail(field, f"expected {'an integer' if integer else 'a number'} in [{lo:g}, {hi:g}], "
+                                 f"got {v!r}")
+
     def build(self, make, field: str):
         """Call a spec constructor, turning its ValueError into a TwinFormatError naming the field."""
         try:
             return make()
+        except TwinFormatError:
+            raise
         except (TypeError, ValueError) as err:
             self.fail(field, str(err))
 
@@ -183,11 +215,47 @@ class _Reader:
 def _read_json(path: Path, kind: str) -> dict:
     if not path.is_file():
         raise TwinFormatError(f"{path}: not found; a {kind} directory holds a {path.name}")
+    if path.stat().st_size > MAX_JSON_BYTES:
+        raise TwinFormatError(f"{path}: larger than {MAX_JSON_BYTES >> 20} MiB; arrays go in .npz files")
     try:
         doc = json.loads(path.read_text())
     except (json.JSONDecodeError, UnicodeDecodeError) as err:
         raise TwinFormatError(f"{path}: not valid JSON ({err})") from None
+    except RecursionError:
+        raise TwinFormatError(f"{path}: nested too deeply to be a {kind} file") from None
     return doc
+
+
+def _read_npz(path: Path) -> dict[str, np.ndarray]:
+    """The arrays of an .npz, each header read first: plain numeric arrays only (no pickles, no complex
+    numbers), all together at most MAX_NPZ_BYTES as declared, and only the declared bytes inflated (a
+    member that inflates further is never read whole). ValueError naming the array otherwise."""
+    arrays, total = {}, 0
+    with zipfile.ZipFile(path) as zf:
+        for info in zf.infolist():
+            name = info.filename.removesuffix(".npy")
+            with zf.open(info) as f:
+                try:
+                    version = np.lib.format.read_magic(f)
+                    read = np.lib.format.read_array_header_1_0 if version == (1, 0) else \
+                        np.lib.format.read_array_header_2_0
+                    shape, _, dtype = read(f)
+                except Exception as err:  # noqa: BLE001 - a damaged header (ValueError, SyntaxError, ...)
+                    raise ValueError(f"has no readable .npy header for array {name!r} "
+                                     f"({type(err).__name__})") from None
+            if dtype.hasobject:
+                raise ValueError(f"holds pickled Python objects (array {name!r}), which twinbench never "
+                                 "loads; save plain numeric arrays (np.savez)")
+            if dtype.kind not in "biuf" or dtype.subdtype is not None or dtype.names:
+                raise ValueError(f"has array {name!r} of dtype {dtype}; expected plain numbers (bool, int, "
+                                 "float)")
+            total += math.prod(shape) * dtype.itemsize
+            if total > MAX_NPZ_BYTES:
+                raise ValueError(f"declares arrays beyond {MAX_NPZ_BYTES >> 20} MiB (array {name!r} of shape "
+                                 f"{shape})")
+            with zf.open(info) as f:
+                arrays[name] = np.lib.format.read_array(f, allow_pickle=False)
+    return arrays
 
 
 def _check_header(r: _Reader, doc, fmt: str, required: set[str], optional: set[str]) -> dict:
