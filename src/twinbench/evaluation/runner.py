@@ -90,6 +90,23 @@ def _remove_partial_videos(jobs) -> None:
             partial_path(job.video_path).unlink(missing_ok=True)
 
 
+def _twin_hash(twin, run_id: str, store: ResultsStore) -> str:
+    """The content hash of the twin directory `twin`; InputError when run `run_id` was started on a twin
+    with other content (its files changed since: resuming would mix two twins' outcomes)."""
+    from twinbench.twin.files import twin_dir_hash
+
+    now = twin_dir_hash(twin)
+    try:
+        before = store.run_protocol(run_id).get("twin_hash")
+    except KeyError:  # a new run
+        return now
+    if before is not None and before != now:
+        raise InputError(f"run {run_id!r} in {store.path} was evaluated on the twin {twin} with content hash "
+                         f"{before[:12]}..., its files have changed since (now {now[:12]}...); use a new "
+                         "--run-id for the changed twin, or restore the twin's files to resume")
+    return now
+
+
 def _versions() -> dict:
     import gymnasium
     import warp
@@ -145,6 +162,8 @@ def evaluate(task: str, policies: Sequence[str], episodes: str | int = "grid", w
                 "init_states": [i for i, _ in states], "seeds": [s for _, s in states],
                 "policies": list(policies), "base_seed": int(seed), "env_kwargs": env_kwargs,
                 "env_id": spec_task.env_id, "grid": grid_info(task, env_kwargs), "versions": _versions()}
+    if isinstance(env_kwargs.get("twin"), str | Path):  # a twin directory: resuming needs the same files
+        protocol["twin_hash"] = _twin_hash(env_kwargs["twin"], run_id, store)
     store.start_run(run_id, task, protocol)
     out_dir = Path(output_dir)
     jobs: dict[tuple[str, str, int, int], EpisodeJob] = {}  # by (policy, checkpoint, init_state, seed)

@@ -582,6 +582,25 @@ def load_twin(folder) -> TwinSpec:
     )
 
 
+def twin_dir_hash(folder) -> str:
+    """SHA-256 (hex) of a twin directory's content: every file inside it (symlinks leaving it skipped),
+    path and bytes, in path order. Equal hashes: the same twin, whatever the folder is called."""
+    import hashlib
+
+    root = Path(folder).resolve()
+    if not root.is_dir():
+        raise TwinFormatError(f"{root}: not a directory; a twin directory holds twin.json and its files")
+    h = hashlib.sha256()
+    for p in sorted(root.rglob("*")):
+        if not p.is_file() or not p.resolve().is_relative_to(root):
+            continue
+        h.update(f"{p.relative_to(root).as_posix()}\0{p.stat().st_size}\0".encode())
+        with p.open("rb") as f:
+            for chunk in iter(lambda: f.read(1 << 20), b""):
+                h.update(chunk)
+    return h.hexdigest()
+
+
 def _jsonable(value):
     if dataclasses.is_dataclass(value):
         return {f.name: _jsonable(getattr(value, f.name)) for f in dataclasses.fields(value)}

@@ -1,0 +1,67 @@
+"""The run protocol names the twin directory's content hash, so a run evaluated on a twin whose files
+changed since is refused on resume instead of mixing two twins' outcomes (issue 25)."""
+
+from __future__ import annotations
+
+import json
+import shutil
+
+import pytest
+
+from twinbench.cli import main as cli
+from twinbench.evaluation.store import ResultsStore
+from twinbench.twin import save_twin
+from twinbench.twin.cells import push_t_cell
+from twinbench.twin.files import twin_dir_hash
+
+
+@pytest.fixture(scope="module")
+def twin_dir(tmp_path_factory):
+    return save_twin(push_t_cell("fast"), tmp_path_factory.mktemp("twin") / "t").parent
+
+
+def _edit_friction(folder, value):
+    doc = json.loads((folder / "twin.json").read_text())
+    doc["sim"]["ground_friction"] = value
+    (folder / "twin.json").write_text(json.dumps(doc))
+
+
+def test_the_hash_follows_the_content_not_the_folder(twin_dir, tmp_path):
+    copy = shutil.copytree(twin_dir, tmp_path / "elsewhere")
+    assert twin_dir_hash(copy) == twin_dir_hash(twin_dir)
+    _edit_friction(copy, 0.9)
+    changed = twin_dir_hash(copy)
+    assert changed != twin_dir_hash(twin_dir)
+    _edit_friction(copy, json.loads((twin_dir / "twin.json").read_text())["sim"]["ground_friction"])
+    (copy / "notes.txt").write_text("x")  # any file of the directory counts
+    assert twin_dir_hash(copy) not in (changed, twin_dir_hash(twin_dir))
+
+
+def _eval(folder, db, out):
+    return ["eval", "--twin", str(folder), "--run-id", "R", "--task", "push-t", "--episodes", "grid:0",
+            "--policy", "remote:ws://127.0.0.1:9", "--policy-timeout", "1", "--db", str(db),
+            "--output-dir", str(out)]
+
+
+def test_resuming_a_run_on_a_changed_twin_is_refused(twin_dir, tmp_path, capsys):
+    folder = shutil.copytree(twin_dir, tmp_path / "twin")
+    db = tmp_path / "r.sqlite"
+    ResultsStore(db).start_run("R", "push-t", {"task": "push-t", "twin_hash": twin_dir_hash(folder)})
+    _edit_friction(folder, 0.9)
+    assert cli(_eval(folder, db, tmp_path / "out")) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "its files have changed since" in err[0] and "new --run-id" in err[0], err
+    assert not (tmp_path / "out").exists()  # refused before any episode ran
+
+
+@pytest.mark.slow
+def test_the_stored_protocol_names_the_twin_hash_and_a_changed_twin_is_refused(twin_dir, tmp_path, capsys):
+    folder = shutil.copytree(twin_dir, tmp_path / "twin")
+    db = tmp_path / "r.sqlite"
+    cli(_eval(folder, db, tmp_path / "out"))  # one episode (a policy_error: no server), the run is stored
+    assert ResultsStore(db).run_protocol("R")["twin_hash"] == twin_dir_hash(folder)
+    assert cli(_eval(folder, db, tmp_path / "out")) in (0, 1)  # unchanged: resumes (nothing left to run)
+    _edit_friction(folder, 0.9)
+    capsys.readouterr()
+    assert cli(_eval(folder, db, tmp_path / "out")) == 2
+    assert "its files have changed since" in capsys.readouterr().err
