@@ -22,6 +22,7 @@ def test_study_evaluate_needs_the_study_folder(tmp_path, capsys):
 
 
 @pytest.mark.slow
+@pytest.mark.timeout(2400)  # 9 episodes of 90 steps (real workcell and two twins): > 10 min on 2 busy cores
 def test_tiny_study_end_to_end(tmp_path):
     from twinbench.evaluation.store import ResultsStore
     from twinbench.study import evaluate as E

@@ -66,7 +66,7 @@ class RunConfig:
     out: Path
     task: str = "push-t"
     size: str = "small"
-    """small: the fast cell, 4 grid states, 15 s episodes | full: the reference cell, every grid state"""
+    """small: the fast cell, 2 grid states, 15 s episodes | full: the reference cell, every grid state"""
     seed: int = 0
     workers: int = 1
     """evaluation worker processes"""

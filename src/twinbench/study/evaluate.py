@@ -35,7 +35,7 @@ class StudySize:
 
 
 SIZES = {
-    "small": StudySize((0, 9), 10.0, 4),  # the expert's successes take <= 299 steps (10 s)
+    "small": StudySize((0, 9), 15.0, 4),  # the expert succeeds within 299 steps (10 s), then >= 30 of 100
     "full": StudySize(None, None, 8),
 }
 
