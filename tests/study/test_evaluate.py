@@ -78,4 +78,4 @@ def test_bad_size_is_refused():
 
     with pytest.raises(InputError, match="--size 'huge'"):
         E.study_size("huge")
-    assert E.episodes_arg(E.study_size("small")) == "grid:0,6,9,15"
+    assert E.episodes_arg(E.study_size("small")) == "grid:0,9"
