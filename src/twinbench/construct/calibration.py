@@ -51,9 +51,12 @@ def _read_doc(path: Path) -> dict:
 
 
 def _matrix(value, shape, where: str) -> np.ndarray:
-    m = np.asarray(value, dtype=np.float64)
+    try:
+        m = np.asarray(value, dtype=np.float64)
+    except (TypeError, ValueError):
+        m = np.zeros((0,))
     if m.shape != shape or not np.all(np.isfinite(m)):
-        raise ValueError(f"{where}: expected a finite {shape[0]}x{shape[1]} matrix, got shape {m.shape}")
+        raise ValueError(f"{where}: expected {'x'.join(map(str, shape))} finite numbers, got {value!r:.80}")
     return m
 
 
@@ -116,9 +119,12 @@ def load_calibration(path) -> list[CameraSpec]:
         if axes == "opengl":
             pose = pose @ OPENGL_TO_OPENCV
         kw = {}
-        for key in ("sensor_size", "output_hw", "crop"):
+        for key, n in (("sensor_size", 2), ("output_hw", 2), ("crop", 4)):
             if c.get(key) is not None:
-                kw[key] = tuple(c[key])
+                v = _matrix(c[key], (n,), f"{where}.{key}")
+                if key != "crop" and not np.all((v == np.round(v)) & (v >= 1)):
+                    raise ValueError(f"{where}.{key}: expected 2 whole pixel counts >= 1, got {c[key]!r:.80}")
+                kw[key] = tuple(int(x) for x in v) if key != "crop" else tuple(float(x) for x in v)
         try:
             depth = bool(c.get("depth", False))
             out.append(CameraSpec(str(c["name"]), intr, pose, mount_link=mount, depth=depth, **kw))
