@@ -15,13 +15,16 @@ import pytest
 from twinbench.gaussians.colormap import map_colors
 from twinbench.gaussians.response import CameraResponse
 from twinbench.study.reconstruct import VARIANTS, estimate_rest_pose
-from twinbench.transforms import planar_pose, rotation_angle, transform_points
+from twinbench.transforms import invert_pose, planar_pose, rotation_angle, transform_points
 from twinbench.twin.cells import push_t_cell
 
 # stated tolerances of the reconstruction (push-T, size small)
 ROBOT_ROTATION_DEG, ROBOT_TRANSLATION_M = 0.3, 0.003
 REST_XY_M, REST_YAW_DEG = 0.004, 1.5
-COLOR_MAE = 0.05  # mean absolute error of the fitted map against the true scan -> camera colours
+# mean absolute error of the fitted colour map against the true scan -> camera colours (the camera's
+# response at the image centre): on the object (near the image centre), and on the scene the camera sees
+# (the table reaches the corners: a colour map takes in the mean vignetting, which the truth leaves out)
+OBJECT_COLOR_MAE, SCENE_COLOR_MAE = 0.02, 0.05
 
 
 def test_estimate_rest_pose_known_answer():
@@ -67,14 +70,26 @@ def test_reconstruction_from_evidence_alone(tmp_path):
 
     # colour: the fitted map sends the scan's colours to the front camera's response of the true colours
     cmap = json.loads((work / "color/color_map.json").read_text())
-    true_rgb = real_spec.background.base_colours()[::7]
     scan_map = hidden["scan"]["color_map"]
-    scanned = np.clip(map_colors(true_rgb, np.asarray(scan_map["coeffs"]), scan_map["degree"]), 0, 1)
-    camera = CameraResponse.from_dict(hidden["cameras"]["front"]["response"]).map_colors(true_rgb)
-    fitted = np.abs(map_colors(scanned, np.asarray(cmap["coeffs"]), cmap["degree"]) - camera).mean()
-    unmapped = np.abs(scanned - camera).mean()
-    print(f"colour map error {fitted:.4f} (without the map {unmapped:.4f})")
-    assert fitted < COLOR_MAE and fitted < 0.6 * unmapped
+    response = CameraResponse.from_dict(hidden["cameras"]["front"]["response"])
+
+    def color_errors(true_rgb) -> tuple[float, float]:
+        scanned = np.clip(map_colors(true_rgb, np.asarray(scan_map["coeffs"]), scan_map["degree"]), 0, 1)
+        camera = response.map_colors(true_rgb)
+        fitted = np.abs(map_colors(scanned, np.asarray(cmap["coeffs"]), cmap["degree"]) - camera).mean()
+        return fitted, np.abs(scanned - camera).mean()
+
+    front = real_spec.camera("front")
+    fx, fy, cx, cy = front.output_intrinsics()
+    p = transform_points(invert_pose(front.pose), real_spec.background.means)
+    u, v = fx * p[:, 0] / p[:, 2] + cx, fy * p[:, 1] / p[:, 2] + cy
+    seen = (p[:, 2] > 0) & (u >= 0) & (u < front.output_hw[1]) & (v >= 0) & (v < front.output_hw[0])
+    obj_fit, obj_plain = color_errors(real_spec.objects[0].gaussians.base_colours)
+    scene_fit, scene_plain = color_errors(real_spec.background.base_colours[seen])
+    print(f"colour map error: object {obj_fit:.4f} (without the map {obj_plain:.4f}), scene {scene_fit:.4f} "
+          f"({scene_plain:.4f})")
+    assert obj_fit < OBJECT_COLOR_MAE and obj_fit < 0.3 * obj_plain
+    assert scene_fit < SCENE_COLOR_MAE and scene_fit < scene_plain
 
     # the object's rest pose, found by registering the task's T to the scan
     rest = load_twin(twins["full"]).objects[0].rest_pose
@@ -101,4 +116,4 @@ def test_reconstruction_from_evidence_alone(tmp_path):
 
     full, plain = image_error("full"), image_error("no-color")
     print(f"front image error: full {full:.4f}, no-color {plain:.4f}")
-    assert full < 0.04 and full < 0.7 * plain
+    assert full < 0.04 and full < plain

@@ -183,11 +183,12 @@ def make_evidence(real: Path, out: Path, seed: int = 0, size: str = "small") -> 
 
     coarse = perturbed_pose(invert_pose(np.asarray(hidden["scan"]["world_to_scan"])), rng, 0.01, 1.0)
     boxes = {"transform": coarse.tolist(), "robot": ROBOT_BOX, "objects": {}}
-    for o in spec.objects:
+    for o in spec.objects:  # around the object, from 4 mm above the table (below it: the table's Gaussians)
         pts = np.asarray(o.particles) @ o.rest_pose[:3, :3].T + o.rest_pose[:3, 3]
-        lo, hi = pts.min(axis=0), pts.max(axis=0)
+        lo, hi = pts.min(axis=0) - [0.02, 0.02, 0.0], pts.max(axis=0) + [0.02, 0.02, 0.01]
+        lo[2] = max(lo[2], 0.004)
         boxes["objects"][o.name] = {"center": ((lo + hi) / 2).tolist(),
-                                    "half_extents": ((hi - lo) / 2 + [0.02, 0.02, 0.01]).tolist()}
+                                    "half_extents": ((hi - lo) / 2).tolist()}
     write_json(out / "boxes.json", boxes)
     write_json(out / "calibration.json", _calibration(spec, hidden))
 

@@ -21,12 +21,15 @@ from __future__ import annotations
 import dataclasses
 import json
 import shlex
+import subprocess
+import sys
 from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
 from scipy.spatial import cKDTree
 
+_CLI = "import sys\nfrom twinbench.cli import main\nsys.exit(main(sys.argv[1:]))"
 VARIANTS = ("full", "no-color", "no-physics", "neither")
 _COLOR = {"full": True, "no-color": False, "no-physics": True, "neither": False}
 _PHYSICS = {"full": "fitted", "no-color": "fitted", "no-physics": "initial", "neither": "initial"}
@@ -97,7 +100,6 @@ def reconstruct(evidence: Path, out: Path, variants=VARIANTS, log: Callable[[str
                 sysid_args: tuple[str, ...] = ()) -> dict[str, Path]:
     """Rebuild the workcell of EVIDENCE (made by `make_evidence`) into OUT/<variant>/ twin directories,
     through the CLI; `sysid_args` are extra `twinbench sysid` options (default: none, its defaults)."""
-    from twinbench.cli import main as cli
     from twinbench.construct._json import write_json
     from twinbench.errors import InputError
     from twinbench.gaussians.io import load_gaussians
@@ -112,10 +114,10 @@ def reconstruct(evidence: Path, out: Path, variants=VARIANTS, log: Callable[[str
     work = out / "construction"
     work.mkdir(parents=True, exist_ok=True)
 
-    def run(*args) -> None:
+    def run(*args) -> None:  # the public CLI in its own process, as a user runs it
         argv = [str(a) for a in args]
         log("twinbench " + shlex.join(argv))
-        code = cli(argv)
+        code = subprocess.run([sys.executable, "-c", _CLI, *argv], check=False).returncode
         if code != 0:
             raise RuntimeError(f"twinbench {argv[0]} failed with exit code {code} (command above)")
 
