@@ -1,8 +1,10 @@
 """Seeded fuzzing of every file format twinbench reads (issue 14): each mutated input either loads into
 a valid result or raises the project's own error type, within a time and memory bound (fuzzlib).
 
-Adding a format is one function returning a `Target` in FORMATS. TWINBENCH_FUZZ_CASES sets the number
-of cases per format (default 150, ~10 s for all formats on 2 cores); `-m slow` runs 2000 per format."""
+Adding a format is one function returning a `Target` in FORMATS (twin and object directories with every
+array, PhysTwin pickles and .pth archives, calibration, boxes and build configs among them; a sample of
+the twins that load is built and stepped). TWINBENCH_FUZZ_CASES sets the number of cases per format
+(default 150); `-m slow` runs 2000 per format. Cases are bounded in CPU time, not wall time."""
 
 from __future__ import annotations
 
@@ -125,6 +127,41 @@ def _npz_member_codec(member: str):
     return decode, encode
 
 
+_SEP = b"\n--npy member--\n"
+
+
+def _npz_all_members_codec(seed: bytes):
+    """Mutate the .npy members of an .npz as one text (so a mutation may hit any array), re-zipped under
+    their names (a mutation that breaks a separator merges or drops members)."""
+    with zipfile.ZipFile(io.BytesIO(seed)) as zf:
+        names = zf.namelist()
+
+    def decode(data: bytes) -> bytes:
+        with zipfile.ZipFile(io.BytesIO(data)) as zf:
+            return _SEP.join(zf.read(n) for n in names)
+
+    def encode(inner: bytes) -> bytes:
+        out = io.BytesIO()
+        with zipfile.ZipFile(out, "w") as zf:
+            for name, part in zip(names, inner.split(_SEP), strict=False):
+                zf.writestr(name, part)
+        return out.getvalue()
+
+    return decode, encode
+
+
+def _folder_files(root) -> dict[str, bytes]:
+    return {p.relative_to(root).as_posix(): p.read_bytes() for p in sorted(root.rglob("*")) if p.is_file()}
+
+
+def _small_object():
+    from twinbench.twin import ObjectSpec
+
+    pts = np.random.default_rng(0).uniform(-0.02, 0.02, (12, 3))
+    springs = np.array([[i, (i + 1) % 12] for i in range(12)], np.int32)
+    return ObjectSpec("obj", pts, springs=springs, spring_Y=np.full(12, 1e4), gaussians=_cloud())
+
+
 NPZ_SEED = _npz_bytes({"init_state": np.array([0, 3]), "success": np.array([True, False]),
                        "policy": np.array(["act", "act"]), "checkpoint": np.array(["s1", "s2"]),
                        "lengths": np.array([2, 3]), "actions": np.arange(10, dtype=np.float32).reshape(5, 2),
@@ -221,39 +258,160 @@ def lerobot_dataset(tmp) -> Target:
 def twin_dir(tmp) -> Target:
     """A small twin directory: twin.json, background and object Gaussians, object arrays with explicit
     springs and per-spring stiffness, a collider mesh."""
+    from twinbench.errors import SimulationDiverged
     from twinbench.twin import (
         ColliderSpec,
-        ObjectSpec,
         RobotSpec,
         TwinFormatError,
         TwinSpec,
+        build_twin,
         load_twin,
         save_twin,
     )
     from twinbench.twin.cells import front_camera
 
-    pts = np.random.default_rng(0).uniform(-0.02, 0.02, (12, 3))
-    springs = np.array([[i, (i + 1) % 12] for i in range(12)], np.int32)
     box = trimesh.creation.box(extents=(0.05, 0.05, 0.02))
-    obj = ObjectSpec("obj", pts, springs=springs, spring_Y=np.full(12, 1e4), gaussians=_cloud())
+    obj = _small_object()
     spec = TwinSpec("fuzz", RobotSpec("builtin:xarm7_pusher"), objects=(obj,),
                     colliders=(ColliderSpec("box", box.vertices, box.faces),), cameras=(front_camera(),),
                     background=_cloud(16, 0))
     root = tmp / "twin-seed"
     save_twin(spec, root)
-    files = {p.relative_to(root).as_posix(): p.read_bytes() for p in sorted(root.rglob("*")) if p.is_file()}
+    files = _folder_files(root)
+
+    built = [0]
 
     def check(loaded) -> None:
         assert isinstance(loaded, TwinSpec) and len(loaded.objects) == 1
+        built[0] += 1
+        if built[0] <= 3 or built[0] % 10 == 0:  # build and step a sample of what loads (~0.6 s each)
+            twin, state = build_twin(loaded)
+            try:
+                twin.step(state, twin.ee_state(state))  # hold the end effector where it is
+            except SimulationDiverged:
+                pass  # a valid twin may be unstable (its own stiffness and time step)
 
     return Target(files, ".", load_twin, (TwinFormatError,), check,
                   mutable=("twin.json", "twin.json", "twin.json", "objects/obj.npz", "objects/obj.ply",
                            "colliders/box.obj", "background.ply"),
-                  codecs={"objects/obj.npz": _npz_member_codec("springs.npy")})
+                  codecs={"objects/obj.npz": _npz_all_members_codec(files["objects/obj.npz"])})
+
+
+def object_dir(tmp) -> Target:
+    """A standalone object directory (what mesh-to-object, import-phystwin and sysid write)."""
+    from twinbench.twin import TwinFormatError, load_object, save_object
+
+    root = tmp / "object-seed"
+    save_object(_small_object(), root, sim={"drag_damping": 2.0, "ground_friction": 0.4, "substeps": 100})
+    files = _folder_files(root)
+    return Target(files, ".", load_object, (TwinFormatError,),
+                  mutable=("object.json", "object.json", "obj.npz"),
+                  codecs={"obj.npz": _npz_all_members_codec(files["obj.npz"])})
+
+
+PHYSTWIN_FINAL = {"object_points": np.zeros((3, 4, 3), np.float32),
+                  "object_visibilities": np.ones((3, 4), bool),
+                  "controller_points": np.zeros((3, 2, 3), np.float32), "surface_points": np.zeros((0, 3))}
+
+
+def phystwin_pickle(tmp) -> Target:
+    """final_data.pkl / optimal_params.pkl of a PhysTwin case (the restricted unpickler)."""
+    import pickle
+
+    from twinbench.construct.phystwin import PhysTwinFormatError, load_pickle
+
+    data = pickle.dumps({**PHYSTWIN_FINAL, "params": {"drag_damping": np.float32(3.0), "n": 30, "s": "x"},
+                         "shared": [PHYSTWIN_FINAL["object_points"]] * 3}, protocol=4)
+    return Target({"final_data.pkl": data}, "final_data.pkl", load_pickle, (PhysTwinFormatError,))
+
+
+def phystwin_pth(tmp) -> Target:
+    """best_EPOCH.pth (torch's zip layout, read without torch): the archive and its data.pkl."""
+    from twinbench.construct.phystwin import PhysTwinFormatError, load_torch_zip, save_torch_zip
+
+    save_torch_zip({"spring_Y": np.arange(1, 41, dtype=np.float32),
+                    "collide_elas": np.array([0.5], np.float32),
+                    "num_object_springs": 30, "strided": np.arange(12.0).reshape(3, 4)[:, ::2]},
+                   tmp / "best_1.pth")
+    data = (tmp / "best_1.pth").read_bytes()
+    return Target({"best_1.pth": data}, "best_1.pth", load_torch_zip, (PhysTwinFormatError,),
+                  codecs={"best_1.pth": _zip_member_codec(data, "best_1/data.pkl")})
+
+
+def _zip_member_codec(seed: bytes, member: str):
+    def decode(data: bytes) -> bytes:
+        with zipfile.ZipFile(io.BytesIO(data)) as zf:
+            return zf.read(member)
+
+    def encode(inner: bytes) -> bytes:
+        src, out = zipfile.ZipFile(io.BytesIO(seed)), io.BytesIO()
+        with zipfile.ZipFile(out, "w") as zf:
+            for name in src.namelist():
+                zf.writestr(name, inner if name == member else src.read(name))
+        return out.getvalue()
+
+    return decode, encode
+
+
+CALIBRATION = {"base_to_world": np.eye(4).tolist(), "cameras": [
+    {"name": "front", "intrinsics": [300.0, 300.0, 160.0, 120.0], "sensor_size": [320, 240],
+     "camera_to_world": [[1, 0, 0, 0.1], [0, -1, 0, 0.0], [0, 0, -1, 1.0], [0, 0, 0, 1]],
+     "crop": [0, 0, 320, 240], "output_hw": [120, 160]},
+    {"name": "wrist", "K": [[200, 0, 80], [0, 200, 60], [0, 0, 1]], "sensor_size": [160, 120],
+     "hand_eye": np.eye(4).tolist(), "mount_link": "link7", "axes": "opengl", "depth": True}]}
+
+
+def calibration(tmp) -> Target:
+    from twinbench.construct.calibration import load_calibration
+
+    def check(cams) -> None:
+        assert len(cams) >= 1 and all(np.all(np.isfinite(c.pose)) for c in cams)
+
+    return Target({"calibration.json": json.dumps(CALIBRATION).encode()}, "calibration.json",
+                  load_calibration, (ValueError,), check)
+
+
+BOXES = {"transform": np.eye(4).tolist(), "robot": [{"center": [0, 0, 0.3], "half_extents": [0.1, 0.1, 0.3]}],
+         "objects": {"block": {"center": [0.4, 0, 0.02], "half_extents": [0.05, 0.05, 0.02],
+                               "rpy_deg": [0, 0, 10]}},
+         "bounds": {"center": [0.3, 0, 0], "half_extents": [0.7, 0.7, 1.0]}}
+
+
+def boxes(tmp) -> Target:
+    from twinbench.construct.segment import load_boxes
+
+    return Target({"boxes.json": json.dumps(BOXES).encode()}, "boxes.json", load_boxes, (ValueError,))
+
+
+def build_config(tmp) -> Target:
+    """A `twin build` config with the object folder, calibration and collider mesh it names."""
+    from twinbench.construct.build_config import build_spec_from_config
+    from twinbench.twin import TwinSpec, save_object
+
+    root = tmp / "build-seed"
+    save_object(_small_object(), root / "objects" / "obj", sim={"substeps": 100})
+    (root / "calibration.json").write_text(json.dumps({"cameras": CALIBRATION["cameras"][:1]}))
+    trimesh.creation.box(extents=(0.05, 0.05, 0.02)).export(root / "box.obj")
+    (root / "color.json").write_text(json.dumps({"degree": 1, "coeffs": np.eye(3, 4).tolist()}))
+    config = {"name": "cell", "robot": {"urdf": "builtin:xarm7_pusher", "color_map": "color.json"},
+              "objects": [{"dir": "objects/obj", "name": "block", "rest_pose": np.eye(4).tolist()}],
+              "colliders": [{"name": "box", "mesh": "box.obj", "pose": np.eye(4).tolist(), "friction": 0.4}],
+              "cameras": "calibration.json", "sim": {"ground_friction": 0.5},
+              "controller": {"control_hz": 30.0},
+              "render": {"background": [0.1, 0.2, 0.3]}}
+    (root / "build.json").write_text(json.dumps(config))
+    files = _folder_files(root)
+
+    def check(spec) -> None:
+        assert isinstance(spec, TwinSpec) and len(spec.objects) == 1
+
+    return Target(files, "build.json", build_spec_from_config, (ValueError, FileNotFoundError), check,
+                  mutable=("build.json", "build.json", "build.json", "color.json", "box.obj"))
 
 
 FORMATS = [ply_binary, ply_ascii, splat, spz_v2, spz_v3, urdf, real_csv, replay_json, replay_npz,
-           replay_npz_actions, lerobot_dataset, twin_dir]
+           replay_npz_actions, lerobot_dataset, twin_dir, object_dir, phystwin_pickle, phystwin_pth,
+           calibration, boxes, build_config]
 
 
 @pytest.fixture(scope="module")

@@ -137,3 +137,16 @@ def test_a_twin_json_nested_100000_deep_is_refused(good, tmp_path):
     (root / "twin.json").write_text("[" * 100_000 + "]" * 100_000)
     with pytest.raises(TwinFormatError, match=r"twin\.json: nested too deeply"):
         load_twin(root)
+
+
+@pytest.mark.parametrize("value", [1e30, float("nan")])
+def test_particles_far_from_the_origin_are_refused(good, tmp_path, value):
+    """Found by the fuzzer: a particle at 1e30 m loaded and then failed the build (SVD did not converge)."""
+    root = _copy(good, tmp_path)
+    npz = _object_npz(root)
+    with np.load(root / npz) as z:
+        arrays = {k: z[k] for k in z.files}
+    arrays["particles"][3, 1] = value
+    np.savez(root / npz, **arrays)
+    with pytest.raises(TwinFormatError, match=r"particles must be finite and within 1000 m of the origin"):
+        load_twin(root)

@@ -42,6 +42,16 @@ def _known(d: dict, allowed: set, where: str, config: Path) -> dict:
 
 
 def build_spec_from_config(config_path):
+    """The TwinSpec a build config describes (see `_build_spec` for the format); a config whose fields
+    have the wrong types or keys is a ValueError naming the file."""
+    try:
+        return _build_spec(config_path)
+    except (KeyError, TypeError, AttributeError, IndexError) as exc:
+        raise ValueError(f"{config_path}: not a valid build config ({type(exc).__name__}: {exc}); see "
+                         "twinbench.construct.build_config for its fields") from None
+
+
+def _build_spec(config_path):
     """The TwinSpec described by a build config (JSON; paths relative to its folder):
 
         {"name": "my-cell",

@@ -45,6 +45,7 @@ READABLE_VERSIONS = (1, 2)
 
 MAX_NPZ_BYTES = 1 << 30  # the arrays of one .npz together, as their headers declare them
 MAX_JSON_BYTES = 64 << 20
+MAX_COORDINATE = 1e3  # m: particles farther from the origin are a unit or file error
 # The range of every number of `sim` (SimParams) and `controller` (ControllerConfig), checked at load:
 # field -> (lowest, highest, integer). Contact coefficients as the kernels clamp them (DESIGN section 4).
 FIELD_RANGES = {
@@ -296,6 +297,8 @@ def _read_object(r: _Reader, d, field: str) -> ObjectSpec:
         d["arrays"], f"{field}.arrays", ("particles",), ("springs", "rest_lengths", "spring_Y", "masses")
     )
     kw: dict = {"particles": arrays["particles"]}
+    if not np.all(np.abs(arrays["particles"].astype(np.float64)) <= MAX_COORDINATE):  # NaN fails too
+        r.fail(f"{field}.arrays", f"particles must be finite and within {MAX_COORDINATE:g} m of the origin")
     if explicit:
         if "springs" not in arrays:
             r.fail(f"{field}.springs", "'explicit' needs a 'springs' (M, 2) array in the object's npz")
