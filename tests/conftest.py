@@ -21,6 +21,14 @@ def phystwin_reference() -> Path:
     return folder
 
 
+@pytest.fixture(scope="session")
+def sysid_small():
+    """A 6-frame synthetic rope for system identification's input and format tests (last 2 held out)."""
+    from twinbench.construct.sysid_synthetic import synthetic_case
+
+    return synthetic_case("rope", frames=6, validation_frames=2, seed=5)[0]
+
+
 def _cuda_available() -> bool:
     import warp as wp
 

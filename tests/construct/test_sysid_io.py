@@ -14,22 +14,11 @@ from twinbench.construct.sysid_report import write_report
 from twinbench.construct.sysid_synthetic import synthetic_case
 from twinbench.physics import SimParams
 from twinbench.physics.sysid import AdamConfig, CMAConfig, FitConfig, GlobalParams, identify
-from twinbench.physics.sysid_data import SysIdData, SysIdFormatError
+from twinbench.physics.sysid_data import SysIdFormatError
 
 SUBSTEPS = 40  # as tests/physics/test_sysid.py: 40 substeps per 30 Hz frame, stiffness within [50, 1e4]
 SEARCH = ("spring_Y", "control_radius", "control_max_neighbors", "ground_restitution", "ground_friction",
           "drag_damping", "dashpot_damping")
-
-
-def _arrays(data: SysIdData) -> dict:
-    return dict(particles=data.particles, observed=data.observed, visibility=data.visibility,
-                tracked_indices=data.tracked_indices, tracked=data.tracked, motion_valid=data.motion_valid,
-                controls=data.controls)
-
-
-@pytest.fixture(scope="module")
-def small():
-    return synthetic_case("rope", frames=6, validation_frames=2, seed=5)[0]
 
 
 @pytest.fixture(scope="module")
@@ -43,10 +32,10 @@ def identified():
     return data, truth, identify(data, cfg, log=lambda _msg: None)
 
 
-def test_save_load_round_trip_and_file_errors(small, tmp_path):
-    path = save_sysid_data(small, tmp_path / "case")
+def test_save_load_round_trip_and_file_errors(sysid_small, tmp_path):
+    path = save_sysid_data(sysid_small, tmp_path / "case")
     back = load_sysid_data(tmp_path / "case")
-    for key, val in _arrays(small).items():
+    for key, val in sysid_small.arrays().items():
         np.testing.assert_array_equal(getattr(back, key), val)
     assert (back.fps, back.validation_frames, back.name) == (30.0, 2, "rope")
     assert load_sysid_data(path).num_frames == 6
@@ -62,7 +51,7 @@ def test_save_load_round_trip_and_file_errors(small, tmp_path):
     with pytest.raises(SysIdFormatError, match="not valid JSON"):
         load_sysid_data(path)
     path.write_text(json.dumps(meta))
-    arrays = _arrays(small)
+    arrays = sysid_small.arrays()
     np.savez(tmp_path / "case" / "data.npz", **{k: v for k, v in arrays.items() if k != "controls"})
     with pytest.raises(SysIdFormatError, match=r"missing array\(s\) \['controls'\]"):
         load_sysid_data(path)
@@ -110,7 +99,7 @@ def test_outputs_object_directory_and_report(identified, tmp_path):
     assert ppath.stat().st_size > 10_000 and ppath.read_bytes()[:4] == b"\x89PNG"
 
 
-def test_cli_help_and_end_to_end(small, tmp_path, capsys):
+def test_cli_help_and_end_to_end(sysid_small, tmp_path, capsys):
     from twinbench.cli import main as cli_main
 
     with pytest.raises(SystemExit) as ex:
@@ -118,7 +107,7 @@ def test_cli_help_and_end_to_end(small, tmp_path, capsys):
     assert ex.value.code == 0
     assert "--cma.budget" in capsys.readouterr().out
 
-    save_sysid_data(small, tmp_path / "case")
+    save_sysid_data(sysid_small, tmp_path / "case")
     # every applicable global parameter searched (spring and control rules included), tiny budgets
     rc = cli_main(["sysid", "--data", str(tmp_path / "case"), "--out-dir", str(tmp_path / "out"),
                    "--substeps", str(SUBSTEPS), "--dt", str(1.0 / (30 * SUBSTEPS)), "--no-progress",

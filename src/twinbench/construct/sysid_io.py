@@ -28,7 +28,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from twinbench.physics.params import SimParams
-from twinbench.physics.sysid_data import SysIdData, SysIdFormatError
+from twinbench.physics.sysid_data import OPTIONAL_ARRAYS, REQUIRED_ARRAYS, SysIdData, SysIdFormatError
 
 if TYPE_CHECKING:
     from twinbench.physics.sysid import SysIdResult
@@ -36,10 +36,6 @@ if TYPE_CHECKING:
 FORMAT = "twinbench-sysid"
 VERSION = 1
 JSON_NAME = "sysid.json"
-
-
-_REQUIRED = ("particles", "observed", "visibility", "tracked_indices", "tracked", "motion_valid", "controls")
-_OPTIONAL = ("springs", "rest_lengths", "masses", "surface_indices")
 
 
 def _safe_relative(json_path: Path, key: str, rel) -> Path:
@@ -86,13 +82,13 @@ def load_sysid_data(path: str | Path) -> SysIdData:
                                "arrays") from None
     except OSError as exc:
         raise SysIdFormatError(f"{npz_path}: not a readable .npz ({exc})") from None
-    missing = [k for k in _REQUIRED if k not in arrays]
+    missing = [k for k in REQUIRED_ARRAYS if k not in arrays]
     if missing:
         raise SysIdFormatError(f"{npz_path}: missing array(s) {missing} (see twinbench.physics.sysid_data)")
-    extra = set(arrays) - set(_REQUIRED) - set(_OPTIONAL)
+    extra = set(arrays) - set(REQUIRED_ARRAYS) - set(OPTIONAL_ARRAYS)
     if extra:
         raise SysIdFormatError(f"{npz_path}: unknown array(s) {sorted(extra)}")
-    kwargs = {k: arrays.get(k) for k in _REQUIRED + _OPTIONAL}
+    kwargs = {k: arrays.get(k) for k in REQUIRED_ARRAYS + OPTIONAL_ARRAYS}
     return SysIdData(**kwargs, fps=meta.get("fps", 30.0), validation_frames=meta.get("validation_frames", 0),
                      name=meta.get("name", json_path.parent.name or "object"), source=str(npz_path))
 
@@ -101,11 +97,7 @@ def save_sysid_data(data: SysIdData, directory: str | Path, arrays: str = "data.
     """Write ``data`` as a sysid directory; returns the path of ``sysid.json``."""
     directory = Path(directory)
     directory.mkdir(parents=True, exist_ok=True)
-    out = {k: getattr(data, k) for k in _REQUIRED}
-    for k in _OPTIONAL:
-        if getattr(data, k) is not None:
-            out[k] = getattr(data, k)
-    np.savez(directory / arrays, **out)
+    np.savez(directory / arrays, **data.arrays())
     meta = {"format": FORMAT, "version": VERSION, "name": data.name, "arrays": arrays, "fps": data.fps,
             "validation_frames": data.validation_frames}
     path = directory / JSON_NAME

@@ -42,6 +42,9 @@ import numpy as np
 from twinbench.errors import InputError
 
 MIN_SPRING_LENGTH = 1e-4  # as the builder's radius rule: shorter springs make a 0/0 strain
+REQUIRED_ARRAYS = ("particles", "observed", "visibility", "tracked_indices", "tracked", "motion_valid",
+                   "controls")
+OPTIONAL_ARRAYS = ("springs", "rest_lengths", "masses", "surface_indices")
 
 
 class SysIdFormatError(InputError):
@@ -205,6 +208,12 @@ class SysIdData:
                                                 "strain")
         object.__setattr__(self, "springs", sp.astype(np.int32))
         object.__setattr__(self, "rest_lengths", rest)
+
+    def arrays(self) -> dict[str, np.ndarray]:
+        """The arrays (required ones and the optional ones given) under their field names, as a sysid
+        directory's ``.npz`` holds them."""
+        names = REQUIRED_ARRAYS + OPTIONAL_ARRAYS
+        return {k: getattr(self, k) for k in names if getattr(self, k) is not None}
 
     # ------------------------------------------------------------------ derived sizes
     @property
