@@ -82,8 +82,9 @@ def test_config_round_trip_and_errors(tmp_path):
         P.read_config(tmp_path / "missing.json")
 
 
-def test_policy_kind_parses_through_the_registry():
-    from twinbench.policies.spec import parse_policy_spec
+def test_policy_kind_parses_through_the_registry(monkeypatch):
+    from twinbench.policies import spec as spec_module
 
-    spec = parse_policy_spec("p0=perceive:/some/where/p0.json")
+    monkeypatch.setattr(spec_module, "POLICY_KINDS", dict(spec_module.POLICY_KINDS))  # loading registers it
+    spec = spec_module.parse_policy_spec("p0=perceive:/some/where/p0.json")
     assert (spec.kind, spec.name, spec.target) == ("perceive", "p0", "/some/where/p0.json")
