@@ -1,7 +1,9 @@
 """Scripted rope-routing expert: grasp the marked end, lift, carry it to the channel's axis before the
 near opening, drag it along the axis just above the clip (the hanging rope trails into the channel),
-lower it beyond the far opening, release, and keep clear. A rope lying beside the channel's axis is towed
-along the axis from farther back (`lead`), so that it lines up behind the hand before the clip.
+lower it beyond the far opening, release, and keep clear. A rope lying beside the channel's axis (its
+centroid more than `lay_side` from it) is first lifted high, hanging, carried to the axis `lay_length`
+before the near opening with the hand turned so that the rope leaves the fingers along the axis, and
+lowered there: its tail touches down on the axis, and the drag pulls it along the axis into the channel.
 
 It plans from `obs["environment_state"]` (see tasks.rope_routing): the marked end, a rope point 4 cm from
 it (the rope's direction at the end, for the finger orientation), the rope's centroid and the clip pose.
@@ -23,9 +25,10 @@ class RopeExpert(GripperExpert):
     def __init__(self, *, channel_length: float, channel_depth: float, grip_inset: float = 0.012,
                  carry_height: float = 0.12, beyond: float = 0.07, close_steps: int = 20,
                  settle_steps: int = 25, holding_speed: float = 0.006, squeeze: float = 0.92,
-                 lead: float = 0.03, max_lead: float = 0.2, tool_offset=(0.0, 0.0, 0.0)):
+                 lay_side: float = 0.05, lay_lift: float = 0.24, lay_length: float = 0.12,
+                 tool_offset=(0.0, 0.0, 0.0)):
         self.channel_length, self.channel_depth = channel_length, channel_depth
-        self.lead, self.max_lead = lead, max_lead
+        self.lay_side, self.lay_lift, self.lay_length = lay_side, lay_lift, lay_length
         self.grip_inset, self.carry_height, self.beyond = grip_inset, carry_height, beyond
         self.close_steps, self.settle_steps, self.squeeze = close_steps, settle_steps, squeeze
         super().__init__(holding_speed, tool_offset)
@@ -34,27 +37,37 @@ class RopeExpert(GripperExpert):
         end, along, centroid, clip = s[0:3], s[3:6], s[6:9], s[9:12]
         direction = end[:2] - along[:2]
         direction /= max(np.linalg.norm(direction), 1e-9)
-        q = grasp_quat(direction)
+        q = q0 = grasp_quat(direction)
         grip = np.r_[end[:2] - self.grip_inset * direction, TCP_ABOVE_TIPS + 0.002]
         axis = np.array([-np.sin(clip[2]), np.cos(clip[2])])  # the channel: clip frame y in the world
         if axis @ (clip[:2] - centroid[:2]) < 0:
             axis = -axis
-        # the drag starts `lead` before the near opening: farther back (up to max_lead) the farther the rope
-        # lies beside the channel's axis, so that the towed rope lines up behind the hand before the clip
-        side = abs(axis[0] * (centroid[1] - clip[1]) - axis[1] * (centroid[0] - clip[0]))
-        lead = float(np.clip(side, self.lead, self.max_lead))
-        near = clip[:2] - axis * (self.channel_length / 2 + lead)  # before the near opening
+        near = clip[:2] - axis * (self.channel_length / 2 + 0.03)  # before the near opening
         goal = clip[:2] + axis * (self.channel_length / 2 + self.beyond)  # beyond the far one
         skim = self.channel_depth + 0.02 + TCP_ABOVE_TIPS  # fingertips 2 cm above the clip's walls
         low = self.channel_depth * 0.5 + TCP_ABOVE_TIPS
         g = self.squeeze
+        side = abs(axis[0] * (centroid[1] - clip[1]) - axis[1] * (centroid[0] - clip[0]))
+        if side > self.lay_side:  # the rope lies beside the channel's axis: lay it along the axis first
+            high = self.carry_height + self.lay_lift  # most of the rope hangs below the hand
+            start = near - axis * self.lay_length
+            q = grasp_quat(axis)  # turned while carrying: the rope leaves the fingers along the axis
+            carry = [
+                Leg("lift", np.r_[grip[:2], high], q0, g, tol=0.01, steps=90, slow=True),
+                Leg("carry", np.r_[start, high], q, g, tol=0.01, steps=150, slow=True),
+                Leg("lay", np.r_[start, skim], q, g, tol=0.008, steps=90, slow=True),
+            ]
+        else:  # the rope lies along the axis: it trails into the channel behind the hand
+            carry = [
+                Leg("lift", np.r_[grip[:2], self.carry_height], q, g, tol=0.01, steps=90, slow=True),
+                Leg("carry", np.r_[near, self.carry_height], q, g, tol=0.01, steps=150, slow=True),
+                Leg("skim", np.r_[near, skim], q, g, tol=0.008, steps=60, slow=True),
+            ]
         return [
-            Leg("approach", np.r_[grip[:2], 0.08], q, 0.0, tol=0.01, steps=60),
-            Leg("descend", grip, q, 0.0, tol=0.006, steps=60),
-            Leg("close", grip, q, g, steps=self.close_steps),
-            Leg("lift", np.r_[grip[:2], self.carry_height], q, g, tol=0.01, steps=90, slow=True),
-            Leg("carry", np.r_[near, self.carry_height], q, g, tol=0.01, steps=150, slow=True),
-            Leg("skim", np.r_[near, skim], q, g, tol=0.008, steps=60, slow=True),
+            Leg("approach", np.r_[grip[:2], 0.08], q0, 0.0, tol=0.01, steps=60),
+            Leg("descend", grip, q0, 0.0, tol=0.006, steps=60),
+            Leg("close", grip, q0, g, steps=self.close_steps),
+            *carry,
             Leg("drag", np.r_[goal, skim], q, g, tol=0.008, steps=120, slow=True),
             Leg("lower", np.r_[goal, low], q, g, tol=0.008, steps=60, slow=True),
             Leg("release", np.r_[goal, low], q, 0.0, steps=self.settle_steps),
