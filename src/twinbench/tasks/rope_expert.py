@@ -25,7 +25,7 @@ class RopeExpert(GripperExpert):
     def __init__(self, *, channel_length: float, channel_depth: float, grip_inset: float = 0.012,
                  carry_height: float = 0.12, beyond: float = 0.07, close_steps: int = 20,
                  settle_steps: int = 25, holding_speed: float = 0.006, squeeze: float = 0.92,
-                 lay_side: float = 0.05, lay_lift: float = 0.24, lay_length: float = 0.12,
+                 lay_side: float = 0.1, lay_lift: float = 0.24, lay_length: float = 0.12,
                  tool_offset=(0.0, 0.0, 0.0)):
         self.channel_length, self.channel_depth = channel_length, channel_depth
         self.lay_side, self.lay_lift, self.lay_length = lay_side, lay_lift, lay_length
