@@ -44,12 +44,28 @@ def report_dict(result: SysIdResult, data: SysIdData) -> dict:
                            for row in result.stage1_history],
         "stage2_history": [{k: _finite(v) if isinstance(v, float) else v for k, v in row.items()}
                            for row in result.stage2_history],
+        "stiffness_fit": _stiffness_fit(result),
         "notes": list(result.notes),
         "identifiability": {k: {kk: (_finite(vv) if isinstance(vv, float) else vv) for kk, vv in v.items()}
                             for k, v in result.identifiability.items()},
         "seconds": result.seconds,
         "config": _jsonable(asdict(cfg)) if cfg else None,
     }
+
+
+def _stiffness_fit(result: SysIdResult) -> dict:
+    """How stage 2 fitted the stiffness: one global value, per spring, or per spatial region (then each
+    object region's spring count and stiffness)."""
+    n = result.model.num_object_springs
+    if result.regions is None:
+        return {"per": "object"}
+    reg = result.regions[:n]
+    if np.unique(reg).size == n:
+        return {"per": "spring", "count": n}
+    ys = result.object_spring_Y
+    ids = np.unique(reg)
+    return {"per": "region", "count": int(ids.size), "springs": [int(np.sum(reg == r)) for r in ids],
+            "spring_Y": [_finite(np.exp(np.mean(np.log(ys[reg == r])))) for r in ids]}
 
 
 def _jsonable(obj):

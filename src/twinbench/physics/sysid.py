@@ -189,6 +189,9 @@ class CMAConfig:
     """range overrides as NAME=LO:HI (e.g. spring_Y=100:20000)"""
     seed: int = 0
     """random seed (cma receives seed + 1: its 0 means a time-based seed)"""
+    patience: int = 3
+    """stop after this many CMA-ES generations without a 1 % improvement of the best loss (0 = use the
+    whole budget)"""
 
 
 @dataclass(frozen=True)
@@ -220,6 +223,12 @@ class AdamConfig:
     contact_lr: float = 0.05
     """Adam step for the contact parameters, in logit space (restitution = sigmoid(u), friction =
     2 sigmoid(u)): bounded, and a step moves a mid-range value by about lr / 4 of its range"""
+    acc_share: float = 0.1
+    """the acceleration term's weight is lowered (never raised) so that at stage 2's start the term is at
+    most this share of the Chamfer + tracking terms: it regularises, it cannot dominate (0 = as given)"""
+    patience: int = 3
+    """epochs without a 0.5 % improvement of the best training loss before the stiffness-only phase ends
+    (the contact parameters join early) or, once they have joined, before stopping (0 = all epochs)"""
 
 
 @dataclass(frozen=True)
@@ -383,6 +392,8 @@ class SequenceEval:
     train_error: float
     val_error: float
     diverged: bool = False
+    terms: dict[str, float] = field(default_factory=dict)
+    """each loss term (chamfer, track, acc) averaged over the training frames"""
 
 
 def rollout(model: SpringMassModel, controls: np.ndarray, frames: int,
@@ -414,12 +425,17 @@ def evaluate(model: SpringMassModel, data: SysIdData, loss: SequenceLoss, *, fra
         xs, vs = rollout(model, data.controls, n, solver)
     except SimulationDiverged:
         return SequenceEval(lossv, err, math.inf, math.inf, math.inf, diverged=True)
+    train = [k for k in data.train_frames if k <= n]
+    terms = dict.fromkeys(("chamfer", "track", "acc"), 0.0)
     for k in range(1, n + 1):
         pv = vs[k - 1]
         pa = vs[k - 1] - vs[k - 2] if k >= 2 and acc else None
-        lossv[k] = loss.frame(k, xs[k], vs[k], pv, pa)["total"]
+        t = loss.frame(k, xs[k], vs[k], pv, pa)
+        lossv[k] = t["total"]
         err[k] = loss.track_error(k, xs[k])
-    train = [k for k in data.train_frames if k <= n]
+        if k in train:
+            for name in terms:
+                terms[name] += t[name] / len(train)
     val = [k for k in data.val_frames if k <= n]
 
     def mean(a, ks):
@@ -427,7 +443,7 @@ def evaluate(model: SpringMassModel, data: SysIdData, loss: SequenceLoss, *, fra
         vals = vals[np.isfinite(vals)]
         return float(vals.mean()) if vals.size else float("nan")
 
-    return SequenceEval(lossv, err, mean(lossv, train), mean(err, train), mean(err, val))
+    return SequenceEval(lossv, err, mean(lossv, train), mean(err, train), mean(err, val), terms=terms)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -457,7 +473,10 @@ def stage1_cma(data: SysIdData, base: SimParams, initial: GlobalParams, cfg: CMA
 
     When stiffness is searched, a scan of ``SCAN_POINTS`` log-spaced stiffness values (the other
     parameters at ``initial``) first picks the scale of the start, so the search does not depend on a
-    hand-set stiffness; CMA-ES then starts from the better of ``initial`` and the scan's best. Each
+    hand-set stiffness (the scan runs from soft to stiff and stops once two successive values rise past its
+    minimum: the stiff candidates, which need the most substeps, are skipped when the answer is already
+    bracketed); CMA-ES then starts from the better of ``initial`` and the scan's best and stops after
+    ``cfg.patience`` generations without a 1 % improvement, or at the budget. Each
     evaluation simulates the training frames (with ``base_of(candidate)`` when given: substeps stable for
     the candidate's stiffness) and scores Chamfer + tracking (the acceleration term regularises stage 2's
     per-spring fit; in a global search it only favours the most damped candidate). Returns the best
@@ -501,9 +520,12 @@ def stage1_cma(data: SysIdData, base: SimParams, initial: GlobalParams, cfg: CMA
         objective(initial)
         bar.advance(task)
         if "spring_Y" in names and cfg.budget > 2 * SCAN_POINTS:
-            for u in np.linspace(0.0, 1.0, SCAN_POINTS):
-                objective(replace(initial, spring_Y=ranges["spring_Y"].decode(u)))
+            scan: list[float] = []
+            for u in np.linspace(0.0, 1.0, SCAN_POINTS):  # stiff candidates cost most: stop once bracketed
+                scan.append(objective(replace(initial, spring_Y=ranges["spring_Y"].decode(u))))
                 bar.update(task, advance=1, info=f"best {best[0]:.3e}")
+                if len(scan) >= 3 and scan[-1] > scan[-2] > min(scan) and min(scan) < PENALTY:
+                    break
         x0 = [ranges[n].encode(getattr(best[1], n)) for n in names]
         opts = {"bounds": [0.0, 1.0], "maxfevals": max(cfg.budget - len(history), 1), "seed": cfg.seed + 1,
                 "verbose": -9, "verb_log": 0, "verb_disp": 0}
@@ -514,6 +536,7 @@ def stage1_cma(data: SysIdData, base: SimParams, initial: GlobalParams, cfg: CMA
             for u in np.linspace(0.0, 1.0, max(cfg.budget - len(history), 1)):
                 objective(decode([u]))
                 bar.update(task, advance=1, info=f"best {best[0]:.3e}")
+        stalled, last_best = 0, best[0]
         while es is not None and not es.stop() and len(history) < cfg.budget:
             xs = es.ask()
             xs = xs[: cfg.budget - len(history)]
@@ -524,6 +547,12 @@ def stage1_cma(data: SysIdData, base: SimParams, initial: GlobalParams, cfg: CMA
             if len(vals) < es.popsize:
                 break
             es.tell(xs, vals)
+            if best[0] < 0.99 * last_best:
+                stalled, last_best = 0, best[0]
+            else:
+                stalled += 1
+            if cfg.patience and stalled >= cfg.patience:
+                break
     if best[0] >= PENALTY:
         raise ValueError("stage 1: every candidate diverged; lower the spring_Y range (cma.ranges) or raise "
                          "the substeps")
@@ -658,9 +687,13 @@ def stage2_adam(model: SpringMassModel, data: SysIdData, cfg: AdamConfig,
 
     history = [row(0, float("nan"), ev, float("nan"))]
     train = list(data.train_frames)
+    contact_from = cfg.contact_after * cfg.epochs  # contact joins after this epoch, or at a stall
+    stalled, ref = 0, best[0]
     with _progress(progress) as bar:
         task = bar.add_task("stage 2 (Adam)", total=cfg.epochs * len(train), info="")
         for epoch in range(1, cfg.epochs + 1):
+            if fit and epoch - 1 <= contact_from < epoch:
+                stalled = 0  # the contact's first epoch: it gets its own patience
             state = model.state()
             prev_v, prev_acc = model.v0_np.astype(np.float64), None
             total, t0 = 0.0, time.perf_counter()
@@ -671,7 +704,7 @@ def stage2_adam(model: SpringMassModel, data: SysIdData, cfg: AdamConfig,
                     terms, g, x, v, gc = frame_gradient(model, solver, state, ctl, loss, k, prev_v, prev_acc)
                     total += terms["total"]
                     model.set_spring_log_y(opt.step(np.bincount(region, g, n_reg))[region])
-                    if fit and epoch > cfg.contact_after * cfg.epochs:  # chain rule: c = max sigmoid(u)
+                    if fit and epoch > contact_from:  # chain rule: c = max sigmoid(u)
                         sig = coeffs[fit] / CONTACT_MAX[fit]
                         set_contacts(opt_c.step(gc[fit] * CONTACT_MAX[fit] * sig * (1.0 - sig)))
                     state = model.state()
@@ -690,6 +723,13 @@ def stage2_adam(model: SpringMassModel, data: SysIdData, cfg: AdamConfig,
             if ev.train_loss < best[0]:
                 best = (ev.train_loss, opt.x[region], opt_c.x.copy())
             history.append(row(epoch, total / len(train), ev, per_iter))
+            stalled, ref = (0, best[0]) if best[0] < 0.995 * ref else (stalled + 1, ref)
+            if cfg.patience and stalled >= cfg.patience:
+                if fit and epoch <= contact_from:  # stiffness alone has stalled: the contact joins now
+                    contact_from, stalled = epoch, 0
+                else:
+                    log(f"stage 2: stopped after epoch {epoch}: {stalled} epochs without a 0.5 % improvement")
+                    break
     model.set_spring_log_y(best[1])
     if fit:
         set_contacts(best[2])
@@ -720,6 +760,9 @@ class SysIdResult:
     identifiability: dict[str, dict] = field(default_factory=dict)
     """per searched global parameter: the interval of stage-1 candidates within 50 % of the best loss
     and whether the motion constrains it (see :func:`identifiability`)"""
+    regions: np.ndarray | None = None
+    """stage 2's stiffness region per spring (``spring_regions``: object springs, then control springs in
+    one more region); every spring its own region when fitted per spring; None without stage 2"""
 
     @property
     def object_spring_Y(self) -> np.ndarray:
@@ -750,6 +793,21 @@ def identifiability(history: list[dict], ranges: dict[str, SearchRange] | None =
                      "high": max(vals), "width": width, "samples": len(vals),
                      "constrained": bool(width < constrained_width and len(vals) >= 5)}
     return out
+
+
+def balanced_weights(weights: LossWeights, terms: dict[str, float], share: float,
+                     log: Callable[[str], None] = print) -> LossWeights:
+    """``weights`` with the acceleration weight lowered so that, at the measured ``terms`` (training
+    means), the acceleration term is at most ``share`` of the Chamfer + tracking terms (unchanged when
+    it already is, or when ``share`` is 0 or a term is missing)."""
+    data_terms = terms.get("chamfer", 0.0) + terms.get("track", 0.0)
+    acc = terms.get("acc", 0.0)
+    if not (share > 0 and weights.acc > 0 and acc > share * data_terms > 0):
+        return weights
+    new = replace(weights, acc=weights.acc * share * data_terms / acc)
+    log(f"stage 2: acceleration weight {weights.acc:g} -> {new.acc:.3g} (its term was "
+        f"{acc / data_terms:.2f}x the Chamfer + tracking terms; adam.acc_share {share:g})")
+    return new
 
 
 def identify(data: SysIdData, cfg: FitConfig, *, base: SimParams | None = None,
@@ -801,9 +859,13 @@ def identify(data: SysIdData, cfg: FitConfig, *, base: SimParams | None = None,
         base = base_of(params)
     model = build_model(data, params, base, cfg.device, requires_grad=cfg.stage2)
     history2: list[dict] = []
+    regions = None
     if cfg.stage2:
+        regions = spring_regions(model, adam.regions)  # as stage2_adam groups them (seeded k-means)
+        weights = balanced_weights(cfg.weights, evals["stage1" if cfg.stage1 else "initial"].terms,
+                                   adam.acc_share, log)
         t0 = time.perf_counter()
-        _, history2 = stage2_adam(model, data, adam, cfg.weights, cfg.progress, log)
+        _, history2 = stage2_adam(model, data, adam, weights, cfg.progress, log)
         first = history2[0]["train_loss"]
         if len(history2) > 1 and not any(r.get("train_loss", math.inf) < first for r in history2[1:]):
             notes.append("stage 2 did not improve on stage 1's training loss; its start is returned")
@@ -815,4 +877,4 @@ def identify(data: SysIdData, cfg: FitConfig, *, base: SimParams | None = None,
     for note in notes:
         log(f"note: {note}")
     return SysIdResult(params, params.sim_params(base), model.log_y_np.copy(), model, evals, history1,
-                       history2, seconds, cfg, notes, ident)
+                       history2, seconds, cfg, notes, ident, regions)
