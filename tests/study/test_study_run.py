@@ -23,8 +23,9 @@ def test_study_evaluate_needs_the_study_folder(tmp_path, capsys):
 
 @pytest.mark.slow
 @pytest.mark.timeout(2400)  # 9 episodes of 90 steps (real workcell and two twins): > 10 min on 2 busy cores
-def test_tiny_study_end_to_end(tmp_path):
+def test_tiny_study_end_to_end(tmp_path, monkeypatch):
     from twinbench.evaluation.store import ResultsStore
+    from twinbench.policies import spec as spec_module
     from twinbench.study import evaluate as E
     from twinbench.study.real import make_real
     from twinbench.study.report import write_study_report
@@ -33,8 +34,10 @@ def test_tiny_study_end_to_end(tmp_path):
 
     real = make_real("push-t", 0, tmp_path / "real", "small")
     cell = get_task("push-t").task_cls().default_twin("fast")
-    twins = {"perfect": real / "world", "cell": save_twin(cell, tmp_path / "twins" / "cell")}
+    save_twin(cell, tmp_path / "twins" / "cell")
+    twins = {"perfect": real / "world", "cell": tmp_path / "twins" / "cell"}
     tiny = E.StudySize((0,), 3.0, 2)
+    monkeypatch.setattr(spec_module, "POLICY_KINDS", dict(spec_module.POLICY_KINDS))  # evaluate adds perceive
     policies = E.make_policies("push-t", real / "world", tmp_path / "policies", tiny, None,
                                names=("p0-clean", "p5-noise4cm", "p7-noise8cm"))
     assert len(policies) == 3 and (tmp_path / "policies" / "calibration.json").is_file()
