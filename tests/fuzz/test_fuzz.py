@@ -113,18 +113,7 @@ def _npz_bytes(arrays: dict) -> bytes:
 
 def _npz_member_codec(member: str):
     """Mutate one .npy member inside the zip (re-zipped), not only the zip container."""
-    def decode(data: bytes) -> bytes:
-        with zipfile.ZipFile(io.BytesIO(data)) as zf:
-            return zf.read(member)
-
-    def encode(inner: bytes) -> bytes:
-        src, out = zipfile.ZipFile(io.BytesIO(NPZ_SEED)), io.BytesIO()
-        with zipfile.ZipFile(out, "w") as zf:
-            for name in src.namelist():
-                zf.writestr(name, inner if name == member else src.read(name))
-        return out.getvalue()
-
-    return decode, encode
+    return _zip_member_codec(NPZ_SEED, member)
 
 
 _SEP = b"\n--npy member--\n"
@@ -339,6 +328,7 @@ def phystwin_pth(tmp) -> Target:
 
 
 def _zip_member_codec(seed: bytes, member: str):
+    """Mutate one member of a zip archive (`seed`), re-zipping the others unchanged."""
     def decode(data: bytes) -> bytes:
         with zipfile.ZipFile(io.BytesIO(data)) as zf:
             return zf.read(member)
