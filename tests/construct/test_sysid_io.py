@@ -56,7 +56,7 @@ def test_save_load_round_trip_and_file_errors(sysid_small, tmp_path):
     with pytest.raises(SysIdFormatError, match=r"missing array\(s\) \['controls'\]"):
         load_sysid_data(path)
     np.savez(tmp_path / "case" / "data.npz", **arrays, springs=np.array([{"a": 1}], dtype=object))
-    with pytest.raises(SysIdFormatError, match="without pickle"):
+    with pytest.raises(SysIdFormatError, match="pickled Python objects"):
         load_sysid_data(path)
     with pytest.raises(SysIdFormatError, match="not found"):
         load_sysid_data(tmp_path / "nowhere")

@@ -63,3 +63,43 @@ def test_calibration_fields_are_named(tmp_path, cam, needle):
     with pytest.raises(ValueError) as err:
         load_calibration(path)
     assert str(err.value).startswith(f"{path}: ") and needle in str(err.value), err.value
+
+
+def _cloud_file(path, means):
+    from twinbench.gaussians.cloud import GaussianCloud
+    from twinbench.gaussians.io import save_gaussians
+
+    n = len(means)
+    quats = np.tile([1.0, 0.0, 0.0, 0.0], (n, 1))
+    save_gaussians(GaussianCloud(means, quats, np.full((n, 3), -5.0), np.zeros(n), np.zeros((n, 1, 3))), path)
+    return path
+
+
+@pytest.fixture(scope="module")
+def robot_ply(tmp_path_factory):
+    """A small cloud, for the option checks (they run before any registration)."""
+    rng = np.random.default_rng(0)
+    return _cloud_file(tmp_path_factory.mktemp("robot") / "robot.ply", rng.uniform(-0.3, 0.3, (500, 3)))
+
+
+@pytest.mark.parametrize(("args", "needle"), [
+    (["--max-distance", "nan"], "--max-distance: expected a length in (0, 10] m"),
+    (["--max-distance", "0"], "--max-distance: expected a length in (0, 10] m"),
+    (["--voxel", "0"], "--voxel: expected a length in (0, 10] m"),
+    (["--voxel", "-0.01"], "--voxel: expected a length in (0, 10] m"),
+])
+def test_align_robot_options_out_of_range(robot_ply, tmp_path, capsys, args, needle):
+    out = tmp_path / "aligned"
+    assert cli(["align-robot", str(robot_ply), "--out", str(out), *args]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and needle in err[0], err
+    assert not out.exists()
+
+
+def test_align_robot_refuses_identical_points(tmp_path, capsys):
+    path = _cloud_file(tmp_path / "robot.ply", np.full((200, 3), 0.1))
+    out = tmp_path / "aligned"
+    assert cli(["align-robot", str(path), "--out", str(out)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "fewer than 10 distinct points" in err[0], err
+    assert not out.exists()

@@ -16,6 +16,7 @@ Pipeline (numpy + scipy's KD-tree, no Open3D):
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -531,10 +532,24 @@ def align_robot_files(robot_path, out, *, urdf: str = "builtin:xarm7_gripper", q
     from twinbench.twin.build import load_spec_robot
     from twinbench.twin.spec import RobotSpec
 
+    for name, value in (("max_distance", max_distance), ("voxel", params.voxel),
+                        ("icp_max_dist", params.icp_max_dist), ("floater_radius", params.floater_radius)):
+        if not (isinstance(value, int | float) and math.isfinite(value) and 0 < value <= 10):
+            raise ValueError(f"--{name.replace('_', '-')}: expected a length in (0, 10] m, got {value!r}")
     model = load_spec_robot(RobotSpec(urdf=urdf))
     q = model.home_q if q is None else model.check_q(np.asarray(q, dtype=np.float64))
     cloud = load_gaussians(robot_path)
+    extent = float(np.ptp(cloud.means, axis=0).max()) if len(cloud.means) else 0.0
+    if len(np.unique(cloud.means.round(6), axis=0)) < 10 or extent < 4 * params.voxel:
+        raise ValueError(f"{robot_path}: the robot's {len(cloud.means)} Gaussians span {extent:.4g} m "
+                         f"(fewer than 10 distinct points, or under 4 voxels of {params.voxel} m): not a "
+                         "scan of a robot to register; check the file (segment's robot.ply) or --voxel")
     res = register_robot(cloud.means, model, q, params, scan_normals=gaussian_normals(cloud))
+    if not np.any(res.distances <= max_distance):
+        raise ValueError(f"{robot_path}: after registration no Gaussian lies within --max-distance "
+                         f"{max_distance} m of the URDF's links (nearest {float(res.distances.min()):.3g} "
+                         "m): the registration failed; check --urdf, --q (the scan's joint configuration) "
+                         "and --scale")
     write_aligned_robot(out, cloud, res, q, urdf, max_distance, also)
     return res.report(max_distance)
 

@@ -29,6 +29,7 @@ import numpy as np
 
 from twinbench.physics.params import SimParams
 from twinbench.physics.sysid_data import OPTIONAL_ARRAYS, REQUIRED_ARRAYS, SysIdData, SysIdFormatError
+from twinbench.twin.files import read_npz
 
 if TYPE_CHECKING:
     from twinbench.physics.sysid import SysIdResult
@@ -74,14 +75,12 @@ def load_sysid_data(path: str | Path) -> SysIdData:
     for key, kind in (("fps", (int, float)), ("validation_frames", int)):
         if key in meta and (isinstance(meta[key], bool) or not isinstance(meta[key], kind)):
             raise SysIdFormatError(f"{json_path}: field '{key}' must be a number, got {meta[key]!r}")
-    try:
-        with np.load(npz_path, allow_pickle=False) as z:
-            arrays = {k: z[k] for k in z.files}
-    except ValueError as exc:  # object arrays need pickle: refused
-        raise SysIdFormatError(f"{npz_path}: cannot be read without pickle ({exc}); store plain numeric "
-                               "arrays") from None
-    except OSError as exc:
-        raise SysIdFormatError(f"{npz_path}: not a readable .npz ({exc})") from None
+    try:  # the twin directories' bounded reader: headers first, plain numbers, declared sizes only
+        arrays = read_npz(npz_path)
+    except ValueError as exc:
+        raise SysIdFormatError(f"{npz_path}: {exc}") from None
+    except Exception as exc:  # noqa: BLE001 - a damaged archive (BadZipFile, zlib.error, EOFError, OSError)
+        raise SysIdFormatError(f"{npz_path}: not a readable .npz ({type(exc).__name__}: {exc})") from None
     missing = [k for k in REQUIRED_ARRAYS if k not in arrays]
     if missing:
         raise SysIdFormatError(f"{npz_path}: missing array(s) {missing} (see twinbench.physics.sysid_data)")

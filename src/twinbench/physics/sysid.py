@@ -44,7 +44,7 @@ import numpy as np
 import warp as wp
 from scipy.spatial import cKDTree
 
-from .model import ModelBuilder, SpringMassModel
+from .model import ModelBuilder, SpringMassModel, radius_springs
 from .params import SimParams
 from .solver import SimulationDiverged, SpringMassSolver, check_divergence
 from .sysid_data import SysIdData, SysIdFormatError
@@ -259,6 +259,55 @@ class FitConfig:
     @property
     def auto_substeps(self) -> bool:
         return not self.substeps and not self.dt
+
+    def check(self) -> None:
+        """Every option within its range, else a ValueError naming the option as the CLI spells it."""
+        def need(name: str, value, lo: float, hi: float, integer: bool = False,
+                 lo_open: bool = False) -> None:
+            ok = isinstance(value, int | float) and not isinstance(value, bool) and math.isfinite(value) \
+                and (value > lo if lo_open else value >= lo) and value <= hi \
+                and (not integer or float(value).is_integer())
+            if not ok:
+                kind = "an integer" if integer else "a number"
+                bound = f"({lo}, {hi}]" if lo_open else f"[{lo}, {hi}]"
+                raise ValueError(f"--{name.replace('_', '-')}: expected {kind} in {bound}, got {value!r}")
+
+        need("dt", self.dt, 0.0, 0.1)
+        need("substeps", self.substeps, 0, 100_000, integer=True)
+        c, a, w, i = self.cma, self.adam, self.weights, self.initial
+        need("cma.budget", c.budget, 1, 100_000, integer=True)
+        need("cma.popsize", c.popsize, 0, 1_000, integer=True)
+        need("cma.sigma0", c.sigma0, 0.0, 1.0, lo_open=True)
+        need("cma.patience", c.patience, 0, 100_000, integer=True)
+        need("cma.seed", c.seed, 0, 2**31 - 2, integer=True)
+        need("adam.epochs", a.epochs, 0, 100_000, integer=True)
+        need("adam.lr", a.lr, 0.0, 10.0, lo_open=True)
+        need("adam.contact_lr", a.contact_lr, 0.0, 10.0, lo_open=True)
+        need("adam.eps", a.eps, 0.0, 1.0, lo_open=True)
+        for k, beta in enumerate(a.betas):
+            need(f"adam.betas[{k}]", beta, 0.0, 1.0)
+        need("adam.y_min", a.y_min, 0.0, 1e12, lo_open=True)
+        need("adam.y_max", a.y_max, a.y_min, 1e12, lo_open=True)
+        need("adam.window", a.window, 0.0, 1e6)
+        need("adam.regions", a.regions, 0, 100_000, integer=True)
+        need("adam.contact_after", a.contact_after, 0.0, 1.0)
+        need("adam.acc_share", a.acc_share, 0.0, 1.0)
+        need("adam.patience", a.patience, 0, 100_000, integer=True)
+        for name in ("chamfer", "track", "acc"):
+            need(f"weights.{name}", getattr(w, name), 0.0, 1e6)
+        need("weights.beta", w.beta, 0.0, 1e3, lo_open=True)
+        need("initial.spring_Y", i.spring_Y, 0.0, 1e12, lo_open=True)
+        need("initial.spring_radius", i.spring_radius, 0.0, 10.0, lo_open=True)
+        need("initial.control_radius", i.control_radius, 0.0, 10.0, lo_open=True)
+        need("initial.spring_max_neighbors", i.spring_max_neighbors, 1, 1_000, integer=True)
+        need("initial.control_max_neighbors", i.control_max_neighbors, 1, 1_000, integer=True)
+        for name in ("ground_restitution", "object_restitution"):
+            need(f"initial.{name}", getattr(i, name), 0.0, 1.0)
+        for name in ("ground_friction", "object_friction"):
+            need(f"initial.{name}", getattr(i, name), 0.0, 2.0)
+        need("initial.collision_dist", i.collision_dist, 0.0, 1.0)
+        need("initial.drag_damping", i.drag_damping, 0.0, 1e4)
+        need("initial.dashpot_damping", i.dashpot_damping, 0.0, 1e6)
 
     def base_params(self, fps: float, substeps: int = 0) -> SimParams:
         """The simulation settings; with automatic substeps, ``substeps`` (else PhysTwin's 667)."""
@@ -817,6 +866,14 @@ def identify(data: SysIdData, cfg: FitConfig, *, base: SimParams | None = None,
     With automatic substeps (``cfg.dt == cfg.substeps == 0``, the default), every simulation runs at the
     fewest substeps stable for its stiffness and dashpot (``stable_substeps``): stage 1's candidates
     cannot diverge, and stage 2 runs stably at its upper stiffness bound."""
+    cfg.check()
+    pairs = data.springs if data.springs is not None else \
+        radius_springs(data.particles, cfg.initial.spring_radius, int(cfg.initial.spring_max_neighbors))
+    if len(pairs) == 0:
+        raise ValueError(f"{data.source}: the object has no springs: no two of its {len(data.particles)} "
+                         f"particles lie within --initial.spring-radius {cfg.initial.spring_radius} m of "
+                         "each other and more than 0.1 mm apart (are they all at one point?); check "
+                         "'particles', or raise the radius")
     topo = build_model(data, cfg.initial, SimParams(), cfg.device) if base is None and cfg.auto_substeps \
         else None
 

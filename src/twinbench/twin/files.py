@@ -130,7 +130,7 @@ class _Reader:
     def npz(self, value, field: str, required: tuple[str, ...], optional: tuple[str, ...] = ()) -> dict:
         path = self.path(value, field)
         try:
-            arrays = _read_npz(path)
+            arrays = read_npz(path)
         except ValueError as err:
             self.fail(field, f"{value} {err}")
         except Exception as err:  # noqa: BLE001 - a damaged archive (BadZipFile, zlib.error, EOFError, ...)
@@ -227,7 +227,7 @@ def _read_json(path: Path, kind: str) -> dict:
     return doc
 
 
-def _read_npz(path: Path) -> dict[str, np.ndarray]:
+def read_npz(path: Path) -> dict[str, np.ndarray]:
     """The arrays of an .npz, each header read first: plain numeric arrays only (no pickles, no complex
     numbers), all together at most MAX_NPZ_BYTES as declared, and only the declared bytes inflated (a
     member that inflates further is never read whole). ValueError naming the array otherwise."""
