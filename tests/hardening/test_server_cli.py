@@ -28,6 +28,8 @@ CASES = [
     (["--max-message-bytes", "-1"], "--max-message-bytes -1: must be in"),
     (["--idle-timeout-s", "0"], "--idle-timeout-s 0.0: must be in"),
     (["--idle-timeout-s", "nan"], "--idle-timeout-s nan"),
+    (["--read-timeout-s", "0"], "--read-timeout-s 0.0: must be in"),
+    (["--read-timeout-s", "inf"], "--read-timeout-s inf: must be in"),
     (["--port", "70000"], "--port 70000: must be in [0, 65535]"),
     (["--port", "-1"], "--port -1"),
     (["--host", "no.such.host.invalid"], "--host 'no.such.host.invalid': not an address"),

@@ -13,7 +13,12 @@ from twinbench._runtime import quiet_warp
 from twinbench.commands.env_options import parse_env_kwargs
 from twinbench.errors import InputError
 from twinbench.policies.protocol import API_KEY_ENV, DEFAULT_MAX_MESSAGE_BYTES, USES_ENVIRONMENT_STATE_KEY
-from twinbench.policies.server import DEFAULT_IDLE_TIMEOUT_S, DEFAULT_MAX_CONNECTIONS, PolicyServer
+from twinbench.policies.server import (
+    DEFAULT_IDLE_TIMEOUT_S,
+    DEFAULT_MAX_CONNECTIONS,
+    DEFAULT_READ_TIMEOUT_S,
+    PolicyServer,
+)
 from twinbench.policies.spec import make_policy, parse_policy_spec
 from twinbench.tasks import get_task
 
@@ -31,12 +36,14 @@ class ServeConfig:
     max_message_bytes: int = DEFAULT_MAX_MESSAGE_BYTES
     max_connections: int = DEFAULT_MAX_CONNECTIONS
     idle_timeout_s: float = DEFAULT_IDLE_TIMEOUT_S
+    read_timeout_s: float = DEFAULT_READ_TIMEOUT_S
+    """a client that has begun a message but not sent all of it within this time is dropped"""
     env_kwargs: str = ""  # JSON object of env constructor arguments, as `twinbench eval --env-kwargs`
 
 
 # (lowest, highest) of each numeric option: a connection holds a policy instance, a message its bytes
 RANGES = {"port": (0, 65535), "max_connections": (1, 1024), "max_message_bytes": (1, 1 << 30),
-          "idle_timeout_s": (1e-3, 7 * 86400.0)}
+          "idle_timeout_s": (1e-3, 7 * 86400.0), "read_timeout_s": (1e-3, 86400.0)}
 
 
 def check_options(cfg: ServeConfig) -> None:
@@ -69,7 +76,7 @@ def main(cfg: ServeConfig) -> int:
                               port=cfg.port, metadata={"task": cfg.task, "policy": cfg.policy,
                                                        USES_ENVIRONMENT_STATE_KEY: uses_state},
                               max_message_bytes=cfg.max_message_bytes, max_connections=cfg.max_connections,
-                              idle_timeout_s=cfg.idle_timeout_s)
+                              idle_timeout_s=cfg.idle_timeout_s, read_timeout_s=cfg.read_timeout_s)
     except OSError as err:
         if err.errno not in (errno.EADDRINUSE, errno.EADDRNOTAVAIL, errno.EACCES):
             raise
