@@ -47,9 +47,14 @@ def zeros_bomb(size: int, prefix: bytes = b"") -> tuple[bytes, int, int]:
 
 
 def peak_mb(code: str) -> tuple[int, str]:
-    """Run `code` in a fresh interpreter -> (its peak resident memory in MB, its last printed line)."""
-    run = subprocess.run([sys.executable, "-c", code + "\nimport resource\n"
-                          "print(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss // 1024)"],
+    """Run `code` in a fresh interpreter -> (its peak resident memory in MB, its last printed line).
+
+    The peak is /proc/self/status's VmHWM (this process image's own high-water mark), not getrusage's
+    ru_maxrss: Linux carries ru_maxrss across fork and exec, so a child of a large test process (pytest
+    after hundreds of tests) would report the parent's size."""
+    probe = ("\nimport re\n"
+             "print(int(re.search(r'VmHWM:\\s+(\\d+)', open('/proc/self/status').read())[1]) // 1024)")
+    run = subprocess.run([sys.executable, "-c", code + probe],
                          capture_output=True, text=True, timeout=300)
     assert run.returncode == 0, run.stderr
     lines = run.stdout.strip().splitlines()
