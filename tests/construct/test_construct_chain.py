@@ -71,7 +71,7 @@ def test_chain_rebuilds_the_cell(tmp_path):
     (tmp_path / "boxes.json").write_text(json.dumps(boxes))
     assert cli(["segment", str(tmp_path / "scan.ply"), "--boxes", str(tmp_path / "boxes.json"),
                 "--out", str(tmp_path / "seg")]) == 0
-    assert cli(["align-robot", str(tmp_path / "seg/robot.ply"), "--urdf", "builtin:xarm7_pusher",
+    assert cli(["align-robot", str(tmp_path / "seg/robot.ply"), "--urdf", spec.robot.urdf,
                 "--out", str(tmp_path / "aligned"), "--also", str(tmp_path / "seg/background.ply"),
                 str(tmp_path / "seg/objects/tblock.ply")]) == 0
     report = json.loads((tmp_path / "aligned/report.json").read_text())
