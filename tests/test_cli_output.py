@@ -10,7 +10,7 @@ def test_eval_stdout_has_no_warp_lines(tmp_path):
         out = subprocess.run(
             [sys.executable, "-m", "twinbench.cli", "eval", "--task", "push-t", "--policy", "expert",
              "--episodes", "grid:0", "--workers", workers, "--run-id", f"w{workers}", "--env-kwargs",
-             '{"preset": "fast", "episode_seconds": 0.1}'],
+             '{"preset": "fast", "episode_seconds": 0.1, "settle_steps": 0}'],
             capture_output=True, text=True, timeout=300, cwd=tmp_path)
         assert out.returncode == 0, out.stderr
         assert "Warp " not in out.stdout and "Module " not in out.stdout, out.stdout

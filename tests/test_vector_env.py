@@ -10,7 +10,7 @@ import pytest
 import twinbench  # noqa: F401  (registers the env ids)
 from twinbench.env import TwinEnv, TwinVectorEnv
 
-KW = {"preset": "fast", "episode_seconds": 0.2}  # 6-step episodes: autoreset happens within a test
+KW = {"preset": "fast", "episode_seconds": 0.2, "settle_steps": 2}  # 6-step episodes: autoreset within a test
 DIRS = np.array([[1, 0], [0, 1], [-1, 0], [0.7, -0.7]], np.float32)
 
 
@@ -122,7 +122,7 @@ def test_partial_reset_leaves_the_other_worlds_alone():
 
 def test_gripper_worlds_with_colliders_match_single_runs():
     """Rope routing (clip collider, gripper latch): two worlds against two single envs."""
-    kw = {"preset": "fast", "episode_seconds": 1.0}
+    kw = {"preset": "fast", "episode_seconds": 1.0, "settle_steps": 2}
     vec = TwinVectorEnv("rope-routing", 2, **kw)
     obs, _ = vec.reset(options={"init_state": [3, 20]})
     singles = [TwinEnv("rope-routing", **kw) for _ in range(2)]

@@ -9,7 +9,7 @@ from twinbench.errors import InputError
 from twinbench.evaluation.runner import evaluate
 from twinbench.evaluation.store import ResultsStore
 
-ENV = {"preset": "fast", "episode_seconds": 0.5}  # 15-step push-T episodes
+ENV = {"preset": "fast", "episode_seconds": 0.5, "settle_steps": 2}  # 15-step push-T episodes
 FIELDS = ("policy", "checkpoint", "init_state", "seed", "success", "status", "steps")
 
 

@@ -99,7 +99,7 @@ class OpenpiServer:
 ])
 def test_openpi_policies_run_episodes_on_builtin_tasks(preset, answer, task, n_action_steps):
     spec = get_task(task)
-    env = spec.make_env(preset="fast", episode_seconds=0.5)  # 15 steps
+    env = spec.make_env(preset="fast", episode_seconds=0.5, settle_steps=0)  # 15 steps
     with OpenpiServer(answer) as server:
         policy = make_policy(f"remote:{server.url}?io={preset}", spec, env)
         policy.warm_up()
