@@ -57,7 +57,7 @@ demo: $(STAMP)
 	$(PY) -m twinbench.cli demo
 
 test: $(STAMP)
-	$(PY) -m pytest -q
+	$(PY) -m pytest -q --durations=15
 
 lint: $(STAMP)
 	$(VENV)/bin/ruff check src tests benchmarks plugins
