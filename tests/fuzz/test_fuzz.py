@@ -298,6 +298,25 @@ def object_dir(tmp) -> Target:
                   codecs={"obj.npz": _npz_all_members_codec(files["obj.npz"])})
 
 
+def sysid_dir(tmp) -> Target:
+    """A sysid input folder (sysid.json + data.npz, what `twinbench sysid --data` reads); what loads is
+    also checked by SysIdData's own validation (shapes, finite values, masks)."""
+    from twinbench.construct.sysid_io import load_sysid_data, save_sysid_data
+    from twinbench.construct.sysid_synthetic import synthetic_case
+    from twinbench.physics.sysid_data import SysIdFormatError
+
+    root = tmp / "sysid-seed"
+    save_sysid_data(synthetic_case("rope", frames=4, validation_frames=1, seed=3)[0], root)
+    files = _folder_files(root)
+
+    def check(data) -> None:
+        assert data.num_frames >= 1 and np.isfinite(data.particles).all()
+
+    return Target(files, ".", load_sysid_data, (SysIdFormatError,), check,
+                  mutable=("sysid.json", "data.npz", "data.npz"),
+                  codecs={"data.npz": _npz_all_members_codec(files["data.npz"])})
+
+
 PHYSTWIN_FINAL = {"object_points": np.zeros((3, 4, 3), np.float32),
                   "object_visibilities": np.ones((3, 4), bool),
                   "controller_points": np.zeros((3, 2, 3), np.float32), "surface_points": np.zeros((0, 3))}
@@ -400,8 +419,8 @@ def build_config(tmp) -> Target:
 
 
 FORMATS = [ply_binary, ply_ascii, splat, spz_v2, spz_v3, urdf, real_csv, replay_json, replay_npz,
-           replay_npz_actions, lerobot_dataset, twin_dir, object_dir, phystwin_pickle, phystwin_pth,
-           calibration, boxes, build_config]
+           replay_npz_actions, lerobot_dataset, twin_dir, object_dir, sysid_dir, phystwin_pickle,
+           phystwin_pth, calibration, boxes, build_config]
 
 
 @pytest.fixture(scope="module")
