@@ -9,7 +9,7 @@ from twinbench.errors import InputError
 from twinbench.evaluation.runner import evaluate
 from twinbench.evaluation.store import ResultsStore
 
-ENV = {"preset": "fast", "episode_seconds": 0.5, "settle_steps": 2}  # 15-step push-T episodes
+ENV = {"preset": "fast", "episode_seconds": 0.3, "settle_steps": 2}  # 9-step push-T episodes
 FIELDS = ("policy", "checkpoint", "init_state", "seed", "success", "status", "steps")
 
 
@@ -26,7 +26,7 @@ def test_worlds_give_the_records_of_single_episodes(tmp_path):
     many = evaluate("push-t", policies, episodes, 0, "many", store, output_dir=tmp_path, env_kwargs=ENV,
                     worlds=3)
     assert [_key(r) for r in many] == [_key(r) for r in one]
-    assert all(r.status == "ok" and r.steps == 15 for r in many)
+    assert all(r.status == "ok" and r.steps == 9 for r in many)
     assert len({r.metrics["sum_reward"] for r in many}) > 3  # the episodes really differ
     # in a worker process too (the batch travels to it), and resumable: a second call runs nothing
     pooled = evaluate("push-t", policies, "grid:0,5,10", 1, "pooled", store, output_dir=tmp_path,

@@ -32,7 +32,7 @@ def _run(args, out, capsys) -> list[str]:
     (["--dt", "-1"], "--dt: expected a number in [0.0, 0.1]"),
     (["--dt", "nan"], "--dt: expected a number in [0.0, 0.1]"),
     (["--substeps", "-3"], "--substeps: expected an integer in [0, 100000]"),
-    (["--adam.lr", "inf"], "--adam.lr: expected a number in (0.0, 10.0]"),
+    (["--adam.lr", "inf"], "--adam.lr: expected a number in [0.0, 10.0]"),
     (["--adam.y-min", "0"], "--adam.y-min: expected a number in (0.0, 1000000000000.0]"),
     (["--adam.contact-after", "2"], "--adam.contact-after: expected a number in [0.0, 1.0]"),
     (["--initial.spring-radius", "0"], "--initial.spring-radius: expected a number in (0.0, 10.0]"),

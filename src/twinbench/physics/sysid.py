@@ -281,8 +281,8 @@ class FitConfig:
         need("cma.patience", c.patience, 0, 100_000, integer=True)
         need("cma.seed", c.seed, 0, 2**31 - 2, integer=True)
         need("adam.epochs", a.epochs, 0, 100_000, integer=True)
-        need("adam.lr", a.lr, 0.0, 10.0, lo_open=True)
-        need("adam.contact_lr", a.contact_lr, 0.0, 10.0, lo_open=True)
+        need("adam.lr", a.lr, 0.0, 10.0)
+        need("adam.contact_lr", a.contact_lr, 0.0, 10.0)
         need("adam.eps", a.eps, 0.0, 1.0, lo_open=True)
         for k, beta in enumerate(a.betas):
             need(f"adam.betas[{k}]", beta, 0.0, 1.0)
