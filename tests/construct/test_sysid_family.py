@@ -65,7 +65,7 @@ def test_stable_substeps_scale_with_stiffness_and_keep_the_truth_finite():
     assert np.all(np.isfinite(xs)) and np.abs(xs - truth["positions"]).max() < 5e-3
 
 
-@pytest.mark.parametrize("i", [1, 2])
+@pytest.mark.parametrize("i", [1, pytest.param(2, marks=pytest.mark.slow)])  # case 2 (a drop): slow
 def test_default_fit_on_family_cases_improves_and_reports(i):
     """Default options (automatic substeps, stiffness scan, regions), small budgets: no divergence, the
     fit beats its start, and the result says what the motion constrains."""
