@@ -49,13 +49,18 @@ from twinbench.tasks.base import SuccessWindow
 
 RESET_OPTIONS = ("init_state", "sampled", "object_poses")
 SUCCESS_RULES = ("final", "early")
-# (type, lowest, highest) of the keyword arguments a built-in cell turns into its physics step
-SETTING_RANGES = {"substeps": (int, 1, 100_000), "fps": (float, 1.0, 1000.0)}
+# (type, lowest, highest) of the keyword arguments a built-in cell turns into its physics step; substeps
+# has the range of a twin directory's `sim.substeps` (twin.files.FIELD_RANGES, read when checking)
+SETTING_RANGES = {"fps": (float, 1.0, 1000.0)}
 
 
 def check_settings(settings: dict) -> None:
-    """ValueError naming the keyword argument for a setting out of its range (`SETTING_RANGES`)."""
-    for name, (kind, lo, hi) in SETTING_RANGES.items():
+    """ValueError naming the keyword argument for a setting out of its range (`SETTING_RANGES`, and
+    `substeps` as in twin.json)."""
+    from twinbench.twin.files import FIELD_RANGES
+
+    ranges = {"substeps": (int, *FIELD_RANGES["sim"]["substeps"][:2]), **SETTING_RANGES}
+    for name, (kind, lo, hi) in ranges.items():
         if name not in settings:
             continue
         value = settings[name]
