@@ -141,3 +141,41 @@ def test_gripper_worlds_with_colliders_match_single_runs():
     for i, env in enumerate(singles):
         np.testing.assert_array_equal(vec.twin.particles(vec.envs[i].state, "rope"),
                                       env.twin.particles(env.state, "rope"))
+
+
+def test_cameras_keyword_observes_only_the_named_cameras_with_the_same_pixels():
+    """`cameras="front"`: only the front camera is rendered and observed, its pixels (goal overlay and
+    camera response included) equal to those of an env observing every camera; bad names are refused."""
+    import dataclasses
+
+    from twinbench.gaussians.response import CameraResponse
+    from twinbench.tasks import get_task
+
+    cell = get_task("push-t").task_cls(None).default_twin("fast")
+    noisy = CameraResponse(gamma=1.2, noise_std=3.0, blur_sigma=0.5)
+    cell = dataclasses.replace(cell, cameras=tuple(dataclasses.replace(c, response=noisy)
+                                                   for c in cell.cameras))
+    kw = {k: v for k, v in KW.items() if k != "preset"}
+    both = TwinEnv("push-t", twin=cell, **kw)
+    front = TwinEnv("push-t", twin=cell, cameras="front", **kw)
+    assert set(both.observation_space["pixels"].spaces) == {"front", "wrist"}
+    assert set(front.observation_space["pixels"].spaces) == {"front"}
+    o_both, _ = both.reset(seed=1, options={"init_state": 3})
+    o_front, _ = front.reset(seed=1, options={"init_state": 3})
+    for _ in range(2):
+        a = o_both["agent_pos"] + np.float32(0.01)
+        o_both, *_ = both.step(a)
+        o_front, *_ = front.step(a)
+    assert front.observation_space.contains(o_front) and list(o_front["pixels"]) == ["front"]
+    assert np.array_equal(o_front["pixels"]["front"], o_both["pixels"]["front"])
+    assert np.array_equal(o_front["agent_pos"], o_both["agent_pos"])
+    for bad in ("top", "front+front", ""):
+        with pytest.raises(ValueError, match="cameras"):
+            TwinEnv("push-t", cameras=bad, **KW)
+    with pytest.raises(ValueError, match="render_views"):
+        TwinEnv("push-t", cameras="front", render_views="wrist", **KW)
+    vec = TwinVectorEnv("push-t", num_envs=2, cameras="wrist", **KW)
+    obs, _ = vec.reset(seed=0)
+    assert list(obs["pixels"]) == ["wrist"] and obs["pixels"]["wrist"].shape[0] == 2
+    obs, *_ = vec.step(np.stack([obs["agent_pos"][0], obs["agent_pos"][1]]))
+    assert vec.observation_space.contains(obs)

@@ -28,7 +28,9 @@ Success rules (`success_rule`, recorded in `info["success_rule"]` and by the eva
 
 Keyword arguments: `task` (registered name or a TwinTask), `twin` (directory or TwinSpec; default: the
 task's built-in cell at `preset`), `device`, `success_rule`, `render_views` ("front", "front+wrist", ...:
-the cameras `render()` puts side by side; default the first camera), `environment_state`, `roles`
+the cameras `render()` puts side by side; default the first camera), `cameras` (the cameras rendered into
+observations, e.g. "front"; default every camera: a policy that sees one camera need not pay for the others),
+`environment_state`, `roles`
 ({role: object}), then the task's settings (e.g. `episode_seconds`) and, for built-in cells only, the
 cell's settings (e.g. `pusher_friction`).
 """
@@ -139,6 +141,7 @@ class TwinEnv(gymnasium.Env):
         environment_state: bool = False,
         success_rule: str = "final",
         roles: dict | None = None,
+        cameras: str | None = None,
         **settings,
     ):
         from twinbench.twin import build_twin
@@ -146,7 +149,7 @@ class TwinEnv(gymnasium.Env):
         quiet_warp()  # library use (gymnasium.make) prints no Warp banner; TWINBENCH_WARP_VERBOSE=1 shows it
         rules, twin_spec = resolve_task_twin(task, twin, preset, roles, settings)
         built, state = build_twin(twin_spec, device)
-        self._attach(rules, built, state, render_mode, render_views, environment_state, success_rule)
+        self._attach(rules, built, state, render_mode, render_views, environment_state, success_rule, cameras)
 
     @classmethod
     def _world(cls, rules, twin, state, *args) -> TwinEnv:
@@ -155,7 +158,8 @@ class TwinEnv(gymnasium.Env):
         env._attach(rules, twin, state, *args)
         return env
 
-    def _attach(self, rules, twin, state, render_mode, render_views, environment_state, success_rule) -> None:
+    def _attach(self, rules, twin, state, render_mode, render_views, environment_state, success_rule,
+                cameras=None) -> None:
         if success_rule not in SUCCESS_RULES:
             raise ValueError(f"success_rule must be one of {SUCCESS_RULES}, got {success_rule!r}")
         self.success_rule = success_rule
@@ -163,16 +167,19 @@ class TwinEnv(gymnasium.Env):
         self._worlds = [state]  # every world state of the twin (TwinVectorEnv sets its list)
         # cameras with a response (a real camera's colour, noise, blur) applied after rendering; noise seeded
         # by reset(seed)
-        self._responses = {n: c.response for n, c in twin.cameras.items() if c.response is not None}
-        self._response_rng = np.random.default_rng(0)
+        self.cameras = _camera_list(cameras, twin)  # the cameras rendered into observations
+        self._responses = {n: twin.cameras[n].response for n in self.cameras
+                           if twin.cameras[n].response is not None}
+        self._seed_responses(0)
         self.rules.setup(self.twin, self.state)
 
         self.render_mode = render_mode
-        views = render_views or next(iter(self.twin.cameras))
+        views = render_views or self.cameras[0]
         self.render_views = views.split("+")
-        unknown = [v for v in self.render_views if v not in self.twin.cameras]
+        unknown = [v for v in self.render_views if v not in self.cameras]
         if unknown:
-            raise ValueError(f"render_views: unknown camera(s) {unknown}; cameras: {list(self.twin.cameras)}")
+            raise ValueError(f"render_views: unknown or unobserved camera(s) {unknown}; observed cameras: "
+                             f"{self.cameras}")
         fps = int(round(self.twin.controller.config.control_hz))
         self.metadata = {**self.metadata, "render_fps": fps}
         self._max_episode_steps = int(round(self.rules.settings.episode_seconds * fps))
@@ -182,7 +189,8 @@ class TwinEnv(gymnasium.Env):
         low, high = self.rules.action_bounds(self.twin)
         self.action_space = spaces.Box(low, high, dtype=np.float32)
         pixels, depth = {}, {}
-        for name, cam in self.twin.cameras.items():
+        for name in self.cameras:
+            cam = self.twin.cameras[name]
             h, w = cam.output_hw
             pixels[name] = spaces.Box(0, 255, (h, w, 3), np.uint8)
             if cam.depth:
@@ -222,7 +230,7 @@ class TwinEnv(gymnasium.Env):
         """Robot at its start configuration, the objects at the grid state (or a sampled one)."""
         super().reset(seed=seed)
         if seed is not None:
-            self._response_rng = np.random.default_rng(int(seed))
+            self._seed_responses(int(seed))
         options = check_reset_options(options)
         unknown = sorted(set(options) - set(RESET_OPTIONS))
         if unknown:
@@ -263,6 +271,12 @@ class TwinEnv(gymnasium.Env):
             yaw = np.arctan2(rest[1, 0], rest[0, 0])
             out[role] = values - np.array([rest[0, 3], rest[1, 3], yaw])
         return out
+
+    def _seed_responses(self, seed: int) -> None:
+        """A noise stream per camera (seed, the camera's index in the twin): a camera's images do not depend
+        on which other cameras are observed."""
+        index = {name: i for i, name in enumerate(self.twin.cameras)}
+        self._response_rngs = {n: np.random.default_rng([seed, index[n]]) for n in self._responses}
 
     def _first_observation(self):
         self._success.reset()
@@ -349,11 +363,11 @@ class TwinEnv(gymnasium.Env):
         return frames[0] if len(frames) == 1 else np.concatenate(frames, axis=1)
 
     def _observe(self, metrics: dict, images: dict | None = None) -> dict:
-        outs = self.twin.render(self.state) if images is None else images
+        outs = self.twin.render(self.state, self.cameras) if images is None else images
         frames = {name: out.rgb_uint8() for name, out in outs.items()}
         self.rules.decorate(frames)
         for name, response in self._responses.items():
-            frames[name] = response.apply(frames[name], self._response_rng)
+            frames[name] = response.apply(frames[name], self._response_rngs[name])
         self._frames = frames
         self._privileged = self.rules.privileged(self.twin, self.state, metrics)
         obs = {"pixels": frames, "agent_pos": self.twin.ee_state(self.state).astype(np.float32)}
@@ -362,13 +376,24 @@ class TwinEnv(gymnasium.Env):
         if robot.gripper_joint is not None:
             closed = np.clip(robot.gripper_closedness(q), 0.0, 1.0)
             obs["gripper_position"] = np.array([closed], np.float32)
-        depth = {name: outs[name].depth for name, cam in self.twin.cameras.items() if cam.depth}
+        depth = {name: outs[name].depth for name in self.cameras if self.twin.cameras[name].depth}
         if depth:
             obs["depth"] = depth
         if self.environment_state:
             obs["environment_state"] = self._privileged["environment_state"]
         self._last_obs = obs
         return obs
+
+
+def _camera_list(cameras: str | None, twin) -> list[str]:
+    """The `cameras` keyword ("front", "front+wrist"; None: every camera of the twin) as a list, checked."""
+    names = list(twin.cameras)
+    if cameras is None:
+        return names
+    chosen = cameras.split("+") if isinstance(cameras, str) else []
+    if not chosen or len(set(chosen)) != len(chosen) or any(c not in names for c in chosen):
+        raise ValueError(f"cameras: expected distinct names from {names} joined by '+', got {cameras!r}")
+    return chosen
 
 
 def settle_worlds(twin, states: list, steps: int, worlds=None) -> None:
@@ -433,6 +458,7 @@ class TwinVectorEnv(gymnasium.vector.VectorEnv):
         environment_state: bool = False,
         success_rule: str = "final",
         roles: dict | None = None,
+        cameras: str | None = None,
         **settings,
     ):
         import copy
@@ -447,7 +473,7 @@ class TwinVectorEnv(gymnasium.vector.VectorEnv):
         rules, twin_spec = resolve_task_twin(task, twin, preset, roles, settings)
         self.twin, states = build_twin(twin_spec, device, num_worlds=int(num_envs))
         states = states if isinstance(states, list) else [states]
-        args = (render_mode, render_views, environment_state, success_rule)
+        args = (render_mode, render_views, environment_state, success_rule, cameras)
         self.envs = [
             TwinEnv._world(rules if i == 0 else copy.deepcopy(rules), self.twin, st, *args)
             for i, st in enumerate(states)
@@ -536,7 +562,8 @@ class TwinVectorEnv(gymnasium.vector.VectorEnv):
         shown = [
             i for i, r in enumerate(results) if moves[i] is not None and not isinstance(r, SimulationDiverged)
         ]
-        images = dict(zip(shown, self.twin.render_worlds([self.envs[i].state for i in shown]), strict=True))
+        states = [self.envs[i].state for i in shown]
+        images = dict(zip(shown, self.twin.render_worlds(states, self.envs[0].cameras), strict=True))
         out: list = []
         for i, (env, a, result) in enumerate(zip(self.envs, clipped, results, strict=True)):
             if a is None or isinstance(a, Exception):

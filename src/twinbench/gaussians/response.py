@@ -13,6 +13,7 @@ uint8. The default is the identity (the image is returned unchanged). A twin's c
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass, field, fields
 
 import numpy as np
@@ -25,6 +26,18 @@ def _vector(name: str, value, shape: tuple, default) -> np.ndarray:
     a = a.copy()
     a.flags.writeable = False
     return a
+
+
+@functools.lru_cache(maxsize=16)
+def _falloff(h: int, w: int, vignetting: float) -> np.ndarray:
+    """The vignetting factor 1 - v * (r / r_corner)^2 of an (h, w) image, (h, w, 1) float32 (kept: the same
+    for every image of a camera)."""
+    yy, xx = np.mgrid[0:h, 0:w]
+    cx, cy = (w - 1) / 2, (h - 1) / 2
+    r2 = ((xx - cx) ** 2 + (yy - cy) ** 2) / max(cx**2 + cy**2, 1.0)
+    out = (1.0 - vignetting * r2).astype(np.float32)[..., None]
+    out.flags.writeable = False
+    return out
 
 
 @dataclass(frozen=True, eq=False)
@@ -60,10 +73,20 @@ class CameraResponse:
 
     def map_colors(self, rgb) -> np.ndarray:
         """The colour part alone (white balance, matrix + offset, clip, gamma) of colours (..., 3) in [0, 1]:
-        what the camera makes of a colour at the image centre, without noise."""
-        x = np.asarray(rgb, dtype=np.float64) * self.white_balance
-        x = np.clip(x @ self.matrix.T + self.offset, 0.0, 1.0)
-        return x if self.gamma == 1.0 else x**self.gamma
+        what the camera makes of a colour at the image centre, without noise. float32 input stays float32
+        (images), anything else is computed in float64."""
+        x = np.asarray(rgb)
+        dt = np.float32 if x.dtype == np.float32 else np.float64
+        # white balance folded into the matrix: (x * wb) @ M.T == x @ (M * wb).T
+        m = (self.matrix * self.white_balance).T.astype(dt)
+        x = x.astype(dt, copy=False) @ m + self.offset.astype(dt)
+        np.clip(x, 0.0, 1.0, out=x)
+        if self.gamma == 1.0:
+            return x
+        with np.errstate(divide="ignore"):  # x ** gamma as exp(gamma log x): vectorised, 0 stays 0
+            np.log(x, out=x)
+        x *= dt(self.gamma)
+        return np.exp(x, out=x)
 
     def apply(self, image, rng: np.random.Generator | None = None) -> np.ndarray:
         """The camera's image of a rendered uint8 (H, W, 3) image; `rng` draws the sensor noise (needed
@@ -74,23 +97,21 @@ class CameraResponse:
                              f"{img.shape}")
         if self.is_identity:
             return img
-        x = img.astype(np.float64) / 255.0
+        if self.noise_std > 0 and rng is None:
+            raise ValueError("camera response: noise_std > 0 needs a random generator (rng)")
+        x = img.astype(np.float32) * np.float32(1.0 / 255.0)  # float32 throughout: images, not physics
         if self.blur_sigma > 0:
             from scipy.ndimage import gaussian_filter
 
             x = gaussian_filter(x, sigma=(self.blur_sigma, self.blur_sigma, 0.0), mode="nearest")
         if self.vignetting > 0:
-            h, w = x.shape[:2]
-            yy, xx = np.mgrid[0:h, 0:w]
-            cx, cy = (w - 1) / 2, (h - 1) / 2
-            r2 = ((xx - cx) ** 2 + (yy - cy) ** 2) / max(cx**2 + cy**2, 1.0)
-            x = x * (1.0 - self.vignetting * r2)[..., None]
-        x = self.map_colors(x) * 255.0
+            x *= _falloff(x.shape[0], x.shape[1], self.vignetting)
+        x = self.map_colors(x)
+        x *= np.float32(255.0)
         if self.noise_std > 0:
-            if rng is None:
-                raise ValueError("camera response: noise_std > 0 needs a random generator (rng)")
-            x = x + rng.normal(0.0, self.noise_std, x.shape)
-        return np.clip(x + 0.5, 0, 255).astype(np.uint8)
+            x += rng.standard_normal(x.shape, dtype=np.float32) * np.float32(self.noise_std)
+        x += np.float32(0.5)
+        return np.clip(x, 0, 255, out=x).astype(np.uint8)
 
     def to_dict(self) -> dict:
         return {f.name: (v.tolist() if isinstance(v := getattr(self, f.name), np.ndarray) else v)

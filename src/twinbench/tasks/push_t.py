@@ -168,7 +168,9 @@ class PushTTask(TwinTask):
         return out
 
     def decorate(self, frames: dict[str, np.ndarray]) -> None:
-        img = frames[self.overlay_camera]
+        img = frames.get(self.overlay_camera)
+        if img is None:  # that camera is not observed (TwinEnv's `cameras`)
+            return
         r, g, b, alpha = GOAL_RGBA
         m = self._overlay  # blend only the goal's pixels
         blended = (1 - alpha) * img[m] + alpha * 255.0 * np.array([r, g, b], np.float32)
