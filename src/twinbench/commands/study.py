@@ -24,7 +24,7 @@ class MakeRealConfig:
     task: str = "push-t"
     seed: int = 0
     size: str = "small"
-    """small (the fast cell) | full (the reference cell)"""
+    """small | medium (the fast cell) | full (the reference cell)"""
 
 
 @dataclass(frozen=True)
@@ -66,7 +66,8 @@ class RunConfig:
     out: Path
     task: str = "push-t"
     size: str = "small"
-    """small: the fast cell, 2 grid states, 15 s episodes | full: the reference cell, every grid state"""
+    """small: the fast cell, 2 grid states, 15 s episodes | medium: the same, 8 grid states | full: the
+    reference cell, every grid state, the task's episode length"""
     seed: int = 0
     workers: int = 1
     """evaluation worker processes"""

@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import json
 import time
-from dataclasses import asdict, dataclass, replace
+from dataclasses import asdict, replace
 from pathlib import Path
 
 import numpy as np
@@ -20,41 +20,20 @@ from twinbench.errors import InputError
 from twinbench.evaluation import metrics
 from twinbench.evaluation.runner import evaluate
 from twinbench.evaluation.store import ResultsStore
+from twinbench.study.sizes import SIZES, StudySize, study_size  # noqa: F401 - re-exported
 
 REAL_ROLLOUTS, REAL = "real-rollouts", "real"
-
-
-@dataclass(frozen=True)
-class StudySize:
-    """How much a study evaluates: grid states (None: all), episode length (None: the task's) and the
-    number of colour-calibration images."""
-
-    states: tuple[int, ...] | None
-    episode_seconds: float | None
-    calibration_images: int
-
-
-SIZES = {
-    "small": StudySize((0, 9), 15.0, 4),  # the expert succeeds within 299 steps (10 s), then >= 30 of 100
-    "full": StudySize(None, None, 8),
-}
-
-
-def study_size(size: str | StudySize) -> StudySize:
-    """The named size (or `size` itself when it is a StudySize, e.g. a test's tiny one)."""
-    if isinstance(size, StudySize):
-        return size
-    if size not in SIZES:
-        raise InputError(f"--size {size!r}: give one of {sorted(SIZES)}")
-    return SIZES[size]
 
 
 def episodes_arg(size: StudySize) -> str:
     return "grid" if size.states is None else "grid:" + ",".join(str(i) for i in size.states)
 
 
+OBSERVED = "front"  # the camera the study's policies see: the only one rendered (TwinEnv's `cameras`)
+
+
 def env_kwargs(world: Path, size: StudySize) -> dict:
-    out = {"twin": str(world)}
+    out = {"twin": str(world), "cameras": OBSERVED}
     if size.episode_seconds is not None:
         out["episode_seconds"] = float(size.episode_seconds)
     return out

@@ -25,13 +25,13 @@ from pathlib import Path
 
 import numpy as np
 
+from twinbench.study.sizes import study_size
 from twinbench.transforms import invert_pose
 
 SCAN_KEEP = 0.5  # fraction of the real scene's Gaussians a scan sees
 SCAN_NOISE = 0.0015  # m, per axis
 FLOATERS = 0.01  # floaters per scan Gaussian
 TRACK_NOISE = 0.001  # m, per axis, tracked and observed points
-FRAMES = {"small": (45, 10), "full": (90, 20)}  # (frames, validation frames) of the probe's motion
 ROBOT_BOX = {"center": [0.1, 0.0, 0.56], "half_extents": [0.32, 0.3, 0.52]}
 
 
@@ -199,7 +199,7 @@ def make_evidence(real: Path, out: Path, seed: int = 0, size: str = "small") -> 
         rgb = img.rgb_uint8()
         iio.imwrite(out / "real" / f"{name}.png", rgb if resp is None else resp.apply(rgb, rng))
 
-    frames, validation = FRAMES[size]
+    frames, validation = study_size(size).motion_frames
     motion = {}
     for o in spec.objects:
         data, _ = probe_motion(spec, o, hidden, rng, frames, validation)

@@ -2,8 +2,8 @@
 
     real = make_real("push-t", seed=0, out=Path("study/real"))   # REAL/world/ + REAL/hidden.json
 
-Derived from the task's built-in cell (preset "fast" for size "small", "reference" for "full") but
-different from anything a reconstruction can assume, all drawn from `seed`:
+Derived from the task's built-in cell (the size's preset: "fast" for "small" and "medium", "reference" for
+"full") but different from anything a reconstruction can assume, all drawn from `seed`:
 
 - physics: the object has a finer particle layout than the cell's (model mismatch: no reconstruction can
   produce it), explicit springs whose stiffness varies over 3 spatial regions along the object's long
@@ -31,7 +31,6 @@ from twinbench.errors import InputError
 from twinbench.gaussians.response import CameraResponse
 from twinbench.transforms import rotvec_to_matrix
 
-SIZES = {"small": "fast", "full": "reference"}
 FINER = 2.0 / 3.0  # the real object's lattice spacing relative to the cell's
 ROBOT_GAUSSIAN_SPACING = 0.004  # m, the real robot's Gaussians (the cells' 0.006)
 REGIONS = 3
@@ -48,10 +47,11 @@ def _cell_settings(task: str) -> tuple[type, str]:
     return cells[task]
 
 
-def preset_of(size: str) -> str:
-    if size not in SIZES:
-        raise InputError(f"study size: expected one of {sorted(SIZES)}, got {size!r}")
-    return SIZES[size]
+def preset_of(size) -> str:
+    """The built-in cell preset of a study size (a name or a StudySize)."""
+    from twinbench.study.sizes import study_size
+
+    return study_size(size).preset
 
 
 def task_cell(task: str, size: str, **settings):
