@@ -8,6 +8,8 @@ Grammar: `[NAME=]KIND[:TARGET][?OPTIONS]` (and `expert@LEVEL`). Built-in kinds:
   where it runs today, not which policy it is; name served policies with `NAME=`);
 - `lerobot:PATH`: a LeRobot `pretrained_model` folder (policy "lerobot"; checkpoint "step_N" and
   train_step N when PATH contains `checkpoints/<N>/`, else the folder name).
+- `cnn:DIR`: a small CNN policy's checkpoint directory (`twinbench.policies.cnn`, the `torch` extra;
+  policy "cnn", checkpoint the folder name); option `n_action_steps=N`.
 `NAME=` overrides the policy name stored with the episodes, e.g. `act=lerobot:outputs/.../pretrained_model`.
 `KIND:TARGET` takes options after `?`: `io=PRESET_OR_JSON_FILE` (observation mapping and action
 handling, `twinbench.policies.io`), `n_action_steps=N` and, for `remote:`, `timeout_s=SECONDS` (per
@@ -41,8 +43,8 @@ from twinbench.policies.degraded import DegradedPolicy, level_to_train_step
 ENTRY_POINT_GROUP = "twinbench.policies"
 _NAME_RE = re.compile(r"^[A-Za-z0-9_.\-]+$")
 _KIND_RE = re.compile(r"^([A-Za-z][A-Za-z0-9_.\-]*)(.*)$", re.DOTALL)  # KIND, then ":TARGET" or "@LEVEL"
-_FORMS = ("expert, expert@LEVEL, remote:ws://HOST:PORT, lerobot:PATH, KIND[:TARGET] of a plugin's kind "
-          "(optionally prefixed NAME=)")
+_FORMS = ("expert, expert@LEVEL, remote:ws://HOST:PORT, lerobot:PATH, cnn:DIR, KIND[:TARGET] of a plugin's "
+          "kind (optionally prefixed NAME=)")
 
 
 @dataclass(frozen=True)
@@ -251,6 +253,22 @@ def _make_lerobot(spec: PolicySpec, task, env, *, seed: int):
     return LeRobotPolicy(spec.target, task_description=description, io=io, n_action_steps=spec.n_action_steps)
 
 
+def _parse_cnn(spec: str, name: str | None, rest: str) -> PolicySpec:
+    path, opts = _split_options(spec, rest[1:]) if rest.startswith(":") else ("", {})
+    if not path or "io" in opts or "timeout_s" in opts:
+        raise InputError(f"policy spec {spec!r}: expected cnn:DIR[?n_action_steps=N], DIR a checkpoint "
+                         "directory of twinbench.policies.cnn")
+    checkpoint, step = _path_labels(path)
+    return PolicySpec(spec, "cnn", name or "cnn", checkpoint, step, None, path, **opts)
+
+
+def _make_cnn(spec: PolicySpec, task, env, *, seed: int):
+    from twinbench.policies.cnn import make_cnn
+
+    return make_cnn(spec, task, env, seed=seed)
+
+
 register_policy_kind("expert", _make_expert, parse=_parse_expert)
 register_policy_kind("remote", _make_remote, parse=_parse_remote)
 register_policy_kind("lerobot", _make_lerobot, parse=_parse_lerobot)
+register_policy_kind("cnn", _make_cnn, parse=_parse_cnn)

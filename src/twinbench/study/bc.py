@@ -1,0 +1,170 @@
+"""The study's vision policies trained by behaviour cloning: demonstrations recorded in the real workcell,
+small CNN policies with action chunks (`twinbench.policies.cnn`) trained on them on CPU, several data
+sizes and epoch counts so that their real success rates spread.
+
+    specs = make_bc_policies("push-t", REAL / "world", DIR / "policies" / "bc", "small")
+
+Demonstrations: the task's scripted expert in REAL/world (images through the real camera response), from
+the task's *sampled* initial states (seeds 10000 + k, never the grid states the study evaluates on), each
+executed action perturbed by Gaussian noise (`noise_m`; the label is the expert's clean action, so the
+demonstrations show how to recover from small errors, as in DART) and stopped `tail_steps` after success.
+Only successful demonstrations are kept. OUT/demos.npz holds the front images downsampled to the
+policy's input size, agent_pos and the expert's actions; OUT/demos.json the per-demonstration record.
+Checkpoint OUT/bc-d<DEMOS>-e<EPOCHS>/ is a `cnn:` policy directory with train.json (loss per epoch).
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from dataclasses import dataclass, replace
+from pathlib import Path
+
+import numpy as np
+
+from twinbench.errors import InputError
+
+DEMO_SEED = 10000  # demonstrations use sampled initial states from this seed on (the grid states are apart)
+
+
+@dataclass(frozen=True)
+class BCSize:
+    """How much a study's behaviour cloning records and trains."""
+
+    demos: int  # demonstrations attempted (the successful ones are kept)
+    data_sizes: tuple[int, ...]  # demonstrations per checkpoint (the first N kept)
+    epochs: tuple[int, ...]
+    max_seconds: float = 15.0  # cap on a demonstration's length
+    noise_m: float = 0.005
+    tail_steps: int = 20
+
+
+BC_SIZES = {
+    "small": BCSize(demos=16, data_sizes=(4, 8, 16), epochs=(5, 40)),
+    "full": BCSize(demos=48, data_sizes=(6, 16, 48), epochs=(5, 40)),
+}
+
+
+def bc_size(size) -> BCSize:
+    if isinstance(size, BCSize):
+        return size
+    if size not in BC_SIZES:
+        raise InputError(f"behaviour cloning size {size!r}: give one of {sorted(BC_SIZES)}")
+    return BC_SIZES[size]
+
+
+def record_demos(task: str, real_world: Path, out: Path, n: int, *, image_size: int = 64,
+                 camera: str = "front", max_seconds: float = 15.0, noise_m: float = 0.005,
+                 tail_steps: int = 20, seed: int = DEMO_SEED, log=print) -> dict:
+    """Record `n` expert demonstrations in `real_world` to OUT/demos.npz (+ demos.json); returns the
+    record (per demonstration: seed, steps, success, seconds)."""
+    from twinbench.policies.io import resize_image
+    from twinbench.tasks import get_task
+
+    spec = get_task(task)
+    env = spec.make_env(twin=str(real_world), environment_state=True, episode_seconds=float(max_seconds))
+    expert = spec.make_expert(env)
+    low, high = env.action_space.low, env.action_space.high
+    images, agent_pos, actions, episode, record = [], [], [], [], []
+    t_all = time.perf_counter()
+    try:
+        for k in range(n):
+            t0 = time.perf_counter()
+            rng = np.random.default_rng(seed + k)
+            obs, info = env.reset(seed=seed + k, options={"sampled": True})
+            expert.reset()
+            ep_img, ep_pos, ep_act, success_at, steps = [], [], [], None, 0
+            while True:
+                a = np.asarray(expert.select_action(
+                    {**obs, "environment_state": info["privileged"]["environment_state"]}), np.float32)
+                ep_img.append(resize_image(obs["pixels"][camera], (image_size, image_size), "stretch"))
+                ep_pos.append(np.asarray(obs["agent_pos"], np.float32))
+                ep_act.append(a)
+                executed = np.clip(a + rng.normal(0.0, noise_m, a.shape), low, high)
+                obs, _, term, trunc, info = env.step(executed.astype(np.float32))
+                steps += 1
+                if info["is_success"] and success_at is None:
+                    success_at = steps
+                if term or trunc or (success_at is not None and steps >= success_at + tail_steps):
+                    break
+            ok = success_at is not None
+            record.append({"seed": seed + k, "steps": steps, "success": ok, "kept": ok,
+                           "seconds": round(time.perf_counter() - t0, 1)})
+            if ok:
+                images += ep_img
+                agent_pos += ep_pos
+                actions += ep_act
+                episode += [sum(r["kept"] for r in record) - 1] * steps
+            log(f"demo {k + 1}/{n} (seed {seed + k}): {steps} steps, success {ok}, "
+                f"{record[-1]['seconds']:.0f} s")
+    finally:
+        env.close()
+    if not episode:
+        raise RuntimeError(f"behaviour cloning: none of the {n} expert demonstrations in {real_world} "
+                           "succeeded; nothing to train on")
+    out.mkdir(parents=True, exist_ok=True)
+    np.savez_compressed(out / "demos.npz", images=np.stack(images), agent_pos=np.stack(agent_pos),
+                        actions=np.stack(actions), episode=np.asarray(episode, np.int32))
+    doc = {"task": task, "camera": camera, "image_size": image_size, "noise_m": noise_m,
+           "tail_steps": tail_steps, "max_seconds": max_seconds, "demos": record,
+           "seconds": round(time.perf_counter() - t_all, 1)}
+    (out / "demos.json").write_text(json.dumps(doc, indent=1))
+    return doc
+
+
+def load_demos(out: Path) -> dict[str, np.ndarray]:
+    with np.load(out / "demos.npz") as z:
+        return {k: z[k] for k in z.files}
+
+
+def train_checkpoints(demos: dict[str, np.ndarray], out: Path, data_sizes, epochs, *, seed: int = 0,
+                      image_size: int = 64, camera: str = "front", log=print) -> list[Path]:
+    """Per data size N (the first N demonstrations), one training run of max(epochs) epochs, saving the
+    checkpoint OUT/bc-d<N>-e<E>/ after each E in `epochs`, with train.json (loss per epoch, seconds).
+    A data size whose checkpoints all exist is not trained again."""
+    from twinbench.policies.cnn import make_config, save_policy, train
+
+    n_kept = int(demos["episode"].max()) + 1
+    paths = []
+    for d in data_sizes:
+        d = min(int(d), n_kept)
+        names = {e: out / f"bc-d{d}-e{e}" for e in epochs}
+        paths += [p for p in names.values() if p not in paths]
+        if all((p / "train.json").is_file() for p in names.values()):
+            continue
+        keep = demos["episode"] < d
+        data = {k: v[keep] for k, v in demos.items()}
+        cfg = make_config(data["agent_pos"], data["actions"], data["episode"], camera=camera,
+                          image_size=image_size)
+        t0 = time.perf_counter()
+
+        def snapshot(epoch, net, losses, d=d, data=data, cfg=cfg, names=names, t0=t0):
+            record = {"demos": d, "frames": int(len(data["episode"])), "epochs": epoch, "seed": seed,
+                      "loss": losses[-1], "loss_per_epoch": losses,
+                      "train_seconds": round(time.perf_counter() - t0, 1)}
+            path = save_policy(names[epoch], replace(cfg, extra=record), net)
+            (path / "train.json").write_text(json.dumps(record, indent=1))
+            log(f"checkpoint {path.name}: {d} demos ({record['frames']} frames), {epoch} epochs, "
+                f"loss {losses[-1]:.4f}, {record['train_seconds']:.0f} s")
+
+        train(cfg, data["images"], data["agent_pos"], data["actions"], data["episode"], epochs=max(epochs),
+              seed=seed, snapshots=set(epochs), on_snapshot=snapshot)
+    return paths
+
+
+def make_bc_policies(task: str, real_world: Path, out: Path, size="small", log=print,
+                     seed: int = 0) -> list[str]:
+    """Record demonstrations in `real_world` (reused when OUT/demos.npz exists), train the size's
+    checkpoints into OUT and return their policy specs `bc-d<N>-e<E>=cnn:DIR`."""
+    bs = bc_size(size)
+    out = Path(out)
+    if not (out / "demos.npz").is_file():
+        t0 = time.perf_counter()
+        doc = record_demos(task, real_world, out, bs.demos, max_seconds=bs.max_seconds, noise_m=bs.noise_m,
+                           tail_steps=bs.tail_steps, log=log)
+        kept = sum(r["kept"] for r in doc["demos"])
+        log(f"recorded {kept}/{bs.demos} successful demonstrations in {time.perf_counter() - t0:.0f} s")
+    doc = json.loads((out / "demos.json").read_text())
+    paths = train_checkpoints(load_demos(out), out, bs.data_sizes, bs.epochs, seed=seed,
+                              image_size=doc["image_size"], camera=doc["camera"], log=log)
+    return [f"{p.name}=cnn:{p}" for p in paths]
