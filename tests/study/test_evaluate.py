@@ -76,6 +76,6 @@ def test_study_json_table_and_page(study):
 def test_bad_size_is_refused():
     from twinbench.errors import InputError
 
-    with pytest.raises(InputError, match="--size 'huge'"):
+    with pytest.raises(InputError, match=r"study size 'huge' \(--size\)"):
         E.study_size("huge")
     assert E.episodes_arg(E.study_size("small")) == "grid:0,9"

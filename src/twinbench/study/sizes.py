@@ -33,5 +33,5 @@ def study_size(size: str | StudySize) -> StudySize:
     if isinstance(size, StudySize):
         return size
     if size not in SIZES:
-        raise InputError(f"--size {size!r}: give one of {sorted(SIZES)}")
+        raise InputError(f"study size {size!r} (--size): give one of {sorted(SIZES)}")
     return SIZES[size]
