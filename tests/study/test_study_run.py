@@ -18,7 +18,7 @@ def test_study_evaluate_needs_the_study_folder(tmp_path, capsys):
     assert cli_main(["study", "evaluate", str(tmp_path)]) == 2
     assert "needs real/world" in capsys.readouterr().err
     assert cli_main(["study", "run", "--out", str(tmp_path), "--size", "huge"]) == 2
-    assert "--size 'huge'" in capsys.readouterr().err
+    assert "study size 'huge' (--size)" in capsys.readouterr().err
 
 
 @pytest.mark.slow
