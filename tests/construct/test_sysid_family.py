@@ -78,7 +78,13 @@ def test_default_fit_on_family_cases_improves_and_reports(i):
                      for k in val for m in [data.motion_valid[k]]])  # what the truth scores
     # halves the start's error, or is within twice the noise floor (a drop is at rest by then)
     assert res.evals["final"].val_error < max(0.5 * res.evals["initial"].val_error, 2.0 * floor)
-    assert res.evals["final"].train_loss < res.evals["initial"].train_loss
+    fitted = {k: e.terms["chamfer"] + e.terms["track"] for k, e in res.evals.items()}  # stage 1's objective
+    assert fitted["final"] < fitted["initial"]
+    # the kept stage is the one with the lowest error on the selection frames (never the validation ones)
+    errs = res.selection["errors_m"]
+    kept = min(errs, key=errs.get)
+    assert res.selection["kept"] == kept and res.evals["final"] is res.evals[kept]
+    assert res.selection["frames"] == [data.train_frames.stop - 2, data.train_frames.stop - 1]
     assert set(res.identifiability) >= {"spring_Y", "ground_friction", "dashpot_damping"}
     sy = res.identifiability["spring_Y"]
     assert sy["low"] <= sy["best"] <= sy["high"] and sy["samples"] >= 1

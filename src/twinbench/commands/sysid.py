@@ -47,6 +47,8 @@ def main(cfg: SysIdConfig) -> int:
     for name, e in result.evals.items():
         say(f"{name:>8}: training loss {e.train_loss:.4e}, tracking error: training "
             f"{1e3 * e.train_error:.2f} mm, validation {1e3 * e.val_error:.2f} mm")
+    if result.selection:
+        say(f"kept: {result.selection['kept']} ({result.selection['rule']})")
     if result.identifiability:
         fixed = [k for k, v in result.identifiability.items() if v["constrained"]]
         loose = [k for k, v in result.identifiability.items() if not v["constrained"]]

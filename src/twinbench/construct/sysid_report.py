@@ -45,6 +45,8 @@ def report_dict(result: SysIdResult, data: SysIdData) -> dict:
         "stage2_history": [{k: _finite(v) if isinstance(v, float) else v for k, v in row.items()}
                            for row in result.stage2_history],
         "stiffness_fit": _stiffness_fit(result),
+        "guesses": _jsonable(result.guesses),
+        "selection": _jsonable(result.selection),
         "notes": list(result.notes),
         "identifiability": {k: {kk: (_finite(vv) if isinstance(vv, float) else vv) for kk, vv in v.items()}
                             for k, v in result.identifiability.items()},
@@ -75,6 +77,8 @@ def _jsonable(obj):
         return [_jsonable(v) for v in obj]
     if isinstance(obj, Path):
         return str(obj)
+    if isinstance(obj, float):
+        return _finite(obj)
     return obj
 
 

@@ -252,6 +252,14 @@ class FitConfig:
     """substeps per frame; 0 = round(1 / (fps * dt)) (667 at PhysTwin's dt 5e-5 and 30 fps), or with dt 0
     too, automatic: the fewest that are stable (``stable_substeps``) for each stage-1 candidate's stiffness
     and dashpot, and for stage 2's upper stiffness bound"""
+    select_frames: float = 0.2
+    """share of the training frames, the last ones, held out from fitting to choose between the stages
+    and stage 2's epochs (the selection frames: the stage with the lowest tracking error on them is
+    kept); the validation frames never fit nor choose; 0 = keep the last stage run"""
+    guess: bool = True
+    """stage 1 starts from physically scaled guesses computed from the data (stiffness from the control
+    force and strain, friction from sliding, restitution from bounces: ``physics.sysid_guess``) where the
+    motion shows them; off: from the ``initial`` values"""
     ground: bool = True
     self_collision: bool = False
     progress: bool = True
@@ -273,6 +281,7 @@ class FitConfig:
                 raise ValueError(f"--{name.replace('_', '-')}: expected {kind} in {bound}, got {value!r}")
 
         need("dt", self.dt, 0.0, 0.1)
+        need("select_frames", self.select_frames, 0.0, 0.5)
         need("substeps", self.substeps, 0, 100_000, integer=True)
         c, a, w, i = self.cma, self.adam, self.weights, self.initial
         need("cma.budget", c.budget, 1, 100_000, integer=True)
@@ -495,6 +504,31 @@ def evaluate(model: SpringMassModel, data: SysIdData, loss: SequenceLoss, *, fra
     return SequenceEval(lossv, err, mean(lossv, train), mean(err, train), mean(err, val), terms=terms)
 
 
+def frames_error(ev: SequenceEval, frames: range) -> float:
+    """Mean tracking error (m) of ``ev`` over ``frames`` (NaN when none is finite; inf if diverged)."""
+    if ev.diverged:
+        return math.inf
+    vals = ev.track_error[[k for k in frames if k < ev.track_error.size]]
+    vals = vals[np.isfinite(vals)]
+    return float(vals.mean()) if vals.size else float("nan")
+
+
+def selection_count(data: SysIdData, share: float) -> int:
+    """How many of the last training frames :func:`identify` holds out from fitting to choose between
+    stages and epochs (the selection frames): ``share`` of the training frames, at least 1 when there are
+    at least 4 training frames and ``share`` > 0, else 0 (the last stage run is then kept)."""
+    n = len(data.train_frames)
+    if share <= 0 or n < 4:
+        return 0
+    return int(min(max(round(share * n), 1), n - 3))
+
+
+def fit_view(data: SysIdData, select: int) -> SysIdData:
+    """``data`` with its last ``select`` training frames moved out of the training range (what the stages
+    fit); the validation frames are unchanged in the data itself."""
+    return replace(data, validation_frames=data.validation_frames + select) if select else data
+
+
 # ----------------------------------------------------------------------------------------------
 # progress
 
@@ -517,14 +551,17 @@ SCAN_POINTS = 9  # stage 1's stiffness scan (log-spaced over the spring_Y range)
 def stage1_cma(data: SysIdData, base: SimParams, initial: GlobalParams, cfg: CMAConfig,
                weights: LossWeights = LossWeights(), device: str = "cpu", progress: bool = False,
                log: Callable[[str], None] = print,
-               base_of: Callable[[GlobalParams], SimParams] | None = None) -> tuple[GlobalParams, list[dict]]:
+               base_of: Callable[[GlobalParams], SimParams] | None = None,
+               walk: bool = False) -> tuple[GlobalParams, list[dict]]:
     """CMA-ES over the searched global parameters (normalised to [0, 1], stiffness in log space).
 
     When stiffness is searched, a scan of ``SCAN_POINTS`` log-spaced stiffness values (the other
     parameters at ``initial``) first picks the scale of the start, so the search does not depend on a
     hand-set stiffness (the scan runs from soft to stiff and stops once two successive values rise past its
     minimum: the stiff candidates, which need the most substeps, are skipped when the answer is already
-    bracketed); CMA-ES then starts from the better of ``initial`` and the scan's best and stops after
+    bracketed); with ``walk`` (``initial.spring_Y`` is a guess from the data) the scan instead steps from
+    it by half a decade towards the lower loss until the loss rises (a bracket around the guess). CMA-ES
+    then starts from the better of ``initial`` and the scan's best and stops after
     ``cfg.patience`` generations without a 1 % improvement, or at the budget. Each
     evaluation simulates the training frames (with ``base_of(candidate)`` when given: substeps stable for
     the candidate's stiffness) and scores Chamfer + tracking (the acceleration term regularises stage 2's
@@ -568,7 +605,22 @@ def stage1_cma(data: SysIdData, base: SimParams, initial: GlobalParams, cfg: CMA
         task = bar.add_task("stage 1 (CMA-ES)", total=cfg.budget, info="")
         objective(initial)
         bar.advance(task)
-        if "spring_Y" in names and cfg.budget > 2 * SCAN_POINTS:
+        if "spring_Y" in names and cfg.budget > 2 * SCAN_POINTS and walk:
+            r = ranges["spring_Y"]
+            here, f_here = initial.spring_Y, best[0]
+            for factor in (10 ** -0.5, 10 ** 0.5):  # downhill from the guess, half a decade a step
+                nxt = min(max(here * factor, r.lo), r.hi)
+                f_nxt = objective(replace(initial, spring_Y=nxt)) if nxt != here else math.inf
+                bar.update(task, advance=1, info=f"best {best[0]:.3e}")
+                steps = 0
+                while f_nxt < f_here and steps < SCAN_POINTS and r.lo < nxt < r.hi:
+                    here, f_here, nxt = nxt, f_nxt, min(max(nxt * factor, r.lo), r.hi)
+                    f_nxt = objective(replace(initial, spring_Y=nxt))
+                    bar.update(task, advance=1, info=f"best {best[0]:.3e}")
+                    steps += 1
+                if steps or f_nxt < f_here:
+                    break  # went downhill this way: the other side is uphill from here
+        elif "spring_Y" in names and cfg.budget > 2 * SCAN_POINTS:
             scan: list[float] = []
             for u in np.linspace(0.0, 1.0, SCAN_POINTS):  # stiff candidates cost most: stop once bracketed
                 scan.append(objective(replace(initial, spring_Y=ranges["spring_Y"].decode(u))))
@@ -692,18 +744,22 @@ def spring_regions(model: SpringMassModel, regions: int, seed: int = 0) -> np.nd
 
 def stage2_adam(model: SpringMassModel, data: SysIdData, cfg: AdamConfig,
                 weights: LossWeights = LossWeights(), progress: bool = False,
-                log: Callable[[str], None] = print) -> tuple[np.ndarray, list[dict]]:
+                log: Callable[[str], None] = print, select: int = 0) -> tuple[np.ndarray, list[dict]]:
     """Adam on ``model.log_y`` (finalized with ``requires_grad=True``) and, with ``cfg.fit_contact``, on
-    the contact coefficients that act (``fitted_contacts``, in logit space), one step per training frame.
+    the contact coefficients that act (``fitted_contacts``, in logit space), one step per fitted frame.
 
-    After each epoch the whole sequence is rolled out (fast path) and the parameters with the lowest
-    training loss are kept (the validation frames only report). Stops early, keeping the best
+    The last ``select`` training frames are not fitted: they are the selection frames (see
+    :func:`selection_split`). After each epoch the whole sequence is rolled out (fast path) and the
+    parameters with the lowest tracking error on the selection frames are kept (the lowest fitted loss
+    without selection frames; the validation frames only report). Stops early, keeping the best
     parameters, when a taped frame diverges. Returns (best log_y, history rows per epoch); the best
     contact coefficients are left in ``model.contact_coeffs``."""
     if not model.requires_grad:
         raise ValueError("stage2_adam needs a model finalized with requires_grad=True")
     if cfg.epochs < 0 or not (0 < cfg.y_min < cfg.y_max):
         raise ValueError(f"adam: need epochs >= 0 and 0 < y_min < y_max, got {cfg}")
+    sel = range(data.train_frames.stop - select, data.train_frames.stop)
+    full, data = data, fit_view(data, select)
     loss = SequenceLoss(data, weights)
     solver = SpringMassSolver(model)
     eval_solver = SpringMassSolver(model)
@@ -726,18 +782,24 @@ def stage2_adam(model: SpringMassModel, data: SysIdData, cfg: AdamConfig,
 
     if fit:
         set_contacts(opt_c.x)
+
+    def score(ev: SequenceEval) -> float:  # what chooses the epoch: never the validation frames
+        return frames_error(ev, sel) if select else ev.train_loss
+
     ev = evaluate(model, data, loss, solver=eval_solver)
-    best = (ev.train_loss, opt.x[region], opt_c.x.copy())
+    best = (score(ev), opt.x[region], opt_c.x.copy())
+    best_fit = ev.train_loss
 
     def row(epoch: int, taped: float, ev, per_iter: float) -> dict:
         out = {"epoch": epoch, "taped_loss": taped, "train_loss": ev.train_loss,
-               "train_error": ev.train_error, "val_error": ev.val_error, "seconds_per_iteration": per_iter}
+               "train_error": ev.train_error, "select_error": frames_error(ev, sel),
+               "val_error": frames_error(ev, full.val_frames), "seconds_per_iteration": per_iter}
         return out | {CONTACT_NAMES[i]: float(coeffs[i]) for i in fit}
 
     history = [row(0, float("nan"), ev, float("nan"))]
     train = list(data.train_frames)
     contact_from = cfg.contact_after * cfg.epochs  # contact joins after this epoch, or at a stall
-    stalled, ref = 0, best[0]
+    stalled, ref = 0, best_fit
     with _progress(progress) as bar:
         task = bar.add_task("stage 2 (Adam)", total=cfg.epochs * len(train), info="")
         for epoch in range(1, cfg.epochs + 1):
@@ -769,10 +831,11 @@ def stage2_adam(model: SpringMassModel, data: SysIdData, cfg: AdamConfig,
                 break
             per_iter = (time.perf_counter() - t0) / len(train)
             ev = evaluate(model, data, loss, solver=eval_solver)
-            if ev.train_loss < best[0]:
-                best = (ev.train_loss, opt.x[region], opt_c.x.copy())
+            if score(ev) < best[0]:
+                best = (score(ev), opt.x[region], opt_c.x.copy())
+            best_fit = min(best_fit, ev.train_loss)
             history.append(row(epoch, total / len(train), ev, per_iter))
-            stalled, ref = (0, best[0]) if best[0] < 0.995 * ref else (stalled + 1, ref)
+            stalled, ref = (0, best_fit) if best_fit < 0.995 * ref else (stalled + 1, ref)
             if cfg.patience and stalled >= cfg.patience:
                 if fit and epoch <= contact_from:  # stiffness alone has stalled: the contact joins now
                     contact_from, stalled = epoch, 0
@@ -782,7 +845,9 @@ def stage2_adam(model: SpringMassModel, data: SysIdData, cfg: AdamConfig,
     model.set_spring_log_y(best[1])
     if fit:
         set_contacts(best[2])
-    log(f"stage 2: {len(history) - 1} epochs, best training loss {best[0]:.4e}")
+    what = f"best selection-frame error {1e3 * best[0]:.3f} mm" if select else \
+        f"best training loss {best[0]:.4e}"
+    log(f"stage 2: {len(history) - 1} epochs, {what}")
     return best[1].astype(np.float32), history
 
 
@@ -811,7 +876,14 @@ class SysIdResult:
     and whether the motion constrains it (see :func:`identifiability`)"""
     regions: np.ndarray | None = None
     """stage 2's stiffness region per spring (``spring_regions``: object springs, then control springs in
-    one more region); every spring its own region when fitted per spring; None without stage 2"""
+    one more region); every spring its own region when fitted per spring; None when stage 2's result
+    is not the one kept"""
+    guesses: dict[str, dict] = field(default_factory=dict)
+    """the physically scaled guesses stage 1 started from (``physics.sysid_guess``): per parameter its
+    value (None where the motion does not show it), how it was measured, and whether it was used"""
+    selection: dict = field(default_factory=dict)
+    """which stage was kept and why: the selection frames (the last training frames, held out from
+    fitting), each stage's tracking error on them, the kept stage, the rule"""
 
     @property
     def object_spring_Y(self) -> np.ndarray:
@@ -865,7 +937,15 @@ def identify(data: SysIdData, cfg: FitConfig, *, base: SimParams | None = None,
 
     With automatic substeps (``cfg.dt == cfg.substeps == 0``, the default), every simulation runs at the
     fewest substeps stable for its stiffness and dashpot (``stable_substeps``): stage 1's candidates
-    cannot diverge, and stage 2 runs stably at its upper stiffness bound."""
+    cannot diverge, and stage 2 runs stably at its upper stiffness bound.
+
+    The stages fit the training frames less the last ``cfg.select_frames`` share of them (the selection
+    frames, :func:`selection_count`); of the stages run (the initial values included), the one with the
+    lowest tracking error on the selection frames is kept, the later one on a tie. The validation frames
+    neither fit nor choose; a kept stage whose validation error is worse than the stage before it is
+    named in the notes."""
+    from .sysid_guess import physical_guesses
+
     cfg.check()
     pairs = data.springs if data.springs is not None else \
         radius_springs(data.particles, cfg.initial.spring_radius, int(cfg.initial.spring_max_neighbors))
@@ -890,48 +970,106 @@ def identify(data: SysIdData, cfg: FitConfig, *, base: SimParams | None = None,
         raise SysIdFormatError(f"{data.source}: field 'fps' is {data.fps} (frame {1 / data.fps:.5f} s) but "
                                f"the simulation frame is substeps * dt = {frame_dt:.5f} s; set substeps = "
                                f"round(1 / (fps * dt)) = {round(1 / (data.fps * base.dt))}")
+    n_sel = selection_count(data, cfg.select_frames) if cfg.stage1 or cfg.stage2 else 0
+    fit = fit_view(data, n_sel)
+    sel = range(fit.train_frames.stop, data.train_frames.stop)
     loss = SequenceLoss(data, cfg.weights)
     seconds: dict[str, float] = {}
     params = cfg.initial
-    evals = {"initial": evaluate(build_model(data, params, base, cfg.device), data, loss)}
+    models = {"initial": build_model(data, params, base, cfg.device)}
+    evals = {"initial": evaluate(models["initial"], data, loss)}
+    stage_params = {"initial": params}
     history1: list[dict] = []
     ident: dict[str, dict] = {}
+    guesses: dict[str, dict] = {}
     if cfg.stage1:
+        start = params
+        searched = tuple(cfg.cma.search) or applicable_parameters(data, base)
+        if cfg.guess:
+            ranges = parse_ranges(cfg.cma.ranges)
+            guesses = physical_guesses(fit, topo or models["initial"], params.control_radius)
+            for name, g in guesses.items():
+                value = g["value"]
+                use = value is not None and name in searched and not (g.get("lower_bound")
+                                                                       and value <= getattr(start, name))
+                if use:
+                    value = min(max(value, ranges[name].lo), ranges[name].hi)
+                    start = replace(start, **{name: value})
+                g["used"] = bool(use)
+                log(f"guess {name}: {'-' if g['value'] is None else f'{value:.4g}'}"
+                    f"{'' if use else ' (not used)'}: {g['from']}")
         t0 = time.perf_counter()
-        params, history1 = stage1_cma(data, base, params, cfg.cma, cfg.weights, cfg.device, cfg.progress, log,
-                                      base_of=base_of if topo is not None else None)
+        params, history1 = stage1_cma(fit, base, start, cfg.cma, cfg.weights, cfg.device, cfg.progress, log,
+                                      base_of=base_of if topo is not None else None,
+                                      walk=bool(guesses.get("spring_Y", {}).get("used")))
         seconds["stage1"] = time.perf_counter() - t0
-        evals["stage1"] = evaluate(build_model(data, params, base_of(params), cfg.device), data, loss)
+        models["stage1"] = build_model(data, params, base_of(params), cfg.device)
+        evals["stage1"] = evaluate(models["stage1"], data, loss)
+        stage_params["stage1"] = params
         ident = identifiability(history1, parse_ranges(cfg.cma.ranges))
-        if params == cfg.initial:
+        if params == start:
             notes.append(f"stage 1 did not improve on its start: none of {len(history1) - 1} candidates "
-                         "beat the initial values (widen cma.ranges or check the data)")
+                         "beat the starting values (widen cma.ranges or check the data)")
     adam = cfg.adam
     if cfg.stage2 and adam.window > 0:
         adam = replace(adam, y_min=max(adam.y_min, params.spring_Y / adam.window),
                        y_max=min(adam.y_max, params.spring_Y * adam.window))
-    if topo is not None and cfg.stage2:
-        base = base_of(params, adam.y_max)
-    elif topo is not None:
-        base = base_of(params)
-    model = build_model(data, params, base, cfg.device, requires_grad=cfg.stage2)
     history2: list[dict] = []
     regions = None
     if cfg.stage2:
+        base2 = base_of(params, adam.y_max) if topo is not None else base
+        model = build_model(data, params, base2, cfg.device, requires_grad=True)
         regions = spring_regions(model, adam.regions)  # as stage2_adam groups them (seeded k-means)
         weights = balanced_weights(cfg.weights, evals["stage1" if cfg.stage1 else "initial"].terms,
                                    adam.acc_share, log)
         t0 = time.perf_counter()
-        _, history2 = stage2_adam(model, data, adam, weights, cfg.progress, log)
+        _, history2 = stage2_adam(model, data, adam, weights, cfg.progress, log, select=n_sel)
         first = history2[0]["train_loss"]
         if len(history2) > 1 and not any(r.get("train_loss", math.inf) < first for r in history2[1:]):
-            notes.append("stage 2 did not improve on stage 1's training loss; its start is returned")
+            notes.append("stage 2 did not improve on its start's fitted loss")
         seconds["stage2"] = time.perf_counter() - t0
         c = model.contact_coeffs.numpy().astype(np.float64)
-        params = replace(params, **{CONTACT_NAMES[i]: float(c[i]) for i in fitted_contacts(model)
-                                    if cfg.adam.fit_contact})
-    evals["final"] = evaluate(model, data, loss)
+        stage_params["stage2"] = replace(params, **{CONTACT_NAMES[i]: float(c[i])
+                                                    for i in fitted_contacts(model) if cfg.adam.fit_contact})
+        models["stage2"] = model
+        evals["stage2"] = evaluate(model, data, loss)
+    kept, selection = _choose_stage(evals, sel, notes)
+    params, model = stage_params[kept], models[kept]
+    if kept != "stage2":
+        regions = None
+    evals["final"] = evals[kept]
     for note in notes:
         log(f"note: {note}")
-    return SysIdResult(params, params.sim_params(base), model.log_y_np.copy(), model, evals, history1,
-                       history2, seconds, cfg, notes, ident, regions)
+    return SysIdResult(params, params.sim_params(model.params), model.log_y_np.copy(), model, evals, history1,
+                       history2, seconds, cfg, notes, ident, regions, guesses, selection)
+
+
+def _choose_stage(evals: dict[str, SequenceEval], sel: range, notes: list[str]) -> tuple[str, dict]:
+    """The stage to keep (see :func:`identify`) and the record of the choice; appends notes when a stage
+    is not kept or the kept one's validation error is worse than the previous stage's."""
+    order = list(evals)  # initial, stage1, stage2: the order they ran
+    if not sel:
+        kept = order[-1]
+        return kept, {"frames": [], "kept": kept, "rule": "no selection frames (select_frames 0 or under 4 "
+                                                          "training frames): the last stage run is kept"}
+    errors = {name: frames_error(evals[name], sel) for name in order}
+    kept = order[-1]
+    for name in reversed(order):  # the later stage wins a tie
+        if errors[name] < errors[kept]:
+            kept = name
+    span = f"{sel.start}-{sel.stop - 1}"
+    rule = (f"the stage with the lowest tracking error on frames {span} (the last training frames, held "
+            "out from fitting) is kept; the validation frames do not choose")
+    if kept != order[-1]:
+        notes.append(f"{kept} is kept, not {order[-1]}: its tracking error on the selection frames {span} "
+                     f"(held out from fitting) is {1e3 * errors[kept]:.2f} mm against "
+                     f"{1e3 * errors[order[-1]]:.2f}")
+    i = order.index(kept)
+    if i > 0:
+        prev = order[i - 1]
+        if evals[kept].val_error > evals[prev].val_error:
+            notes.append(f"{kept} is kept by the selection frames, but its validation error "
+                         f"{1e3 * evals[kept].val_error:.2f} mm is worse than {prev}'s "
+                         f"{1e3 * evals[prev].val_error:.2f} mm (the selection cannot see the validation "
+                         "frames: the motion there differs from the fitted one)")
+    return kept, {"frames": [sel.start, sel.stop - 1], "errors_m": errors, "kept": kept, "rule": rule}

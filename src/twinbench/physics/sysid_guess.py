@@ -1,0 +1,153 @@
+"""Physically scaled starting values for system identification, computed from the observed motion alone.
+
+    guesses = physical_guesses(data, model)   # model: the object under the initial values (its springs)
+
+Each guess is a dict: ``value`` (None where the motion does not show the effect) and ``from`` (how it
+was measured, or why not). Only the fitted frames of ``data`` (its training frames) are read.
+
+- **stiffness** (``spring_Y``, per unit strain, as the springs use it): while the control points hold
+  the object up, the control springs carry the weight of the particles off the ground and their
+  vertical acceleration, ``sum_k M_off (g + a_z)``; their observed strains give ``sum_k S_z`` (the
+  vertical component of ``strain * direction`` summed over the control springs); the ratio of the two
+  sums is the stiffness at which those springs carry that load.
+- **ground friction**: the deceleration of points that slide to a stop on the ground (within 5 mm of it,
+  faster than 5 cm/s, slowing down over 3 frames) away from every control point, as a share of g (median
+  over such samples); a lower bound (``lower_bound``: springs may still pull them along), so it raises
+  the start only above the initial value.
+- **ground restitution**: from a bounce: the square root of the object's rebound height over its fall
+  height (centroid of the tracked points, first impact at more than 0.3 m/s).
+
+Velocities and accelerations are central differences over two frames each side (1 mm of noise at 30 Hz
+gives about 0.55 m/s^2 per sample); every figure is a sum or median over many samples.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from .model import SpringMassModel
+from .sysid_data import SysIdData
+
+G = 9.8
+GROUND_BAND = 0.005  # a point within this height of the ground touches it (m)
+MIN_SLIDE_SPEED = 0.05  # m/s
+MIN_IMPACT_SPEED = 0.3  # m/s
+
+
+def _tracks(data: SysIdData) -> tuple[np.ndarray, np.ndarray]:
+    """The fitted frames' tracks (K, T, 3) with NaN where a track is not motion-valid."""
+    stop = data.train_frames.stop
+    x = data.tracked[:stop].copy()
+    x[~data.motion_valid[:stop]] = np.nan
+    return x, data.masses[data.tracked_indices] if data.masses is not None else np.ones(x.shape[1])
+
+
+def _derivatives(x: np.ndarray, fps: float) -> tuple[np.ndarray, np.ndarray]:
+    """Velocity and acceleration (K, T, 3) by central differences two frames apart (NaN at the ends)."""
+    v = np.full_like(x, np.nan)
+    a = np.full_like(x, np.nan)
+    v[2:-2] = (x[3:-1] - x[1:-3]) * fps / 2.0
+    a[2:-2] = (x[4:] - 2.0 * x[2:-2] + x[:-4]) * fps * fps / 4.0
+    return v, a
+
+
+def stiffness_guess(data: SysIdData, model: SpringMassModel) -> dict:
+    if not data.num_controls:
+        return {"value": None, "from": "no control points: no known load on the object"}
+    x, m = _tracks(data)
+    _, a = _derivatives(x, data.fps)
+    n_p = model.num_particles
+    sp = model.springs_np[model.num_object_springs:].astype(np.int64)
+    rest = model.rest_lengths_np[model.num_object_springs:].astype(np.float64)
+    part = np.where(sp[:, 0] < n_p, sp[:, 0], sp[:, 1])
+    ctrl = np.where(sp[:, 0] < n_p, sp[:, 1], sp[:, 0]) - n_p
+    col = np.full(n_p, -1)
+    col[data.tracked_indices] = np.arange(data.tracked_indices.size)
+    seen = col[part] >= 0
+    if not seen.any():
+        return {"value": None, "from": "no tracked particle is attached to a control point"}
+    mass_total = float(np.sum(data.masses)) if data.masses is not None else float(n_p)
+    force, strain, frames = 0.0, 0.0, 0
+    for k in range(2, x.shape[0] - 2):
+        ok = np.all(np.isfinite(x[k]), axis=1)
+        if ok.sum() < 3:
+            continue
+        off = ok & (x[k, :, 2] > GROUND_BAND)
+        m_off = mass_total * float(m[off].sum() / m[ok].sum())
+        acc = a[k, off, 2]
+        acc = acc[np.isfinite(acc)]
+        if m_off < 0.2 * mass_total or acc.size < 3:
+            continue
+        s = seen & ok[np.maximum(col[part], 0)]
+        if not s.any():
+            continue
+        d = data.controls[k][ctrl[s]] - x[k, col[part[s]]]
+        length = np.linalg.norm(d, axis=1)
+        s_z = float(np.sum((length / rest[s] - 1.0) * d[:, 2] / np.maximum(length, 1e-9)))
+        s_z *= seen.sum() / s.sum()  # the attached particles not tracked in this frame
+        if s_z <= 0:
+            continue
+        force += m_off * (G + float(np.mean(acc)))
+        strain += s_z
+        frames += 1
+    if frames < 3 or force <= 0:
+        return {"value": None, "from": f"the control points hold the object up in {frames} fitted frame(s) "
+                                        "(need 3): no load to scale the stiffness by"}
+    return {"value": force / strain, "frames": frames,
+            "from": f"weight + vertical inertia of the particles off the ground over the control springs' "
+                    f"vertical strain, {frames} frames"}
+
+
+def friction_guess(data: SysIdData, control_radius: float) -> dict:
+    x, _ = _tracks(data)
+    v, a = _derivatives(x, data.fps)
+    near = np.zeros(x.shape[:2], bool)
+    if data.num_controls:
+        c = data.controls[: x.shape[0]]
+        dist = np.linalg.norm(x[:, :, None, :] - c[:, None, :, :], axis=3)
+        near = np.any(dist < 1.5 * control_radius, axis=2)
+    speed = np.linalg.norm(v[..., :2], axis=2)
+    low = x[..., 2] < GROUND_BAND
+    use = low & ~near & (speed > MIN_SLIDE_SPEED) & np.isfinite(a[..., 0])
+    use[2:-2] &= low[1:-3] & low[3:-1] & (speed[1:-3] > speed[2:-2]) & (speed[2:-2] > speed[3:-1])
+    if use.sum() < 5:
+        return {"value": None, "from": f"{int(use.sum())} samples of points sliding on the ground away from "
+                                       "the control points (need 5)"}
+    decel = -np.sum(a[use][:, :2] * v[use][:, :2], axis=1) / speed[use]
+    return {"value": float(np.median(decel)) / G, "samples": int(use.sum()), "lower_bound": True,
+            "from": f"median deceleration of {int(use.sum())} samples of points sliding to a stop, over g (a "
+                    "lower bound: springs may pull them along)"}
+
+
+def restitution_guess(data: SysIdData) -> dict:
+    x, _ = _tracks(data)
+    zc = np.array([np.nanmean(f[:, 2]) if np.isfinite(f[:, 2]).any() else np.nan for f in x])
+    zlow = np.array([np.nanmin(f[:, 2]) if np.isfinite(f[:, 2]).any() else np.nan for f in x])
+    vz = np.gradient(zc) * data.fps
+    for k in range(1, len(zc) - 2):
+        if zlow[k] < GROUND_BAND and vz[k - 1] < -MIN_IMPACT_SPEED:
+            top = float(np.nanmax(zc[: k + 1]))
+            bottom = float(np.nanmin(zc[k: k + 3]))
+            after = zc[k + 1:]
+            rise = np.flatnonzero(np.diff(after) < 0)  # the apex: the first frame the centroid falls again
+            apex = float(np.nanmax(after[: rise[0] + 1])) if rise.size else float(np.nanmax(after))
+            if top - bottom < 0.005 or not rise.size:
+                break
+            e = math.sqrt(min(max(apex - bottom, 0.0) / (top - bottom), 1.0))
+            return {"value": min(max(e, 0.02), 0.98), "frame": k,
+                    "from": f"rebound {1e3 * (apex - bottom):.1f} mm over fall {1e3 * (top - bottom):.1f} mm "
+                            f"(impact at frame {k})"}
+    return {"value": None, "from": f"no impact faster than {MIN_IMPACT_SPEED} m/s followed by a rebound in "
+                                   "the fitted frames"}
+
+
+def physical_guesses(data: SysIdData, model: SpringMassModel, control_radius: float) -> dict[str, dict]:
+    """Guesses for ``spring_Y`` and, with the ground on, ``ground_friction`` and ``ground_restitution``
+    (see the module docstring); ``data`` should be the fitted view (its training frames are read)."""
+    out = {"spring_Y": stiffness_guess(data, model)}
+    if model.params.ground:
+        out["ground_friction"] = friction_guess(data, control_radius)
+        out["ground_restitution"] = restitution_guess(data)
+    return out
