@@ -172,3 +172,24 @@ def test_replay_from_measured_poses_robot_logs_and_an_index_map(tmp_path):
     (tmp_path / "bad.json").write_text(json.dumps(bad))
     with pytest.raises(ValueError, match="'ee_poses' must be \\(T, 7\\)"):
         load_recorded(tmp_path / "bad.json")
+
+
+def test_recorded_actions_replayed_in_the_same_world_give_the_same_outcomes(tmp_path):
+    """`evaluate(record_actions=True)` writes each episode's commanded actions; replayed open loop in the
+    same world they reproduce every outcome and step count."""
+    from twinbench.evaluation.replay import RecordedEpisode
+    from twinbench.evaluation.runner import actions_file, evaluate
+
+    store = ResultsStore(tmp_path / "r.sqlite")
+    recs = evaluate("point-reach", ["expert", "poor=expert@0.95"], "grid:0,1,2", workers=0, run_id="rec",
+                    store=store, output_dir=tmp_path, record_actions=True)
+    assert len(recs) == 6 and {r.success for r in recs} == {True, False}  # both outcomes present
+    episodes = []
+    for i, r in enumerate(recs):
+        acts = np.load(actions_file(tmp_path, "rec", r.policy, r.checkpoint, r.init_state, r.seed))
+        assert acts.shape == (r.steps, 2) and np.all(np.isfinite(acts))
+        episodes.append(RecordedEpisode(i, r.init_state, acts, r.success, r.policy, r.checkpoint,
+                                        seed=r.seed))
+    pairs = replay_episodes("point-reach", episodes, store, "rep")
+    assert [(rep.success, rep.steps) for _, rep in pairs] == [(r.success, r.steps) for r in recs]
+    assert not list(tmp_path.rglob("*.partial"))

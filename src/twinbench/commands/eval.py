@@ -37,6 +37,8 @@ class EvalConfig:
     """write an MP4 per episode under OUTPUT_DIR/videos/RUN_ID/ (cameras: --video-views)"""
     video_views: str = "all"
     """cameras each video shows side by side: 'all' (every camera) or names joined by '+', e.g. 'front'"""
+    record_actions: bool = False
+    """write each episode's commanded actions (.npy) under OUTPUT_DIR/actions/RUN_ID/, e.g. for replay"""
     policy_timeout: float | None = None
     """seconds per policy call for remote policies (default: the policy's own, 30 s); a warm-up request
     is sent before the first episode either way"""
@@ -71,7 +73,7 @@ def main(cfg: EvalConfig) -> int:
                            seed=cfg.seed, video=cfg.video, backend=cfg.backend, output_dir=cfg.output_dir,
                            env_kwargs=env_kwargs, retry_errors=cfg.retry_errors, progress=cfg.progress,
                            log=say, worlds=cfg.worlds, video_views=cfg.video_views,
-                           policy_timeout_s=cfg.policy_timeout)
+                           policy_timeout_s=cfg.policy_timeout, record_actions=cfg.record_actions)
     except EvaluationInterrupted as err:
         say(err.message)
         return 143 if isinstance(err, EvaluationTerminated) else 130

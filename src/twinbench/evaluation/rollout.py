@@ -46,6 +46,7 @@ class EpisodeOutcome:
     success_rule: str | None = None  # the env's rule that judged the outcome (TwinEnv: "final" or "early")
     video_error: str | None = None  # why a requested video is missing (the episode itself is unaffected)
     final: dict | None = None  # the task's metrics at the last frame (final_metrics of the last info)
+    actions: np.ndarray | None = None  # the commanded actions (steps, action dim), in order
 
     def metrics(self, **extra) -> dict:
         """The EpisodeRecord.metrics of this outcome: `extra`, rewards, success rule, error text."""
@@ -98,6 +99,7 @@ class EpisodeJob:
     video_path: str | None = None
     video_views: str = ALL_VIEWS  # "all" (every camera side by side) or cameras joined by "+"
     policy_timeout_s: float | None = None  # seconds per policy call (policies with a `timeout_s`)
+    actions_path: str | None = None  # where the episode's commanded actions go (.npy), for replay
 
 
 @dataclass(frozen=True)
@@ -131,6 +133,7 @@ class _Rollout:
         self.reset_options = {"init_state": self.init_state, **(reset_options or {})}
         self.t0, self.started = time.perf_counter(), time.time()
         self.rewards: list[float] = []
+        self.actions: list[np.ndarray] = []
         self.video_path = video_path
         self.video = VideoWriter(video_path, env) if video_path is not None else None
         self.views = choose_views(env, video_views) if video_path is not None else None
@@ -176,7 +179,9 @@ class _Rollout:
         except Exception as err:  # noqa: BLE001
             self._end("policy_error", error_text(err))
             return None
-        return action.astype(self.env.action_space.dtype)
+        action = action.astype(self.env.action_space.dtype)
+        self.actions.append(action)
+        return action
 
     def observe(self, result) -> None:
         """Take the env's step result (obs, reward, terminated, truncated, info) or the error it raised."""
@@ -213,6 +218,7 @@ class _Rollout:
             max_reward=float(np.max(r)) if r else 0.0, error=self.error,
             video_path=str(self.video_path) if written else None, started_at=self.started,
             success_rule=self.rule, video_error=video_error, final=self.final,
+            actions=np.array(self.actions).reshape(len(self.actions), *self.env.action_space.shape),
         )
 
     def abort(self) -> None:
@@ -338,7 +344,19 @@ def run_job(job: EpisodeJob) -> EpisodeRecord:
     return _record(job, out)
 
 
+def write_actions(path: str | Path, actions: np.ndarray | None) -> None:
+    """An episode's commanded actions as .npy at `path` (written whole, then renamed: never partial)."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(path.name + ".partial")
+    with open(tmp, "wb") as f:
+        np.save(f, np.zeros((0, 0), np.float32) if actions is None else actions, allow_pickle=False)
+    tmp.replace(path)
+
+
 def _record(job: EpisodeJob, out: EpisodeOutcome) -> EpisodeRecord:
+    if job.actions_path is not None and out.actions is not None:
+        write_actions(job.actions_path, out.actions)
     spec = parse_policy_spec(job.policy)
     return EpisodeRecord(
         run_id=job.run_id, task=job.task, policy=spec.name, checkpoint=spec.checkpoint,

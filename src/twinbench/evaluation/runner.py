@@ -84,6 +84,13 @@ def episode_set(n_grid_states: int, episodes: str | int, seed: int) -> list[tupl
     return [(n_grid_states + k, seed + k) for k in range(n)]
 
 
+def actions_file(output_dir: str | Path, run_id: str, policy: str, checkpoint: str, init_state: int,
+                 seed: int) -> Path:
+    """Where `evaluate(..., record_actions=True)` puts an episode's commanded actions."""
+    return (Path(output_dir) / "actions" / run_id / policy_folder(policy, checkpoint)
+            / f"init{init_state}_seed{seed}.npy")
+
+
 def _remove_partial_videos(jobs) -> None:
     for job in jobs:
         if job.video_path is not None:
@@ -122,13 +129,14 @@ def evaluate(task: str, policies: Sequence[str], episodes: str | int = "grid", w
              video: bool = False, backend: str = "local", output_dir: str | Path = "outputs",
              env_kwargs: dict | None = None, retry_errors: bool = False, progress: bool = False,
              write_eval_info: bool = True, log=None, worlds: int = 1, video_views: str = ALL_VIEWS,
-             policy_timeout_s: float | None = None) -> list[EpisodeRecord]:
+             policy_timeout_s: float | None = None, record_actions: bool = False) -> list[EpisodeRecord]:
     """Evaluate `policies` (spec strings) on `task`; returns the run's records (old and new) in job order.
 
     `worlds` > 1 runs each policy's episodes `worlds` at a time as the worlds of one many-world env
     (same outcomes as one at a time), in each of the `workers` processes. `video_views`: the cameras
     each video shows side by side ("all", or names joined by "+"). `policy_timeout_s`: seconds per
-    policy call, for policies with a `timeout_s` (remote ones); None keeps theirs.
+    policy call, for policies with a `timeout_s` (remote ones); None keeps theirs. `record_actions`: each
+    episode's commanded actions go to `actions_file(output_dir, ...)` (.npy), e.g. for `replay`.
 
     Finished episodes of `run_id` already in `store` are skipped (episodes that ended in an error
     too, unless `retry_errors`). On SIGINT raises `EvaluationInterrupted` after committing every
@@ -173,9 +181,11 @@ def evaluate(task: str, policies: Sequence[str], episodes: str | int = "grid", w
             if video:
                 folder = out_dir / "videos" / run_id / policy_folder(spec.name, spec.checkpoint)
                 video_path = str(folder / f"init{init_state}_seed{s}.mp4")
+            actions = (str(actions_file(out_dir, run_id, spec.name, spec.checkpoint, init_state, s))
+                       if record_actions else None)
             jobs[(spec.name, spec.checkpoint, init_state, s)] = EpisodeJob(
                 task, spec.spec, init_state, s, run_id, env_kwargs, video_path, video_views,
-                None if policy_timeout_s is None else float(policy_timeout_s))
+                None if policy_timeout_s is None else float(policy_timeout_s), actions)
     existing = {(r.policy, r.checkpoint, r.init_state, r.seed): r
                 for r in store.episodes(run_id, domain="sim")}
     skip = {k for k, r in existing.items() if r.status == "ok" or not retry_errors}
