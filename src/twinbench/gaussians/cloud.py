@@ -289,3 +289,28 @@ class DeviceGaussians:
             opacities=wp.array(cloud.opacities, dtype=wp.float32, device=device),
             sh=wp.array(cloud.sh, dtype=wp.vec3, device=device),
         )
+
+
+@dataclass
+class SplitGaussians:
+    """A cloud in two parts, rendered as their concatenation [static | moving]: `static` stays put between
+    renders (a warp RenderCache keeps its per-camera work), `moving` may change every render. Many clouds
+    may share one `static` (e.g. a twin's worlds)."""
+
+    static: DeviceGaussians
+    moving: DeviceGaussians
+
+    def __post_init__(self) -> None:
+        if self.static.device != self.moving.device:
+            raise ValueError("SplitGaussians: static and moving must live on the same device")
+
+    @property
+    def device(self):
+        return self.static.device
+
+    def __len__(self) -> int:
+        return len(self.static) + len(self.moving)
+
+    def merged(self) -> DeviceGaussians:
+        """One device cloud [static | moving] (a copy)."""
+        return DeviceGaussians.concatenate([self.static, self.moving])

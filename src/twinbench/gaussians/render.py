@@ -17,9 +17,10 @@ import numpy as np
 from twinbench.errors import InputError
 from twinbench.gaussians import gsplat_backend, reference, warp_raster
 from twinbench.gaussians.camera import Camera
-from twinbench.gaussians.cloud import DeviceGaussians, GaussianCloud
+from twinbench.gaussians.cloud import DeviceGaussians, GaussianCloud, SplitGaussians
 from twinbench.gaussians.gsplat_backend import gsplat_available
 from twinbench.gaussians.render_rules import RenderOutput
+from twinbench.gaussians.warp_raster import RenderCache
 
 Backend = Callable[[list, np.ndarray, str, int], list[RenderOutput]]
 _BACKENDS: dict[str, Backend] = {}
@@ -72,18 +73,24 @@ def render(
 
 
 def render_batch(
-    views: Sequence[tuple[GaussianCloud | DeviceGaussians, Camera]],
+    views: Sequence[tuple[GaussianCloud | DeviceGaussians | SplitGaussians, Camera]],
     *,
     background=(0.0, 0.0, 0.0),
     backend: str = "auto",
     device: str | None = None,
     threads: int | None = None,
+    cache: RenderCache | None = None,
 ) -> list[RenderOutput]:
     """Render many (cloud, camera) views in one call, e.g. every camera of every world of a many-world
     twin -> one RenderOutput per view, in order. Arguments as `render`. On CUDA (Warp) every stage runs
     once for all views; on CPU the views are dealt to the threads, and one view alone is split over the
     threads by Gaussians and tile rows instead (see warp_raster.render_views). Each view's pixels are the
-    same as rendering it alone."""
+    same as rendering it alone.
+
+    A view's cloud may be a SplitGaussians(static, moving) (rendered as [static | moving]); with a `cache`
+    (RenderCache) and the "warp" backend, the static part's work for a camera that has not moved is kept
+    between calls and only the moving part is projected (images unchanged, bit for bit). Other backends
+    render the concatenation."""
     views = list(views)
     if not views:
         raise ValueError("render: no views to render")
@@ -98,11 +105,27 @@ def render_batch(
                          + ", ".join(repr(b) for b in _BACKENDS))
     first = views[0][0]
     if device is None:
-        device = str(first.device) if isinstance(first, DeviceGaussians) else "cpu"
+        device = str(first.device) if isinstance(first, DeviceGaussians | SplitGaussians) else "cpu"
     if backend == "auto":
         backend = "gsplat" if (device.startswith("cuda") and gsplat_available()) else "warp"
     threads = max(1, min(8, os.cpu_count() or 1) if threads is None else int(threads))
-    return _BACKENDS[backend](views, bg, device, threads)
+    fn = _BACKENDS[backend]
+    if fn is warp_raster.render_views:
+        return fn(views, bg, device, threads, cache=cache)
+    merged: dict[int, DeviceGaussians] = {}
+    for cloud, _ in views:
+        if isinstance(cloud, SplitGaussians) and id(cloud) not in merged:
+            merged[id(cloud)] = cloud.merged()
+    return fn([(merged.get(id(cloud), cloud), cam) for cloud, cam in views], bg, device, threads)
 
 
-__all__ = ["RenderOutput", "backends", "gsplat_available", "register_backend", "render", "render_batch"]
+__all__ = [
+    "RenderCache",
+    "RenderOutput",
+    "SplitGaussians",
+    "backends",
+    "gsplat_available",
+    "register_backend",
+    "render",
+    "render_batch",
+]

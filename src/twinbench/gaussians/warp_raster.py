@@ -19,12 +19,13 @@ camera of every world) runs each stage once for all of them.
 from __future__ import annotations
 
 import threading
+from collections import OrderedDict
 
 import numpy as np
 import warp as wp
 
 from twinbench.gaussians.camera import Camera
-from twinbench.gaussians.cloud import DeviceGaussians, GaussianCloud
+from twinbench.gaussians.cloud import DeviceGaussians, GaussianCloud, SplitGaussians
 from twinbench.gaussians.render_rules import ALPHA_MAX, ALPHA_MIN, LOW_PASS, NEAR, T_MIN, TILE, RenderOutput
 
 wp.set_module_options({"enable_backward": False})
@@ -279,11 +280,39 @@ def _gather_records(
     out[n] = record[values[n]]
 
 
+@wp.func
+def _span(rec: vec16, y: int, gx0: int, gx1: int):
+    """The columns [x, y] of row y that record `rec`'s ellipse d^2 <= d2max covers (alpha >= 1/255), widened
+    by 1e-3 px so that rounding never drops a pixel the alpha test would keep (an empty span when x > y),
+    clipped to [gx0, gx1]."""
+    dy = float(y) + 0.5 - rec[1]
+    disc = rec[3] * rec[3] * dy * dy - rec[2] * (rec[4] * dy * dy - rec[12])
+    if disc < 0.0:
+        return wp.vec2i(1, 0)
+    half = wp.sqrt(disc) * rec[13] + 1.0e-3
+    ctr = rec[0] - rec[3] * dy * rec[13]
+    return wp.vec2i(wp.max(int(wp.ceil(ctr - half - 0.5)), gx0), wp.min(int(wp.floor(ctr + half - 0.5)), gx1))
+
+
+@wp.func
+def _bounds(rec: vec16, x0: int, y0: int, x1: int, y1: int):
+    """Record `rec`'s pixel bounding box (x0, y0, x1, y1, inclusive) clipped to the tile [x0, x1) x
+    [y0, y1)."""
+    return wp.vec4i(
+        wp.max(int(wp.ceil(rec[0] - rec[5] - 0.5)), x0),
+        wp.max(int(wp.ceil(rec[1] - rec[6] - 0.5)), y0),
+        wp.min(int(wp.floor(rec[0] + rec[5] - 0.5)), x1 - 1),
+        wp.min(int(wp.floor(rec[1] + rec[6] - 0.5)), y1 - 1),
+    )
+
+
 @wp.kernel
 def _rasterise(
     tile_list: wp.array(dtype=wp.int32),
     ranges: wp.array(dtype=wp.vec2i),
     record: wp.array(dtype=vec16),
+    ranges_b: wp.array(dtype=wp.vec2i),
+    record_b: wp.array(dtype=vec16),
     views: wp.array(dtype=_View),
     out_rgb: wp.array(dtype=wp.vec3),
     out_depth: wp.array(dtype=wp.float32),
@@ -292,7 +321,9 @@ def _rasterise(
 ):
     """One thread per tile of `tile_list` (every view's tiles when it is empty), Gaussian-major: each
     Gaussian (records in pair order, by depth within the tile) updates the pixels of its ellipse in the
-    tile."""
+    tile. A second list (`ranges_b`, `record_b`; none when `ranges_b` is empty: a full render) is merged
+    in by depth, the first list's record first on equal depths: with the static Gaussians first and the
+    moving ones second, the order of a full render of [static | moving] (by depth, then index)."""
     tile = wp.tid()
     if tile_list.shape[0] > 0:
         tile = tile_list[tile]
@@ -302,78 +333,90 @@ def _rasterise(
     y0 = (local / vw.tiles_x) * 16
     x1 = wp.min(x0 + 16, vw.width)
     y1 = wp.min(y0 + 16, vw.height)
+    valid = (1 << (x1 - x0)) - 1
+    rg = ranges[tile]
+    na = rg[0]
+    ea = rg[1]
+    nb = int(0)  # noqa: UP018 (a Warp dynamic variable)
+    eb = int(0)  # noqa: UP018
+    # row_done[16 tile + r]: bit j set once pixel (x0 + j, y0 + r) stopped (transmittance < 1e-4); spans
+    # whose pixels have all stopped are skipped without visiting them, and Gaussians whose rows have all
+    # stopped (live_rows) without visiting their rows
     for y in range(y0, y1):
+        row_done[tile * 16 + y - y0] = 0
         for x in range(x0, x1):
             out_rgb[vw.pixel + y * vw.width + x] = wp.vec3(0.0, 0.0, 0.0)
             out_depth[vw.pixel + y * vw.width + x] = 0.0
             out_t[vw.pixel + y * vw.width + x] = 1.0
-    # row_done[16 tile + r]: bit j set once pixel (x0 + j, y0 + r) stopped (transmittance < 1e-4);
-    # spans whose pixels have all stopped are skipped without visiting them
-    for r in range(16):
-        row_done[tile * 16 + r] = 0
+    if ranges_b.shape[0] > 0:
+        nb = ranges_b[tile][0]
+        eb = ranges_b[tile][1]
     npix = (x1 - x0) * (y1 - y0)
     ndone = int(0)  # noqa: UP018 (a Warp dynamic variable)
-    rg = ranges[tile]
-    for n in range(rg[0], rg[1]):
-        rec = record[n]
-        m = wp.vec2(rec[0], rec[1])
-        cn = wp.vec3(rec[2], rec[3], rec[4])
-        col = wp.vec3(rec[7], rec[8], rec[9])
-        z = rec[10]
-        o = rec[11]
-        gx0 = wp.max(int(wp.ceil(m[0] - rec[5] - 0.5)), x0)
-        gx1 = wp.min(int(wp.floor(m[0] + rec[5] - 0.5)), x1 - 1)
-        gy0 = wp.max(int(wp.ceil(m[1] - rec[6] - 0.5)), y0)
-        gy1 = wp.min(int(wp.floor(m[1] + rec[6] - 0.5)), y1 - 1)
-        # per row, only the span of the ellipse d^2 <= d2max (alpha >= 1/255), widened by 1e-3 px so
-        # that rounding never drops a pixel the alpha test would keep
-        d2max = rec[12]
-        ia = rec[13]
-        for y in range(gy0, gy1 + 1):
-            dy = float(y) + 0.5 - m[1]
-            disc = cn[1] * cn[1] * dy * dy - cn[0] * (cn[2] * dy * dy - d2max)
-            if disc < 0.0:
-                continue
-            half = wp.sqrt(disc) * ia + 1.0e-3
-            ctr = m[0] - cn[1] * dy * ia
-            sx0 = wp.max(int(wp.ceil(ctr - half - 0.5)), gx0)
-            sx1 = wp.min(int(wp.floor(ctr + half - 0.5)), gx1)
-            span = ((1 << (sx1 - x0 + 1)) - 1) ^ ((1 << (sx0 - x0)) - 1)
-            done_bits = row_done[tile * 16 + y - y0]
-            if (done_bits & span) == span:
-                continue
-            while ((done_bits >> (sx0 - x0)) & 1) == 1:
-                sx0 += 1
-            while ((done_bits >> (sx1 - x0)) & 1) == 1:
-                sx1 -= 1
-            row = vw.pixel + y * vw.width
-            # d^2 along the row, updated incrementally: d2(x + 1) = d2(x) + step, step += 2 a
-            dx = float(sx0) + 0.5 - m[0]
-            d2 = cn[0] * dx * dx + 2.0 * cn[1] * dx * dy + cn[2] * dy * dy
-            step = cn[0] * (2.0 * dx + 1.0) + 2.0 * cn[1] * dy
-            for x in range(sx0, sx1 + 1):
-                d2_here = d2
-                d2 += step
-                step += 2.0 * cn[0]
-                t = out_t[row + x]
-                if t < 0.0:
+    live_rows = (1 << (y1 - y0)) - 1
+    while (na < ea or nb < eb) and ndone < npix:
+        take_b = nb < eb
+        if take_b and na < ea:
+            take_b = record_b[nb][10] < record[na][10]
+        rec = vec16()
+        if take_b:
+            rec = record_b[nb]
+            nb += 1
+        else:
+            rec = record[na]
+            na += 1
+        bb = _bounds(rec, x0, y0, x1, y1)
+        live = bool(False)  # noqa: UP018 (a Warp dynamic variable)
+        if bb[1] <= bb[3]:
+            live = (live_rows & (((1 << (bb[3] - y0 + 1)) - 1) ^ ((1 << (bb[1] - y0)) - 1))) != 0
+        if live:
+            cn = wp.vec3(rec[2], rec[3], rec[4])
+            col = wp.vec3(rec[7], rec[8], rec[9])
+            z = rec[10]
+            o = rec[11]
+            for y in range(bb[1], bb[3] + 1):
+                sp = _span(rec, y, bb[0], bb[2])
+                sx0 = sp[0]
+                sx1 = sp[1]
+                if sx0 > sx1:
                     continue
-                alpha = wp.min(ALPHA_MAX, o * wp.exp(-0.5 * d2_here))
-                if alpha < ALPHA_MIN:
+                span = ((1 << (sx1 - x0 + 1)) - 1) ^ ((1 << (sx0 - x0)) - 1)
+                done_bits = row_done[tile * 16 + y - y0]
+                if (done_bits & span) == span:
                     continue
-                test_t = t * (1.0 - alpha)
-                if test_t < T_MIN:
-                    out_t[row + x] = -t
-                    ndone += 1
-                    done_bits = done_bits | (1 << (x - x0))
-                    row_done[tile * 16 + y - y0] = done_bits
-                    continue
-                w = alpha * t
-                out_rgb[row + x] = out_rgb[row + x] + w * col
-                out_depth[row + x] = out_depth[row + x] + w * z
-                out_t[row + x] = test_t
-        if ndone == npix:
-            break
+                while ((done_bits >> (sx0 - x0)) & 1) == 1:
+                    sx0 += 1
+                while ((done_bits >> (sx1 - x0)) & 1) == 1:
+                    sx1 -= 1
+                row = vw.pixel + y * vw.width
+                # d^2 along the row, updated incrementally: d2(x + 1) = d2(x) + step, step += 2 a
+                dy = float(y) + 0.5 - rec[1]
+                dx = float(sx0) + 0.5 - rec[0]
+                d2 = cn[0] * dx * dx + 2.0 * cn[1] * dx * dy + cn[2] * dy * dy
+                step = cn[0] * (2.0 * dx + 1.0) + 2.0 * cn[1] * dy
+                for x in range(sx0, sx1 + 1):
+                    d2_here = d2
+                    d2 += step
+                    step += 2.0 * cn[0]
+                    if ((done_bits >> (x - x0)) & 1) == 1:
+                        continue
+                    alpha = wp.min(ALPHA_MAX, o * wp.exp(-0.5 * d2_here))
+                    if alpha < ALPHA_MIN:
+                        continue
+                    t = out_t[row + x]
+                    test_t = t * (1.0 - alpha)
+                    if test_t < T_MIN:
+                        out_t[row + x] = -t
+                        ndone += 1
+                        done_bits = done_bits | (1 << (x - x0))
+                        row_done[tile * 16 + y - y0] = done_bits
+                        if (done_bits & valid) == valid:
+                            live_rows = live_rows & ~(1 << (y - y0))
+                        continue
+                    w = alpha * t
+                    out_rgb[row + x] = out_rgb[row + x] + w * col
+                    out_depth[row + x] = out_depth[row + x] + w * z
+                    out_t[row + x] = test_t
     for y in range(y0, y1):
         for x in range(x0, x1):
             p = vw.pixel + y * vw.width + x
@@ -414,10 +457,26 @@ class _Workspace:
     """Per-call, per-Gaussian buffers (allocated per call, so concurrent renders never share them)."""
 
     def __init__(self, n: int, device) -> None:
-        self.record = wp.empty(n, dtype=vec16, device=device)
-        self.depth = wp.empty(n, dtype=wp.float32, device=device)
-        self.rect = wp.empty(n, dtype=wp.vec4i, device=device)
-        self.n_tiles = wp.empty(n, dtype=wp.int32, device=device)
+        self.record = wp.empty(max(n, 1), dtype=vec16, device=device)
+        self.depth = wp.empty(max(n, 1), dtype=wp.float32, device=device)
+        self.rect = wp.empty(max(n, 1), dtype=wp.vec4i, device=device)
+        self.n_tiles = wp.empty(max(n, 1), dtype=wp.int32, device=device)
+
+
+class _Image:
+    """A view's output buffers: rgb, depth and (after rasterising) alpha, one entry per pixel."""
+
+    def __init__(self, pixels: int, device, like: _Image | None = None) -> None:
+        if like is None:
+            self.rgb = wp.empty(pixels, dtype=wp.vec3, device=device)
+            self.depth = wp.empty(pixels, dtype=wp.float32, device=device)
+            self.t = wp.empty(pixels, dtype=wp.float32, device=device)
+        else:  # a copy of `like` (a kept static image)
+            self.rgb, self.depth, self.t = wp.clone(like.rgb), wp.clone(like.depth), wp.clone(like.t)
+
+    def output(self, h: int, w: int) -> RenderOutput:
+        return RenderOutput(rgb=self.rgb.numpy().reshape(h, w, 3), depth=self.depth.numpy().reshape(h, w),
+                            alpha=self.t.numpy().reshape(h, w))
 
 
 def _run_threads(fns) -> None:
@@ -445,11 +504,11 @@ def _run_threads(fns) -> None:
         raise errors[0]
 
 
-def _launch_split(kernel, dim: int, inputs: list, outputs: list, device, threads: int) -> None:
-    """Launch `kernel` over [0, dim) in `threads` contiguous chunks (its last input is the chunk start);
-    on CPU each chunk runs in its own Python thread (Warp releases the GIL)."""
+def _launch_split(kernel, dim: int, inputs: list, outputs: list, device, threads: int, start: int = 0):
+    """Launch `kernel` over [start, start + dim) in `threads` contiguous chunks (its last input is the
+    chunk start); on CPU each chunk runs in its own Python thread (Warp releases the GIL)."""
     parts = threads if (device.is_cpu and threads > 1) else 1
-    cut = np.linspace(0, dim, parts + 1).astype(int)
+    cut = np.linspace(start, start + dim, parts + 1).astype(int)
     _run_threads(
         [
             (
@@ -463,70 +522,76 @@ def _launch_split(kernel, dim: int, inputs: list, outputs: list, device, threads
     )
 
 
-def _render_warp_one(
-    g: DeviceGaussians, cam: Camera, background: np.ndarray, threads: int, host_sort: bool | None = None
-) -> RenderOutput:
-    """One camera. host_sort (default: on CPU) sorts the pairs with NumPy, else it is a batch of one view
-    (Warp's radix sorts: the CUDA path; the tests also run it on CPU)."""
-    device = g.device
-    cpu = device.is_cpu
-    if not (cpu if host_sort is None else host_sort):
-        return _render_warp_batch([(g, cam)], background)[0]
-    n = len(g)
-    w, h = cam.width, cam.height
-    tiles_x, tiles_y = (w + TILE - 1) // TILE, (h + TILE - 1) // TILE
-    n_tile_total = tiles_x * tiles_y
-    views = wp.array([_view(cam, background)], dtype=_View, device=device)
-    ws = _Workspace(n, device)
-    if cpu and threads > 1:
-        wp.load_module(device=device)  # compile once, not concurrently in the worker threads
+def _parts(g) -> list[DeviceGaussians]:
+    return [g.static, g.moving] if isinstance(g, SplitGaussians) else [g]
 
-    # 1. project every Gaussian: packed record, depth, tile rectangle, tile count
-    pre_in = [g.means, g.quats, g.scales, g.opacities, g.sh, g.sh.shape[1], views, NEAR]
-    _launch_split(_preprocess, n, pre_in, [ws.record, ws.depth, ws.rect, ws.n_tiles], device, threads)
 
-    # 2. (tile, Gaussian) pairs sorted by tile, then depth: a depth sort, pairs emitted in depth order,
-    #    then a stable sort by tile id (NumPy)
-    counts = ws.n_tiles.numpy()
-    visible = np.flatnonzero(counts).astype(np.int32)
-    order = visible[np.argsort(ws.depth.numpy()[visible])].astype(np.int32)
-    offsets = np.cumsum(counts[order], dtype=np.int64)
-    total = int(offsets[-1]) if len(offsets) else 0
-    if total >= 2**31:
-        raise ValueError(f"render: {total} Gaussian-tile pairs exceed int32; downsample the cloud")
-    keys = wp.empty(max(total, 1), dtype=wp.int32, device=device)
-    values = wp.empty(max(total, 1), dtype=wp.int32, device=device)
-    emit_in = [
-        wp.array(order, dtype=wp.int32, device=device),
-        wp.array(offsets.astype(np.int32), dtype=wp.int32, device=device),
-        ws.rect, ws.n_tiles, views,
-    ]  # fmt: skip
-    _launch_split(_emit_pairs, len(order), emit_in, [keys, values], device, threads)
-    tile_of_pair = keys.numpy()[:total].astype(np.uint16 if n_tile_total < 65536 else np.int32)
-    perm = np.argsort(tile_of_pair, kind="stable")
-    sorted_values = wp.array(values.numpy()[:total][perm], dtype=wp.int32, device=device)
-    bounds = np.searchsorted(tile_of_pair[perm], np.arange(n_tile_total + 1))
-    ranges_np = np.stack([bounds[:-1], bounds[1:]], axis=1).astype(np.int32)
-    ranges = wp.array(ranges_np, dtype=wp.vec2i, device=device)
+def _project(parts: list[DeviceGaussians], cam: Camera, background, threads: int):
+    """Stage 1: a record per Gaussian of `parts` (one part after another: their concatenation) as seen by
+    `cam` (packed record, depth, tile rectangle, tile count) -> (workspace, the view's kernel array)."""
+    device = parts[0].device
+    ws = _Workspace(sum(len(p) for p in parts), device)
+    views, item = None, 0
+    for p in parts:
+        vw = wp.array([_view(cam, background, 0, item)], dtype=_View, device=device)
+        views = vw if views is None else views
+        pre_in = [p.means, p.quats, p.scales, p.opacities, p.sh, p.sh.shape[1], vw, NEAR]
+        outs = [ws.record, ws.depth, ws.rect, ws.n_tiles]
+        _launch_split(_preprocess, len(p), pre_in, outs, device, threads, start=item)
+        item += len(p)
+    return ws, item, views
 
-    # 3. records copied into pair order, so the rasteriser streams them instead of chasing random ids
-    pair_records = wp.empty(max(total, 1), dtype=vec16, device=device)
-    _launch_split(_gather_records, total, [sorted_values, ws.record], [pair_records], device, threads)
 
-    # 4. rasterise tiles (CPU: tile rows interleaved between threads for load balance)
-    out_rgb = wp.empty(h * w, dtype=wp.vec3, device=device)
-    out_depth = wp.empty(h * w, dtype=wp.float32, device=device)
-    out_t = wp.empty(h * w, dtype=wp.float32, device=device)
-    raster_in = [ranges, pair_records, views]
-    raster_out = [out_rgb, out_depth, out_t, wp.empty(n_tile_total * 16, dtype=wp.int32, device=device)]
-    parts = threads if (cpu and threads > 1) else 1
-    rows = np.arange(tiles_y)
-    lists = []
-    for k in range(parts):
-        sel = rows[rows % parts == k]
-        tl = (sel[:, None] * tiles_x + np.arange(tiles_x)[None, :]).reshape(-1).astype(np.int32)
-        if len(tl):
-            lists.append(wp.array(tl, dtype=wp.int32, device=device))
+class _Bins:
+    """Stage 2-3 of a view on the host-sort path: its (tile, record) pairs in (tile, depth, record index)
+    order, the records copied into pair order, and each tile's [start, end) in them."""
+
+    def __init__(self, ws: _Workspace, n: int, views, cam: Camera, threads: int) -> None:
+        device = ws.record.device
+        n_tile_total = _tile_count(cam)
+        counts = ws.n_tiles.numpy()[:n]
+        visible = np.flatnonzero(counts).astype(np.int32)
+        # a stable sort: equal depths keep the records' order (the radix sorts' order too)
+        order = visible[np.argsort(ws.depth.numpy()[visible], kind="stable")].astype(np.int32)
+        offsets = np.cumsum(counts[order], dtype=np.int64)
+        total = int(offsets[-1]) if len(offsets) else 0
+        if total >= 2**31:
+            raise ValueError(f"render: {total} Gaussian-tile pairs exceed int32; downsample the cloud")
+        keys = wp.empty(max(total, 1), dtype=wp.int32, device=device)
+        values = wp.empty(max(total, 1), dtype=wp.int32, device=device)
+        emit_in = [
+            wp.array(order, dtype=wp.int32, device=device),
+            wp.array(offsets.astype(np.int32), dtype=wp.int32, device=device),
+            ws.rect, ws.n_tiles, views,
+        ]  # fmt: skip
+        _launch_split(_emit_pairs, len(order), emit_in, [keys, values], device, threads)
+        tile_of_pair = keys.numpy()[:total].astype(np.uint16 if n_tile_total < 65536 else np.int32)
+        perm = np.argsort(tile_of_pair, kind="stable")
+        sorted_values = wp.array(values.numpy()[:total][perm], dtype=wp.int32, device=device)
+        bounds = np.searchsorted(tile_of_pair[perm], np.arange(n_tile_total + 1))
+        self.ranges_np = np.stack([bounds[:-1], bounds[1:]], axis=1).astype(np.int32)
+        self.ranges = wp.array(self.ranges_np, dtype=wp.vec2i, device=device)
+        # records copied into pair order, so the rasteriser streams them instead of chasing random ids
+        self.records = wp.empty(max(total, 1), dtype=vec16, device=device)
+        _launch_split(_gather_records, total, [sorted_values, ws.record], [self.records], device, threads)
+
+
+def _raster(tiles: np.ndarray, first: _Bins, second: _Bins | None, views, cam: Camera, image: _Image,
+            threads: int) -> None:
+    """Stage 4: rasterise the given tiles of one view into `image`, merging `second`'s lists into
+    `first`'s by depth (CPU: tile rows dealt to the threads for load balance)."""
+    device = image.rgb.device
+    tiles_x = (cam.width + TILE - 1) // TILE
+    parts = threads if (device.is_cpu and threads > 1) else 1
+    lists = [tiles[(tiles // tiles_x) % parts == k] for k in range(parts)]
+    lists = [wp.array(tl.astype(np.int32), dtype=wp.int32, device=device) for tl in lists if len(tl)]
+    if second is None:
+        b_ranges, b_records = wp.empty(0, dtype=wp.vec2i, device=device), first.records
+    else:
+        b_ranges, b_records = second.ranges, second.records
+    raster_in = [first.ranges, first.records, b_ranges, b_records, views]
+    row_done = wp.empty(_tile_count(cam) * 16, dtype=wp.int32, device=device)
+    raster_out = [image.rgb, image.depth, image.t, row_done]
     _run_threads(
         [
             (
@@ -537,11 +602,107 @@ def _render_warp_one(
             for tl in lists
         ]
     )
-    return RenderOutput(
-        rgb=out_rgb.numpy().reshape(h, w, 3),
-        depth=out_depth.numpy().reshape(h, w),
-        alpha=out_t.numpy().reshape(h, w),
-    )
+
+
+def _render_warp_one(
+    g: DeviceGaussians | SplitGaussians, cam: Camera, background: np.ndarray, threads: int,
+    host_sort: bool | None = None,
+) -> RenderOutput:
+    """One camera, every Gaussian. host_sort (default: on CPU) sorts the pairs with NumPy, else it is a
+    batch of one view (Warp's radix sorts: the CUDA path; the tests also run it on CPU)."""
+    parts = _parts(g)
+    device = parts[0].device
+    if not (device.is_cpu if host_sort is None else host_sort):
+        return _render_warp_batch([(_whole(g), cam)], background)[0]
+    if device.is_cpu and threads > 1:
+        wp.load_module(device=device)  # compile once, not concurrently in the worker threads
+    ws, n, views = _project(parts, cam, background, threads)
+    bins = _Bins(ws, n, views, cam, threads)
+    image = _Image(cam.width * cam.height, device)
+    _raster(np.arange(_tile_count(cam)), bins, None, views, cam, image, threads)
+    return image.output(cam.height, cam.width)
+
+
+class _Kept:
+    """What a RenderCache keeps of one (static cloud, camera, background): the static Gaussians' pairs
+    in (tile, depth) order and the image they make alone."""
+
+    def __init__(self, static: DeviceGaussians, cam: Camera, background, threads: int) -> None:
+        self.static = static  # holds the arrays (and so their addresses, part of the key) alive
+        ws, n, views = _project([static], cam, background, threads)
+        self.bins = _Bins(ws, n, views, cam, threads)
+        self.image = _Image(cam.width * cam.height, static.device)
+        _raster(np.arange(_tile_count(cam)), self.bins, None, views, cam, self.image, threads)
+
+
+def _render_kept(kept: _Kept, moving: DeviceGaussians, cam: Camera, background, threads: int) -> RenderOutput:
+    """A view of [static | moving] from the kept static work: only the moving Gaussians are projected and
+    binned; the tiles they reach are rasterised with their lists merged into the kept ones by depth, every
+    other tile is the kept static image. Equals `_render_warp_one` of the whole cloud, bit for bit."""
+    image = _Image(0, moving.device, like=kept.image)
+    if len(moving):
+        if moving.device.is_cpu and threads > 1:
+            wp.load_module(device=moving.device)
+        ws, n, views = _project([moving], cam, background, threads)
+        bins = _Bins(ws, n, views, cam, threads)
+        dirty = np.flatnonzero(bins.ranges_np[:, 1] > bins.ranges_np[:, 0])
+        if len(dirty):
+            _raster(dirty, kept.bins, bins, views, cam, image, threads)
+    return image.output(cam.height, cam.width)
+
+
+class RenderCache:
+    """Per-camera work on the static Gaussians kept between renders (the "warp" backend, CPU and CUDA).
+
+    Pass it to `render_batch(..., cache=)` with views whose cloud is a `SplitGaussians(static, moving)`.
+    For each (static cloud, camera pose and intrinsics, background) asked for twice in a row it keeps the
+    static Gaussians' records, their (tile, depth)-ordered pair lists and the image they make alone, on
+    the render's device; later renders of that camera project only the moving Gaussians (see
+    `_render_kept`). A camera that moves (a new key every render) never builds an entry: it gets full
+    renders. Images equal full renders bit for bit. The static cloud is known by its arrays' addresses: a
+    different cloud makes new entries, but after writing into a kept static cloud's arrays call `clear()`.
+    Entries (at most `max_entries`, least recently used dropped) may be shared by many worlds' views."""
+
+    def __init__(self, max_entries: int = 16) -> None:
+        self.max_entries = int(max_entries)
+        self._kept: OrderedDict[tuple, _Kept] = OrderedDict()
+        self._seen: OrderedDict[tuple, None] = OrderedDict()
+        self.builds = self.hits = self.misses = 0  # counters, for tests and benchmarks
+
+    def clear(self) -> None:
+        self._kept.clear()
+        self._seen.clear()
+
+    @staticmethod
+    def _key(static: DeviceGaussians, cam: Camera, background) -> tuple:
+        arrays = tuple((a.ptr, a.shape) for a in (static.means, static.quats, static.scales, static.opacities,
+                                                   static.sh))  # fmt: skip
+        intr = np.array([cam.fx, cam.fy, cam.cx, cam.cy, cam.width, cam.height], np.float64)
+        pose = np.asarray(cam.cam_to_world, np.float64)
+        bg = np.asarray(background, np.float32)
+        return str(static.device), arrays, intr.tobytes(), pose.tobytes(), bg.tobytes()
+
+    def lookup(self, static: DeviceGaussians, cam: Camera, background, threads: int) -> _Kept | None:
+        """The kept work for this view, built on the second request in a row of its key; None: render in
+        full."""
+        key = self._key(static, cam, background)
+        kept = self._kept.get(key)
+        if kept is not None:
+            self._kept.move_to_end(key)
+            self.hits += 1
+            return kept
+        if key not in self._seen:
+            self._seen[key] = None
+            while len(self._seen) > 4096:  # keys of moving cameras
+                self._seen.popitem(last=False)
+            self.misses += 1
+            return None
+        del self._seen[key]
+        kept = self._kept[key] = _Kept(static, cam, background, threads)
+        while len(self._kept) > self.max_entries:
+            self._kept.popitem(last=False)
+        self.builds += 1
+        return kept
 
 
 def _render_warp_batch(jobs: list[tuple[DeviceGaussians, Camera]], background) -> list[RenderOutput]:
@@ -601,7 +762,8 @@ def _render_warp_batch(jobs: list[tuple[DeviceGaussians, Camera]], background) -
     out_depth = wp.empty(pixel, dtype=wp.float32, device=device)
     out_t = wp.empty(pixel, dtype=wp.float32, device=device)
     every_tile = wp.empty(0, dtype=wp.int32, device=device)
-    wp.launch(_rasterise, dim=tile, inputs=[every_tile, ranges, pair_records, vw],
+    no_ranges = wp.empty(0, dtype=wp.vec2i, device=device)
+    wp.launch(_rasterise, dim=tile, inputs=[every_tile, ranges, pair_records, no_ranges, pair_records, vw],
               outputs=[out_rgb, out_depth, out_t, wp.empty(tile * 16, dtype=wp.int32, device=device)],
               device=device)  # fmt: skip
     rgb, depth, alpha = out_rgb.numpy(), out_depth.numpy(), out_t.numpy()
@@ -612,34 +774,69 @@ def _render_warp_batch(jobs: list[tuple[DeviceGaussians, Camera]], background) -
     ]  # fmt: skip
 
 
-def render_views(views: list[tuple[GaussianCloud | DeviceGaussians, Camera]], background: np.ndarray,
-                 device: str, threads: int) -> list[RenderOutput]:
-    """The "warp" backend (see render.render_batch): host clouds uploaded once each; on CUDA every stage
-    runs once for all views (`_render_warp_batch`); on CPU the views are dealt to the threads (each thread
-    renders whole views, every stage in parallel), and one view alone is split over the threads by
-    Gaussians and tile rows instead."""
-    uploaded: dict[int, DeviceGaussians] = {}
-    jobs: list[tuple[DeviceGaussians, Camera]] = []
+def _whole(g: DeviceGaussians | SplitGaussians) -> DeviceGaussians:
+    return g.merged() if isinstance(g, SplitGaussians) else g
+
+
+def render_views(views: list[tuple[GaussianCloud | DeviceGaussians | SplitGaussians, Camera]],
+                 background: np.ndarray, device: str, threads: int,
+                 cache: RenderCache | None = None) -> list[RenderOutput]:
+    """The "warp" backend (see render.render_batch): host clouds uploaded once each; with a `cache`, the
+    views of a SplitGaussians whose camera has not moved reuse the kept static work (RenderCache). On CUDA
+    the other views run every stage once for all of them (`_render_warp_batch`); on CPU the views are
+    dealt to the threads (each thread renders whole views, every stage in parallel; the full renders
+    first, then the cached ones, each thread taking the next view when done), and one view alone is split
+    over the threads by Gaussians and tile rows instead."""
+    uploaded: dict[int, DeviceGaussians | SplitGaussians] = {}
+    jobs: list[tuple[DeviceGaussians | SplitGaussians, Camera]] = []
     for cloud, cam in views:
         g = uploaded.get(id(cloud))
         if g is None:
-            g = uploaded[id(cloud)] = cloud if isinstance(cloud, DeviceGaussians) else cloud.to_device(device)
+            keep = isinstance(cloud, DeviceGaussians | SplitGaussians)
+            g = uploaded[id(cloud)] = cloud if keep else cloud.to_device(device)
             if str(g.device) != str(wp.get_device(device)):
                 raise ValueError(f"render: DeviceGaussians live on {g.device}, but device={device!r}")
         jobs.append((g, cam))
-    if not jobs[0][0].device.is_cpu and len(jobs) > 1:
-        return _render_warp_batch(jobs, background)  # one launch per stage for every view
+    kept = [
+        cache.lookup(g.static, cam, background, threads)
+        if cache is not None and isinstance(g, SplitGaussians) else None
+        for g, cam in jobs
+    ]  # fmt: skip
     outs: list = [None] * len(jobs)
-    if jobs[0][0].device.is_cpu and threads > 1 and len(jobs) > 1:
+
+    def one(i: int, th: int) -> None:
+        g, cam = jobs[i]
+        if kept[i] is None:
+            outs[i] = _render_warp_one(g, cam, background, th)
+        else:
+            outs[i] = _render_kept(kept[i], g.moving, cam, background, th)
+
+    full = [i for i in range(len(jobs)) if kept[i] is None]
+    if not jobs[0][0].device.is_cpu:
+        if len(full) > 1:  # one launch per stage for every view rendered in full
+            batch = _render_warp_batch([(_whole(jobs[i][0]), jobs[i][1]) for i in full], background)
+            for i, out in zip(full, batch, strict=True):
+                outs[i] = out
+        for i in range(len(jobs)):
+            if outs[i] is None:
+                one(i, threads)
+        return outs
+    if threads > 1 and len(jobs) > 1:
         # several views on CPU: whole views per thread (every stage runs in parallel, not only kernels)
         wp.load_module(device=jobs[0][0].device)
+        queue = iter(full + [i for i in range(len(jobs)) if kept[i] is not None])
+        lock = threading.Lock()
 
-        def work(idx):
-            for i in idx:
-                outs[i] = _render_warp_one(*jobs[i], background, 1)
+        def work():
+            while True:
+                with lock:
+                    i = next(queue, None)
+                if i is None:
+                    return
+                one(i, 1)
 
-        _run_threads([(lambda idx=idx: work(idx)) for idx in (list(range(len(jobs)))[k::threads]
-                                                             for k in range(min(threads, len(jobs))))])
+        _run_threads([work] * min(threads, len(jobs)))
     else:
-        outs = [_render_warp_one(g, c, background, threads) for g, c in jobs]
+        for i in range(len(jobs)):
+            one(i, threads)
     return outs

@@ -32,8 +32,8 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from twinbench.gaussians.camera import Camera
-from twinbench.gaussians.cloud import DeviceGaussians, GaussianCloud
-from twinbench.gaussians.render import RenderOutput, render_batch
+from twinbench.gaussians.cloud import DeviceGaussians, GaussianCloud, SplitGaussians
+from twinbench.gaussians.render import RenderCache, RenderOutput, render_batch
 from twinbench.gaussians.skinning import LabelRigidPoser, LBSSkinner, bind
 from twinbench.physics import (
     Control,
@@ -247,6 +247,9 @@ class Twin:
         self._rest_gaussians = GaussianCloud.concatenate(parts)
         self._robot_range = (n_static, len(self.robot_gaussians))
         self._robot_poser = self.robot_gaussians.device_poser(device)
+        # the static scene's per-camera render work, kept while a camera does not move (None: full renders)
+        self.render_cache: RenderCache | None = RenderCache()
+        self._static_gaussians: DeviceGaussians | None = None  # the background, shared by every world
 
     # ------------------------------------------------------------------ state
     @property
@@ -520,8 +523,15 @@ class Twin:
         if not states:
             return []
         posed = self.pose_worlds(states)
+        n_static, n_moving = self._robot_range[0], len(self._rest_gaussians) - self._robot_range[0]
+        if self.render_cache is not None and n_static:  # [background | the rest]: see RenderCache
+            if self._static_gaussians is None:
+                static = self._rest_gaussians.subset(slice(0, n_static))
+                self._static_gaussians = static.to_device(self.device)
+            posed = [SplitGaussians(self._static_gaussians, g.segment(n_static, n_moving)) for g in posed]
         views = [(g, self.camera(state, n)) for state, g in zip(states, posed, strict=True) for n in names]
-        outs = render_batch(views, background=self.spec.render_background, device=self.device)
+        outs = render_batch(views, background=self.spec.render_background, device=self.device,
+                            cache=self.render_cache)
         k = len(names)
         return [dict(zip(names, outs[i * k : (i + 1) * k], strict=True)) for i in range(len(states))]
 

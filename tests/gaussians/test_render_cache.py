@@ -1,0 +1,160 @@
+"""RenderCache: the static Gaussians' per-camera work kept between renders gives the full render's images,
+bit for bit (random scenes, moving Gaussians crossing tiles, depth ties, moved cameras, backgrounds, many
+worlds sharing the static part, and whole twins)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from twinbench.gaussians.camera import Camera
+from twinbench.gaussians.cloud import GaussianCloud, SplitGaussians
+from twinbench.gaussians.render import RenderCache, render_batch
+
+
+def _cam(eye=(0.9, -0.7, 0.6), target=(0.0, 0.0, 0.0), width=83, height=61, fx=70.0) -> Camera:
+    return Camera.look_at(eye, target, fx=fx, width=width, height=height)
+
+
+def _assert_same(a, b) -> None:
+    np.testing.assert_array_equal(a.rgb, b.rgb)
+    np.testing.assert_array_equal(a.depth, b.depth)
+    np.testing.assert_array_equal(a.alpha, b.alpha)
+
+
+def _full(static: GaussianCloud, moving: GaussianCloud, cam, bg=(0.1, 0.2, 0.3), threads=1):
+    whole = GaussianCloud.concatenate([static, moving])
+    return render_batch([(whole, cam)], background=bg, backend="warp", threads=threads)[0]
+
+
+def _moved(cloud: GaussianCloud, shift) -> GaussianCloud:
+    out = cloud.copy()
+    out.means = out.means + np.asarray(shift, np.float32)
+    return out
+
+
+def test_static_camera_over_frames_with_gaussians_crossing_tiles(make_cloud):
+    """A static camera over six frames: moving Gaussians sweep across the image (entering tiles, leaving
+    them, one frame off screen); every frame equals the full render, the static work is built once."""
+    static = make_cloud(900, degree=2, anisotropic=True, seed=1, spread=0.4, log_scale=(-4.0, -2.0))
+    moving = make_cloud(120, degree=1, seed=2, spread=0.08, log_scale=(-3.5, -2.5))
+    cam, bg = _cam(), (0.1, 0.2, 0.3)
+    s_dev = static.to_device("cpu")
+    cache = RenderCache()
+    shifts = [(-0.4, 0, 0), (-0.2, 0.05, 0), (0.0, 0.1, 0.05), (0.2, 0.0, 0.1), (5.0, 0, 0), (0.3, -0.2, 0)]
+    for k, shift in enumerate(shifts):
+        m = _moved(moving, shift)
+        for threads in (1, 2):
+            got = render_batch([(SplitGaussians(s_dev, m.to_device("cpu")), cam)], background=bg,
+                               backend="warp", threads=threads, cache=cache)[0]  # fmt: skip
+            _assert_same(got, _full(static, m, cam, bg))
+        assert (cache.builds, cache.misses) == (1, 1) and cache.hits == 2 * k
+    # the moving Gaussians changed some tiles and not others, so both paths ran
+    off = _full(static, _moved(moving, (5.0, 0, 0)), cam, bg)
+    on = _full(static, moving, cam, bg)
+    assert (on.rgb != off.rgb).any() and (on.rgb == off.rgb).any()
+
+
+def test_depth_ties_put_the_static_gaussian_first(make_cloud):
+    """Moving Gaussians at exactly a static Gaussian's position (equal depth), with other colours: the
+    full render's order (depth, then index: static first) is kept, so the images match, and the order
+    matters (the other order gives another image)."""
+    static = make_cloud(300, seed=3, spread=0.3, log_scale=(-3.0, -2.0))
+    twins = static.subset(np.arange(0, 300, 3))
+    twins.sh = np.random.default_rng(4).normal(scale=1.0, size=twins.sh.shape).astype(np.float32)
+    twins.logit_opacities = np.full(len(twins), 1.0, np.float32)
+    # ties among the moving ones too: two copies of each, the second one red
+    red = twins.copy()
+    red.sh[:, 0] = (np.array([1.0, 0.0, 0.0]) - 0.5) / 0.28209479177387814
+    moving = GaussianCloud.concatenate([twins, red])
+    cam, bg = _cam(), (0.0, 0.0, 0.0)
+    cache, s_dev, m_dev = RenderCache(), static.to_device("cpu"), moving.to_device("cpu")
+    for _ in range(3):
+        got = render_batch([(SplitGaussians(s_dev, m_dev), cam)], background=bg, cache=cache)[0]
+        _assert_same(got, _full(static, moving, cam, bg))
+    assert cache.hits == 1
+    swapped = render_batch([(GaussianCloud.concatenate([moving, static]), cam)], background=bg)[0]
+    assert np.abs(swapped.rgb - got.rgb).max() > 1e-3
+
+
+def test_moved_camera_background_and_static_set_make_new_entries(make_cloud):
+    """The kept work belongs to one (static cloud, camera, background): a moved or re-focused camera, a
+    new background or another static cloud is rendered in full first, then kept; a camera that moves
+    every frame is never kept; after writing into the static arrays, clear() forgets the kept work."""
+    static = make_cloud(500, degree=1, anisotropic=True, seed=5, spread=0.35)
+    moving = make_cloud(80, seed=6, spread=0.1)
+    s_dev, m_dev = static.to_device("cpu"), moving.to_device("cpu")
+    cache = RenderCache()
+
+    def check(cam, bg, s=static, sd=s_dev):
+        got = render_batch([(SplitGaussians(sd, m_dev), cam)], background=bg, cache=cache)[0]
+        _assert_same(got, _full(s, moving, cam, bg))
+
+    for cam, bg in [(_cam(), (0.1, 0.2, 0.3)), (_cam(eye=(0.9, -0.7, 0.61)), (0.1, 0.2, 0.3)),
+                    (_cam(fx=71.0), (0.1, 0.2, 0.3)), (_cam(), (0.3, 0.2, 0.1))]:  # fmt: skip
+        before = cache.builds
+        check(cam, bg)
+        check(cam, bg)
+        check(cam, bg)
+        assert cache.builds == before + 1
+    for k in range(4):  # a camera on the move: full renders only
+        check(_cam(eye=(0.9, -0.7 + 0.01 * k, 0.6)), (0.1, 0.2, 0.3))
+    assert cache.builds == 4
+    other = _moved(static, (0.0, 0.0, 0.02))
+    o_dev = other.to_device("cpu")
+    for _ in range(2):
+        check(_cam(), (0.1, 0.2, 0.3), other, o_dev)
+    assert cache.builds == 5
+    s_dev.means.assign(other.means)  # written in place: the same arrays, other contents
+    cache.clear()
+    check(_cam(), (0.1, 0.2, 0.3), other, s_dev)
+    check(_cam(), (0.1, 0.2, 0.3), other, s_dev)
+
+
+def test_worlds_share_the_static_work_and_other_backends_render_the_concatenation(make_cloud, ref_render):
+    """Many worlds: each its own moving Gaussians over one shared static cloud and camera, plus a camera
+    on the move per world: one entry serves every world, on one thread or two, every image equal to its
+    full render. A backend without a cache renders [static | moving]."""
+    static = make_cloud(600, degree=1, anisotropic=True, seed=7, spread=0.35)
+    s_dev = static.to_device("cpu")
+    fixed, bg = _cam(), (0.2, 0.2, 0.2)
+    cache = RenderCache()
+    for step in range(3):
+        worlds = [_moved(make_cloud(60, seed=10 + w, spread=0.1), (0.05 * step, 0, 0)) for w in range(4)]
+        views = []
+        for w, m in enumerate(worlds):
+            split = SplitGaussians(s_dev, m.to_device("cpu"))
+            views += [(split, fixed), (split, _cam(eye=(0.5 + 0.1 * w, -0.9, 0.4 + 0.05 * step), width=40))]
+        outs = render_batch(views, background=bg, threads=1 + step % 2, cache=cache)
+        for (_, cam), m, got in zip(views, [m for m in worlds for _ in (0, 1)], outs, strict=True):
+            _assert_same(got, _full(static, m, cam, bg))
+    assert cache.builds == 1 and cache.hits == 2 + 4 + 4  # built for the second world of the first call
+    small = make_cloud(40, seed=20, spread=0.3)
+    more = make_cloud(30, seed=21, spread=0.3)
+    split = SplitGaussians(small.to_device("cpu"), more.to_device("cpu"))
+    got = render_batch([(split, fixed)], background=bg, backend="reference")[0]
+    want = ref_render(GaussianCloud.concatenate([small, more]), fixed, bg)
+    assert np.abs(got.rgb - want[0]).max() < 1e-5
+
+
+@pytest.mark.parametrize("task", ["push-t", "rope-routing", "toy-packing"])
+def test_twin_renders_equal_full_renders(task):
+    """Every task's `fast` twin, stepped by its expert: each step's images (both cameras: the front one
+    from the cache, the wrist one in full while the arm moves) equal a full render of the same state."""
+    from twinbench.evaluation.rollout import policy_observation
+    from twinbench.tasks import get_task
+
+    env = get_task(task).make_env(preset="fast")
+    obs, info = env.reset(seed=0)
+    expert = get_task(task).make_expert(env)
+    twin, state = env.unwrapped.twin, env.unwrapped.state
+    cache = twin.render_cache
+    for _ in range(3):
+        obs, _, _, _, info = env.step(expert.select_action(policy_observation(expert, obs, info)))
+        cached = twin.render(state)
+        twin.render_cache = None
+        full = twin.render(state)
+        twin.render_cache = cache
+        for name in full:
+            _assert_same(cached[name], full[name])
+    assert cache.hits >= 5  # the front camera's renders came from the cache
