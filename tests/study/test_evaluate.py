@@ -31,6 +31,10 @@ def study(tmp_path) -> Path:
                            ("neither", {p: [1, 1, 1, 1] for p in REAL_RATES})):
         run = E.twin_run_id(variant)
         store.start_run_with_episodes(run, "push-t", {"task": "push-t"}, _records(run, "sim", rates))
+    # replays in the twin "full": the real outcomes, with every replay a success -> TP 8, FP 8
+    run = E.replay_run_id("full")
+    store.start_run_with_episodes(run, "push-t", {"task": "push-t"}, _records(run, "real", REAL_RATES)
+                                  + _records(run, "replay", {p: [1, 1, 1, 1] for p in REAL_RATES}))
     # an errored episode is left out of the rates, never counted as a failure
     store.record_episode(EpisodeRecord(E.twin_run_id("full"), "push-t", "a", "a.json", None, 9, 9, "sim",
                                        True, "sim_error"))
@@ -50,6 +54,8 @@ def test_metrics_from_the_store(study):
     assert constant["pearson"]["r"] is None and "zero variance" in constant["pearson"]["why"]
     # every sim rate 1: a pair is violated where real ranks i above j; max |R_i - R_j| = 0, .25, .75, 1
     assert constant["mmrv"]["value"] == pytest.approx((0 + 0.25 + 0.75 + 1) / 4)
+    assert full["replay"] == {"tp": 8, "fp": 8, "fn": 0, "tn": 0, "excluded": 0, "accuracy": 0.5}
+    assert backwards["replay"] is None  # no replays in that twin
 
 
 def test_study_json_table_and_page(study):
@@ -59,12 +65,14 @@ def test_study_json_table_and_page(study):
     table = E.format_table(doc)
     assert "| push-t | full | 1.000 [1.00, 1.00] | 0.000 [0.000, " in table and "| 4 | 16 / 16 |" in table
     assert "| push-t | neither | undefined |" in table
+    assert "| 0.50 (8/8/0/0) |" in table and table.count("| - |") == 2
 
     from twinbench.study.report import write_study_report
 
     page = write_study_report(study, doc, frames=False)
     text = page.read_text()
     assert "Sim vs real, per twin variant" in text and "0.875" in text and "stage" in text.lower()
+    assert "0.50 (8 / 8 / 0 / 0)" in text
     for variant in ("full", "no-color", "neither"):
         assert (study / "reports" / f"{variant}.html").is_file()
     if Path(CHROMIUM).exists():

@@ -56,6 +56,7 @@ def test_tiny_study_end_to_end(tmp_path, monkeypatch):
     perfect = doc["variants"][0]
     assert perfect["mmrv"]["value"] == 0.0  # the same world and seeds: the same outcomes
     assert all(d["sim"] == d["real"] for d in perfect["policies"])
+    assert perfect["replay"]["accuracy"] == 1.0 and perfect["replay"]["excluded"] == 0  # same world: exact
     assert np.isfinite(doc["variants"][1]["mmrv"]["value"])
 
     page = write_study_report(tmp_path, doc, twins=twins).read_text()

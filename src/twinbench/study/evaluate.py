@@ -2,9 +2,12 @@
 the evaluation runner and one results store, then per variant Pearson r and MMRV with their intervals,
 computed from the store.
 
-Store layout (DIR/results/results.sqlite): run `real-rollouts` (the runner's episodes in REAL/world),
-copied as domain "real" into run `real` (as `import-real` stores a robot's outcomes, so `twinbench report
---real-run-id real` pairs them), and one run `twin-<variant>` per twin.
+Store layout (DIR/results/results.sqlite): run `real-rollouts` (the runner's episodes in REAL/world, their
+commanded actions under DIR/results/actions/), copied as domain "real" into run `real` (as `import-real`
+stores a robot's outcomes, so `twinbench report --real-run-id real` pairs them), one run `twin-<variant>`
+per twin, and one run `replay-<variant>` per twin: the real rollouts' actions replayed open loop in that
+twin (domain "replay", next to the real outcome), whose confusion matrix says how often the twin, given
+exactly what the robot did, ends as the real episode did.
 """
 
 from __future__ import annotations
@@ -41,6 +44,10 @@ def env_kwargs(world: Path, size: StudySize) -> dict:
 
 def twin_run_id(variant: str) -> str:
     return f"twin-{variant}"
+
+
+def replay_run_id(variant: str) -> str:
+    return f"replay-{variant}"
 
 
 def make_policies(task: str, real_world: Path, out: Path, size: str | StudySize = "small",
@@ -95,14 +102,43 @@ def run_evaluations(task: str, real_world: Path, twins: dict[str, Path], policie
     for run_id, world in ((REAL_ROLLOUTS, real_world), *((twin_run_id(v), p) for v, p in twins.items())):
         t0 = time.perf_counter()
         recs = evaluate(task, policies, episodes=episodes_arg(sz), workers=workers, run_id=run_id,
-                        store=store, env_kwargs=env_kwargs(world, sz), output_dir=out / "results", log=log)
+                        store=store, env_kwargs=env_kwargs(world, sz), output_dir=out / "results", log=log,
+                        record_actions=run_id == REAL_ROLLOUTS)
         times[run_id] = time.perf_counter() - t0
         bad = [r for r in recs if r.status != "ok"]
         log(f"{run_id}: {sum(r.success for r in recs)}/{len(recs)} successes, {len(bad)} errors, "
             f"{times[run_id]:.0f} s")
         if run_id == REAL_ROLLOUTS:
             _real_records(store, task, recs)
+    for variant, world in twins.items():
+        t0 = time.perf_counter()
+        replay_in_twin(task, store, out / "results", variant, world, sz, log)
+        times[replay_run_id(variant)] = time.perf_counter() - t0
     return times
+
+
+def replay_in_twin(task: str, store: ResultsStore, results: Path, variant: str, world: Path,
+                   size: StudySize, log=print) -> None:
+    """The real rollouts' recorded actions replayed open loop in twin `variant` (run `replay-<variant>`);
+    skipped when that run already holds every replay."""
+    from twinbench.evaluation.replay import RecordedEpisode, replay_episodes
+    from twinbench.evaluation.runner import actions_file
+
+    real = [r for r in store.episodes(REAL_ROLLOUTS) if r.status == "ok"]
+    run_id = replay_run_id(variant)
+    if len(store.episodes(run_id, domain="replay")) == len(real):
+        return
+    episodes = []
+    for i, r in enumerate(real):
+        path = actions_file(results, REAL_ROLLOUTS, r.policy, r.checkpoint, r.init_state, r.seed)
+        if not path.is_file():
+            raise InputError(f"{path}: the real rollout's actions are missing; re-run the study's evaluation "
+                             "from an empty results folder")
+        episodes.append(RecordedEpisode(i, r.init_state, np.load(path, allow_pickle=False), r.success,
+                                        r.policy, r.checkpoint, train_step=r.train_step, seed=r.seed))
+    pairs = replay_episodes(task, episodes, store, run_id, env_kwargs=env_kwargs(world, size))
+    agree = sum(rl.success == rep.success for rl, rep in pairs if rep.status == "ok")
+    log(f"{run_id}: {len(pairs)} real rollouts replayed, outcomes agree in {agree}")
 
 
 def _outcomes(store: ResultsStore, run_id: str, domain: str) -> dict[tuple[str, str], list[int]]:
@@ -137,6 +173,12 @@ def variant_metrics(store: ResultsStore, variant: str) -> dict:
         row["mmrv"] = {"value": est.value, "low": est.low, "high": est.high}
     else:
         row["mmrv"] = {"value": None, "low": None, "high": None}
+    from twinbench.evaluation.replay import replay_confusion
+
+    c = replay_confusion(store, replay_run_id(variant), by="task")
+    c = next(iter(c.values()), None)
+    row["replay"] = None if c is None or not c.n else {
+        "tp": c.tp, "fp": c.fp, "fn": c.fn, "tn": c.tn, "excluded": c.excluded, "accuracy": c.accuracy}
     return row
 
 
@@ -159,12 +201,14 @@ def write_study_json(out: Path, task: str, size: str | StudySize, variants, stag
 
 def format_table(doc: dict) -> str:
     """The study table as Markdown (the README's form)."""
-    lines = ["| task | variant | Pearson r [95% CI] | MMRV [95% CI] | policies | episodes (sim / real) |",
-             "|---|---|---|---|---|---|"]
+    lines = ["| task | variant | Pearson r [95% CI] | MMRV [95% CI] | policies | episodes (sim / real) | "
+             "replay agrees (TP/FP/FN/TN) |", "|---|---|---|---|---|---|---|"]
     for row in doc["variants"]:
         p, m = row["pearson"], row["mmrv"]
         r = "undefined" if p["r"] is None else f"{p['r']:.3f} [{p['low']:.2f}, {p['high']:.2f}]"
         mm = "-" if m["value"] is None else f"{m['value']:.3f} [{m['low']:.3f}, {m['high']:.3f}]"
+        rp = row.get("replay")
+        rep = "-" if not rp else (f"{rp['accuracy']:.2f} ({rp['tp']}/{rp['fp']}/{rp['fn']}/{rp['tn']})")
         lines.append(f"| {doc['task']} | {row['variant']} | {r} | {mm} | {row['n_policies']} | "
-                     f"{row['n_episodes']['sim']} / {row['n_episodes']['real']} |")
+                     f"{row['n_episodes']['sim']} / {row['n_episodes']['real']} | {rep} |")
     return "\n".join(lines)

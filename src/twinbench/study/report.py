@@ -26,13 +26,18 @@ def _table_section(doc: dict) -> str:
         r = (_e(p.get("why", "undefined")) if p["r"] is None
              else f"{p['r']:.3f} [{_num(p['low'], '.2f')}, {_num(p['high'], '.2f')}]")
         mm = "–" if m["value"] is None else f"{m['value']:.3f} [{m['low']:.3f}, {m['high']:.3f}]"
+        rp = row.get("replay")
+        rep = "–" if not rp else f"{rp['accuracy']:.2f} ({rp['tp']} / {rp['fp']} / {rp['fn']} / {rp['tn']})"
         rows.append([_e(row["variant"]), r, mm, str(row["n_policies"]),
-                     f"{row['n_episodes']['sim']} / {row['n_episodes']['real']}",
+                     f"{row['n_episodes']['sim']} / {row['n_episodes']['real']}", rep,
                      f'<a href="reports/{_e(row["variant"])}.html">report</a>'])
     return ("<h2>Sim vs real, per twin variant</h2>" + _table(
-        ["variant", "Pearson r [95% CI]", "MMRV [95% bootstrap CI]", "policies", "episodes sim / real", ""],
+        ["variant", "Pearson r [95% CI]", "MMRV [95% bootstrap CI]", "policies", "episodes sim / real",
+         "replay agrees (TP / FP / FN / TN)", ""],
         rows) + _note("r: Fisher-z interval over the policies' success rates; MMRV: mean maximum rank "
-                      "violation, 0 = the twin ranks the policies as the real workcell does."))
+                      "violation, 0 = the twin ranks the policies as the real workcell does. Replay: the "
+                      "real rollouts' actions replayed open loop in the twin; the share whose outcome "
+                      "matches the real one, and the confusion matrix (positive = success)."))
 
 
 def _scatter_section(doc: dict) -> str:
