@@ -10,6 +10,8 @@ Prints `name value unit` lines per case and the spread:
   fits one value per spatial region by default), the fit's value against the truth's geometric mean
   over the same springs (per spring when the fit is per spring); the per-spring figure is printed too;
 - ground friction error where the motion slides, restitution error where it hits the ground;
+- the stage kept (the lowest tracking error on the selection frames) and the stiffness guess over the
+  truth's geometric mean;
 - median and worst of each over the family, and the count of diverged cases.
 
 Usage: python benchmarks/sysid.py [--cases 12] [--seed 0] [--first 0] [--jobs 1] [--json rows.json]
@@ -59,6 +61,9 @@ def run_case(i: int, seed: int) -> dict:
            "spearman_springs": float(spearmanr(res.log_y[:n], truth["log_y"][:n]).statistic),
            "slides": truth["slides"], "impacts": truth["impacts"], "notes": res.notes,
            "evaluations": len(res.stage1_history), "epochs": len(res.stage2_history) - 1,
+           "kept": res.selection.get("kept", "final"),
+           "guess_Y_ratio": (res.guesses.get("spring_Y", {}).get("value") or math.nan)
+           / math.exp(float(np.mean(truth["log_y"][:n]))),
            "diverged": any(e.diverged for e in res.evals.values())}
     if truth["slides"]:
         out["friction_error"] = abs(res.params.ground_friction - truth["params"].ground_friction)
@@ -76,7 +81,7 @@ def _print_case(r: dict) -> None:
           f"{1e3 * r['val_final']:.2f} floor_mm {1e3 * r['floor']:.2f} "
           f"ratio {r['val_final'] / r['floor']:.2f} spearman {r['spearman']:.3f} ({r['regions']} regions; "
           f"per spring {r['spearman_springs']:.3f}){extra} "
-          f"({r['pattern']}, {r['seconds']:.0f} s)"
+          f" kept {r['kept']} guess/truth Y {r['guess_Y_ratio']:.2f} ({r['pattern']}, {r['seconds']:.0f} s)"
           f"{' notes: ' + '; '.join(r['notes']) if r['notes'] else ''}", flush=True)
 
 
@@ -118,6 +123,8 @@ def main() -> None:
     print(f"sysid_family_impact_cases {len(re)} count")
     _spread("restitution_error", re, "abs")
     _spread("seconds", [r["seconds"] for r in ok], "s")
+    kept = [r["kept"] for r in ok]
+    print("sysid_family_kept " + ", ".join(f"{k} {kept.count(k)}" for k in sorted(set(kept))) + " count")
     print(f"sysid_family_total {time.perf_counter() - t0:.0f} s")
     if args.json:
         Path(args.json).write_text(json.dumps(sorted(rows, key=lambda r: r["case"]), indent=1) + "\n")

@@ -99,6 +99,12 @@ def test_outputs_object_directory_and_report(identified, tmp_path):
     assert 20 <= len(rep["stage1_history"]) <= 80 and rep["stages"] == {"stage1": True, "stage2": True}
     assert rep["stiffness_fit"]["per"] == "region" and sum(rep["stiffness_fit"]["springs"]) == n
     assert rep["global_params"]["spring_Y"] == pytest.approx(result.params.spring_Y)
+    # the starting guesses from the data and the stage kept by the selection frames (not the validation ones)
+    assert set(rep["guesses"]) == {"spring_Y", "ground_friction", "ground_restitution"}
+    assert all(isinstance(g["from"], str) and isinstance(g["used"], bool) for g in rep["guesses"].values())
+    sel = rep["selection"]
+    assert sel["frames"] == [7, 8] and sel["kept"] == min(sel["errors_m"], key=sel["errors_m"].get)
+    assert rep["evaluations"]["final"] == rep["evaluations"][sel["kept"]]
     assert ppath.stat().st_size > 10_000 and ppath.read_bytes()[:4] == b"\x89PNG"
 
 

@@ -1,5 +1,6 @@
-"""System identification's fit report: ``sysid_report.json`` (figures, histories, settings) and
-``sysid_report.png`` (loss curves, per-frame tracking error, stiffness histogram)."""
+"""System identification's fit report: ``sysid_report.json`` (figures, histories, settings, the starting
+guesses from the data, which stage was kept and why) and ``sysid_report.png`` (loss curves, per-frame
+tracking error, stiffness histogram)."""
 
 from __future__ import annotations
 
@@ -157,7 +158,9 @@ def write_report(result: SysIdResult, data: SysIdData, directory: str | Path) ->
     a.set_title("notes")
     a.text(0.0, 1.0, "\n\n".join(textwrap.fill(n, 60) for n in result.notes) or "none", va="top", fontsize=9,
            transform=a.transAxes)
-    fig.suptitle(f"system identification: {data.name}")
+    kept = result.selection.get("kept")
+    fig.suptitle(f"system identification: {data.name}" + (f" (kept: {kept}, by the selection frames "
+                                                           f"{result.selection['frames']})" if kept else ""))
     fig.tight_layout()
     ppath = directory / "sysid_report.png"
     fig.savefig(ppath, dpi=90)

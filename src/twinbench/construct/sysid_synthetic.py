@@ -76,3 +76,66 @@ def synthetic_case(kind: str = "rope", *, frames: int = 40, validation_frames: i
                      validation_frames=validation_frames, name=kind)
     return data, {"params": truth, "sim": truth.sim_params(base), "log_y": log_y, "springs": sp,
                   "positions": xs, "soft": soft}
+
+
+PHYSTWIN_ROPE_Y = (8e3, 6e4, 2.5e4)
+"""the stiffness of the three regions along the rope (thirds by x), as the issue's PhysTwin rope"""
+
+
+def phystwin_rope_case(*, seed: int = 0, nx: int = 20, frames: int = 45, validation_frames: int = 9,
+                       noise: float = 1e-3, visible_fraction: float = 0.85) -> tuple[SysIdData, dict]:
+    """A rope made with PhysTwin's conventions (unit masses, springs by the radius rule: 2 cm, at most 30
+    neighbours, Y per unit strain; ground at z = 0; drag 2, dashpot 60; ground restitution 0.3, friction
+    0.7) with three stiffness regions along it (:data:`PHYSTWIN_ROPE_Y`), an ``nx`` x 2 x 1 lattice at
+    1 cm. Three hand points at its x = 0 end lift it 8 cm, drag it 10 cm along -x and 4 cm sideways and
+    lower it back (the rope trails on the ground), over ``frames`` frames at 30 Hz, simulated by
+    twinbench's solver at twice the stable substeps. Observed with ``noise`` per axis, ``visible_fraction``
+    of the particles per frame, every particle tracked (5 % of samples motion-invalid), the last
+    ``validation_frames`` held out. Returns (data, truth): truth as :func:`synthetic_case`'s, with
+    "region" (0, 1, 2 per object spring) instead of "soft"."""
+    from twinbench.physics.sysid import stable_substeps
+
+    rng = np.random.default_rng(seed)
+    pts = lattice(nx, 2, 1, 0.01, origin=(0.0, 0.0, 0.005))
+    hand0 = np.array([[-0.006, 0.005, 0.012], [-0.006, -0.004, 0.003], [-0.006, 0.014, 0.003]])
+    t = np.arange(frames) / 30.0
+
+    def smooth(a: float, b: float) -> np.ndarray:
+        u = np.clip((t - a) / (b - a), 0.0, 1.0)
+        return u * u * (3.0 - 2.0 * u)
+
+    move = np.stack([-0.10 * smooth(0.35, 0.9), 0.04 * smooth(0.35, 0.9),
+                     0.08 * smooth(0.0, 0.35) - 0.075 * smooth(0.9, 1.3)], axis=1)
+    controls = hand0[None] + move[:, None, :]
+    truth = GlobalParams(spring_Y=1.0, spring_radius=0.02, spring_max_neighbors=30, control_radius=0.02,
+                         control_max_neighbors=10, ground_restitution=0.3, ground_friction=0.7,
+                         drag_damping=2.0, dashpot_damping=60.0)
+
+    def model_at(base: SimParams):
+        b = ModelBuilder(truth.sim_params(base))
+        b.add_body(pts, radius=truth.spring_radius, max_neighbors=truth.spring_max_neighbors)
+        b.add_control_points(hand0, radius=truth.control_radius, max_neighbors=truth.control_max_neighbors)
+        return b.finalize()
+
+    model = model_at(SimParams())
+    n_obj = model.num_object_springs
+    sp = model.springs_np[:n_obj]
+    mid_x = 0.5 * (pts[sp[:, 0], 0] + pts[sp[:, 1], 0])
+    region = np.minimum((3 * (mid_x - pts[:, 0].min()) / np.ptp(pts[:, 0])).astype(int), 2)
+    log_y = np.full(model.num_springs, math.log(PHYSTWIN_ROPE_Y[0]), np.float32)  # the hand holds region 0
+    log_y[:n_obj] = np.log(np.asarray(PHYSTWIN_ROPE_Y)[region])
+    substeps = 2 * stable_substeps(model, max(PHYSTWIN_ROPE_Y), truth.dashpot_damping, 30.0)
+    base = SimParams(dt=1.0 / (30.0 * substeps), substeps=substeps)
+    model = model_at(base)
+    model.set_spring_log_y(log_y)
+    xs = rollout(model, controls, frames - 1)[0].astype(np.float64)
+    n = len(pts)
+    observed = xs + rng.normal(0.0, noise, xs.shape)
+    visibility = rng.random((frames, n)) < visible_fraction
+    visibility[np.arange(frames), rng.integers(0, n, frames)] = True
+    tracked = xs + rng.normal(0.0, noise, xs.shape)
+    motion_valid = rng.random((frames, n)) >= 0.05
+    data = SysIdData(pts, observed, visibility, np.arange(n), tracked, motion_valid, controls, fps=30.0,
+                     validation_frames=validation_frames, name="phystwin_rope")
+    return data, {"params": truth, "sim": truth.sim_params(base), "log_y": log_y, "springs": sp,
+                  "positions": xs, "region": region}

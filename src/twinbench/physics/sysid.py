@@ -226,6 +226,9 @@ class AdamConfig:
     acc_share: float = 0.1
     """the acceleration term's weight is lowered (never raised) so that at stage 2's start the term is at
     most this share of the Chamfer + tracking terms: it regularises, it cannot dominate (0 = as given)"""
+    epoch_by_selection: bool = False
+    """keep the epoch with the lowest tracking error on the selection frames (``FitConfig.select_frames``)
+    instead of the lowest fitted loss (the selection frames choose between the stages either way)"""
     patience: int = 3
     """epochs without a 0.5 % improvement of the best training loss before the stiffness-only phase ends
     (the contact parameters join early) or, once they have joined, before stopping (0 = all epochs)"""
@@ -749,9 +752,9 @@ def stage2_adam(model: SpringMassModel, data: SysIdData, cfg: AdamConfig,
     the contact coefficients that act (``fitted_contacts``, in logit space), one step per fitted frame.
 
     The last ``select`` training frames are not fitted: they are the selection frames (see
-    :func:`selection_split`). After each epoch the whole sequence is rolled out (fast path) and the
-    parameters with the lowest tracking error on the selection frames are kept (the lowest fitted loss
-    without selection frames; the validation frames only report). Stops early, keeping the best
+    :func:`selection_count`). After each epoch the whole sequence is rolled out (fast path) and the
+    parameters with the lowest fitted loss are kept (with ``cfg.epoch_by_selection``, the lowest tracking
+    error on the selection frames; the validation frames only report). Stops early, keeping the best
     parameters, when a taped frame diverges. Returns (best log_y, history rows per epoch); the best
     contact coefficients are left in ``model.contact_coeffs``."""
     if not model.requires_grad:
@@ -783,8 +786,10 @@ def stage2_adam(model: SpringMassModel, data: SysIdData, cfg: AdamConfig,
     if fit:
         set_contacts(opt_c.x)
 
+    by_sel = select and cfg.epoch_by_selection
+
     def score(ev: SequenceEval) -> float:  # what chooses the epoch: never the validation frames
-        return frames_error(ev, sel) if select else ev.train_loss
+        return frames_error(ev, sel) if by_sel else ev.train_loss
 
     ev = evaluate(model, data, loss, solver=eval_solver)
     best = (score(ev), opt.x[region], opt_c.x.copy())
@@ -845,7 +850,7 @@ def stage2_adam(model: SpringMassModel, data: SysIdData, cfg: AdamConfig,
     model.set_spring_log_y(best[1])
     if fit:
         set_contacts(best[2])
-    what = f"best selection-frame error {1e3 * best[0]:.3f} mm" if select else \
+    what = f"best selection-frame error {1e3 * best[0]:.3f} mm" if by_sel else \
         f"best training loss {best[0]:.4e}"
     log(f"stage 2: {len(history) - 1} epochs, {what}")
     return best[1].astype(np.float32), history
