@@ -7,7 +7,11 @@ Many worlds (`--worlds`, default 1 4 16 64): `fast` push-T as the worlds of one 
 pusher of world i sweeping a circle from its own grid state; world-steps per second for physics only
 (`Twin.step_worlds`: controllers + one spring-mass frame for all worlds, on every core) and for whole env
 steps with both cameras of every world rendered; and rendering alone, ms per world, for all worlds'
-cameras in one `Twin.render_worlds` call against one `Twin.render` call per world.
+cameras in one `Twin.render_worlds` call against one `Twin.render` call per world (render cache off).
+
+Render cache A/B (`Twin.render_cache`, the static scene's work kept per unmoved camera): the env steps and
+renders alternate between the cache on and off in one run (the state is the same either way); `*_cache_off`
+lines give the figures without it.
 
 Prints `name value unit` lines (medians over the timed steps, after warm-up steps).
 """
@@ -37,8 +41,11 @@ def bench(task: str, preset: str, device: str, steps: int, warmup: int = 5, core
     obs, info = env.reset(seed=0, options={"init_state": 0})
     expert = get_task(task).make_expert(env)
     twin, state = env.twin, env.state
-    physics, render, total = [], [], []
-    for k in range(warmup + steps):
+    cache = twin.render_cache
+    physics, render, total = [], {True: [], False: []}, {True: [], False: []}
+    for k in range(warmup + 2 * steps):
+        on = k % 2 == 0  # A/B: the render cache on in even steps, off in odd ones (the state is the same)
+        twin.render_cache = cache if on else None
         action = expert.select_action(policy_observation(expert, obs, info))
         t0 = time.perf_counter()
         obs, _, _, _, info = env.step(action)
@@ -49,13 +56,16 @@ def bench(task: str, preset: str, device: str, steps: int, warmup: int = 5, core
         twin.render(state)
         t3 = time.perf_counter()
         if k >= warmup:
-            total.append(t1 - t0)
+            total[on].append(t1 - t0)
             physics.append(t2 - t1)
-            render.append(t3 - t2)
+            render[on].append(t3 - t2)
+    twin.render_cache = cache
     tag = f"{TASKS[task]}_{preset}_{device.replace(':', '')}" + (f"_{cores}cores" if cores else "")
-    print(f"{tag}_env_steps_per_s {1.0 / np.median(total):.2f} steps/s")
+    print(f"{tag}_env_steps_per_s {1.0 / np.median(total[True]):.2f} steps/s")
+    print(f"{tag}_env_steps_per_s_cache_off {1.0 / np.median(total[False]):.2f} steps/s")
     print(f"{tag}_physics_ms {1e3 * np.median(physics):.1f} ms")
-    print(f"{tag}_render_2cams_240_ms {1e3 * np.median(render):.1f} ms")
+    print(f"{tag}_render_2cams_240_ms {1e3 * np.median(render[True]):.1f} ms")
+    print(f"{tag}_render_2cams_240_ms_cache_off {1e3 * np.median(render[False]):.1f} ms")
     print(f"{tag}_particles {twin.model.num_particles} particles")
     if cores:  # whether this world's frames were split over two processes (large models only)
         print(f"{tag}_split_frames {int(twin.solver.executor.name == 'split')} bool")
@@ -79,7 +89,10 @@ def bench_worlds(device: str, counts: list[int], steps: int, render_steps: int =
             envs.twin.step_worlds(states, list(actions(k)))
             if k >= 3:
                 physics.append(time.perf_counter() - t0)
-        batched, one_by_one = [], []  # every world's two cameras: one render_worlds call / a call per world
+        # every world's two cameras: one render_worlds call / a call per world (cache off: the same states
+        # rendered again would find even the wrist cameras kept)
+        cache, envs.twin.render_cache = envs.twin.render_cache, None
+        batched, one_by_one = [], []
         for k in range(1 + render_steps):
             t0 = time.perf_counter()
             envs.twin.render_worlds(states)
@@ -89,17 +102,21 @@ def bench_worlds(device: str, counts: list[int], steps: int, render_steps: int =
             if k >= 1:
                 batched.append(t1 - t0)
                 one_by_one.append(time.perf_counter() - t1)
-        full = []
-        for k in range(1 + render_steps):
+        full: dict = {True: [], False: []}
+        for k in range(2 + 2 * render_steps):  # A/B: the render cache on in even steps, off in odd ones
+            on = k % 2 == 0
+            envs.twin.render_cache = cache if on else None
             t0 = time.perf_counter()
             envs.step(actions(k))
-            if k >= 1:
-                full.append(time.perf_counter() - t0)
+            if k >= 2:
+                full[on].append(time.perf_counter() - t0)
+        envs.twin.render_cache = cache
         tag = f"pusht_fast_{device.replace(':', '')}_{n}worlds"
         print(f"{tag}_physics_world_steps_per_s {n / np.median(physics):.0f} world-steps/s")
         print(f"{tag}_render_ms_per_world {1e3 * np.median(batched) / n:.1f} ms")
         print(f"{tag}_render_ms_per_world_one_call_each {1e3 * np.median(one_by_one) / n:.1f} ms")
-        print(f"{tag}_env_world_steps_per_s {n / np.median(full):.1f} world-steps/s")
+        print(f"{tag}_env_world_steps_per_s {n / np.median(full[True]):.1f} world-steps/s")
+        print(f"{tag}_env_world_steps_per_s_cache_off {n / np.median(full[False]):.1f} world-steps/s")
         print(f"{tag}_threads {envs.twin.solver.threads} threads")
         envs.close()
 

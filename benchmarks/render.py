@@ -1,4 +1,11 @@
-"""Render and skinning speed: 200k surface-like Gaussians seen from ~1 m; LBS of 100k Gaussians.
+"""Render and skinning speed: 200k surface-like Gaussians seen from ~1 m; LBS of 100k Gaussians; a twin's
+cameras with the render cache on and off.
+
+Twin (`--twin-steps`, 0 skips it): the `fast` push-T twin (one world) stepped by its scripted expert; per
+step, both 240x240 cameras (`Twin.render`) and the front camera alone, the render cache
+(`Twin.render_cache`) on in even steps and off in odd ones (A/B in one run, the same states); the front
+camera does not move, so with the cache only the robot's and the T's Gaussians are projected. Each cached
+image is checked equal to the uncached one of the same state.
 
 Prints `name value unit` lines (median of repeated runs, after a warm-up). `*_cpu_time` lines give the
 process CPU time per frame summed over threads; wall time below it means the threads ran in parallel,
@@ -67,11 +74,62 @@ def median_ms(fn, repeats: int) -> float:
 LAST_CPU_MS = 0.0
 
 
+def bench_twin(device: str, steps: int, warmup: int = 4) -> None:
+    from twinbench.env import TwinEnv
+    from twinbench.evaluation.rollout import policy_observation
+    from twinbench.tasks import get_task
+
+    env = TwinEnv("push-t", preset="fast", device=device)
+    obs, info = env.reset(seed=0, options={"init_state": 0})
+    expert = get_task("push-t").make_expert(env)
+    twin, state = env.twin, env.state
+    cache = twin.render_cache
+    both: dict = {True: [], False: []}
+    front: dict = {True: [], False: []}
+    for k in range(warmup + 2 * steps):
+        twin.render_cache = None  # the env's own render: not asking for the wrist camera's pose twice
+        obs, _, _, _, info = env.step(expert.select_action(policy_observation(expert, obs, info)))
+        for on in (k % 2 == 0, k % 2 != 0):  # this step's A first, then B (the other order next step)
+            twin.render_cache = cache if on else None
+            t0 = time.perf_counter()
+            images = twin.render(state)
+            t1 = time.perf_counter()
+            twin.render(state, ["front"])
+            t2 = time.perf_counter()
+            if k >= warmup:
+                both[on].append(t1 - t0)
+                front[on].append(t2 - t1)
+            if on:
+                cached = images
+            else:
+                full = images
+        for name in full:
+            if not np.array_equal(cached[name].rgb, full[name].rgb):
+                raise AssertionError(f"render cache: {name} differs from the full render at step {k}")
+    twin.render_cache = cache
+    tag = f"twin_pusht_fast_{device.replace(':', '')}"
+    for label, times in (("2cams_240", both), ("front_240", front)):
+        print(f"{tag}_{label}_ms {1e3 * np.median(times[True]):.1f} ms")
+        print(f"{tag}_{label}_ms_cache_off {1e3 * np.median(times[False]):.1f} ms")
+    print(f"{tag}_cache_builds_hits_misses {cache.builds}/{cache.hits}/{cache.misses} count")
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__)
     ap.add_argument("--repeats", type=int, default=5)
+    ap.add_argument("--twin-steps", type=int, default=20, help="steps of the twin A/B (0: skip it)")
+    ap.add_argument("--only-twin", action="store_true", help="only the twin A/B")
     args = ap.parse_args()
     wp.init()
+    devices = ["cpu"] + [f"cuda:{i}" for i in range(wp.get_cuda_device_count())]
+    if args.twin_steps:
+        from twinbench._runtime import quiet_warp
+
+        quiet_warp()
+        for device in devices:
+            bench_twin(device, args.twin_steps)
+    if args.only_twin:
+        return
     cloud = surface_scene()
     eye, target = (0.0, -0.85, 0.55), (0.0, 0.15, 0.1)
     cams = {
@@ -80,7 +138,6 @@ def main() -> None:
         ),
         "240x240": Camera.look_at(eye, target, fx=220.0, width=240, height=240),
     }
-    devices = ["cpu"] + [f"cuda:{i}" for i in range(wp.get_cuda_device_count())]
     for device in devices:
         g = cloud.to_device(device)
         backends = ["warp"] + (["gsplat"] if device != "cpu" and gsplat_available() else [])

@@ -151,13 +151,23 @@ def _preprocess(
     o = opacities[i]
     if z < near or o < ALPHA_MIN:
         return
+    # frustum cull before the covariance: the footprint's half extent sqrt(d2max (J Sigma J^T + low pass))
+    # is at most r below (|J|_F^2 s_max^2 bounds the projected covariance), plus a pixel for rounding
+    s = scales[i]
+    txz = wp.clamp(p[0] / z, -vw.lim[0], vw.lim[1])
+    tyz = wp.clamp(p[1] / z, -vw.lim[2], vw.lim[3])
+    smax = wp.max(s[0], wp.max(s[1], s[2]))
+    jf2 = (vw.fx * vw.fx * (1.0 + txz * txz) + vw.fy * vw.fy * (1.0 + tyz * tyz)) / (z * z)
+    r = wp.sqrt(2.0 * wp.log(o / ALPHA_MIN) * (jf2 * smax * smax + LOW_PASS)) + 1.0
+    uc = vw.fx * p[0] / z + vw.cx
+    vc = vw.fy * p[1] / z + vw.cy
+    if uc + r < 0.0 or vc + r < 0.0 or uc - r > float(vw.width) or vc - r > float(vw.height):
+        return
     q = quats[i]
     qn = wp.length(q)
     if qn > 0.0:
         q = q / qn
-    r = _quat_wxyz_to_mat(q)
-    s = scales[i]
-    m = r * wp.diag(s)
+    m = _quat_wxyz_to_mat(q) * wp.diag(s)
     cov_w = m * wp.transpose(m)
     cov_c = vw.rot_wc * cov_w * wp.transpose(vw.rot_wc)
     tx = wp.clamp(p[0] / z, -vw.lim[0], vw.lim[1]) * z
@@ -374,14 +384,17 @@ def _rasterise(
             col = wp.vec3(rec[7], rec[8], rec[9])
             z = rec[10]
             o = rec[11]
+            box = ((1 << (bb[2] - x0 + 1)) - 1) ^ ((1 << (bb[0] - x0)) - 1)
             for y in range(bb[1], bb[3] + 1):
+                done_bits = row_done[tile * 16 + y - y0]
+                if (done_bits & box) == box:  # the row's part of the box has stopped: so has the span
+                    continue
                 sp = _span(rec, y, bb[0], bb[2])
                 sx0 = sp[0]
                 sx1 = sp[1]
                 if sx0 > sx1:
                     continue
                 span = ((1 << (sx1 - x0 + 1)) - 1) ^ ((1 << (sx0 - x0)) - 1)
-                done_bits = row_done[tile * 16 + y - y0]
                 if (done_bits & span) == span:
                     continue
                 while ((done_bits >> (sx0 - x0)) & 1) == 1:
@@ -579,11 +592,10 @@ class _Bins:
 def _raster(tiles: np.ndarray, first: _Bins, second: _Bins | None, views, cam: Camera, image: _Image,
             threads: int) -> None:
     """Stage 4: rasterise the given tiles of one view into `image`, merging `second`'s lists into
-    `first`'s by depth (CPU: tile rows dealt to the threads for load balance)."""
+    `first`'s by depth (CPU: the tiles dealt to the threads in turn, for load balance)."""
     device = image.rgb.device
-    tiles_x = (cam.width + TILE - 1) // TILE
     parts = threads if (device.is_cpu and threads > 1) else 1
-    lists = [tiles[(tiles // tiles_x) % parts == k] for k in range(parts)]
+    lists = [tiles[k::parts] for k in range(parts)]
     lists = [wp.array(tl.astype(np.int32), dtype=wp.int32, device=device) for tl in lists if len(tl)]
     if second is None:
         b_ranges, b_records = wp.empty(0, dtype=wp.vec2i, device=device), first.records
@@ -783,10 +795,10 @@ def render_views(views: list[tuple[GaussianCloud | DeviceGaussians | SplitGaussi
                  cache: RenderCache | None = None) -> list[RenderOutput]:
     """The "warp" backend (see render.render_batch): host clouds uploaded once each; with a `cache`, the
     views of a SplitGaussians whose camera has not moved reuse the kept static work (RenderCache). On CUDA
-    the other views run every stage once for all of them (`_render_warp_batch`); on CPU the views are
-    dealt to the threads (each thread renders whole views, every stage in parallel; the full renders
-    first, then the cached ones, each thread taking the next view when done), and one view alone is split
-    over the threads by Gaussians and tile rows instead."""
+    the other views run every stage once for all of them (`_render_warp_batch`); on CPU, with at least as
+    many full renders as threads, the views are dealt to the threads (each thread renders whole views,
+    every stage in parallel; the full renders first, then the cached ones, each thread taking the next
+    view when done), else each view in turn is split over the threads by Gaussians and tile rows."""
     uploaded: dict[int, DeviceGaussians | SplitGaussians] = {}
     jobs: list[tuple[DeviceGaussians | SplitGaussians, Camera]] = []
     for cloud, cam in views:
@@ -821,8 +833,9 @@ def render_views(views: list[tuple[GaussianCloud | DeviceGaussians | SplitGaussi
             if outs[i] is None:
                 one(i, threads)
         return outs
-    if threads > 1 and len(jobs) > 1:
-        # several views on CPU: whole views per thread (every stage runs in parallel, not only kernels)
+    if threads > 1 and len(full) >= threads:
+        # as many full renders as threads: whole views per thread (every stage runs in parallel, not only
+        # kernels); fewer (e.g. one world's moving camera beside a cached one) would leave threads idle
         wp.load_module(device=jobs[0][0].device)
         queue = iter(full + [i for i in range(len(jobs)) if kept[i] is not None])
         lock = threading.Lock()
