@@ -162,18 +162,29 @@ def test_cameras_keyword_observes_only_the_named_cameras_with_the_same_pixels():
     assert set(front.observation_space["pixels"].spaces) == {"front"}
     o_both, _ = both.reset(seed=1, options={"init_state": 3})
     o_front, _ = front.reset(seed=1, options={"init_state": 3})
+    blind = TwinEnv("push-t", twin=cell, cameras="", **kw)  # no camera: the same physics, no images
+    o_blind, _ = blind.reset(seed=1, options={"init_state": 3})
+    assert o_blind["pixels"] == {} and blind.observation_space.contains(o_blind)
+    with pytest.raises(RuntimeError, match="no camera"):
+        blind.render()
     for _ in range(2):
         a = o_both["agent_pos"] + np.float32(0.01)
         o_both, *_ = both.step(a)
         o_front, *_ = front.step(a)
+        o_blind, *_ = blind.step(a)
     assert front.observation_space.contains(o_front) and list(o_front["pixels"]) == ["front"]
     assert np.array_equal(o_front["pixels"]["front"], o_both["pixels"]["front"])
     assert np.array_equal(o_front["agent_pos"], o_both["agent_pos"])
-    for bad in ("top", "front+front", ""):
+    assert np.array_equal(o_blind["agent_pos"], o_both["agent_pos"]) and o_blind["pixels"] == {}
+    for bad in ("top", "front+front", "+"):
         with pytest.raises(ValueError, match="cameras"):
             TwinEnv("push-t", cameras=bad, **KW)
     with pytest.raises(ValueError, match="render_views"):
         TwinEnv("push-t", cameras="front", render_views="wrist", **KW)
+    blind_vec = TwinVectorEnv("push-t", num_envs=2, cameras="", **KW)
+    obs, _ = blind_vec.reset(seed=0)
+    obs, *_ = blind_vec.step(np.stack([obs["agent_pos"][0], obs["agent_pos"][1]]))
+    assert obs["pixels"] == {} and obs["agent_pos"].shape == (2, 2)
     vec = TwinVectorEnv("push-t", num_envs=2, cameras="wrist", **KW)
     obs, _ = vec.reset(seed=0)
     assert list(obs["pixels"]) == ["wrist"] and obs["pixels"]["wrist"].shape[0] == 2

@@ -174,8 +174,8 @@ class TwinEnv(gymnasium.Env):
         self.rules.setup(self.twin, self.state)
 
         self.render_mode = render_mode
-        views = render_views or self.cameras[0]
-        self.render_views = views.split("+")
+        views = render_views or (self.cameras[0] if self.cameras else "")
+        self.render_views = views.split("+") if views else []
         unknown = [v for v in self.render_views if v not in self.cameras]
         if unknown:
             raise ValueError(f"render_views: unknown or unobserved camera(s) {unknown}; observed cameras: "
@@ -359,11 +359,15 @@ class TwinEnv(gymnasium.Env):
         return {} if status is None else {"grasp": status}
 
     def render(self):
+        if not self.render_views:
+            raise RuntimeError("render(): this env observes no camera (cameras=''); make it with cameras=...")
         frames = [self._frames[v] for v in self.render_views]
         return frames[0] if len(frames) == 1 else np.concatenate(frames, axis=1)
 
     def _observe(self, metrics: dict, images: dict | None = None) -> dict:
-        outs = self.twin.render(self.state, self.cameras) if images is None else images
+        if images is None:
+            images = self.twin.render(self.state, self.cameras) if self.cameras else {}
+        outs = images
         frames = {name: out.rgb_uint8() for name, out in outs.items()}
         self.rules.decorate(frames)
         for name, response in self._responses.items():
@@ -386,10 +390,13 @@ class TwinEnv(gymnasium.Env):
 
 
 def _camera_list(cameras: str | None, twin) -> list[str]:
-    """The `cameras` keyword ("front", "front+wrist"; None: every camera of the twin) as a list, checked."""
+    """The `cameras` keyword ("front", "front+wrist"; "": none, for runs that need no images such as open-loop
+    replays; None: every camera of the twin) as a list, checked."""
     names = list(twin.cameras)
     if cameras is None:
         return names
+    if cameras == "":
+        return []
     chosen = cameras.split("+") if isinstance(cameras, str) else []
     if not chosen or len(set(chosen)) != len(chosen) or any(c not in names for c in chosen):
         raise ValueError(f"cameras: expected distinct names from {names} joined by '+', got {cameras!r}")
@@ -562,8 +569,9 @@ class TwinVectorEnv(gymnasium.vector.VectorEnv):
         shown = [
             i for i, r in enumerate(results) if moves[i] is not None and not isinstance(r, SimulationDiverged)
         ]
-        states = [self.envs[i].state for i in shown]
-        images = dict(zip(shown, self.twin.render_worlds(states, self.envs[0].cameras), strict=True))
+        states, cameras = [self.envs[i].state for i in shown], self.envs[0].cameras
+        renders = self.twin.render_worlds(states, cameras) if cameras else [{} for _ in states]
+        images = dict(zip(shown, renders, strict=True))
         out: list = []
         for i, (env, a, result) in enumerate(zip(self.envs, clipped, results, strict=True)):
             if a is None or isinstance(a, Exception):

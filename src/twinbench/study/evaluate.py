@@ -136,7 +136,8 @@ def replay_in_twin(task: str, store: ResultsStore, results: Path, variant: str, 
                              "from an empty results folder")
         episodes.append(RecordedEpisode(i, r.init_state, np.load(path, allow_pickle=False), r.success,
                                         r.policy, r.checkpoint, train_step=r.train_step, seed=r.seed))
-    pairs = replay_episodes(task, episodes, store, run_id, env_kwargs=env_kwargs(world, size))
+    blind = {**env_kwargs(world, size), "cameras": ""}  # open loop: nothing looks at images, none rendered
+    pairs = replay_episodes(task, episodes, store, run_id, env_kwargs=blind)
     agree = sum(rl.success == rep.success for rl, rep in pairs if rep.status == "ok")
     log(f"{run_id}: {len(pairs)} real rollouts replayed, outcomes agree in {agree}")
 
