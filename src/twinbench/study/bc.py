@@ -22,6 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
+from twinbench._runtime import cpu_cores
 from twinbench.errors import InputError
 
 DEMO_SEED = 10000  # demonstrations use sampled initial states from this seed on (the grid states are apart)
@@ -41,6 +42,7 @@ class BCSize:
 
 BC_SIZES = {
     "small": BCSize(demos=16, data_sizes=(4, 8, 16), epochs=(5, 40)),
+    "medium": BCSize(demos=16, data_sizes=(4, 8, 16), epochs=(5, 40)),  # the small workcell's
     "full": BCSize(demos=48, data_sizes=(6, 16, 48), epochs=(5, 40)),
 }
 
@@ -62,7 +64,8 @@ def record_demos(task: str, real_world: Path, out: Path, n: int, *, image_size: 
     from twinbench.tasks import get_task
 
     spec = get_task(task)
-    env = spec.make_env(twin=str(real_world), environment_state=True, episode_seconds=float(max_seconds))
+    env = spec.make_env(twin=str(real_world), cameras=camera, environment_state=True,
+                        episode_seconds=float(max_seconds))
     expert = spec.make_expert(env)
     low, high = env.action_space.low, env.action_space.high
     images, agent_pos, actions, episode, record = [], [], [], [], []
@@ -118,10 +121,10 @@ def load_demos(out: Path) -> dict[str, np.ndarray]:
 
 
 def train_checkpoints(demos: dict[str, np.ndarray], out: Path, data_sizes, epochs, *, seed: int = 0,
-                      image_size: int = 64, camera: str = "front", log=print) -> list[Path]:
-    """Per data size N (the first N demonstrations), one training run of max(epochs) epochs, saving the
-    checkpoint OUT/bc-d<N>-e<E>/ after each E in `epochs`, with train.json (loss per epoch, seconds).
-    A data size whose checkpoints all exist is not trained again."""
+                      image_size: int = 64, camera: str = "front", threads: int = 1, log=print) -> list[Path]:
+    """Per data size N (the first N demonstrations), one training run of max(epochs) epochs on `threads`
+    CPU threads, saving the checkpoint OUT/bc-d<N>-e<E>/ after each E in `epochs`, with train.json (loss
+    per epoch, seconds). A data size whose checkpoints all exist is not trained again."""
     from twinbench.policies.cnn import make_config, save_policy, train
 
     n_kept = int(demos["episode"].max()) + 1
@@ -140,6 +143,7 @@ def train_checkpoints(demos: dict[str, np.ndarray], out: Path, data_sizes, epoch
 
         def snapshot(epoch, net, losses, d=d, data=data, cfg=cfg, names=names, t0=t0):
             record = {"demos": d, "frames": int(len(data["episode"])), "epochs": epoch, "seed": seed,
+                      "threads": threads,
                       "loss": losses[-1], "loss_per_epoch": losses,
                       "train_seconds": round(time.perf_counter() - t0, 1)}
             path = save_policy(names[epoch], replace(cfg, extra=record), net)
@@ -148,14 +152,15 @@ def train_checkpoints(demos: dict[str, np.ndarray], out: Path, data_sizes, epoch
                 f"loss {losses[-1]:.4f}, {record['train_seconds']:.0f} s")
 
         train(cfg, data["images"], data["agent_pos"], data["actions"], data["episode"], epochs=max(epochs),
-              seed=seed, snapshots=set(epochs), on_snapshot=snapshot)
+              seed=seed, threads=threads, snapshots=set(epochs), on_snapshot=snapshot)
     return paths
 
 
 def make_bc_policies(task: str, real_world: Path, out: Path, size="small", log=print,
                      seed: int = 0) -> list[str]:
     """Record demonstrations in `real_world` (reused when OUT/demos.npz exists), train the size's
-    checkpoints into OUT and return their policy specs `bc-d<N>-e<E>=cnn:DIR`."""
+    checkpoints into OUT (on min(2, cpu_cores()) threads: the same seed and thread count, the same
+    weights) and return their policy specs `bc-d<N>-e<E>=cnn:DIR`."""
     bs = bc_size(size)
     out = Path(out)
     if not (out / "demos.npz").is_file():
@@ -166,5 +171,6 @@ def make_bc_policies(task: str, real_world: Path, out: Path, size="small", log=p
         log(f"recorded {kept}/{bs.demos} successful demonstrations in {time.perf_counter() - t0:.0f} s")
     doc = json.loads((out / "demos.json").read_text())
     paths = train_checkpoints(load_demos(out), out, bs.data_sizes, bs.epochs, seed=seed,
-                              image_size=doc["image_size"], camera=doc["camera"], log=log)
+                              image_size=doc["image_size"], camera=doc["camera"],
+                              threads=min(2, cpu_cores()), log=log)
     return [f"{p.name}=cnn:{p}" for p in paths]
