@@ -21,12 +21,21 @@ DOWN = np.array([0.0, 1.0, 0.0, 0.0])  # tcp z down, tcp x = world x (wxyz)
 TCP_ABOVE_TIPS = 0.015  # the built-in gripper's tcp sits 15 mm above its fingertips
 
 
-def grasp_quat(direction_xy) -> np.ndarray:
-    """Gripper pointing down with tcp x along `direction_xy` (the fingers close across it); yaw folded
-    into [-pi/2, pi/2] since the fingers are symmetric."""
+def grasp_yaw(direction_xy) -> float:
+    """The yaw of tcp x along `direction_xy`, folded into [-pi/2, pi/2) since the fingers are symmetric."""
     yaw = float(np.arctan2(direction_xy[1], direction_xy[0]))
-    yaw = (yaw + np.pi / 2) % np.pi - np.pi / 2
+    return (yaw + np.pi / 2) % np.pi - np.pi / 2
+
+
+def down_quat(yaw: float) -> np.ndarray:
+    """Gripper pointing down with tcp x at `yaw` (rad, about world z; not folded)."""
     return quat_multiply(np.array([np.cos(yaw / 2), 0.0, 0.0, np.sin(yaw / 2)]), DOWN)
+
+
+def grasp_quat(direction_xy) -> np.ndarray:
+    """Gripper pointing down with tcp x along `direction_xy` (the fingers close across it), yaw folded
+    (`grasp_yaw`)."""
+    return down_quat(grasp_yaw(direction_xy))
 
 
 class Waypoint:

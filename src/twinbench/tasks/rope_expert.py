@@ -2,8 +2,9 @@
 near opening, drag it along the axis just above the clip (the hanging rope trails into the channel),
 lower it beyond the far opening, release, and keep clear. A rope lying beside the channel's axis (its
 centroid more than `lay_side` from it) is first lifted high, hanging, carried to the axis `lay_length`
-before the near opening with the hand turned so that the rope leaves the fingers along the axis, and
-lowered there: its tail touches down on the axis, and the drag pulls it along the axis into the channel.
+before the near opening with the hand turned so that the rope leaves the fingers backwards along the axis,
+and lowered there: the rope touches down behind the hand, and the drag pulls it along the axis into the
+channel.
 
 It plans from `obs["environment_state"]` (see tasks.rope_routing): the marked end, a rope point 4 cm from
 it (the rope's direction at the end, for the finger orientation), the rope's centroid and the clip pose.
@@ -13,7 +14,14 @@ from __future__ import annotations
 
 import numpy as np
 
-from twinbench.tasks.gripper_expert import TCP_ABOVE_TIPS, GripperExpert, Leg, grasp_quat
+from twinbench.tasks.gripper_expert import (
+    TCP_ABOVE_TIPS,
+    GripperExpert,
+    Leg,
+    down_quat,
+    grasp_quat,
+    grasp_yaw,
+)
 
 
 class RopeExpert(GripperExpert):
@@ -51,7 +59,10 @@ class RopeExpert(GripperExpert):
         if side > self.lay_side:  # the rope lies beside the channel's axis: lay it along the axis first
             high = self.carry_height + self.lay_lift  # most of the rope hangs below the hand
             start = near - axis * self.lay_length
-            q = grasp_quat(axis)  # turned while carrying: the rope leaves the fingers along the axis
+            # turned while carrying so that the rope's body (at the grip: -direction) leaves the fingers
+            # backwards along the axis: it touches down behind the hand and trails it through the channel
+            turn = np.arctan2(direction[0] * axis[1] - direction[1] * axis[0], direction @ axis)
+            q = down_quat(grasp_yaw(direction) + turn)
             carry = [
                 Leg("lift", np.r_[grip[:2], high], q0, g, tol=0.01, steps=90, slow=True),
                 Leg("carry", np.r_[start, high], q, g, tol=0.01, steps=150, slow=True),
