@@ -86,19 +86,21 @@ def bench_twin(device: str, steps: int, warmup: int = 4) -> None:
     cache = twin.render_cache
     both: dict = {True: [], False: []}
     front: dict = {True: [], False: []}
+    cpu: dict = {True: [], False: []}  # process CPU time of both cameras (all threads)
     for k in range(warmup + 2 * steps):
         twin.render_cache = None  # the env's own render: not asking for the wrist camera's pose twice
         obs, _, _, _, info = env.step(expert.select_action(policy_observation(expert, obs, info)))
         for on in (k % 2 == 0, k % 2 != 0):  # this step's A first, then B (the other order next step)
             twin.render_cache = cache if on else None
-            t0 = time.perf_counter()
+            t0, c0 = time.perf_counter(), time.process_time()
             images = twin.render(state)
-            t1 = time.perf_counter()
+            t1, c1 = time.perf_counter(), time.process_time()
             twin.render(state, ["front"])
             t2 = time.perf_counter()
             if k >= warmup:
                 both[on].append(t1 - t0)
                 front[on].append(t2 - t1)
+                cpu[on].append(c1 - c0)
             if on:
                 cached = images
             else:
@@ -108,7 +110,7 @@ def bench_twin(device: str, steps: int, warmup: int = 4) -> None:
                 raise AssertionError(f"render cache: {name} differs from the full render at step {k}")
     twin.render_cache = cache
     tag = f"twin_pusht_fast_{device.replace(':', '')}"
-    for label, times in (("2cams_240", both), ("front_240", front)):
+    for label, times in (("2cams_240", both), ("front_240", front), ("2cams_240_cpu_time", cpu)):
         print(f"{tag}_{label}_ms {1e3 * np.median(times[True]):.1f} ms")
         print(f"{tag}_{label}_ms_cache_off {1e3 * np.median(times[False]):.1f} ms")
     print(f"{tag}_cache_builds_hits_misses {cache.builds}/{cache.hits}/{cache.misses} count")

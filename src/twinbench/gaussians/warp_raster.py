@@ -8,12 +8,21 @@ culled. A Gaussian's footprint is the bounding box of the ellipse where alpha >=
 The Jacobian clamps x/z, y/z to 0.3 tan(fov/2) beyond the image (as gsplat does); SH colours are
 max(0, 0.5 + sum c_k Y_k(d)) with d the unit direction from the camera centre; rgb is clipped to [0, 1].
 
-Pipeline: project (packed 64-byte record per Gaussian) -> depth sort -> (tile, Gaussian) pairs in
-depth order -> stable sort by tile -> records gathered into pair order -> one thread per tile walks its
-Gaussians front to back and updates only the pixels of each Gaussian's ellipse, skipping runs of
-stopped pixels (per-row bitmasks) and stopping the tile when every pixel has stopped. On CPU the pair
-sorts run in NumPy; on CUDA (`_render_warp_batch`) they are Warp radix sorts, and a batch of views (every
-camera of every world) runs each stage once for all of them.
+Pipeline: project (packed 64-byte record per Gaussian; a Gaussian whose footprint bound misses the image
+is culled before its covariance is formed) -> stable depth sort (equal depths in index order) ->
+(tile, Gaussian) pairs in depth order -> stable sort by tile -> records gathered into pair order -> one
+thread per tile walks its Gaussians front to back and updates only the pixels of each Gaussian's ellipse,
+skipping runs of stopped pixels (per-row bitmasks), Gaussians whose rows have all stopped, and the tile
+once every pixel has stopped. On CPU the pair sorts run in NumPy; on CUDA (`_render_warp_batch`) they are
+Warp radix sorts (the same order), and a batch of views (every camera of every world) runs each stage
+once for all of them.
+
+Static/moving split (`RenderCache`, `SplitGaussians(static, moving)`): for a camera that has not moved,
+the static part's records, (tile, depth)-ordered pair lists and the image it makes alone are kept (on the
+render's device, shared by every view of that camera, e.g. many worlds); a render projects and bins only
+the moving part, rasterises only the tiles its pairs reach, merging the two lists by depth (static first
+on equal depths: the full render's order), and copies the kept pixels of every other tile. The images
+equal a full render of [static | moving] bit for bit.
 """
 
 from __future__ import annotations
@@ -667,9 +676,9 @@ class RenderCache:
     """Per-camera work on the static Gaussians kept between renders (the "warp" backend, CPU and CUDA).
 
     Pass it to `render_batch(..., cache=)` with views whose cloud is a `SplitGaussians(static, moving)`.
-    For each (static cloud, camera pose and intrinsics, background) asked for twice in a row it keeps the
+    For each (static cloud, camera pose and intrinsics, background) asked for a second time it keeps the
     static Gaussians' records, their (tile, depth)-ordered pair lists and the image they make alone, on
-    the render's device; later renders of that camera project only the moving Gaussians (see
+    the render's device; that render and later ones of that camera project only the moving Gaussians (see
     `_render_kept`). A camera that moves (a new key every render) never builds an entry: it gets full
     renders. Images equal full renders bit for bit. The static cloud is known by its arrays' addresses: a
     different cloud makes new entries, but after writing into a kept static cloud's arrays call `clear()`.
@@ -679,11 +688,13 @@ class RenderCache:
         self.max_entries = int(max_entries)
         self._kept: OrderedDict[tuple, _Kept] = OrderedDict()
         self._seen: OrderedDict[tuple, None] = OrderedDict()
+        self._lock = threading.Lock()  # renders from several threads may share a cache
         self.builds = self.hits = self.misses = 0  # counters, for tests and benchmarks
 
     def clear(self) -> None:
-        self._kept.clear()
-        self._seen.clear()
+        with self._lock:
+            self._kept.clear()
+            self._seen.clear()
 
     @staticmethod
     def _key(static: DeviceGaussians, cam: Camera, background) -> tuple:
@@ -695,9 +706,12 @@ class RenderCache:
         return str(static.device), arrays, intr.tobytes(), pose.tobytes(), bg.tobytes()
 
     def lookup(self, static: DeviceGaussians, cam: Camera, background, threads: int) -> _Kept | None:
-        """The kept work for this view, built on the second request in a row of its key; None: render in
-        full."""
+        """The kept work for this view, built on the second request of its key; None: render in full."""
         key = self._key(static, cam, background)
+        with self._lock:
+            return self._lookup(key, static, cam, background, threads)
+
+    def _lookup(self, key: tuple, static: DeviceGaussians, cam: Camera, background, threads: int):
         kept = self._kept.get(key)
         if kept is not None:
             self._kept.move_to_end(key)

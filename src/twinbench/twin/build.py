@@ -22,7 +22,9 @@ Per step: the controller turns the action into joint targets (IK + velocity-cont
 latch, DESIGN §5), the tool meshes' vertices are interpolated over the physics substeps, one spring-mass
 frame runs, and the fingers' contact forces feed the latch on the next step. Rendering poses the
 Gaussians from the state (robot links by FK, rigid objects by the best-fit rigid motion of their
-particles, deformable ones by LBS) into the state's Gaussian buffer, then renders the cameras.
+particles, deformable ones by LBS) into the state's Gaussian buffer, then renders the cameras; for a camera
+that has not moved, the background's render work is kept (`twin.render_cache`, shared by the worlds; set
+it to None for full renders: the images are the same).
 """
 
 from __future__ import annotations
