@@ -189,3 +189,24 @@ def test_cache_on_cuda_equals_full_render_on_cuda_and_cpu(make_cloud):
     assert cache.builds == 1 and cache.hits >= 6
     kept = next(iter(cache._kept.values()))
     assert str(kept.image.rgb.device) == "cuda:0" and str(kept.bins.records.device) == "cuda:0"
+
+
+def test_split_gaussians_whole_is_read_instead_of_a_copy(make_cloud, monkeypatch):
+    """SplitGaussians.whole (the caller's one-cloud copy, as a twin's world segment) serves full renders on
+    the batch path and other backends without concatenating; a whole of another size is refused."""
+    from twinbench.gaussians.cloud import DeviceGaussians
+    from twinbench.gaussians.warp_raster import _render_warp_batch, _whole
+
+    static, moving = make_cloud(200, seed=30, spread=0.3), make_cloud(50, seed=31, spread=0.2)
+    whole = GaussianCloud.concatenate([static, moving]).to_device("cpu")
+    split = SplitGaussians(whole.segment(0, 200), whole.segment(200, 50), whole)
+
+    def no_copy(items):
+        raise AssertionError("concatenated although `whole` was given")
+
+    monkeypatch.setattr(DeviceGaussians, "concatenate", staticmethod(no_copy))
+    assert _whole(split) is whole
+    got = _render_warp_batch([(_whole(split), _cam())], np.zeros(3, np.float32))[0]
+    _assert_same(got, render_batch([(split, _cam())], backend="warp")[0])
+    with pytest.raises(ValueError, match="whole has 250 Gaussians, not 249"):
+        SplitGaussians(whole.segment(0, 200), whole.segment(200, 49), whole)

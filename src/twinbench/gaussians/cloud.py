@@ -295,14 +295,18 @@ class DeviceGaussians:
 class SplitGaussians:
     """A cloud in two parts, rendered as their concatenation [static | moving]: `static` stays put between
     renders (a warp RenderCache keeps its per-camera work), `moving` may change every render. Many clouds
-    may share one `static` (e.g. a twin's worlds)."""
+    may share one `static` (e.g. a twin's worlds). `whole`, when the caller has it, is the same Gaussians
+    in one cloud (full renders and other backends read it instead of a concatenated copy)."""
 
     static: DeviceGaussians
     moving: DeviceGaussians
+    whole: DeviceGaussians | None = field(default=None, repr=False, compare=False)
 
     def __post_init__(self) -> None:
         if self.static.device != self.moving.device:
             raise ValueError("SplitGaussians: static and moving must live on the same device")
+        if self.whole is not None and len(self.whole) != len(self):
+            raise ValueError(f"SplitGaussians: whole has {len(self.whole)} Gaussians, not {len(self)}")
 
     @property
     def device(self):
@@ -312,5 +316,7 @@ class SplitGaussians:
         return len(self.static) + len(self.moving)
 
     def merged(self) -> DeviceGaussians:
-        """One device cloud [static | moving] (a copy)."""
+        """One device cloud [static | moving]: `whole`, else a concatenated copy."""
+        if self.whole is not None:
+            return self.whole
         return DeviceGaussians.concatenate([self.static, self.moving])

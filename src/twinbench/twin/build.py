@@ -530,7 +530,7 @@ class Twin:
             if self._static_gaussians is None:
                 static = self._rest_gaussians.subset(slice(0, n_static))
                 self._static_gaussians = static.to_device(self.device)
-            posed = [SplitGaussians(self._static_gaussians, g.segment(n_static, n_moving)) for g in posed]
+            posed = [SplitGaussians(self._static_gaussians, g.segment(n_static, n_moving), g) for g in posed]
         views = [(g, self.camera(state, n)) for state, g in zip(states, posed, strict=True) for n in names]
         outs = render_batch(views, background=self.spec.render_background, device=self.device,
                             cache=self.render_cache)
