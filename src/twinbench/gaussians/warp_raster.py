@@ -650,6 +650,8 @@ class _Kept:
 
     def __init__(self, static: DeviceGaussians, cam: Camera, background, threads: int) -> None:
         self.static = static  # holds the arrays (and so their addresses, part of the key) alive
+        if static.device.is_cpu and threads > 1:
+            wp.load_module(device=static.device)  # compile once, not concurrently in the worker threads
         ws, n, views = _project([static], cam, background, threads)
         self.bins = _Bins(ws, n, views, cam, threads)
         self.image = _Image(cam.width * cam.height, static.device)
