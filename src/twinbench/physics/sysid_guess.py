@@ -6,11 +6,13 @@ Each guess is a dict: ``value`` (None where the motion does not show the effect)
 was measured, or why not). Only the fitted frames of ``data`` (its training frames) are read.
 
 - **stiffness** (``spring_Y``, per unit strain, as the springs use it): while the control points hold
-  the object up, the control springs carry the weight of the particles off the ground and their
+  the object up, the control springs (each control point's shortest: within 1.5x its shortest, at most 8)
+  carry the weight of the particles off the ground and their
   vertical acceleration, ``sum_k M_off (g + a_z)``; their observed strains give ``sum_k S_z`` (the
   vertical component of ``strain * direction`` summed over the control springs); the ratio of the two
   sums is the stiffness at which those springs carry that load.
-- **ground friction**: the deceleration of points that slide to a stop on the ground (within 5 mm of it,
+- **ground friction**: the deceleration of points that slide to a stop on the ground (within 4 mm of the
+  level where particles rest on it,
   faster than 5 cm/s, slowing down over 3 frames) away from every control point, as a share of g (median
   over such samples); a lower bound (``lower_bound``: springs may still pull them along), so it raises
   the start only above the initial value.
@@ -31,9 +33,10 @@ from .model import SpringMassModel
 from .sysid_data import SysIdData
 
 G = 9.8
-GROUND_BAND = 0.005  # a point within this height of the ground touches it (m)
+GROUND_BAND = 0.004  # a point within this height of the ground level touches it (m)
 MIN_SLIDE_SPEED = 0.05  # m/s
 MIN_IMPACT_SPEED = 0.3  # m/s
+TIGHT = 8  # control springs per control point that the stiffness guess reads
 
 
 def _tracks(data: SysIdData) -> tuple[np.ndarray, np.ndarray]:
@@ -42,6 +45,13 @@ def _tracks(data: SysIdData) -> tuple[np.ndarray, np.ndarray]:
     x = data.tracked[:stop].copy()
     x[~data.motion_valid[:stop]] = np.nan
     return x, data.masses[data.tracked_indices] if data.masses is not None else np.ones(x.shape[1])
+
+
+def _ground_level(x: np.ndarray) -> float:
+    """The height of the particles resting on the ground (m): the 1st percentile of every tracked height,
+    within [0, 1 cm] (PhysTwin's particles rest at z = 0 or at their radius)."""
+    z = x[..., 2][np.isfinite(x[..., 2])]
+    return float(np.clip(np.percentile(z, 1), 0.0, 0.01)) if z.size else 0.0
 
 
 def _derivatives(x: np.ndarray, fps: float) -> tuple[np.ndarray, np.ndarray]:
@@ -63,18 +73,30 @@ def stiffness_guess(data: SysIdData, model: SpringMassModel) -> dict:
     rest = model.rest_lengths_np[model.num_object_springs:].astype(np.float64)
     part = np.where(sp[:, 0] < n_p, sp[:, 0], sp[:, 1])
     ctrl = np.where(sp[:, 0] < n_p, sp[:, 1], sp[:, 0]) - n_p
+    # the springs that carry the load: each control point's shortest ones (within 1.5x its shortest, at
+    # most TIGHT); the long ones also stretch with the object's own deformation
+    keep = np.zeros(len(rest), bool)
+    for c in np.unique(ctrl):
+        idx = np.flatnonzero(ctrl == c)
+        idx = idx[np.argsort(rest[idx], kind="stable")][:TIGHT]
+        keep[idx[rest[idx] <= 1.5 * rest[idx[0]]]] = True
+    part, ctrl, rest = part[keep], ctrl[keep], rest[keep]
     col = np.full(n_p, -1)
     col[data.tracked_indices] = np.arange(data.tracked_indices.size)
     seen = col[part] >= 0
     if not seen.any():
         return {"value": None, "from": "no tracked particle is attached to a control point"}
     mass_total = float(np.sum(data.masses)) if data.masses is not None else float(n_p)
+    ground = _ground_level(x)
+    d2 = (x[2:] - 2.0 * x[1:-1] + x[:-2]).ravel()
+    d2 = d2[np.isfinite(d2)]
+    var = float(np.median(d2 * d2)) / (6.0 * 0.4549) if d2.size else 0.0  # per-axis noise variance
     force, strain, frames = 0.0, 0.0, 0
     for k in range(2, x.shape[0] - 2):
         ok = np.all(np.isfinite(x[k]), axis=1)
         if ok.sum() < 3:
             continue
-        off = ok & (x[k, :, 2] > GROUND_BAND)
+        off = ok & (x[k, :, 2] > ground + GROUND_BAND)
         m_off = mass_total * float(m[off].sum() / m[ok].sum())
         acc = a[k, off, 2]
         acc = acc[np.isfinite(acc)]
@@ -85,6 +107,7 @@ def stiffness_guess(data: SysIdData, model: SpringMassModel) -> dict:
             continue
         d = data.controls[k][ctrl[s]] - x[k, col[part[s]]]
         length = np.linalg.norm(d, axis=1)
+        length = np.sqrt(np.maximum(length * length - 2.0 * var, 0.0))  # noise lengthens on average
         s_z = float(np.sum((length / rest[s] - 1.0) * d[:, 2] / np.maximum(length, 1e-9)))
         s_z *= seen.sum() / s.sum()  # the attached particles not tracked in this frame
         if s_z <= 0:
@@ -109,7 +132,7 @@ def friction_guess(data: SysIdData, control_radius: float) -> dict:
         dist = np.linalg.norm(x[:, :, None, :] - c[:, None, :, :], axis=3)
         near = np.any(dist < 1.5 * control_radius, axis=2)
     speed = np.linalg.norm(v[..., :2], axis=2)
-    low = x[..., 2] < GROUND_BAND
+    low = x[..., 2] < _ground_level(x) + GROUND_BAND
     use = low & ~near & (speed > MIN_SLIDE_SPEED) & np.isfinite(a[..., 0])
     use[2:-2] &= low[1:-3] & low[3:-1] & (speed[1:-3] > speed[2:-2]) & (speed[2:-2] > speed[3:-1])
     if use.sum() < 5:
@@ -126,8 +149,9 @@ def restitution_guess(data: SysIdData) -> dict:
     zc = np.array([np.nanmean(f[:, 2]) if np.isfinite(f[:, 2]).any() else np.nan for f in x])
     zlow = np.array([np.nanmin(f[:, 2]) if np.isfinite(f[:, 2]).any() else np.nan for f in x])
     vz = np.gradient(zc) * data.fps
+    ground = _ground_level(x)
     for k in range(1, len(zc) - 2):
-        if zlow[k] < GROUND_BAND and vz[k - 1] < -MIN_IMPACT_SPEED:
+        if zlow[k] < ground + GROUND_BAND and vz[k - 1] < -MIN_IMPACT_SPEED:
             top = float(np.nanmax(zc[: k + 1]))
             bottom = float(np.nanmin(zc[k: k + 3]))
             after = zc[k + 1:]
