@@ -1079,7 +1079,7 @@ def _choose_stage(evals: dict[str, SequenceEval], sel: range, notes: list[str]) 
         record = {"frames": [], "kept": kept, "rule": "no selection frames (select_frames 0 or under 4 "
                                                       "training frames): the last stage run is kept"}
     i = order.index(kept)
-    if i > 0 and evals[kept].val_error > evals[order[i - 1]].val_error:
+    if i > 0 and evals[kept].val_error > 1.005 * evals[order[i - 1]].val_error:  # worse by over 0.5 %
         prev = order[i - 1]
         notes.append(f"{kept} is kept, but its validation error {1e3 * evals[kept].val_error:.2f} mm is "
                      f"worse than {prev}'s {1e3 * evals[prev].val_error:.2f} mm (the validation frames do "
