@@ -202,14 +202,17 @@ def test_expert_needs_the_environment_state(env):
         make_expert(env).select_action(obs)
 
 
-@pytest.mark.parametrize("state", [0, 9])
-def test_expert_solves_grid_states(env, state):
-    success, steps = _run_expert(env, state)
-    assert success, f"expert failed on grid state {state}"
+def test_expert_solves_a_grid_state(env):
+    """One grid state in the default suite (the whole grid, final rule: the slow test below)."""
+    success, steps = _run_expert(env, 9)
+    assert success, "expert failed on grid state 9"
     assert steps < env._max_episode_steps
 
 
 @pytest.mark.slow
-def test_expert_solves_at_least_12_of_16_grid_states(env):
-    results = [_run_expert(env, i)[0] for i in range(16)]
-    assert sum(results) >= 12, results
+def test_expert_solves_the_whole_grid_under_the_final_rule():
+    """Every grid state, full-length episodes judged on their last 100 frames (the default rule);
+    benchmarks/expert_grid.py prints the same per state."""
+    env = TwinEnv("push-t", preset="fast")
+    failed = [i for i in range(16) if not _run_expert(env, i)[0]]
+    assert not failed, f"the expert fails grid states {failed}"

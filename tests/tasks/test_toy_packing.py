@@ -57,6 +57,9 @@ def test_conforms_to_gymnasium_and_is_deterministic(env):
 
 
 @pytest.mark.slow
-def test_expert_packs_at_least_70_percent_of_the_grid(env):
-    results = [expert_episode(env, make_expert(env), i) for i in range(20)]
-    assert sum(results) >= 0.7 * 20, results
+def test_expert_packs_the_whole_grid_under_the_final_rule():
+    """Every grid state, full-length episodes judged on their last 100 frames (the default rule);
+    benchmarks/expert_grid.py prints the same per state."""
+    final = TwinEnv("toy-packing", preset="fast")
+    failed = [i for i in range(20) if not expert_episode(final, make_expert(final), i)]
+    assert not failed, f"the expert fails grid states {failed}"
