@@ -181,3 +181,28 @@ def test_eval_in_process_against_a_remote_policy_exits(tmp_path):
                              env={**os.environ, "PYTHONUNBUFFERED": "1"})
     assert res.returncode == 0, res.stderr
     assert "1/1 successes" in res.stderr
+
+
+STUCK_PREFIXES = {  # what a client sends before going silent; the buffer is empty once a header is read
+    "one header byte": bytes([0x82]),
+    "a two-byte header": bytes([0x82, 0xFE]),
+    "a whole header": bytes([0x82, 0xFE]) + struct.pack(">H", 1000) + b"mask",
+    "a first fragment": bytes([0x02, 0x83]) + bytes(4) + b"abc",  # not final, masked with zeros
+}
+
+
+@pytest.mark.parametrize("prefix", STUCK_PREFIXES.values(), ids=STUCK_PREFIXES.keys())
+def test_a_begun_message_that_stops_falls_under_the_read_deadline_not_the_idle_one(prefix):
+    with PolicyServer(PointReachExpert, read_timeout_s=0.5, idle_timeout_s=60) as server:
+        stuck, idle = _raw(server.url), _raw(server.url)
+        stuck.recv(timeout=5)
+        idle.recv(timeout=5)
+        stuck.socket.sendall(prefix)
+        t0 = time.monotonic()
+        with pytest.raises(ConnectionClosedError) as err:
+            stuck.recv(timeout=10)
+        assert err.value.rcvd.code == 1008 and time.monotonic() - t0 < 3
+        idle.send(packb(OBS))  # a connection that began nothing is kept
+        assert unpackb(idle.recv(timeout=5))["actions"].shape == (1, 2)
+        stuck.close()
+        idle.close()

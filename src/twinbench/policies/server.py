@@ -13,10 +13,10 @@ replaced by <path>; the full traceback goes to this process's log), then the con
 
 Limits (all configurable): binds 127.0.0.1 by default; messages over `max_message_bytes` close the
 connection (code 1009) before they are read; at most `max_connections` clients at once (more get HTTP
-503); an idle client is dropped after `idle_timeout_s`, and one that has begun a message but not sent all
-of it within `read_timeout_s` (a slow sender holding a connection) too; with an `api_key` (or
-TWINBENCH_API_KEY set) every client must send openpi's header `Authorization: Api-Key <key>` (else HTTP
-401).
+503); an idle client is dropped after `idle_timeout_s`, and one that has begun a message (a frame's
+header is a beginning) but not sent all of it within `read_timeout_s` (a slow sender holding a connection)
+too; with an `api_key` (or TWINBENCH_API_KEY set) every client must send openpi's header
+`Authorization: Api-Key <key>` (else HTTP 401).
 """
 
 from __future__ import annotations
@@ -62,11 +62,33 @@ def public_error(err: BaseException) -> str:
 
 
 def _partial_message(ws) -> bool:
-    """Whether a message has begun to arrive but is not whole: a partial frame in the protocol's read
-    buffer, or the first fragments of a fragmented message."""
-    reader = getattr(getattr(ws, "protocol", None), "reader", None)
+    """Whether a message has begun to arrive but is not whole: unparsed bytes in the protocol's read
+    buffer, a frame whose header was read but not its payload (the parser is inside `Frame.parse`, the
+    buffer may be empty), or the first fragments of a fragmented message."""
+    from websockets.frames import Frame
+
+    protocol = getattr(ws, "protocol", None)
+    reader = getattr(protocol, "reader", None)
     frames = getattr(getattr(ws, "recv_messages", None), "frames", None)
-    return bool(len(getattr(reader, "buffer", b""))) or (frames is not None and not frames.empty())
+    gen, in_frame = getattr(protocol, "parser", None), False
+    for _ in range(8):  # the chain of `yield from`: ServerProtocol.parse, Protocol.parse, Frame.parse, ...
+        in_frame = in_frame or getattr(gen, "gi_code", None) is Frame.parse.__code__
+        gen = getattr(gen, "gi_yieldfrom", None)
+    return (bool(len(getattr(reader, "buffer", b""))) or in_frame
+            or getattr(protocol, "current_size", None) is not None
+            or (frames is not None and not frames.empty()))
+
+
+def _fail_connection(ws, code: int, reason: str) -> None:
+    """Send a close frame and end the TCP connection without waiting for the client's reply, which
+    would be read as the rest of the frame it has begun (RFC 6455 7.1.7, "fail the connection")."""
+    from websockets.exceptions import ConnectionClosed
+
+    try:
+        with ws.send_context():
+            ws.protocol.fail(code, reason)
+    except ConnectionClosed:
+        pass
 
 
 def _predict(policy, obs: dict) -> np.ndarray:
@@ -209,7 +231,7 @@ class PolicyServer:
             if _partial_message(ws):
                 begun = begun or now
                 if now - begun > self.read_timeout_s:
-                    ws.close(1008, f"a message took over {self.read_timeout_s:g} s to arrive")
+                    _fail_connection(ws, 1008, f"a message took over {self.read_timeout_s:g} s to arrive")
                     return None
             elif idle_end is not None and now >= idle_end:
                 ws.close(1000, "idle time-out")
