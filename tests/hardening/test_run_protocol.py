@@ -1,5 +1,6 @@
-"""The run protocol names the twin directory's content hash, so a run evaluated on a twin whose files
-changed since is refused on resume instead of mixing two twins' outcomes (issue 25)."""
+"""The run protocol names the twin's content hash (a twin directory's files, or the TwinSpec a built-in cell
+builds), so a run evaluated on a twin that changed since is refused on resume instead of mixing two twins'
+outcomes (issue 25)."""
 
 from __future__ import annotations
 
@@ -65,3 +66,55 @@ def test_the_stored_protocol_names_the_twin_hash_and_a_changed_twin_is_refused(t
     capsys.readouterr()
     assert cli(_eval(folder, db, tmp_path / "out")) == 2
     assert "its files have changed since" in capsys.readouterr().err
+
+
+class _Ran(Exception):
+    """Raised by the stand-in for the episode runner: the protocol was accepted and stored."""
+
+
+def _no_episodes(*args, **kwargs):
+    raise _Ran
+
+
+def _friction(monkeypatch, value):
+    """The push-T cell as a code change would make it: another ground friction."""
+    import dataclasses
+
+    import twinbench.twin.cells as cells
+
+    real = cells.push_t_cell
+
+    def changed(*args, **kwargs):
+        spec = real(*args, **kwargs)
+        return dataclasses.replace(spec, sim=dataclasses.replace(spec.sim, ground_friction=value))
+
+    monkeypatch.setattr(cells, "push_t_cell", changed)
+
+
+def test_a_built_in_cell_is_identified_by_its_content(tmp_path, monkeypatch, capsys):
+    import twinbench.evaluation.runner as runner
+    from twinbench.env import resolve_task_twin
+    from twinbench.errors import InputError
+    from twinbench.twin.files import twin_spec_hash
+
+    monkeypatch.setattr(runner, "run_local", _no_episodes)
+    store = ResultsStore(tmp_path / "r.sqlite")
+    args = ("push-t", ["expert"], "grid:0", 0, "R", store)
+    kw = {"output_dir": tmp_path / "out", "env_kwargs": {"preset": "fast"}}
+    with pytest.raises(_Ran):
+        runner.evaluate(*args, **kw)
+    stored = store.run_protocol("R")["twin_hash"]
+    assert stored == twin_spec_hash(resolve_task_twin("push-t", None, "fast", None, {})[1])
+    assert stored != twin_spec_hash(resolve_task_twin("push-t", None, "reference", None, {})[1])
+    with pytest.raises(_Ran):  # the same cell: the run resumes
+        runner.evaluate(*args, **kw)
+    _friction(monkeypatch, 0.77)
+    with pytest.raises(InputError, match="built-in cell .* the cell the code builds has changed since"):
+        runner.evaluate(*args, **kw)
+    argv = ["eval", "--run-id", "R", "--task", "push-t", "--policy", "expert", "--episodes", "grid:0",
+            "--workers", "0", "--env-kwargs", '{"preset": "fast"}', "--db", str(tmp_path / "r.sqlite"),
+            "--output-dir", str(tmp_path / "out")]
+    capsys.readouterr()
+    assert cli(argv) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "has changed since" in err[0] and "new --run-id" in err[0], err

@@ -97,20 +97,39 @@ def _remove_partial_videos(jobs) -> None:
             partial_path(job.video_path).unlink(missing_ok=True)
 
 
-def _twin_hash(twin, run_id: str, store: ResultsStore) -> str:
-    """The content hash of the twin directory `twin`; InputError when run `run_id` was started on a twin
-    with other content (its files changed since: resuming would mix two twins' outcomes)."""
-    from twinbench.twin.files import twin_dir_hash
+def _twin_hash(task: str, env_kwargs: dict, run_id: str, store: ResultsStore) -> str:
+    """The content hash of the twin the run evaluates on: the twin directory `env_kwargs["twin"]`, or the
+    task's built-in cell as `env_kwargs` build it; InputError when run `run_id` was started on a twin with
+    other content (resuming would mix two twins' outcomes)."""
+    import inspect
+    import json
 
-    now = twin_dir_hash(twin)
+    from twinbench.env import TwinEnv, resolve_task_twin
+    from twinbench.twin.files import twin_dir_hash, twin_spec_hash
+
+    twin = env_kwargs.get("twin")
+    if twin is not None:
+        now = twin_dir_hash(twin)
+        what, changed, fix = f"the twin {twin}", "its files have changed since", "restore the twin's files"
+    else:  # the built-in cell, built from the keyword arguments TwinEnv passes on as settings
+        named = inspect.signature(TwinEnv.__init__).parameters
+        settings = {k: v for k, v in env_kwargs.items() if k not in named}
+        try:
+            _, spec = resolve_task_twin(task, None, env_kwargs.get("preset", "reference"),
+                                        env_kwargs.get("roles"), settings)
+        except (TypeError, ValueError) as err:
+            raise InputError(f"--env-kwargs {json.dumps(env_kwargs)}: {err}") from None
+        now = twin_spec_hash(spec)
+        what, changed, fix = (f"task {task!r}'s built-in cell", "the cell the code builds has changed "
+                              "since", "go back to the code that built it")
     try:
         before = store.run_protocol(run_id).get("twin_hash")
     except KeyError:  # a new run
         return now
     if before is not None and before != now:
-        raise InputError(f"run {run_id!r} in {store.path} was evaluated on the twin {twin} with content hash "
-                         f"{before[:12]}..., its files have changed since (now {now[:12]}...); use a new "
-                         "--run-id for the changed twin, or restore the twin's files to resume")
+        raise InputError(f"run {run_id!r} in {store.path} was evaluated on {what} with content hash "
+                         f"{before[:12]}..., {changed} (now {now[:12]}...); use a new --run-id for the "
+                         f"changed twin, or {fix} to resume")
     return now
 
 
@@ -170,8 +189,8 @@ def evaluate(task: str, policies: Sequence[str], episodes: str | int = "grid", w
                 "init_states": [i for i, _ in states], "seeds": [s for _, s in states],
                 "policies": list(policies), "base_seed": int(seed), "env_kwargs": env_kwargs,
                 "env_id": spec_task.env_id, "grid": grid_info(task, env_kwargs), "versions": _versions()}
-    if isinstance(env_kwargs.get("twin"), str | Path):  # a twin directory: resuming needs the same files
-        protocol["twin_hash"] = _twin_hash(env_kwargs["twin"], run_id, store)
+    if spec_task.task_cls is not None:  # a twin (directory or built-in cell): resuming needs the same one
+        protocol["twin_hash"] = _twin_hash(task, env_kwargs, run_id, store)
     store.start_run(run_id, task, protocol)
     out_dir = Path(output_dir)
     jobs: dict[tuple[str, str, int, int], EpisodeJob] = {}  # by (policy, checkpoint, init_state, seed)

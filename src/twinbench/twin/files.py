@@ -604,6 +604,51 @@ def twin_dir_hash(folder) -> str:
     return h.hexdigest()
 
 
+
+def _feed(h, value) -> None:
+    """Feed `value` (dataclasses, dicts, sequences, arrays, scalars) into hash `h`, typed and delimited."""
+    if dataclasses.is_dataclass(value):
+        h.update(f"<{type(value).__name__}".encode())
+        for f in dataclasses.fields(value):
+            h.update(f"{f.name}=".encode())
+            _feed(h, getattr(value, f.name))
+        h.update(b">")
+    elif isinstance(value, dict):
+        h.update(f"{{{len(value)}".encode())
+        for k in sorted(value, key=str):
+            _feed(h, k)
+            _feed(h, value[k])
+    elif isinstance(value, list | tuple):
+        h.update(f"[{len(value)}".encode())
+        for v in value:
+            _feed(h, v)
+    elif isinstance(value, np.ndarray):
+        a = np.ascontiguousarray(value)
+        h.update(f"a{a.dtype.str}{a.shape}".encode())
+        h.update(a.tobytes() if a.dtype != object else repr(a.tolist()).encode())
+    else:  # None, bool, int, float, str, numpy scalars: their repr is exact
+        h.update(f"{type(value).__name__}:{value!r};".encode())
+
+
+def twin_spec_hash(spec: TwinSpec) -> str:
+    """SHA-256 (hex) of a TwinSpec's data as it is built: every field (arrays by dtype, shape and bytes),
+    and the bytes of the robot's URDF and the meshes it references (a built-in robot's from its assets).
+    A built-in cell whose code changed what it builds hashes differently."""
+    import hashlib
+
+    from twinbench.robot.builtin import ASSETS
+    from twinbench.robot.model import urdf_mesh_files
+
+    h = hashlib.sha256()
+    _feed(h, spec)
+    tool = spec.robot.builtin_tool
+    urdf = ASSETS / f"xarm7_{tool}.urdf" if tool is not None else Path(spec.robot.urdf)
+    files = [urdf, urdf.with_suffix(".json")] if tool is not None else [urdf]
+    for path in files + sorted(p for _, p in urdf_mesh_files(urdf)):
+        h.update(f"{path.name}\0{path.stat().st_size}\0".encode())
+        h.update(path.read_bytes())
+    return h.hexdigest()
+
 def _jsonable(value):
     if dataclasses.is_dataclass(value):
         return {f.name: _jsonable(getattr(value, f.name)) for f in dataclasses.fields(value)}
