@@ -57,6 +57,9 @@ class EvaluateConfig:
     task: str = "push-t"
     size: str = "small"
     workers: int = 1
+    bc: bool = False
+    """also train small CNN policies by behaviour cloning on expert demonstrations recorded in the real
+    workcell (study.bc; needs the torch extra: pip install 'twinbench[torch]')"""
 
 
 @dataclass(frozen=True)
@@ -71,6 +74,9 @@ class RunConfig:
     seed: int = 0
     workers: int = 1
     """evaluation worker processes"""
+    bc: bool = False
+    """also train small CNN policies by behaviour cloning on expert demonstrations recorded in the real
+    workcell (study.bc; needs the torch extra: pip install 'twinbench[torch]')"""
 
 
 StudyCommand = (
@@ -96,6 +102,10 @@ def _evaluate(cfg: EvaluateConfig) -> int:
     rank = {v: i for i, v in enumerate(VARIANTS)}
     twins = dict(sorted(twins.items(), key=lambda kv: (rank.get(kv[0], len(rank)), kv[0])))
     policies = make_policies(cfg.task, real, cfg.out / "policies", cfg.size, twins.get("full"))
+    if cfg.bc:
+        from twinbench.study.bc import make_bc_policies
+
+        policies += make_bc_policies(cfg.task, real, cfg.out / "policies" / "bc", cfg.size)
     times = run_evaluations(cfg.task, real, twins, policies, cfg.out, cfg.size, cfg.workers)
     doc = write_study_json(cfg.out, cfg.task, cfg.size, list(twins), times, {"policies": policies})
     write_study_report(cfg.out, doc)
@@ -124,7 +134,7 @@ def main(cfg) -> int:
         from twinbench.study.evaluate import format_table
         from twinbench.study.run import run_study
 
-        doc = run_study(cfg.task, cfg.out, cfg.size, cfg.seed, cfg.workers)
+        doc = run_study(cfg.task, cfg.out, cfg.size, cfg.seed, cfg.workers, bc=cfg.bc)
         print(format_table(doc))
         print("stage wall times: " + ", ".join(f"{k} {v:.0f} s" for k, v in doc["stage_seconds"].items()))
         print(f"wrote {cfg.out / 'study.json'} and {cfg.out / 'report.html'}")

@@ -3,7 +3,8 @@
     DIR/real       the hidden real workcell (study.real.make_real)
     DIR/evidence   what a user has of it (study.evidence.make_evidence)
     DIR/twins/V    the twins rebuilt through the public CLI, one per variant (study.reconstruct)
-    DIR/policies   the perception controllers' configs and their colour calibration (study.evaluate)
+    DIR/policies   the perception controllers' configs and their colour calibration (study.evaluate), and
+                   with `bc` the behaviour-cloning demonstrations and checkpoints in DIR/policies/bc
     DIR/results    the results store of every evaluation (real rollouts and each twin)
     DIR/study.json the table and the stage times;  DIR/report.html the study page
 """
@@ -13,7 +14,7 @@ from __future__ import annotations
 import time
 from pathlib import Path
 
-STAGES = ("make-real", "evidence", "reconstruct", "policies", "evaluate", "report")
+STAGES = ("make-real", "evidence", "reconstruct", "policies", "bc", "evaluate", "report")
 
 
 class _Timer:
@@ -31,8 +32,9 @@ class _Timer:
 
 
 def run_study(task: str, out: Path, size: str = "small", seed: int = 0, workers: int = 1,
-              variants: tuple[str, ...] | None = None, log=print) -> dict:
-    """Every stage of a study of `task` into `out`; returns study.json's content."""
+              variants: tuple[str, ...] | None = None, log=print, bc: bool = False) -> dict:
+    """Every stage of a study of `task` into `out`; returns study.json's content. `bc`: also the CNN
+    behaviour-cloning policies (study.bc; the torch extra)."""
     from twinbench.study.evaluate import make_policies, run_evaluations, study_size, write_study_json
     from twinbench.study.evidence import make_evidence
     from twinbench.study.real import make_real
@@ -49,6 +51,10 @@ def run_study(task: str, out: Path, size: str = "small", seed: int = 0, workers:
     camera_twin = twins.get("full", next(iter(twins.values())))
     world = real / "world"
     policies = timer("policies", make_policies, task, world, out / "policies", size, camera_twin, log)
+    if bc:
+        from twinbench.study.bc import make_bc_policies
+
+        policies += timer("bc", make_bc_policies, task, world, out / "policies" / "bc", size, log)
     eval_times = timer("evaluate", run_evaluations, task, world, twins, policies, out, size, workers, log)
     extra = {"evaluation_seconds": eval_times, "policies": policies, "seed": seed}
     doc = write_study_json(out, task, size, list(twins), timer.seconds, extra)
