@@ -61,3 +61,16 @@ def test_corrupted_arrays_name_the_file(case_dir, tmp_path, capsys):
     npz.write_bytes(bytes(raw))
     err = _run(["--data", str(case_dir)], tmp_path / "out", capsys)
     assert len(err) == 1 and "data.npz" in err[0], err
+
+
+def test_dt_zero_is_automatic_and_a_tiny_dt_is_refused(case_dir, tmp_path, capsys):
+    """--dt 0 (was an internal ZeroDivisionError) means automatic substeps, alone or with --substeps; a dt
+    so small that it needs millions of substeps per frame (runs for hours) is refused before simulating."""
+    from twinbench.physics.sysid import FitConfig
+
+    auto, given = FitConfig(dt=0.0).base_params(30.0), FitConfig(dt=0.0, substeps=5).base_params(30.0)
+    assert auto.substeps >= 1 and auto.dt * auto.substeps == pytest.approx(1 / 30)
+    assert (given.substeps, given.dt) == (5, pytest.approx(1 / 150))
+    for dt in ("1e-9", "5e-324"):
+        err = _run(["--data", str(case_dir), "--dt", dt], tmp_path / "out", capsys)
+        assert len(err) == 1 and f"--dt {float(dt)}: gives" in err[0] and "at most 100000" in err[0], err

@@ -329,6 +329,9 @@ class FitConfig:
             n = substeps or round(1.0 / (fps * 5e-5))
             return SimParams(dt=1.0 / (fps * n), substeps=n, ground=self.ground,
                              self_collision=self.self_collision)
+        if not self.substeps and 1.0 / (fps * self.dt) > 100_000.5:  # --substeps itself is range-checked
+            raise ValueError(f"--dt {self.dt}: gives {1.0 / (fps * self.dt):.3g} substeps per frame at "
+                             f"{fps:g} fps (at most 100000); give a larger --dt, or 0 for automatic substeps")
         n = self.substeps or max(1, round(1.0 / (fps * self.dt)))
         dt = self.dt or 1.0 / (fps * n)
         return SimParams(dt=dt, substeps=n, ground=self.ground, self_collision=self.self_collision)
