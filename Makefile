@@ -25,6 +25,8 @@ EXTRAS ?= $(or $(INSTALLED_EXTRAS),dev $(if $(LEGACY),$(if $(wildcard $(VENV)/bi
 KEEP := $(if $(LEGACY),--inexact)
 SYNC = $(UV) sync --locked --python $(PYTHON) $(addprefix --extra ,$(EXTRAS))
 UV := .tools/bin/uv
+# pytest-xdist processes for `make test` (whole test files to each); 0 runs the suite in one process
+TEST_WORKERS ?= 2
 # uv reads the system's CA bundle (as pip does) and never downloads an interpreter.
 export UV_SYSTEM_CERTS := 1
 export UV_PYTHON_DOWNLOADS := never
@@ -57,7 +59,7 @@ demo: $(STAMP)
 	$(PY) -m twinbench.cli demo
 
 test: $(STAMP)
-	$(PY) -m pytest -q --durations=15
+	$(PY) -m pytest -q -n $(TEST_WORKERS) --dist loadfile --durations=15
 
 lint: $(STAMP)
 	$(VENV)/bin/ruff check src tests benchmarks plugins
