@@ -52,6 +52,15 @@ def test_out_of_range_physics_and_controller_fields_are_named(good, tmp_path, se
     assert text.count("twin.json") == 1, text
 
 
+
+@pytest.mark.parametrize("quat", [[0, 0, 0, 0], [0, 1, 0]])
+def test_a_planar_quat_that_is_no_rotation_is_refused(good, tmp_path, quat):
+    """All zeros passed the per-number range and made every planar target a NaN pose (audit of issue 25)."""
+    root = _copy(good, tmp_path, lambda d: d["controller"].__setitem__("planar_quat", quat))
+    with pytest.raises(TwinFormatError, match=r"twin\.json: controller: planar_quat: expected a wxyz quat"):
+        load_twin(root)
+
+
 def test_twin_show_reports_a_nan_field_in_one_line(good, tmp_path, capsys):
     root = _copy(good, tmp_path, lambda d: d["sim"].__setitem__("ground_friction", float("nan")))
     assert cli(["twin", "show", str(root), "--out-dir", str(tmp_path / "png")]) == 2

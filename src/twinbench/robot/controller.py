@@ -43,6 +43,13 @@ class ControllerConfig:
         for name in ("max_joint_delta", "velocity_gain", "velocity_dt", "control_hz", "gripper_rate"):
             if not getattr(self, name) > 0:
                 raise ValueError(f"{name}: must be > 0, got {getattr(self, name)}")
+        try:
+            quat = np.asarray(self.planar_quat, dtype=np.float64)
+        except (TypeError, ValueError):
+            quat = np.zeros(0)
+        if quat.shape != (4,) or not np.all(np.isfinite(quat)) or not np.linalg.norm(quat) > 1e-6:
+            raise ValueError(f"planar_quat: expected a wxyz quaternion (4 finite numbers, not all 0), got "
+                             f"{self.planar_quat!r}")
 
     @property
     def action_dim(self) -> int:
