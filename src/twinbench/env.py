@@ -51,14 +51,25 @@ from twinbench.tasks.base import SuccessWindow
 
 RESET_OPTIONS = ("init_state", "sampled", "object_poses")
 SUCCESS_RULES = ("final", "early")
-# (type, lowest, highest) of the keyword arguments a built-in cell turns into its physics step; substeps
-# has the range of a twin directory's `sim.substeps` (twin.files.FIELD_RANGES, read when checking)
-SETTING_RANGES = {"fps": (float, 1.0, 1000.0)}
+# (type, lowest, highest) of the keyword arguments a built-in cell turns into its physics step, and of the
+# settings every task has; substeps has the range of a twin directory's `sim.substeps`
+# (twin.files.FIELD_RANGES, read when checking)
+SETTING_RANGES = {"fps": (float, 1.0, 1000.0), "episode_seconds": (float, 1e-3, 86_400.0),
+                  "success_window": (int, 1, 10**6), "success_min_hits": (int, 1, 10**6),
+                  "settle_steps": (int, 0, 100_000)}
+
+
+def _numbers(value):
+    if isinstance(value, list | tuple | np.ndarray):
+        for v in value:
+            yield from _numbers(v)
+    elif isinstance(value, float | np.floating):
+        yield value
 
 
 def check_settings(settings: dict) -> None:
     """ValueError naming the keyword argument for a setting out of its range (`SETTING_RANGES`, and
-    `substeps` as in twin.json)."""
+    `substeps` as in twin.json), or holding a NaN or infinite number."""
     from twinbench.twin.files import FIELD_RANGES
 
     ranges = {"substeps": (int, *FIELD_RANGES["sim"]["substeps"][:2]), **SETTING_RANGES}
@@ -71,6 +82,9 @@ def check_settings(settings: dict) -> None:
         if not ok or not lo <= value <= hi:  # NaN fails too
             raise ValueError(f"{name}={value!r}: expected {'an integer' if kind is int else 'a number'} in "
                              f"[{lo}, {hi}]")
+    for name, value in settings.items():
+        if not all(np.isfinite(v) for v in _numbers(value)):
+            raise ValueError(f"{name}={value!r}: numbers must be finite")
 
 
 def check_reset_options(options) -> dict:

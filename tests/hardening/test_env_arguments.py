@@ -21,6 +21,10 @@ from twinbench.env import TwinEnv, TwinVectorEnv
     ({"fps": float("nan")}, "fps=nan"),
     ({"fps": float("inf")}, "fps=inf"),
     ({"fps": "30"}, "fps='30'"),
+    ({"episode_seconds": float("nan")}, "episode_seconds=nan: expected a number in [0.001, 86400.0]"),
+    ({"settle_steps": -1}, "settle_steps=-1: expected an integer in [0, 100000]"),
+    ({"success_window": 0}, "success_window=0: expected an integer in [1, 1000000]"),
+    ({"pusher_start": [float("nan"), 0.0]}, "pusher_start=[nan, 0.0]: numbers must be finite"),
 ])
 def test_out_of_range_settings_name_the_argument(kw, needle):
     with pytest.raises(ValueError) as err:
