@@ -111,8 +111,11 @@ def _twin_hash(task: str, env_kwargs: dict, run_id: str, store: ResultsStore) ->
     if twin is not None:
         now = twin_dir_hash(twin)
         what, changed, fix = f"the twin {twin}", "its files have changed since", "restore the twin's files"
-    else:  # the built-in cell, built from the keyword arguments TwinEnv passes on as settings
-        named = inspect.signature(TwinEnv.__init__).parameters
+    else:  # the built-in cell, from the keyword arguments that gymnasium.make and TwinEnv pass on as settings
+        import gymnasium
+
+        named = {*inspect.signature(TwinEnv.__init__).parameters,
+                 *inspect.signature(gymnasium.make).parameters}
         settings = {k: v for k, v in env_kwargs.items() if k not in named}
         try:
             _, spec = resolve_task_twin(task, None, env_kwargs.get("preset", "reference"),
