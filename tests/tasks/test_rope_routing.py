@@ -106,11 +106,39 @@ def test_conforms_to_gymnasium_and_is_deterministic(env):
 
 
 
+@pytest.mark.parametrize("theta_deg", [-15.0, -10.0, 0.0, 10.0, 15.0])
+@pytest.mark.parametrize("clip_y", [0.05, -0.2])
+def test_expert_carries_the_rope_trailing_behind_the_hand(theta_deg, clip_y):
+    """Laying a rope that lies beside the channel: while carrying, the hand turns so that the rope's body
+    (at the grip, opposite the marked end) points backwards along the channel's axis, whichever way the
+    folded grasp yaw pointed, turning the shorter way."""
+    from twinbench.tasks.rope_expert import RopeExpert
+    from twinbench.transforms import quat_to_matrix
+
+    th = np.deg2rad(theta_deg)
+    d = np.array([np.cos(th), np.sin(th), 0.0])  # the rope's direction at its marked end
+    end = np.array([0.57, -0.05, 0.003])
+    clip = (0.62, clip_y, 0.0)  # channel along world y: the axis runs from the rope's side towards the clip
+    s = np.r_[end, end - 0.04 * d, end - 0.16 * d, clip, 0.0, 0.0]
+    legs = {leg.name: leg for leg in RopeExpert(channel_length=0.035, channel_depth=0.03).plan(s)}
+    axis = np.array([0.0, np.sign(clip_y - s[7]), 0.0])
+    grip, carry = quat_to_matrix(legs["close"].quat), quat_to_matrix(legs["carry"].quat)
+    body = carry @ grip.T @ -d  # the rope's body, turned with the hand
+    np.testing.assert_allclose(body, -axis, atol=1e-9)
+    turn = np.arctan2(carry[1, 0], carry[0, 0]) - np.arctan2(grip[1, 0], grip[0, 0])
+    turn = (turn + np.pi) % (2 * np.pi) - np.pi
+    assert abs(turn) <= np.deg2rad(90.0 + abs(theta_deg)) + 1e-9  # the shorter way round
+    assert all(np.allclose(legs[k].quat, legs["carry"].quat) for k in ("lay", "drag", "lower"))
+
+
 def test_expert_routes_the_centre_state(env):
     assert expert_episode(env, make_expert(env), 13)
 
 
 @pytest.mark.slow
-def test_expert_routes_at_least_70_percent_of_the_grid(env):
-    results = [expert_episode(env, make_expert(env), i) for i in range(27)]
-    assert sum(results) >= 0.7 * 27, results
+def test_expert_routes_the_whole_grid_under_the_final_rule():
+    """Every grid state, full-length episodes judged on their last 100 frames (the default rule);
+    benchmarks/expert_grid.py prints the same per state."""
+    final = TwinEnv("rope-routing", preset="fast")
+    failed = [i for i in range(27) if not expert_episode(final, make_expert(final), i)]
+    assert not failed, f"the expert fails grid states {failed}"
