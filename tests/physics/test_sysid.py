@@ -241,7 +241,12 @@ def _check_identification(data, truth, result):
     def fitted(ev):  # stage 1's objective over the training frames
         return ev.terms["chamfer"] + ev.terms["track"]
 
-    assert fitted(stage1) < fitted(result.evals["initial"]) and result.params.spring_Y != 1000.0
+    # never worse than the hand-set start (the data's guesses are scored against it); when it found nothing
+    # better it keeps that start and says so (the cloth case since stage 1 starts from the data's guesses)
+    assert fitted(stage1) <= fitted(result.evals["initial"])
+    kept_start = any(n.startswith("stage 1 did not improve") for n in result.notes)
+    moved = fitted(stage1) < fitted(result.evals["initial"]) and result.params.spring_Y != 1000.0
+    assert kept_start or moved
     assert final.val_error < 0.5 * stage1.val_error, (final.val_error, stage1.val_error)
     # against the noise-free truth as well (the observations carry 1 mm noise per axis)
     n = result.model.num_object_springs

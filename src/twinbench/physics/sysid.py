@@ -560,7 +560,8 @@ def stage1_cma(data: SysIdData, base: SimParams, initial: GlobalParams, cfg: CMA
                weights: LossWeights = LossWeights(), device: str = "cpu", progress: bool = False,
                log: Callable[[str], None] = print,
                base_of: Callable[[GlobalParams], SimParams] | None = None,
-               walk: bool = False) -> tuple[GlobalParams, list[dict]]:
+               walk: bool = False,
+               candidates: tuple[GlobalParams, ...] = ()) -> tuple[GlobalParams, list[dict]]:
     """CMA-ES over the searched global parameters (normalised to [0, 1], stiffness in log space).
 
     When stiffness is searched, a scan of ``SCAN_POINTS`` log-spaced stiffness values (the other
@@ -568,8 +569,9 @@ def stage1_cma(data: SysIdData, base: SimParams, initial: GlobalParams, cfg: CMA
     hand-set stiffness (the scan runs from soft to stiff and stops once two successive values rise past its
     minimum: the stiff candidates, which need the most substeps, are skipped when the answer is already
     bracketed); with ``walk`` (``initial.spring_Y`` is a guess from the data) the scan instead steps from
-    it by half a decade towards the lower loss until the loss rises (a bracket around the guess). CMA-ES
-    then starts from the better of ``initial`` and the scan's best and stops after
+    it by half a decade towards the lower loss until the loss rises (a bracket around the guess). The
+    ``candidates`` (e.g. the hand-set values a guess replaced) are scored too, so a guess never leaves the
+    search worse off than its own start. CMA-ES then starts from the best of these and stops after
     ``cfg.patience`` generations without a 1 % improvement, or at the budget. Each
     evaluation simulates the training frames (with ``base_of(candidate)`` when given: substeps stable for
     the candidate's stiffness) and scores Chamfer + tracking (the acceleration term regularises stage 2's
@@ -635,6 +637,9 @@ def stage1_cma(data: SysIdData, base: SimParams, initial: GlobalParams, cfg: CMA
                 bar.update(task, advance=1, info=f"best {best[0]:.3e}")
                 if len(scan) >= 3 and scan[-1] > scan[-2] > min(scan) and min(scan) < PENALTY:
                     break
+        for c in candidates:
+            objective(c)
+            bar.advance(task)
         x0 = [ranges[n].encode(getattr(best[1], n)) for n in names]
         opts = {"bounds": [0.0, 1.0], "maxfevals": max(cfg.budget - len(history), 1), "seed": cfg.seed + 1,
                 "verbose": -9, "verb_log": 0, "verb_disp": 0}
@@ -1011,13 +1016,14 @@ def identify(data: SysIdData, cfg: FitConfig, *, base: SimParams | None = None,
         t0 = time.perf_counter()
         params, history1 = stage1_cma(fit, base, start, cfg.cma, cfg.weights, cfg.device, cfg.progress, log,
                                       base_of=base_of if topo is not None else None,
-                                      walk=bool(guesses.get("spring_Y", {}).get("used")))
+                                      walk=bool(guesses.get("spring_Y", {}).get("used")),
+                                      candidates=() if start == params else (params,))
         seconds["stage1"] = time.perf_counter() - t0
         models["stage1"] = build_model(data, params, base_of(params), cfg.device)
         evals["stage1"] = evaluate(models["stage1"], data, loss)
         stage_params["stage1"] = params
         ident = identifiability(history1, parse_ranges(cfg.cma.ranges))
-        if params == start:
+        if params in (start, cfg.initial):
             notes.append(f"stage 1 did not improve on its start: none of {len(history1) - 1} candidates "
                          "beat the starting values (widen cma.ranges or check the data)")
     adam = cfg.adam
