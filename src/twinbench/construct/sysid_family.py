@@ -16,9 +16,10 @@ import math
 
 import numpy as np
 
+from twinbench.construct.sysid_synthetic import simulated_tracks
 from twinbench.physics.model import ModelBuilder, lattice
 from twinbench.physics.params import SimParams
-from twinbench.physics.sysid import GlobalParams, rollout, stable_substeps
+from twinbench.physics.sysid import GlobalParams, stable_substeps
 from twinbench.physics.sysid_data import SysIdData
 
 LAYOUTS = ("rope", "cloth", "block", "irregular")
@@ -124,14 +125,9 @@ def family_case(i: int, seed: int = 0, *, frames: int = 30, validation_frames: i
                              max_neighbors=truth.control_max_neighbors)
     model = b.finalize()
     model.set_spring_log_y(log_y)
-    xs = rollout(model, controls, frames - 1)[0].astype(np.float64)
-    n = len(pts)
-    observed = xs + rng.normal(0.0, noise, xs.shape)
-    visibility = rng.random((frames, n)) < visible_fraction
-    visibility[np.arange(frames), rng.integers(0, n, frames)] = True
-    tracked_idx = np.arange(n)
-    tracked = xs + rng.normal(0.0, noise, xs.shape)
-    motion_valid = rng.random((frames, n)) >= 0.05
+    tracked_idx = np.arange(len(pts))
+    xs, observed, visibility, tracked, motion_valid = simulated_tracks(model, controls, frames, rng, noise,
+                                                                       visible_fraction, tracked_idx)
     name = f"{layout}_{interaction}_{i}"
     data = SysIdData(pts, observed, visibility, tracked_idx, tracked, motion_valid, controls, fps=30.0,
                      validation_frames=validation_frames, name=name, springs=sp)

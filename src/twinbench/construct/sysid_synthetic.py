@@ -14,6 +14,21 @@ from twinbench.physics.sysid import GlobalParams, rollout
 from twinbench.physics.sysid_data import SysIdData
 
 
+def simulated_tracks(model, controls: np.ndarray, frames: int, rng: np.random.Generator, noise: float,
+                     visible_fraction: float, tracked_idx: np.ndarray):
+    """Roll `model` out under `controls` and observe it as a tracker would: (positions, observed points with
+    `noise`, visibility (each particle seen with `visible_fraction`, never an empty frame), the tracked
+    points `tracked_idx` with noise, their motion validity (5 % dropped))."""
+    xs = rollout(model, controls, frames - 1)[0].astype(np.float64)
+    n = xs.shape[1]
+    observed = xs + rng.normal(0.0, noise, xs.shape)
+    visibility = rng.random((frames, n)) < visible_fraction
+    visibility[np.arange(frames), rng.integers(0, n, frames)] = True  # never an empty frame
+    tracked = xs[:, tracked_idx] + rng.normal(0.0, noise, (frames, tracked_idx.size, 3))
+    motion_valid = rng.random((frames, tracked_idx.size)) >= 0.05
+    return xs, observed, visibility, tracked, motion_valid
+
+
 def synthetic_case(kind: str = "rope", *, frames: int = 40, validation_frames: int = 10, substeps: int = 40,
                    soft_Y: float = 300.0, stiff_Y: float = 3000.0, truth: GlobalParams | None = None,
                    noise: float = 1e-3, visible_fraction: float = 0.7, tracked_stride: int = 1,
@@ -64,14 +79,9 @@ def synthetic_case(kind: str = "rope", *, frames: int = 40, validation_frames: i
     log_y = np.full(model.num_springs, math.log(stiff_Y), np.float32)
     log_y[:n_obj][soft] = math.log(soft_Y)
     model.set_spring_log_y(log_y)
-    xs = rollout(model, controls, frames - 1)[0].astype(np.float64)
-    n = len(pts)
-    observed = xs + rng.normal(0.0, noise, xs.shape)
-    visibility = rng.random((frames, n)) < visible_fraction
-    visibility[np.arange(frames), rng.integers(0, n, frames)] = True  # never an empty frame
-    tracked_idx = np.arange(0, n, tracked_stride)
-    tracked = xs[:, tracked_idx] + rng.normal(0.0, noise, (frames, tracked_idx.size, 3))
-    motion_valid = rng.random((frames, tracked_idx.size)) >= 0.05
+    tracked_idx = np.arange(0, len(pts), tracked_stride)
+    xs, observed, visibility, tracked, motion_valid = simulated_tracks(model, controls, frames, rng, noise,
+                                                                       visible_fraction, tracked_idx)
     data = SysIdData(pts, observed, visibility, tracked_idx, tracked, motion_valid, controls, fps=30.0,
                      validation_frames=validation_frames, name=kind)
     return data, {"params": truth, "sim": truth.sim_params(base), "log_y": log_y, "springs": sp,
@@ -129,13 +139,9 @@ def phystwin_rope_case(*, seed: int = 0, nx: int = 20, frames: int = 45, validat
     base = SimParams(dt=1.0 / (30.0 * substeps), substeps=substeps)
     model = model_at(base)
     model.set_spring_log_y(log_y)
-    xs = rollout(model, controls, frames - 1)[0].astype(np.float64)
     n = len(pts)
-    observed = xs + rng.normal(0.0, noise, xs.shape)
-    visibility = rng.random((frames, n)) < visible_fraction
-    visibility[np.arange(frames), rng.integers(0, n, frames)] = True
-    tracked = xs + rng.normal(0.0, noise, xs.shape)
-    motion_valid = rng.random((frames, n)) >= 0.05
+    xs, observed, visibility, tracked, motion_valid = simulated_tracks(model, controls, frames, rng, noise,
+                                                                       visible_fraction, np.arange(n))
     data = SysIdData(pts, observed, visibility, np.arange(n), tracked, motion_valid, controls, fps=30.0,
                      validation_frames=validation_frames, name="phystwin_rope")
     return data, {"params": truth, "sim": truth.sim_params(base), "log_y": log_y, "springs": sp,
