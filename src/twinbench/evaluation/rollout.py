@@ -344,13 +344,13 @@ def run_job(job: EpisodeJob) -> EpisodeRecord:
     return _record(job, out)
 
 
-def write_actions(path: str | Path, actions: np.ndarray | None) -> None:
+def write_actions(path: str | Path, actions: np.ndarray) -> None:
     """An episode's commanded actions as .npy at `path` (written whole, then renamed: never partial)."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(path.name + ".partial")
     with open(tmp, "wb") as f:
-        np.save(f, np.zeros((0, 0), np.float32) if actions is None else actions, allow_pickle=False)
+        np.save(f, actions, allow_pickle=False)
     tmp.replace(path)
 
 
