@@ -8,7 +8,11 @@ Prints `name value unit` lines per case and the spread:
   error of the noise-free truth against the noisy tracks: what a perfect fit scores);
 - Spearman rank correlation of the stiffness with the truth, like with like: per fitted region (stage 2
   fits one value per spatial region by default), the fit's value against the truth's geometric mean
-  over the same springs (per spring when the fit is per spring); the per-spring figure is printed too;
+  over the same springs (per spring when the fit is per spring); the per-spring figure is printed too,
+  and beside them the figure over the regions the motion constrains (``SysIdResult.
+  region_identifiability``: log-Y standard deviation from the tracks' Fisher information under
+  ``REGION_STD``; NaN, left out of the spread, where fewer than 3 regions are constrained or their truth
+  is one value);
 - ground friction error where the motion slides, restitution error where it hits the ground;
 - the stage kept (the lowest tracking error on the selection frames) and the stiffness guess over the
   truth's geometric mean;
@@ -30,6 +34,15 @@ from pathlib import Path
 import numpy as np
 
 
+def _rank(fit: list[float], truth: list[float]) -> float:
+    """Spearman correlation; NaN where the truth is one value (nothing to rank), 0 where the fit is."""
+    from scipy.stats import spearmanr
+
+    if np.ptp(truth) == 0:
+        return float("nan")
+    return float(spearmanr(fit, truth).statistic) if np.ptp(fit) > 0 else 0.0
+
+
 def run_case(i: int, seed: int) -> dict:
     from scipy.stats import spearmanr
 
@@ -49,6 +62,9 @@ def run_case(i: int, seed: int) -> dict:
     ids = np.unique(region)
     fit_r = [float(np.mean(res.log_y[:n][region == r])) for r in ids]
     truth_r = [float(np.mean(truth["log_y"][:n][region == r])) for r in ids]
+    # the regions whose stiffness the fitted motion constrains (SysIdResult.region_identifiability)
+    info = res.region_identifiability.get("regions", [])[: len(ids)] if res.regions is not None else []
+    con = [j for j, row in enumerate(info) if row["constrained"]]
     val = list(data.val_frames)
     floor = float(np.mean([np.mean(np.linalg.norm(truth["positions"][k][data.tracked_indices][m]
                                                   - data.tracked[k][m], axis=1))
@@ -57,7 +73,9 @@ def run_case(i: int, seed: int) -> dict:
            "val_initial": res.evals["initial"].val_error, "val_stage1": res.evals["stage1"].val_error,
            "val_final": res.evals["final"].val_error, "floor": floor,
            "spearman": float(spearmanr(fit_r, truth_r).statistic) if len(ids) > 2 else float("nan"),
-           "regions": len(ids),
+           "regions": len(ids), "constrained": len(con),
+           "spearman_constrained": _rank([fit_r[j] for j in con], [truth_r[j] for j in con])
+           if len(con) > 2 else float("nan"),
            "spearman_springs": float(spearmanr(res.log_y[:n], truth["log_y"][:n]).statistic),
            "slides": truth["slides"], "impacts": truth["impacts"], "notes": res.notes,
            "evaluations": len(res.stage1_history), "epochs": len(res.stage2_history) - 1,
@@ -80,7 +98,8 @@ def _print_case(r: dict) -> None:
     print(f"sysid_case_{r['case']} val_mm {1e3 * r['val_initial']:.2f}/{1e3 * r['val_stage1']:.2f}/"
           f"{1e3 * r['val_final']:.2f} floor_mm {1e3 * r['floor']:.2f} "
           f"ratio {r['val_final'] / r['floor']:.2f} spearman {r['spearman']:.3f} ({r['regions']} regions; "
-          f"per spring {r['spearman_springs']:.3f}){extra} "
+          f"per spring {r['spearman_springs']:.3f}; over the {r['constrained']} constrained regions "
+          f"{r['spearman_constrained']:.3f}){extra} "
           f" kept {r['kept']} guess/truth Y {r['guess_Y_ratio']:.2f} ({r['pattern']}, {r['seconds']:.0f} s)"
           f"{' notes: ' + '; '.join(r['notes']) if r['notes'] else ''}", flush=True)
 
@@ -116,6 +135,9 @@ def main() -> None:
     _spread("val_over_floor", [r["val_final"] / r["floor"] for r in ok], "ratio")
     _spread("spearman", [r["spearman"] for r in ok], "ratio")
     _spread("spearman_springs", [r["spearman_springs"] for r in ok], "ratio")
+    _spread("spearman_constrained", [r["spearman_constrained"] for r in ok], "ratio")
+    ranked = sum(math.isfinite(r["spearman_constrained"]) for r in ok)
+    print(f"sysid_family_spearman_constrained_cases {ranked} count")
     fr = [r["friction_error"] for r in ok if "friction_error" in r]
     re = [r["restitution_error"] for r in ok if "restitution_error" in r]
     print(f"sysid_family_sliding_cases {len(fr)} count")

@@ -87,6 +87,11 @@ def test_default_fit_on_family_cases_improves_and_reports(i):
     sy = res.identifiability["spring_Y"]
     assert sy["low"] <= sy["best"] <= sy["high"] and sy["samples"] >= 1
     assert math.isfinite(res.params.spring_Y) and isinstance(res.notes, list)
+    # and which stiffness regions the motion constrains: one row per fitted region (control springs last)
+    rows = res.region_identifiability["regions"]
+    assert len(rows) == res.regions.max() + 1 and sum(r["springs"] for r in rows) == res.model.num_springs
+    assert all(r["std"] > 0 and r["constrained"] == (r["std"] < res.region_identifiability["std_limit"])
+               for r in rows)
 
 
 @pytest.mark.slow

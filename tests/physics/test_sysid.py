@@ -28,7 +28,9 @@ from twinbench.physics.sysid import (
     frame_gradient,
     identify,
     parse_ranges,
+    region_information,
     rollout,
+    spring_regions,
     stage2_adam,
 )
 from twinbench.physics.sysid_data import SysIdData, SysIdFormatError
@@ -273,6 +275,37 @@ def test_rope_identification_recovers_soft_and_stiff_halves(rope):
 
 def test_cloth_identification_recovers_soft_and_stiff_halves(cloth):
     _check_identification(*cloth)
+
+
+def test_region_information_finds_every_region_of_a_two_handed_lift_constrained():
+    """The two-handed rope lift (soft and stiff halves 10x apart, 1 mm noise) at the true stiffness: every
+    region's log Y is known within the limit and the noise estimate is the observation noise."""
+    data, truth = synthetic_case("rope", seed=0)
+    model = build_model(data, truth["params"], SimParams(dt=1.0 / (30 * SUBSTEPS), substeps=SUBSTEPS),
+                        log_y=truth["log_y"])
+    region = spring_regions(model, 4)
+    info = region_information(model, data, region)
+    assert len(info["regions"]) == region.max() + 1 and 0.7e-3 < info["sigma"] < 1.5e-3
+    assert all(row["constrained"] and row["std"] < 0.2 for row in info["regions"]), info
+    assert sum(row["springs"] for row in info["regions"]) == model.num_springs
+
+
+def test_a_motion_that_strains_nothing_constrains_no_stiffness_region():
+    """The held-out family's rope drop (it lands without deforming): at the true parameters no region's
+    stiffness is constrained by the motion (the benchmark's 'constrained regions' figure leaves it out)."""
+    from twinbench.construct.sysid_family import family_case
+    from twinbench.physics.sysid import stable_substeps
+
+    data, truth = family_case(8, 0)
+    assert truth["interaction"] == "drop"
+    topo = build_model(data, GlobalParams(), SimParams())
+    n_sub = stable_substeps(topo, float(np.exp(truth["log_y"].max())), 100.0, data.fps)
+    model = build_model(data, truth["params"], SimParams(dt=1.0 / (data.fps * n_sub), substeps=n_sub),
+                        log_y=truth["log_y"])
+    region = spring_regions(model, 8)
+    info = region_information(model, data, region)
+    assert not any(row["constrained"] for row in info["regions"]), info
+    assert np.array_equal(model.log_y_np, truth["log_y"].astype(np.float32))  # left as it was
 
 
 def test_ablation_paths_hand_set_and_stage1_only():

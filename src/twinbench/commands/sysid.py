@@ -54,5 +54,11 @@ def main(cfg: SysIdConfig) -> int:
         loose = [k for k, v in result.identifiability.items() if not v["constrained"]]
         say(f"constrained by the motion: {', '.join(fixed) or 'none'}; weakly: {', '.join(loose) or 'none'} "
             "(intervals in the report)")
+    rows = result.region_identifiability.get("regions", [])
+    if rows:
+        fixed = sum(r["constrained"] for r in rows)
+        say(f"stiffness regions constrained by the motion: {fixed} of {len(rows)} (log Y within "
+            f"{result.region_identifiability['std_limit']:.2f} at one standard deviation; the others' "
+            "values are not determined by the motion)")
     say(f"object: {obj}\nreport: {jpath}, {ppath}")
     return 0

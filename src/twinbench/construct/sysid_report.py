@@ -46,6 +46,7 @@ def report_dict(result: SysIdResult, data: SysIdData) -> dict:
         "stage2_history": [{k: _finite(v) if isinstance(v, float) else v for k, v in row.items()}
                            for row in result.stage2_history],
         "stiffness_fit": _stiffness_fit(result),
+        "region_identifiability": _jsonable(result.region_identifiability),
         "guesses": _jsonable(result.guesses),
         "selection": _jsonable(result.selection),
         "notes": list(result.notes),

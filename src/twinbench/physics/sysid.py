@@ -14,7 +14,9 @@ Two stages (DESIGN section 4), each switchable for the ablation "without physics
 2. **Stage 2** (``stage2=True``): Adam on the per-spring log stiffness (object and control springs)
    through ``wp.Tape``, truncated to one frame: frame ``k`` is simulated from the simulated state of
    frame ``k - 1``, the loss's gradient w.r.t. the frame's final positions and velocities is injected as
-   the adjoint of the taped frame's last state, Adam steps, and the detached state carries on.
+   the adjoint of the taped frame's last state, Adam steps, and the detached state carries on. The
+   stiffness is fitted per spatial region (``AdamConfig.regions``); the result says which regions the
+   motion constrains (:func:`region_information`, ``SysIdResult.region_identifiability``).
 
 With both off, the ``initial`` (hand-set) values are used as they are and only evaluated.
 
@@ -755,6 +757,90 @@ def spring_regions(model: SpringMassModel, regions: int, seed: int = 0) -> np.nd
     return np.concatenate([label, np.full(n_all - n_obj, label.max() + 1)]).astype(np.int64)
 
 
+MAX_REGIONS = 64  # region_information costs one rollout per region
+
+REGION_STD = math.log(1.5)
+"""a region's stiffness counts as constrained by the motion when its standard deviation (log Y, from the
+Fisher information of the tracks, :func:`region_information`) is below this: known within a factor 1.5"""
+
+
+def _track_vector(xs: np.ndarray, data: SysIdData, frames) -> np.ndarray:
+    """Simulated minus observed positions of the motion-valid tracked points over ``frames``, flattened."""
+    parts = [xs[k][data.tracked_indices[data.motion_valid[k]]] - data.tracked[k][data.motion_valid[k]]
+             for k in frames]
+    return np.concatenate([p.ravel() for p in parts]) if parts else np.zeros(0)
+
+
+def _region_jacobian(model: SpringMassModel, data: SysIdData, region: np.ndarray, frames: list[int],
+                     delta: float, solver: SpringMassSolver) -> tuple[np.ndarray, np.ndarray]:
+    """(J, r0): the tracking residual ``r0`` (simulated minus observed, :func:`_track_vector`) of a
+    whole-sequence rollout of ``model`` and its Jacobian w.r.t. each region's log Y by backward finite
+    differences (every spring of the region ``delta`` softer: stable wherever the model is); a column
+    whose rollout diverged is NaN. ``model``'s stiffness is left as it was."""
+    log_y0 = model.log_y_np.copy()
+    last = max(frames)
+    r0 = _track_vector(rollout(model, data.controls, last, solver)[0].astype(np.float64), data, frames)
+    jac = np.zeros((r0.size, int(region.max()) + 1))
+    try:
+        for r in range(jac.shape[1]):
+            model.set_spring_log_y(log_y0 - delta * (region == r))
+            try:
+                xs = rollout(model, data.controls, last, solver)[0].astype(np.float64)
+                jac[:, r] = (r0 - _track_vector(xs, data, frames)) / delta
+            except SimulationDiverged:
+                jac[:, r] = np.nan
+    finally:
+        model.set_spring_log_y(log_y0)
+    return jac, r0
+
+
+def _fitted_frames(data: SysIdData) -> list[int]:
+    return [k for k in data.train_frames if k >= 1]
+
+
+def region_information(model: SpringMassModel, data: SysIdData, region: np.ndarray, *, delta: float = 0.1,
+                       std_limit: float = REGION_STD) -> dict:
+    """How well the fitted frames of ``data`` constrain each stiffness region of ``model`` (``region``: per
+    spring, as :func:`spring_regions`), measured on whole-sequence rollouts (not one-frame gradients).
+
+    The Jacobian ``J`` of the tracked positions (motion-valid, fitted frames) w.r.t. each region's log Y
+    is taken by finite differences (:func:`_region_jacobian`); with the fit's own tracking residual as
+    the noise (``sigma``, per coordinate), the Fisher information is ``J^T J / sigma^2`` and each region's
+    standard deviation (log Y) is the square root of the diagonal of its pseudo-inverse, so a region that
+    trades off against a neighbour is as uncertain as the pair. Returns per region (the last one holds the
+    control springs when the model has them): ``std``, ``constrained`` (``std < std_limit``), ``springs``;
+    plus ``sigma`` (m). ``model``'s stiffness is left as it was. Raises SimulationDiverged if the base
+    rollout diverges."""
+    jac, r0 = _region_jacobian(model, data, region, _fitted_frames(data), delta, SpringMassSolver(model))
+    sigma2 = max(float(np.mean(r0 * r0)) if r0.size else 0.0, 1e-12)
+    n_reg = jac.shape[1]
+    std = _region_std(jac, sigma2)
+    counts = np.bincount(region, minlength=n_reg)
+    return {"sigma": math.sqrt(sigma2), "std_limit": std_limit,
+            "regions": [{"springs": int(counts[r]), "std": float(std[r]),
+                         "constrained": bool(std[r] < std_limit)} for r in range(n_reg)]}
+
+
+def by_region(model: SpringMassModel, region: np.ndarray) -> bool:
+    """Whether ``region`` groups springs into few enough regions for :func:`region_information` (one
+    rollout per region: at most ``MAX_REGIONS``, and not one region per spring)."""
+    n_reg = int(region.max()) + 1
+    return n_reg <= MAX_REGIONS and n_reg < model.num_springs
+
+
+def _region_std(jac: np.ndarray, sigma2: float) -> np.ndarray:
+    """Per column of ``jac``: the standard deviation of its parameter from the Fisher information
+    ``J^T J / sigma2`` (square root of the pseudo-inverse's diagonal; inf for a column that moves
+    nothing or whose rollout diverged)."""
+    std = np.full(jac.shape[1], np.inf)
+    ok = np.all(np.isfinite(jac), axis=0)
+    if ok.any():
+        fisher = jac[:, ok].T @ jac[:, ok] / max(sigma2, 1e-12)
+        cov = np.linalg.pinv(fisher, rcond=1e-10, hermitian=True)
+        std[ok] = np.where(np.diag(fisher) > 0, np.sqrt(np.maximum(np.diag(cov), 0.0)), np.inf)
+    return std
+
+
 def stage2_adam(model: SpringMassModel, data: SysIdData, cfg: AdamConfig,
                 weights: LossWeights = LossWeights(), progress: bool = False,
                 log: Callable[[str], None] = print, select: int = 0) -> tuple[np.ndarray, list[dict]]:
@@ -899,6 +985,10 @@ class SysIdResult:
     selection: dict = field(default_factory=dict)
     """which stage was kept and why: the selection frames (the last training frames, held out from
     fitting), each stage's tracking error on them, the kept stage, the rule"""
+    region_identifiability: dict = field(default_factory=dict)
+    """per stiffness region of the kept stage 2 (``regions``' order): whether the fitted motion constrains
+    its stiffness (:func:`region_information`: standard deviation of log Y from the tracks' Fisher
+    information); empty when stage 2 is not kept or fits per spring"""
 
     @property
     def object_spring_Y(self) -> np.ndarray:
@@ -1032,6 +1122,7 @@ def identify(data: SysIdData, cfg: FitConfig, *, base: SimParams | None = None,
                        y_max=min(adam.y_max, params.spring_Y * adam.window))
     history2: list[dict] = []
     regions = None
+    region_info: dict = {}
     if cfg.stage2:
         base2 = base_of(params, adam.y_max) if topo is not None else base
         model = build_model(data, params, base2, cfg.device, requires_grad=True)
@@ -1040,6 +1131,11 @@ def identify(data: SysIdData, cfg: FitConfig, *, base: SimParams | None = None,
                                    adam.acc_share, log)
         t0 = time.perf_counter()
         _, history2 = stage2_adam(model, data, adam, weights, cfg.progress, log, select=n_sel)
+        if by_region(model, regions):
+            try:
+                region_info = region_information(model, fit, regions)
+            except SimulationDiverged:
+                region_info = {}
         first = history2[0]["train_loss"]
         if len(history2) > 1 and not any(r.get("train_loss", math.inf) < first for r in history2[1:]):
             notes.append("stage 2 did not improve on its start's fitted loss")
@@ -1052,12 +1148,12 @@ def identify(data: SysIdData, cfg: FitConfig, *, base: SimParams | None = None,
     kept, selection = _choose_stage(evals, sel, notes)
     params, model = stage_params[kept], models[kept]
     if kept != "stage2":
-        regions = None
+        regions, region_info = None, {}
     evals["final"] = evals[kept]
     for note in notes:
         log(f"note: {note}")
     return SysIdResult(params, params.sim_params(model.params), model.log_y_np.copy(), model, evals, history1,
-                       history2, seconds, cfg, notes, ident, regions, guesses, selection)
+                       history2, seconds, cfg, notes, ident, regions, guesses, selection, region_info)
 
 
 SELECT_MARGIN = 0.02
