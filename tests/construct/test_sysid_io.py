@@ -128,7 +128,10 @@ def test_cli_help_and_end_to_end(sysid_small, tmp_path, capsys):
                    "--initial.spring-Y", "1000", "--cma.budget", "8", "--cma.ranges", "spring_Y=100:10000",
                    "--adam.epochs", "1", "--adam.y-min", "50", "--adam.y-max", "1e4"])
     assert rc == 0
+    assert "stiffness regions constrained by the motion" in capsys.readouterr().err
     rep = json.loads((tmp_path / "out" / "sysid_report.json").read_text())
+    rows = rep["region_identifiability"]["regions"]  # per stiffness region; an unbounded std is null
+    assert rows and all(r["std"] is None or r["std"] > 0 for r in rows)
     assert len(rep["stage1_history"]) == 8 and len(rep["stage2_history"]) == 2
     assert set(rep["config"]["cma"]) >= {"budget", "search", "ranges"}
     assert (tmp_path / "out" / "rope" / "object.json").is_file()
