@@ -2,6 +2,10 @@
 hidden "real" workcell (twinbench.study). `run` does every stage into one folder:
 
     twinbench study run --task push-t --out study_pusht --size small
+    twinbench study run --task rope-routing --out study_rope --size small
+
+Tasks: push-t and rope-routing (`evaluate` refuses a task without perception controllers, naming those
+that have them).
 """
 
 from __future__ import annotations
@@ -22,6 +26,7 @@ class MakeRealConfig:
     out: Path
     """the folder REAL"""
     task: str = "push-t"
+    """push-t | rope-routing"""
     seed: int = 0
     size: str = "small"
     """small | medium (the fast cell) | full (the reference cell)"""
@@ -68,6 +73,7 @@ class RunConfig:
 
     out: Path
     task: str = "push-t"
+    """push-t | rope-routing (the tasks with perception controllers)"""
     size: str = "small"
     """small: the fast cell, 2 grid states, 15 s episodes | medium: the same, 8 grid states | full: the
     reference cell, every grid state, the task's episode length"""

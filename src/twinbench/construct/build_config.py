@@ -61,7 +61,9 @@ def _build_spec(config_path):
          "background": {"gaussians": "aligned/aligned/background.ply" | null, "color_map": null},
          "objects": [{"dir": "objects/tblock", "rest_pose": 4x4 | null,
                       "gaussians": "world-frame .ply replacing the object's own" | null, "color_map": null}],
-         "colliders": [{"name", "mesh", "pose", "restitution", "friction", "gaussians"}],
+         "colliders": [{"name", "mesh", "pose", "restitution", "friction",
+                        "gaussians": ".ply in the collider's frame" | null, "color_map": null,
+                        "channel": [width, depth, length] | null (see ColliderSpec.channel)}],
          "cameras": "calibration.json",
          "sim": {SimParams fields over the first object's}, "controller": {...},
          "render": {"background": rgb}}
@@ -122,7 +124,7 @@ def _build_spec(config_path):
 
     colliders = []
     for i, c in enumerate(doc.get("colliders") or []):
-        fields = {"name", "mesh", "pose", "restitution", "friction", "gaussians"}
+        fields = {"name", "mesh", "pose", "restitution", "friction", "gaussians", "color_map", "channel"}
         c = _known(c, fields, f"colliders[{i}]", config)
         check_name(c.get("name"), f"{config}: colliders[{i}].name")
         mesh = load_mesh(root / c["mesh"])
@@ -131,6 +133,8 @@ def _build_spec(config_path):
             np.asarray(c.get("pose", np.eye(4)), dtype=np.float64),
             ContactSpec(c.get("restitution", 0.0), c.get("friction", 0.5)),
             load_gaussians(root / c["gaussians"]) if c.get("gaussians") else None,
+            _color_map_file(root, c.get("color_map"), f"colliders[{i}].color_map"),
+            None if c.get("channel") is None else tuple(c["channel"]),
         ))
     cams = doc["cameras"]
     if not isinstance(cams, str):

@@ -23,7 +23,7 @@ from twinbench.errors import InputError
 from twinbench.evaluation import metrics
 from twinbench.evaluation.runner import evaluate
 from twinbench.evaluation.store import ResultsStore
-from twinbench.study.sizes import SIZES, StudySize, study_size  # noqa: F401 - re-exported
+from twinbench.study.sizes import SIZES, StudySize, size_name, study_size  # noqa: F401 - re-exported
 
 REAL_ROLLOUTS, REAL = "real-rollouts", "real"
 
@@ -53,30 +53,31 @@ def replay_run_id(variant: str) -> str:
 def make_policies(task: str, real_world: Path, out: Path, size: str | StudySize = "small",
                   camera_twin: Path | None = None, log=print, names=None) -> list[str]:
     """Write the study's perception controllers to OUT (one JSON config each, plus calibration.json) and
-    return their policy specs. The T's colours are calibrated on labelled images of `real_world`; the
-    camera is `camera_twin`'s front camera (the reconstructed, calibrated one; None: each env's own).
-    `names`: a subset of `policies.levels` (None: all)."""
+    return their policy specs. The object's colours (push-T's T, the rope and its marked end) are calibrated
+    on labelled images of `real_world`; the camera is `camera_twin`'s front camera (the reconstructed,
+    calibrated one; None: each env's own). `names`: a subset of `policies.levels` (None: all)."""
     from twinbench.study import policies as perception
 
-    if task != "push-t":
-        raise InputError(f"study policies: perception controllers exist for push-t only, not {task!r}")
+    if task not in perception.LEVELS:
+        raise InputError(f"study policies: perception controllers exist for {sorted(perception.LEVELS)}, "
+                         f"not {task!r}")
     sz = study_size(size)
     from twinbench.tasks import get_task
 
     n = get_task(task).n_grid_states
     images = np.linspace(0, n - 1, sz.calibration_images).round().astype(int).tolist()
     t0 = time.perf_counter()
-    colors = perception.calibrate_colors({"twin": str(real_world)}, images)
+    colors = perception.calibrate_colors({"twin": str(real_world)}, images, OBSERVED, task=task)
     camera = None
     if camera_twin is not None:
-        camera = perception.twin_camera(camera_twin, "front")
+        camera = perception.twin_camera(camera_twin, OBSERVED, task)
     out.mkdir(parents=True, exist_ok=True)
     (out / "calibration.json").write_text(json.dumps(
         {"colors": colors, "images": images, "camera_model": camera, "source": "real workcell, labelled"},
         indent=1))
     log(f"colour calibration on {len(images)} real images: {time.perf_counter() - t0:.1f} s")
     specs = []
-    for name, cfg in perception.levels(colors, camera).items():
+    for name, cfg in perception.levels(colors, camera, task).items():
         if names is not None and name not in names:
             continue
         path = perception.write_config(cfg, out / f"{name}.json")
@@ -192,7 +193,7 @@ def write_study_json(out: Path, task: str, size: str | StudySize, variants, stag
     """DIR/study.json: the table (per variant r with interval, MMRV with interval, n policies, n episodes)
     from the store, the per-stage wall times and the study's settings."""
     store = ResultsStore(out / "results" / "results.sqlite")
-    doc = {"task": task, "size": size if isinstance(size, str) else "custom",
+    doc = {"task": task, "size": size_name(size),
            "settings": asdict(study_size(size)), "variants": study_table(store, variants),
            "stage_seconds": {k: round(v, 1) for k, v in stages.items()}, **(extra or {})}
     text = json.dumps(doc, indent=1)

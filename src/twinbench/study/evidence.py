@@ -8,7 +8,8 @@ EV/ holds (EV/README.md lists them for the user):
 - `scan.ply`: the workcell's Gaussians (robot at its home configuration, objects at rest, table and
   backdrop) in the scan's own frame: a random subset of the real scene's Gaussians (the scan is coarser),
   in another colour space, with position noise and floaters;
-- `boxes.json`: the crop boxes and coarse scan -> world transform a user draws for `twinbench segment`;
+- `boxes.json`: the crop boxes and coarse scan -> world transform a user draws for `twinbench segment`
+  (one box per object and per fixed collider, e.g. rope-routing's clip);
 - `calibration.json`: each camera's intrinsics and pose (extrinsics or hand-eye), with realistic error;
 - `real/NAME.png`: each static camera's real image of the workcell as scanned (its response, noise and
   blur included), to pair with renders of the scan for `twinbench align-color`;
@@ -25,8 +26,8 @@ from pathlib import Path
 
 import numpy as np
 
-from twinbench.study.sizes import study_size
-from twinbench.transforms import invert_pose
+from twinbench.study.sizes import size_name, study_size
+from twinbench.transforms import invert_pose, transform_points
 
 SCAN_KEEP = 0.5  # fraction of the real scene's Gaussians a scan sees
 SCAN_NOISE = 0.0015  # m, per axis
@@ -140,8 +141,14 @@ def probe_motion(real_spec, obj, hidden: dict, rng, frames: int, validation: int
     b.add_control_points(controls[0], radius=0.02, max_neighbors=10, spring_Y=float(np.median(obj.spring_Y)))
     xs = rollout(b.finalize(), controls, frames - 1)[0].astype(np.float64)[:, : len(pts)]
 
-    # a coarser layout than the real object's (one point per cell-spacing voxel) as the particles
-    chosen = _voxel_pick(xs[0], hidden["object"]["cell_spacing"])
+    # a coarser layout than the real object's (one point per cell-spacing voxel) as the particles; where
+    # that gives under half the cell's particles (a rope: its section is finer than the spacing along it,
+    # and a 2-particle section slips out of the gripper), smaller voxels until it gives half or more
+    voxel = hidden["object"]["cell_spacing"]
+    chosen = _voxel_pick(xs[0], voxel)
+    while len(chosen) < 0.5 * hidden["object"]["cell_particles"]:
+        voxel *= 0.85
+        chosen = _voxel_pick(xs[0], voxel)
     particles = xs[0, chosen] + rng.normal(0.0, 0.5 * TRACK_NOISE, (len(chosen), 3))
     # observed points: a fixed 60 % of the real points, each visible in 70 % of the frames
     seen = np.sort(rng.choice(len(pts), int(0.6 * len(pts)), replace=False))
@@ -168,6 +175,7 @@ def make_evidence(real: Path, out: Path, seed: int = 0, size: str = "small") -> 
     from twinbench.construct._json import write_json
     from twinbench.construct.sysid_io import save_sysid_data
     from twinbench.gaussians.io import save_gaussians
+    from twinbench.study.real import preset_of
     from twinbench.twin import build_twin, load_twin
 
     real, out = Path(real), Path(out)
@@ -189,6 +197,13 @@ def make_evidence(real: Path, out: Path, seed: int = 0, size: str = "small") -> 
         lo[2] = max(lo[2], 0.004)
         boxes["objects"][o.name] = {"center": ((lo + hi) / 2).tolist(),
                                     "half_extents": ((hi - lo) / 2).tolist()}
+    for c in spec.colliders:  # each fixed part (rope-routing's clip, toy-packing's box) gets its own box,
+        # as wide as the objects' (the coarse transform is ~1 cm off: a tighter box would cut the part)
+        pts = transform_points(c.pose, np.asarray(c.vertices, np.float64))
+        lo, hi = pts.min(axis=0) - [0.02, 0.02, 0.0], pts.max(axis=0) + [0.02, 0.02, 0.01]
+        lo[2] = max(lo[2], 0.004)
+        boxes["objects"][c.name] = {"center": ((lo + hi) / 2).tolist(),
+                                    "half_extents": ((hi - lo) / 2).tolist()}
     write_json(out / "boxes.json", boxes)
     write_json(out / "calibration.json", _calibration(spec, hidden))
 
@@ -205,13 +220,15 @@ def make_evidence(real: Path, out: Path, seed: int = 0, size: str = "small") -> 
         data, _ = probe_motion(spec, o, hidden, rng, frames, validation)
         save_sysid_data(data, out / "motion" / o.name)
         motion[o.name] = f"motion/{o.name}"
-    index = {"task": hidden["task"], "size": size, "urdf": spec.robot.urdf, "scan": "scan.ply",
-             "boxes": "boxes.json", "calibration": "calibration.json", "real_images": "real",
-             "objects": [o.name for o in spec.objects], "motion": motion}
+    index = {"task": hidden["task"], "size": size_name(size), "preset": preset_of(size),
+             "urdf": spec.robot.urdf, "scan": "scan.ply", "boxes": "boxes.json",
+             "calibration": "calibration.json", "real_images": "real",
+             "objects": [o.name for o in spec.objects], "colliders": [c.name for c in spec.colliders],
+             "motion": motion}
     write_json(out / "evidence.json", index)
-    (out / "README.md").write_text(README.format(task=hidden["task"], size=size, urdf=spec.robot.urdf,
-                                                 objects=", ".join(motion), frames=frames,
-                                                 validation=validation))
+    (out / "README.md").write_text(README.format(
+        task=hidden["task"], size=index["size"], urdf=spec.robot.urdf, objects=", ".join(motion),
+        frames=frames, colliders=", ".join(index["colliders"]) or "none", validation=validation))
     return out
 
 
@@ -221,7 +238,8 @@ What a user has of the workcell, nothing more (`twinbench study reconstruct` reb
 
 - `scan.ply`: a Gaussian scan of the workcell in the scan's own frame (robot at its home configuration,
   objects at rest): noisy, with floaters, in the scanner's colour space.
-- `boxes.json`: crop boxes and a coarse scan -> world transform for `twinbench segment`.
+- `boxes.json`: crop boxes (each object, each fixed part: {colliders}) and a coarse scan -> world
+  transform for `twinbench segment`.
 - `calibration.json`: camera intrinsics and poses (the static cameras' extrinsics, the wrist camera's
   hand-eye transform), from a calibration with realistic error.
 - `real/NAME.png`: each static camera's image of the workcell as scanned, for `twinbench align-color`.

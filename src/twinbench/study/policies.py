@@ -11,6 +11,11 @@ the calibrated one in the config (else the env's). The expert then acts on [esti
 msd]. Levels: `noise_m` / `noise_rad` (Gaussian noise on every estimate), `latency` (the estimate of
 `latency` perception steps ago), `gain` (the fraction of the expert's step towards its target that is
 commanded), `period` (perceive every `period` steps).
+
+Rope routing: the rope expert plans once, from [marked end, the rope point 4 cm from it, centroid, clip
+pose]; `RopeEstimator` gives the rope's part from the front image (a colour model of the rope's body and of
+its marked end, fitted as push-T's on labelled real images; the blob's pixels back-projected onto the
+table), the clip's pose is the twin's; `PerceptionRope` adds the level's noise and gain (`LEVELS`).
 """
 
 from __future__ import annotations
@@ -114,9 +119,70 @@ def _solid_points(outline, spacing: float = 0.006) -> np.ndarray:
                            *[np.c_[edges, np.full(len(edges), z)] for z in zs[:-1]]])
 
 
+def _rays(cam, uv: np.ndarray, z: float) -> tuple[np.ndarray, np.ndarray]:
+    """World directions (N, 3) of pixels `uv` (N, 2; pixel centres at +0.5) with depth 1, and the ray
+    parameter t (N,) where each meets the plane at height z (t <= 0: it does not, in front of the camera)."""
+    c2w = cam.cam_to_world
+    rays = np.c_[(uv[:, 0] - cam.cx) / cam.fx, (uv[:, 1] - cam.cy) / cam.fy, np.ones(len(uv))] @ c2w[:3, :3].T
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t = (z - c2w[2, 3]) / rays[:, 2]
+    return rays, np.nan_to_num(t, nan=-1.0, posinf=-1.0, neginf=-1.0)
+
+
+def table_points(cam, uv: np.ndarray, z: float) -> np.ndarray:
+    """Back-projection of pixels `uv` onto the plane at height z (world xy)."""
+    rays, t = _rays(cam, uv, z)
+    return (cam.cam_to_world[:3, 3] + t[:, None] * rays)[:, :2]
+
+
+def pixel_areas(cam, uv: np.ndarray, z: float) -> np.ndarray:
+    """The area (m^2) each pixel `uv` covers on the plane at height z: weights that undo perspective."""
+    rays, t = _rays(cam, uv, z)
+    norm = np.linalg.norm(rays, axis=1)
+    return t**2 * norm**3 / (cam.fx * cam.fy * np.maximum(np.abs(rays[:, 2]), 1e-9))
+
+
+def project(cam, world: np.ndarray) -> np.ndarray:
+    """Pixel (u, v) of world points (N, 3) in camera `cam`."""
+    w2c = cam.world_to_cam
+    p = world @ w2c[:3, :3].T + w2c[:3, 3]
+    z = np.maximum(p[:, 2], 1e-6)
+    return np.c_[cam.fx * p[:, 0] / z + cam.cx, cam.fy * p[:, 1] / z + cam.cy]
+
+
 def _planar(x: float, y: float, th: float) -> np.ndarray:
     c, s = np.cos(th), np.sin(th)
     return np.array([[c, -s, x], [s, c, y]])
+
+
+def color_models(colors: dict) -> dict:
+    """{region: (mean, inverse covariance)} of a config's `colors` ({region: {"mean", "cov"}})."""
+    out = {}
+    for region, m in colors.items():
+        cov = np.asarray(m["cov"], np.float64) + np.eye(3) * 1e-3
+        out[region] = (np.asarray(m["mean"], np.float64), np.linalg.inv(cov))
+    return out
+
+
+def _mahalanobis2(pixels: np.ndarray, model) -> np.ndarray:
+    mean, icov = model
+    d = np.asarray(pixels, np.float64) - mean
+    return np.einsum("ni,ij,nj->n", d, icov, d)
+
+
+def near_color(pixels: np.ndarray, model, threshold: float) -> np.ndarray:
+    """(N,) bool: pixels (N, 3) within squared Mahalanobis distance `threshold` of `model` (mean, inv cov)."""
+    return _mahalanobis2(pixels, model) < threshold
+
+
+def table_mask(cam, height: float, workspace) -> np.ndarray:
+    """(H, W) bool: pixels whose ray meets the plane at `height` inside `workspace` ((x0, y0), (x1, y1))."""
+    jj, ii = np.meshgrid(np.arange(cam.width), np.arange(cam.height))
+    uv = np.c_[jj.ravel() + 0.5, ii.ravel() + 0.5]
+    xy = table_points(cam, uv, height)
+    lo, hi = np.asarray(workspace, np.float64)
+    inside = (_rays(cam, uv, height)[1] > 0) & np.all((xy >= lo) & (xy <= hi), axis=1)
+    return inside.reshape(cam.height, cam.width)
 
 
 class TPoseEstimator:
@@ -127,12 +193,8 @@ class TPoseEstimator:
         self.outline, self.cam = outline, camera
         self.threshold, self.min_pixels = float(threshold), int(min_pixels)
         self.overlay = None if overlay is None else np.asarray(overlay, bool)
-        self.models = {}
-        for region, m in colors.items():
-            cov = np.asarray(m["cov"], np.float64) + np.eye(3) * 1e-3
-            self.models[region] = (np.asarray(m["mean"], np.float64), np.linalg.inv(cov))
+        self.models = color_models(colors)
         self.points = _solid_points(outline)
-        self._w2c = camera.world_to_cam
 
     # -- segmentation
     def segment(self, image: np.ndarray) -> np.ndarray:
@@ -145,9 +207,8 @@ class TPoseEstimator:
         if self.overlay is not None:
             regions["overlay"] = self.overlay
         for region, where in regions.items():
-            mean, icov = self.models.get(region, self.models["plain"])
-            d = img[where] - mean
-            mask[where] = np.einsum("ni,ij,nj->n", d, icov, d) < self.threshold
+            model = self.models.get(region, self.models["plain"])
+            mask[where] = near_color(img[where], model, self.threshold)
         mask = ndimage.binary_opening(mask, np.ones((3, 3), bool))
         labels, n = ndimage.label(mask)
         if n == 0:
@@ -160,18 +221,7 @@ class TPoseEstimator:
         """Pixel (u, v) of the solid's points at planar pose (x, y, theta), (N, 2)."""
         m = _planar(*pose_xyth)
         xy = self.points[:, :2] @ m[:, :2].T + m[:, 2]
-        world = np.c_[xy, self.points[:, 2]]
-        p = world @ self._w2c[:3, :3].T + self._w2c[:3, 3]
-        z = np.maximum(p[:, 2], 1e-6)
-        return np.c_[self.cam.fx * p[:, 0] / z + self.cam.cx, self.cam.fy * p[:, 1] / z + self.cam.cy]
-
-    def _table_points(self, uv: np.ndarray, z: float) -> np.ndarray:
-        """Back-projection of pixels onto the plane at height z (world xy)."""
-        c2w = self.cam.cam_to_world
-        rays = np.c_[(uv[:, 0] - self.cam.cx) / self.cam.fx, (uv[:, 1] - self.cam.cy) / self.cam.fy,
-                     np.ones(len(uv))] @ c2w[:3, :3].T
-        t = (z - c2w[2, 3]) / rays[:, 2]
-        return (c2w[:3, 3] + t[:, None] * rays)[:, :2]
+        return project(self.cam, np.c_[xy, self.points[:, 2]])
 
     def estimate(self, image: np.ndarray, previous=None) -> np.ndarray | None:
         """(x, y, theta) of the block, or None when fewer than `min_pixels` of its colour are seen.
@@ -207,11 +257,84 @@ class TPoseEstimator:
             if c < TRACK_COST_PX:
                 return x
         uv = np.c_[jj + 0.5, ii + 0.5]
-        centre = self._table_points(uv, 0.5 * self.outline.height).mean(0)
+        centre = table_points(self.cam, uv, 0.5 * self.outline.height).mean(0)
         starts = [np.r_[centre, th] for th in np.linspace(-np.pi, np.pi, 12, endpoint=False)]
         costs = [cost(s) for s in starts]
         fits = [refine(starts[k], 0.01) for k in np.argsort(costs)[:3]]  # the 3 best headings, refined
         return min(fits, key=lambda f: f[1])[0]
+
+
+ALONG_M = 0.04  # the rope point the expert orients its grasp by: 4 cm from the marked end (rope_routing)
+
+
+class RopeEstimator:
+    """Segments the rope by colour (its body and its marked end, `colors` {"rope", "mark"}) in one camera's
+    images and estimates what the rope expert plans from, on the table: its marked end, the rope point
+    ALONG_M from it, and its centroid. Pixels count only where their ray meets the plane at the rope's
+    height (`height`) inside `workspace` ((x0, y0), (x1, y1)); the rope is the 8-connected blob of rope or
+    mark colour with the most mark pixels. Its pixels are back-projected onto that plane (weighted by the
+    area each covers there: perspective undone); the marked end is the rope point farthest from the
+    centroid within 5 cm of the mark pixels' centre."""
+
+    def __init__(self, camera, colors: dict, threshold: float = CHI2_3_999, min_pixels: int = 20,
+                 height: float = 0.005, workspace=((0.2, -0.4), (0.8, 0.4))):
+        self.cam, self.threshold, self.min_pixels = camera, float(threshold), int(min_pixels)
+        self.height = float(height)
+        self.models = color_models(colors)
+        h, w = camera.height, camera.width
+        jj, ii = np.meshgrid(np.arange(w), np.arange(h))
+        uv = np.c_[jj.ravel() + 0.5, ii.ravel() + 0.5]
+        self._table = table_mask(camera, height, workspace)
+        self._xy, self._area = table_points(camera, uv, height), pixel_areas(camera, uv, height)
+
+    def segment(self, image: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(rope, mark) (H, W) bool masks: the rope's blob and its marked-end pixels. A pixel is the rope's
+        or the mark's when that colour is within `threshold` and more likely than the table's (the colour
+        model's "table", when it has one: the pixels where the rope meets the table are mixed)."""
+        from scipy import ndimage
+
+        img = np.asarray(image, np.float64).reshape(-1, 3)
+        loglik = {k: -0.5 * (_mahalanobis2(img, m) - np.linalg.slogdet(m[1])[1])  # Gaussian, up to a constant
+                  for k, m in self.models.items()}
+        table = loglik.get("table", np.full(len(img), -np.inf))
+        shape = self._table.shape
+
+        def seen(k):
+            near = _mahalanobis2(img, self.models[k]) < self.threshold
+            return (near & (loglik[k] > table)).reshape(shape) & self._table
+
+        mark = seen("mark")
+        rope = seen("rope")
+        labels, n = ndimage.label(rope | mark, np.ones((3, 3), bool))
+        if n == 0:
+            return rope | mark, mark
+        sizes = np.bincount(labels.ravel(), minlength=n + 1)
+        marks = np.bincount(labels[mark], minlength=n + 1)
+        best = max(range(1, n + 1), key=lambda k: (marks[k], sizes[k]))
+        blob = labels == best
+        return blob, mark & blob
+
+    def estimate(self, image: np.ndarray) -> np.ndarray | None:
+        """[marked end (3), the rope point ALONG_M from it (3), centroid (3)] (world, at `height`), or None
+        when fewer than `min_pixels` rope pixels (or no mark pixel) are seen."""
+        rope, mark = self.segment(image)
+        if rope.sum() < self.min_pixels or not mark.any():
+            return None
+        idx, m = np.flatnonzero(rope.ravel()), np.flatnonzero(mark.ravel())
+        pts, w = self._xy[idx], self._area[idx]
+        centroid = (pts * w[:, None]).sum(0) / w.sum()
+        mark_xy = (self._xy[m] * self._area[m, None]).sum(0) / self._area[m].sum()
+        near = np.linalg.norm(pts - mark_xy, axis=1) <= 0.05
+        cand = pts[near] if near.any() else pts
+        end = cand[np.argmax(np.linalg.norm(cand - centroid, axis=1))]
+        d = np.linalg.norm(pts - end, axis=1)
+        ring = np.abs(d - ALONG_M) <= 0.006
+        if ring.any():
+            along = (pts[ring] * w[ring, None]).sum(0) / w[ring].sum()
+        else:  # a short blob: towards the centroid
+            along = end + ALONG_M * (centroid - end) / max(np.linalg.norm(centroid - end), 1e-9)
+        z = self.height
+        return np.r_[end, z, along, z, centroid, z]
 
 
 # ---- colour calibration -----------------------------------------------------------------------------------
@@ -230,9 +353,10 @@ def label_mask(estimator: TPoseEstimator, pose_xyth) -> np.ndarray:
     return ndimage.binary_erosion(mask, np.ones((3, 3), bool))
 
 
-def fit_colors(samples: dict[str, list[np.ndarray]]) -> dict:
+def fit_colors(samples: dict[str, list[np.ndarray]], required: tuple[str, ...] = ("plain",)) -> dict:
     """Robust RGB Gaussian per region from labelled pixels (two passes: pixels beyond the 99.9 % ellipsoid of
-    the first fit, e.g. the pusher in front of the block, are dropped), widened by COLOR_TOLERANCE."""
+    the first fit, e.g. the pusher in front of the block, are dropped), widened by COLOR_TOLERANCE. Each
+    region of `required` must have 10 pixels or more."""
     out = {}
     for region, parts in samples.items():
         x = np.concatenate(parts).astype(np.float64) if parts else np.zeros((0, 3))
@@ -246,36 +370,103 @@ def fit_colors(samples: dict[str, list[np.ndarray]]) -> dict:
                 x = x[keep]
         cov = np.cov(x.T) + np.eye(3) * COLOR_TOLERANCE**2
         out[region] = {"mean": x.mean(0).tolist(), "cov": cov.tolist()}
-    if "plain" not in out:
-        raise ValueError("colour calibration: too few labelled block pixels outside the goal overlay")
+    missing = [r for r in required if r not in out]
+    if missing:
+        raise ValueError(f"colour calibration: too few labelled pixels of {missing} (e.g. the block outside "
+                         "the goal overlay, the rope's marked end)")
     return out
 
 
-def calibrate_colors(env_kwargs: dict, init_states, camera: str = "front", seed: int = 0) -> dict:
-    """The T's colour model from images of the env `env_kwargs` (the real workcell): reset to each initial
-    state, label the block's pixels from its known pose (as a user labels calibration images) and fit
-    `fit_colors`."""
+def calibrate_colors(env_kwargs: dict, init_states, camera: str = "front", seed: int = 0,
+                     task: str = "push-t") -> dict:
+    """The colour model of the task's object from images of the env `env_kwargs` (the real workcell): reset
+    to each initial state, label the object's pixels from its true state (as a user labels calibration
+    images: push-T's block silhouette at its known pose, the overlay apart; the rope's projected particles,
+    its marked end apart) and fit `fit_colors`."""
     import gymnasium
 
     import twinbench  # noqa: F401 - registers the envs
 
-    env = gymnasium.make("twinbench/PushT-v0", environment_state=True, **env_kwargs)
+    labeller, required = _labeller(task)
+    env = gymnasium.make(_env_id(task), environment_state=True, **env_kwargs)
     try:
         u = env.unwrapped
-        cam = u.twin.camera(u.state, camera)
-        est = TPoseEstimator(u.rules.outline, cam, {"plain": {"mean": [0, 0, 0], "cov": np.eye(3).tolist()}})
-        overlay = _overlay(u, camera)
-        samples: dict[str, list] = {"plain": [], "overlay": []}
+        label = labeller(u, u.twin.camera(u.state, camera), camera)
+        samples: dict[str, list] = {r: [] for r in required}
         for k, i in enumerate(init_states):
             obs, info = env.reset(seed=seed + k, options={"init_state": int(i)})
-            pose = np.asarray(info["privileged"]["environment_state"][:3], np.float64)
-            mask = label_mask(est, pose)
             img = obs["pixels"][camera]
-            samples["plain"].append(img[mask & ~overlay])
-            samples["overlay"].append(img[mask & overlay])
-        return fit_colors(samples)
+            for region, mask in label(info).items():
+                samples.setdefault(region, []).append(img[mask])
+        return fit_colors(samples, required)
     finally:
         env.close()
+
+
+def _push_t_labels(u, cam, camera: str):
+    est = TPoseEstimator(u.rules.outline, cam, {"plain": {"mean": [0, 0, 0], "cov": np.eye(3).tolist()}})
+    overlay = _overlay(u, camera)
+
+    def label(info) -> dict:
+        mask = label_mask(est, np.asarray(info["privileged"]["environment_state"][:3], np.float64))
+        return {"plain": mask & ~overlay, "overlay": mask & overlay}
+
+    return label
+
+
+MARK_LABEL_M, BODY_LABEL_M = 0.02, 0.035  # rope particles within / beyond this of the marked end (3 cm red)
+
+
+def rope_labels(u, cam, table: np.ndarray) -> dict:
+    """{"rope", "mark", "table"} pixel masks of the rope in the twin's current state: the pixels of its
+    projected particles (the body beyond BODY_LABEL_M of the marked end, the mark within MARK_LABEL_M; in
+    between, where the paint changes, neither), and the `table` pixels 3 px or more away from them."""
+    from scipy import ndimage
+
+    rope = u.rules.roles["rope"]
+    rest = u.twin.rest_particles(rope)
+    from_end = rest[:, 0].max() - rest[:, 0]
+    pts = u.twin.particles(u.state, rope)
+    h, w = cam.height, cam.width
+
+    def mask(points) -> np.ndarray:
+        uv = project(cam, points)
+        j, i = np.floor(uv[:, 0]).astype(int), np.floor(uv[:, 1]).astype(int)
+        ok = (i >= 0) & (i < h) & (j >= 0) & (j < w)
+        m = np.zeros((h, w), bool)
+        m[i[ok], j[ok]] = True
+        return m
+
+    body, mark = mask(pts[from_end > BODY_LABEL_M]), mask(pts[from_end < MARK_LABEL_M])
+    near = ndimage.binary_dilation(mask(pts), np.ones((3, 3), bool), iterations=3)
+    return {"rope": body & ~mark, "mark": mark & ~body, "table": table & ~near}
+
+
+def _rope_workspace(u) -> tuple[float, tuple]:
+    """(height, workspace) of the rope estimator in env `u`: the rope's centre line above the table (its
+    rest particles' mean height) and the task's workspace box (x, y)."""
+    (x0, y0, _), (x1, y1, _) = u.rules.settings.workspace
+    return float(np.mean(u.twin.rest_particles(u.rules.roles["rope"])[:, 2])), ((x0, y0), (x1, y1))
+
+
+def _rope_labels(u, cam, camera: str):
+    table = table_mask(cam, *_rope_workspace(u))
+    return lambda info: rope_labels(u, cam, table)
+
+
+def _labeller(task: str):
+    table = {"push-t": (_push_t_labels, ("plain",)),
+             "rope-routing": (_rope_labels, ("rope", "mark", "table"))}
+    if task not in table:
+        raise InputError(f"perception controllers (policy kind perceive): tasks {sorted(table)}, "
+                         f"not {task!r}")
+    return table[task]
+
+
+def _env_id(task: str) -> str:
+    from twinbench.tasks import get_task
+
+    return get_task(task).env_id
 
 
 def _overlay(u, camera: str) -> np.ndarray:
@@ -345,21 +536,84 @@ class PerceptionPushT:
         return np.clip(action, self.low, self.high).astype(np.float32)
 
 
+class PerceptionRope:
+    """The rope-routing expert planning from the rope estimated in the first image(s) (`RopeEstimator`)
+    instead of the privileged state. The expert plans once, from the estimate of `latency` perception steps
+    before its first action (the robot holds still until then; perception every `period` steps), with
+    Gaussian noise `noise_m` on each estimated point and the end's direction turned by `noise_rad`; the
+    clip's pose is the twin's (the task's fixed geometry, as push-T's goal). `gain`: the fraction of the
+    expert's position step commanded (orientation and gripper as the expert's)."""
+
+    uses_environment_state = False
+
+    def __init__(self, env, cfg: PerceptionConfig, seed: int = 0):
+        from twinbench.tasks.rope_routing import make_expert
+
+        u = env.unwrapped
+        self.cfg, self.seed, self.env = cfg, int(seed), env
+        self.expert = make_expert(env)
+        cam = _camera(cfg.camera_model) if cfg.camera_model else u.twin.camera(u.state, cfg.camera)
+        self.estimator = RopeEstimator(cam, cfg.colors, cfg.threshold, cfg.min_pixels, *_rope_workspace(u))
+        space = env.action_space
+        self.low, self.high = np.asarray(space.low, np.float64), np.asarray(space.high, np.float64)
+        self.reset()
+
+    def reset(self) -> None:
+        self.expert.reset()
+        self._rng = np.random.default_rng(self.seed)
+        self._estimates: deque = deque(maxlen=self.cfg.latency + 1)
+        self._state: np.ndarray | None = None
+        self._step = 0
+
+    def reseed(self, seed: int) -> None:
+        self.seed = int(seed)
+        self.reset()
+
+    def _plan_state(self, est: np.ndarray) -> np.ndarray:
+        """[end, along, centroid, clip x y theta, 0, 0] from an estimate, with the level's noise."""
+        u = self.env.unwrapped
+        clip = u.twin.collider_pose(u.state, u.rules.roles["clip"])
+        end, along, centroid = est[0:3].copy(), est[3:6].copy(), est[6:9].copy()
+        a = self._rng.normal(0.0, self.cfg.noise_rad)
+        c, s = np.cos(a), np.sin(a)
+        along[:2] = end[:2] + np.array([[c, -s], [s, c]]) @ (along[:2] - end[:2])
+        for p in (end, along, centroid):
+            p[:2] += self._rng.normal(0.0, self.cfg.noise_m, 2)
+        return np.r_[end, along, centroid, clip[0, 3], clip[1, 3], np.arctan2(clip[1, 0], clip[0, 0]), 0, 0]
+
+    def select_action(self, obs: dict) -> np.ndarray:
+        ee = np.asarray(obs["agent_pos"], np.float64)
+        if self._state is None:
+            if self._step % self.cfg.period == 0:
+                est = self.estimator.estimate(obs["pixels"][self.cfg.camera])
+                if est is not None:
+                    self._estimates.append(est)
+            self._step += 1
+            if len(self._estimates) <= self.cfg.latency:
+                return np.clip(ee, self.low, self.high).astype(np.float32)  # not planned yet: hold
+            self._state = self._plan_state(self._estimates[0])
+        target = np.asarray(self.expert.select_action({"agent_pos": ee, "environment_state": self._state}),
+                            np.float64)
+        action = target.copy()
+        action[:3] = ee[:3] + self.cfg.gain * (target[:3] - ee[:3])
+        return np.clip(action, self.low, self.high).astype(np.float32)
+
+
+CONTROLLERS = {"push-t": PerceptionPushT, "rope-routing": PerceptionRope}
+
+
 def make_perceive(spec, task, env, *, seed: int):
-    """Policy kind `perceive`: `perceive:CONFIG.json` (a `PerceptionConfig`)."""
+    """Policy kind `perceive`: `perceive:CONFIG.json` (a `PerceptionConfig`), the controller of the task."""
     if not spec.target:
         raise InputError(f"policy spec {spec.spec!r}: expected perceive:PATH to a perception config JSON")
-    if task.name != "push-t":
-        raise InputError(f"policy spec {spec.spec!r}: perception controllers exist for push-t only, "
-                         f"not {task.name!r}")
-    return PerceptionPushT(env, read_config(spec.target), seed=seed)
+    if task.name not in CONTROLLERS:
+        raise InputError(f"policy spec {spec.spec!r}: perception controllers exist for "
+                         f"{sorted(CONTROLLERS)}, not {task.name!r}")
+    return CONTROLLERS[task.name](env, read_config(spec.target), seed=seed)
 
 
-def levels(colors: dict, camera_model: dict | None = None) -> dict[str, PerceptionConfig]:
-    """The study's perception controllers: from the clean controller to ones that rarely succeed (noise in
-    the estimate, latency, low gain, slow perception), named by their level."""
-    base = PerceptionConfig(colors=colors, camera_model=camera_model, period=2)
-    table = {
+LEVELS = {
+    "push-t": {
         "p0-clean": {},
         "p1-noise1cm": {"noise_m": 0.01, "noise_rad": 0.05},
         "p2-gain0.5": {"gain": 0.5},
@@ -368,17 +622,41 @@ def levels(colors: dict, camera_model: dict | None = None) -> dict[str, Percepti
         "p5-noise4cm": {"noise_m": 0.04, "noise_rad": 0.2},
         "p6-gain0.2-lag10": {"gain": 0.2, "latency": 10},
         "p7-noise8cm": {"noise_m": 0.08, "noise_rad": 0.4},
-    }
-    return {name: replace(base, extra={"level": name}, **kw) for name, kw in table.items()}
+    },
+    # the rope expert plans once: noise on the planned-from estimate decides the grasp (its fingers close
+    # 12 mm from the end, across the rope), the gain how far the arm gets in each leg's steps
+    "rope-routing": {
+        "r0-clean": {},
+        "r1-noise5mm": {"noise_m": 0.005, "noise_rad": 0.05},
+        "r2-gain0.5": {"gain": 0.5},
+        "r3-noise1cm": {"noise_m": 0.01, "noise_rad": 0.1},
+        "r4-noise1.5cm": {"noise_m": 0.015, "noise_rad": 0.15},
+        "r5-noise2cm": {"noise_m": 0.02, "noise_rad": 0.2},
+        "r6-gain0.25": {"gain": 0.25},
+        "r7-noise4cm": {"noise_m": 0.04, "noise_rad": 0.4},
+    },
+}
 
 
-def twin_camera(twin_dir: str | Path, camera: str = "front") -> dict:
-    """The `camera_model` of a twin directory's camera (as its env places it at the start configuration)."""
+def levels(colors: dict, camera_model: dict | None = None,
+           task: str = "push-t") -> dict[str, PerceptionConfig]:
+    """The study's perception controllers of `task` (`LEVELS`): from the clean controller to ones that
+    rarely succeed (noise in the estimate, latency, low gain, slow perception), named by their level."""
+    if task not in LEVELS:
+        raise InputError(f"perception controllers (policy kind perceive): tasks {sorted(LEVELS)}, "
+                         f"not {task!r}")
+    base = PerceptionConfig(colors=colors, camera_model=camera_model, period=2)
+    return {name: replace(base, extra={"level": name}, **kw) for name, kw in LEVELS[task].items()}
+
+
+def twin_camera(twin_dir: str | Path, camera: str = "front", task: str = "push-t") -> dict:
+    """The `camera_model` of a twin directory's camera (as the task's env places it at the start
+    configuration)."""
     import gymnasium
 
     import twinbench  # noqa: F401 - registers the envs
 
-    env = gymnasium.make("twinbench/PushT-v0", twin=str(twin_dir))
+    env = gymnasium.make(_env_id(task), twin=str(twin_dir))
     try:
         u = env.unwrapped
         return camera_dict(u.twin.camera(u.state, camera))

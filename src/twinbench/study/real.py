@@ -54,12 +54,13 @@ def preset_of(size) -> str:
     return study_size(size).preset
 
 
-def task_cell(task: str, size: str, **settings):
-    """The task's built-in cell at the study size's preset (with cell `settings`), as a TwinSpec."""
+def task_cell(task: str, size, *, preset: str | None = None, **settings):
+    """The task's built-in cell at the study size's preset (or `preset`), with cell `settings`, as a
+    TwinSpec."""
     from twinbench.tasks import get_task
 
     _cell_settings(task)
-    return get_task(task).task_cls(None).default_twin(preset_of(size), **settings)
+    return get_task(task).task_cls(None).default_twin(preset or preset_of(size), **settings)
 
 
 def _uniform(rng, lo, hi) -> float:
@@ -125,6 +126,7 @@ def make_real(task: str, seed: int, out: Path, size: str = "small") -> Path:
     from twinbench.physics import SimParams
     from twinbench.physics.model import ModelBuilder, radius_springs
     from twinbench.physics.sysid import stable_substeps
+    from twinbench.study.sizes import size_name
     from twinbench.twin import save_twin
 
     cls, spacing_field = _cell_settings(task)
@@ -205,7 +207,7 @@ def make_real(task: str, seed: int, out: Path, size: str = "small") -> Path:
         for cam in cameras
     }
     hidden = {
-        "task": task, "seed": int(seed), "size": size, "preset": preset,
+        "task": task, "seed": int(seed), "size": size_name(size), "preset": preset,
         "object": {
             "name": real_obj.name, "particles": len(pts), "cell_particles": base.num_particles,
             "spacing": fine_spacing, "cell_spacing": fine_spacing / FINER, "springs": len(springs),

@@ -9,8 +9,16 @@ align-color` (the scan's colours -> the real cameras' colours), `twinbench sysid
 from its tracked motion; once with the fit, once at its initial guess), then one build config per variant
 and `twinbench twin build`. Between sysid and the build, the identified object (particles in the world
 frame) is put in its own frame at the rest pose found by registering the task's object template to the
-segmented scan (`estimate_rest_pose`); the task's public definition supplies what the evidence does not
-hold: the object's outline and goal, the controller and the tool's contact.
+segmented scan (`estimate_rest_pose`; colours tell a rope's marked end from its other end); the task's
+public definition supplies what the evidence does not hold: the object's outline and goal, the controller
+and the tool's contact.
+
+Fixed colliders (rope-routing's clip, toy-packing's box: evidence.json `colliders`): segmented by their own
+crop box, aligned with the rest; the build config names each with the cell's mesh (written to
+OUT/construction/colliders/NAME.obj), channel and contact (the task's public definition: the evidence has
+no contact of them), its Gaussians from the scan (in its frame, colour-mapped as the rest), and its pose
+found by registering the cell's collider to its scan Gaussians (`place_collider`), or the cell's declared
+pose when the scan holds fewer than MIN_COLLIDER_GAUSSIANS of it (the log says which).
 
 Variants (`VARIANTS`): "full"; "no-color" (identity colour map); "no-physics" (stiffness and contact at
 sysid's initial guess, without its optimisation); "neither". Work files go to OUT/construction/.
@@ -43,16 +51,25 @@ def _rot2(yaw: float) -> np.ndarray:
     return np.array([[c, -s], [s, c]])
 
 
-def estimate_rest_pose(observed: np.ndarray, template: np.ndarray, z: float = 0.0) -> np.ndarray:
+def estimate_rest_pose(observed: np.ndarray, template: np.ndarray, z: float = 0.0,
+                       observed_rgb: np.ndarray | None = None,
+                       template_rgb: np.ndarray | None = None) -> np.ndarray:
     """The planar pose (x, y, yaw; height `z`) that puts `template` (points in the object's frame) onto
     `observed` (world points of the object, floaters allowed): every 3 deg of yaw with the centroids
-    matched, then trimmed 2D ICP from the best."""
+    matched, then trimmed 2D ICP from the best, polished on the capped symmetric distance. With colours
+    (`observed_rgb`, `template_rgb`, (N, 3)): the half-turned fit is refined too, and when the shape cannot
+    tell the two apart (a rope's straight tube: scores within 25 %), the one whose colours agree better
+    (per channel correlation of the observed colours with their nearest template points' colours; any
+    colour space) wins, e.g. the rope's marked end."""
+    from scipy.optimize import minimize
+
     from twinbench.transforms import planar_pose
 
     obs = np.asarray(observed, np.float64)[:, :2]
     centre = np.median(obs, axis=0)
     dist = np.linalg.norm(obs - centre, axis=1)
-    obs = obs[dist <= 2.5 * np.median(dist) + 1e-9]
+    inlier = dist <= 2.5 * np.median(dist) + 1e-9
+    obs = obs[inlier]
     tmpl = np.asarray(template, np.float64)[:, :2]
     rng = np.random.default_rng(0)
     few_obs = obs[rng.permutation(len(obs))[:1000]]  # the coarse search on at most 1000 points each
@@ -64,20 +81,70 @@ def estimate_rest_pose(observed: np.ndarray, template: np.ndarray, z: float = 0.
         r = _rot2(yaw)
         return tree_obs.query(few_tmpl @ r.T + t)[0].mean() + tree_tmpl.query((few_obs - t) @ r)[0].mean()
 
+    def capped(yaw, t):
+        r = _rot2(yaw)
+        return (np.minimum(tree_obs.query(few_tmpl @ r.T + t)[0], 0.01).mean()
+                + np.minimum(tree_tmpl.query((few_obs - t) @ r)[0], 0.01).mean())
+
+    def icp(yaw: float) -> tuple[float, np.ndarray]:
+        t = c_obs - _rot2(yaw) @ c_tmpl
+        for _ in range(15):  # trimmed ICP: the template's points matched to their nearest observed points
+            moved = tmpl @ _rot2(yaw).T + t
+            d, j = tree_obs.query(moved)
+            keep = d <= np.quantile(d, 0.8)
+            a, b = tmpl[keep], obs[j[keep]]
+            ca, cb = a.mean(axis=0), b.mean(axis=0)
+            h = (a - ca).T @ (b - cb)
+            yaw = float(np.arctan2(h[0, 1] - h[1, 0], h[0, 0] + h[1, 1]))
+            t = cb - _rot2(yaw) @ ca
+        # polish on the symmetric distance, each point's capped at 1 cm (floaters): the trimmed ICP drops
+        # the worst-matched points, which for a long thin object (a rope) are its ends, all that fixes its
+        # position along its axis
+        res = minimize(lambda p: capped(p[2], p[:2]), np.r_[t, yaw], method="Nelder-Mead", options={
+            "initial_simplex": np.r_[t, yaw] + np.vstack([np.zeros(3), np.diag([0.003, 0.003, 0.02])]),
+            "xatol": 1e-5, "fatol": 1e-8, "maxfev": 300})
+        return float(res.x[2]), np.asarray(res.x[:2])
+
     yaws = np.radians(np.arange(0.0, 360.0, 3.0))
-    yaw = min(yaws, key=lambda a: score(a, c_obs - _rot2(a) @ c_tmpl))
-    t = c_obs - _rot2(yaw) @ c_tmpl
-    for _ in range(15):  # trimmed ICP: the template's points matched to their nearest observed points
-        moved = tmpl @ _rot2(yaw).T + t
-        d, j = tree_obs.query(moved)
-        keep = d <= np.quantile(d, 0.8)
-        a, b = tmpl[keep], obs[j[keep]]
-        ca, cb = a.mean(axis=0), b.mean(axis=0)
-        h = (a - ca).T @ (b - cb)
-        yaw = float(np.arctan2(h[0, 1] - h[1, 0], h[0, 0] + h[1, 1]))
-        t = cb - _rot2(yaw) @ ca
+    fits = [icp(min(yaws, key=lambda a: score(a, c_obs - _rot2(a) @ c_tmpl)))]
+    if observed_rgb is not None and template_rgb is not None:
+        fits.append(icp(fits[0][0] + np.pi))
+        scores = [score(*f) for f in fits]
+        if max(scores) <= 1.25 * min(scores):
+            rgb_obs = np.asarray(observed_rgb, np.float64)[inlier]
+            rgb_tmpl = np.asarray(template_rgb, np.float64)
+
+            def agreement(fit) -> float:
+                j = tree_tmpl.query((obs - fit[1]) @ _rot2(fit[0]))[1]
+                return sum(np.nan_to_num(np.corrcoef(rgb_obs[:, k], rgb_tmpl[j, k])[0, 1]) for k in range(3))
+
+            fits.sort(key=agreement, reverse=True)
+        else:
+            fits.sort(key=lambda f: score(*f))
+    yaw, t = fits[0]
     pose = planar_pose(float(t[0]), float(t[1]), yaw)
     pose[2, 3] = z
+    return pose
+
+
+def _half_turn_symmetric(vertices: np.ndarray, tol: float = 1e-3) -> bool:
+    """Whether a mesh's vertices map onto themselves under a half turn about its frame's z axis."""
+    v = np.asarray(vertices, np.float64)
+    turned = v * [-1.0, -1.0, 1.0]
+    return bool(cKDTree(v).query(turned)[0].max() <= tol)
+
+
+def place_collider(scanned: np.ndarray, collider) -> np.ndarray:
+    """The pose of the task's fixed collider `collider` (a ColliderSpec: mesh, Gaussians, declared pose)
+    registered to its segmented scan Gaussians `scanned` (world points). A collider that a half turn about
+    its z axis leaves unchanged (the rope clip: the same walls, the same channel with its openings swapped)
+    has two equally good poses: the one nearer the cell's declared heading is kept."""
+    template = collider.gaussians.means if collider.gaussians is not None else collider.vertices
+    pose = estimate_rest_pose(scanned, template, float(collider.pose[2, 3]))
+    declared = np.arctan2(collider.pose[1, 0], collider.pose[0, 0])
+    yaw = np.arctan2(pose[1, 0], pose[0, 0])
+    if _half_turn_symmetric(collider.vertices) and abs(np.angle(np.exp(1j * (yaw - declared)))) > np.pi / 2:
+        pose[:3, :3] = pose[:3, :3] @ np.diag([-1.0, -1.0, 1.0])
     return pose
 
 
@@ -94,6 +161,43 @@ def _place_object(identified: Path, template, rest_pose: np.ndarray, sim_over: d
     )
     save_object(placed, out, sim={**sim, **sim_over})
     return out
+
+
+MIN_COLLIDER_GAUSSIANS = 50  # fewer scanned Gaussians of a fixed collider: the cell's declared pose
+
+
+def _collider_entry(cell, name: str, scanned_file: Path, work: Path, log) -> dict:
+    """The build config's entry for the cell's fixed collider `name` (the task's public definition gives its
+    mesh, channel and contact; the scan its pose and Gaussians): writes WORK/colliders/NAME.obj (the mesh,
+    collider frame) and WORK/colliders/NAME.ply (its scan Gaussians in the collider frame)."""
+    from twinbench.errors import InputError
+    from twinbench.gaussians.io import load_gaussians, save_gaussians
+    from twinbench.transforms import invert_pose
+
+    spec = next((c for c in cell.colliders if c.name == name), None)
+    if spec is None:
+        raise InputError(f"evidence collider {name!r}: the task's cell has colliders "
+                         f"{[c.name for c in cell.colliders]}; name one of them in evidence.json 'colliders'")
+    import trimesh
+
+    out = work / "colliders"
+    out.mkdir(parents=True, exist_ok=True)
+    mesh = trimesh.Trimesh(np.asarray(spec.vertices), np.asarray(spec.faces), process=False)
+    mesh.export(out / f"{name}.obj")
+    scanned = load_gaussians(scanned_file) if scanned_file.is_file() else None
+    if scanned is not None and len(scanned) >= MIN_COLLIDER_GAUSSIANS:
+        pose, source = place_collider(scanned.means, spec), "the scan"
+    else:  # the scan does not hold it (too few Gaussians in its box): the cell's declared pose
+        pose, source = np.asarray(spec.pose, np.float64), "the cell's declared pose"
+    log(f"# collider {name}: pose from {source} x={pose[0, 3]:.4f} y={pose[1, 3]:.4f} "
+        f"yaw={np.degrees(np.arctan2(pose[1, 0], pose[0, 0])):.2f} deg")
+    entry = {"name": name, "mesh": f"colliders/{name}.obj", "pose": pose.tolist(),
+             "restitution": spec.contact.restitution, "friction": spec.contact.friction,
+             "channel": None if spec.channel is None else list(spec.channel)}
+    if scanned is not None and len(scanned):
+        save_gaussians(scanned.transform(invert_pose(pose)), out / f"{name}.ply")
+        entry["gaussians"] = f"colliders/{name}.ply"
+    return entry
 
 
 def reconstruct(evidence: Path, out: Path, variants=VARIANTS, log: Callable[[str], None] = print,
@@ -122,12 +226,13 @@ def reconstruct(evidence: Path, out: Path, variants=VARIANTS, log: Callable[[str
             raise RuntimeError(f"twinbench {argv[0]} failed with exit code {code} (command above)")
 
     objects = index["objects"]
+    colliders = index.get("colliders", [])  # the cell's fixed parts, segmented like objects (evidence boxes)
     seg, aligned, color = work / "seg", work / "aligned", work / "color"
     run("segment", evidence / index["scan"], "--boxes", evidence / index["boxes"], "--out", seg)
     run("align-robot", seg / "robot.ply", "--urdf", index["urdf"], "--out", aligned, "--also",
-        seg / "background.ply", *[seg / "objects" / f"{o}.ply" for o in objects])
+        seg / "background.ply", *[seg / "objects" / f"{o}.ply" for o in (*objects, *colliders)])
     parts = [aligned / "robot.ply", aligned / "aligned" / "background.ply",
-             *[aligned / "aligned" / f"{o}.ply" for o in objects]]
+             *[aligned / "aligned" / f"{o}.ply" for o in (*objects, *colliders)]]
     if any(_COLOR[v] for v in variants):
         run("align-color", "--scan", *parts, "--calibration", evidence / index["calibration"], "--real",
             evidence / index["real_images"], "--out", color)
@@ -139,14 +244,16 @@ def reconstruct(evidence: Path, out: Path, variants=VARIANTS, log: Callable[[str
                 "--no-progress", *flags, *sysid_args)
 
     # the task's public definition: object templates (shape, outline, goal), controller, tool contact
-    cell = task_cell(index["task"], index["size"])
+    # the cell at the evidence's preset (evidence written before "preset" was recorded: its size's)
+    cell = task_cell(index["task"], index["size"], preset=index.get("preset"))
     frame_dt = cell.sim.dt * cell.sim.substeps
     write_json(work / "calibration.json", json.loads((evidence / index["calibration"]).read_text()))
     rest = {}
     for o in objects:
         template = cell.object(o)
-        scanned = load_gaussians(aligned / "aligned" / f"{o}.ply").means
-        rest[o] = estimate_rest_pose(scanned, template.gaussians.means, float(template.rest_pose[2, 3]))
+        scanned = load_gaussians(aligned / "aligned" / f"{o}.ply")
+        rest[o] = estimate_rest_pose(scanned.means, template.gaussians.means, float(template.rest_pose[2, 3]),
+                                     scanned.base_colours, template.gaussians.base_colours)
         log(f"# {o}: rest pose from the scan x={rest[o][0, 3]:.4f} y={rest[o][1, 3]:.4f} "
             f"yaw={np.degrees(np.arctan2(rest[o][1, 0], rest[o][0, 0])):.2f} deg")
         for kind in physics:
@@ -157,6 +264,7 @@ def reconstruct(evidence: Path, out: Path, variants=VARIANTS, log: Callable[[str
             over = {k: (list(v) if isinstance(v, tuple) else v) for k, v in over.items()}
             _place_object(work / "sysid" / kind / o, template, rest[o], over, work / "objects" / kind / o)
 
+    fixed = [_collider_entry(cell, c, aligned / "aligned" / f"{c}.ply", work, log) for c in colliders]
     twins = {}
     for v in variants:
         cmap = "color/color_map.json" if _COLOR[v] else None
@@ -167,6 +275,7 @@ def reconstruct(evidence: Path, out: Path, variants=VARIANTS, log: Callable[[str
             "background": {"gaussians": "aligned/aligned/background.ply", "color_map": cmap},
             "objects": [{"dir": f"objects/{_PHYSICS[v]}/{o}", "rest_pose": rest[o].tolist(),
                          "gaussians": f"aligned/aligned/{o}.ply", "color_map": cmap} for o in objects],
+            "colliders": [{**c, "color_map": cmap} for c in fixed],
             "cameras": "calibration.json",
             "controller": json.loads(json.dumps(dataclasses.asdict(cell.controller))),
             "render": {"background": list(cell.render_background)},

@@ -28,6 +28,11 @@ SIZES = {
 }
 
 
+def size_name(size: str | StudySize) -> str:
+    """The size's name as files record it ("custom" for a StudySize given directly, e.g. a test's)."""
+    return size if isinstance(size, str) else "custom"
+
+
 def study_size(size: str | StudySize) -> StudySize:
     """The named size (or `size` itself when it is a StudySize, e.g. a test's tiny one)."""
     if isinstance(size, StudySize):
