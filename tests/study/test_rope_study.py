@@ -146,8 +146,6 @@ def test_tiny_rope_study_end_to_end(tmp_path, monkeypatch):
     """make-real -> evidence -> reconstruct (REAL/ moved away, its hidden file deleted) -> policies ->
     evaluation in the real workcell and the rebuilt twin, on a tiny size (1 grid state, 1 s episodes,
     short probe motion, a small sysid budget)."""
-    import gymnasium
-
     from twinbench.evaluation.store import ResultsStore
     from twinbench.policies import spec as spec_module
     from twinbench.study import evaluate as E
@@ -190,8 +188,8 @@ def test_tiny_rope_study_end_to_end(tmp_path, monkeypatch):
     assert abs(np.degrees(_yaw(clip.pose) - _yaw(real_clip.pose))) < 1.5
     states = {}
     for name, world in (("twin", twins["full"]), ("real", real / "world")):
-        env = gymnasium.make("twinbench/RopeRouting-v0", twin=str(world), environment_state=True, cameras="",
-                             episode_seconds=1.0)
+        env = get_task("rope-routing").make_env(twin=str(world), environment_state=True, cameras="",
+                                                episode_seconds=1.0)
         obs, _ = env.reset(seed=0, options={"init_state": 0})
         states[name] = np.asarray(obs["environment_state"], np.float64)
         if name == "twin":
