@@ -138,6 +138,10 @@ def test_tasks_without_perception_controllers_are_refused(tmp_path):
         P.levels({}, None, "toy-packing")
     assert set(P.levels({}, None, "rope-routing")) == set(P.LEVELS["rope-routing"])
     assert not (tmp_path / "policies").exists()
+    from twinbench.cli import main as cli_main
+
+    assert cli_main(["study", "run", "--out", str(tmp_path / "study"), "--task", "toy-packing"]) == 2
+    assert not (tmp_path / "study").exists()  # refused before any stage
 
 
 @pytest.mark.slow

@@ -42,6 +42,12 @@ def run_study(task: str, out: Path, size: str = "small", seed: int = 0, workers:
     from twinbench.study.report import write_study_report
 
     study_size(size)  # a bad --size is refused before anything runs
+    from twinbench.errors import InputError
+    from twinbench.study.policies import LEVELS
+
+    if task not in LEVELS:  # ... and a task without perception controllers (before hours of stages)
+        raise InputError(f"study run --task {task}: perception controllers exist for {sorted(LEVELS)}; "
+                         "`twinbench study make-real / evidence / reconstruct` take any built-in task")
     out = Path(out)
     variants = tuple(variants or VARIANTS)
     timer = _Timer(log)
