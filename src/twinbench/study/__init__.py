@@ -6,4 +6,7 @@
 - `reconstruct.reconstruct(evidence, out, variants)`: twins rebuilt from the evidence through the public
   CLI (segment -> align-robot -> align-color -> sysid -> twin build) and its ablations;
 - policies, evaluation and the report: `policies`, `evaluate`, `run` (`twinbench study run`).
+
+Tasks: push-t and rope-routing end to end; the rope's clip (a fixed collider) is segmented from the scan and
+rebuilt as a collider of the twin, and its perception controller plans from the rope seen in the front image.
 """
