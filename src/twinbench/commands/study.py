@@ -4,8 +4,9 @@ hidden "real" workcell (twinbench.study). `run` does every stage into one folder
     twinbench study run --task push-t --out study_pusht --size small
     twinbench study run --task rope-routing --out study_rope --size small
 
-Tasks: push-t and rope-routing (`evaluate` refuses a task without perception controllers, naming those
-that have them).
+Tasks: push-t and rope-routing (every stage); toy-packing through make-real, evidence and reconstruct (its
+box rebuilt as a collider like the rope's clip), with no perception controllers yet: `evaluate` and `run`
+refuse it, naming the tasks that have them.
 """
 
 from __future__ import annotations
@@ -26,7 +27,7 @@ class MakeRealConfig:
     out: Path
     """the folder REAL"""
     task: str = "push-t"
-    """push-t | rope-routing"""
+    """push-t | rope-routing | toy-packing"""
     seed: int = 0
     size: str = "small"
     """small | medium (the fast cell) | full (the reference cell)"""
