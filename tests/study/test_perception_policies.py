@@ -88,3 +88,30 @@ def test_policy_kind_parses_through_the_registry(monkeypatch):
     monkeypatch.setattr(spec_module, "POLICY_KINDS", dict(spec_module.POLICY_KINDS))  # loading registers it
     spec = spec_module.parse_policy_spec("p0=perceive:/some/where/p0.json")
     assert (spec.kind, spec.name, spec.target) == ("perceive", "p0", "/some/where/p0.json")
+
+
+def test_controller_acts_like_the_expert_on_the_true_pose_and_reseeds(scene):
+    """The clean controller's first action is the expert's on the true pose within the estimate's error;
+    a noisy one repeats its actions after `reseed` with the same seed and changes them with another."""
+    from twinbench.tasks.push_t import make_expert
+
+    u, cam, frames = scene
+    env = u  # the controllers take an env (`unwrapped` of the unwrapped env is itself)
+    colors = _colors(u, cam, frames)
+    obs, _ = u.reset(seed=0, options={"init_state": 9})
+    clean = P.PerceptionPushT(env, P.PerceptionConfig(colors=colors, camera_model=P.camera_dict(cam)))
+    expert = make_expert(env)
+    state = {"agent_pos": obs["agent_pos"], "environment_state": obs["environment_state"]}
+    want = expert.select_action(state)
+    got = clean.select_action(obs)
+    assert np.linalg.norm(np.asarray(got, np.float64) - np.asarray(want, np.float64)) < 0.02
+
+    noisy = P.PerceptionPushT(env, P.PerceptionConfig(colors=colors, noise_m=0.02, noise_rad=0.1), seed=3)
+
+    def first_actions(seed):
+        noisy.reseed(seed)
+        return np.array([noisy.select_action(obs) for _ in range(3)])
+
+    a, b, c = first_actions(3), first_actions(3), first_actions(4)
+    assert np.array_equal(a, b)
+    assert not np.array_equal(a, c)

@@ -478,38 +478,54 @@ def _overlay(u, camera: str) -> np.ndarray:
 
 
 # ---- the controller ----------------------------------------------------------------------------------
-class PerceptionPushT:
-    """The push-T expert acting on poses estimated from images (see the module docstring)."""
+class _PerceptionController:
+    """What the perception controllers share: the task's scripted expert, the camera they see through
+    (the config's calibrated one, else the env's), the action bounds, a seeded noise stream, the queue of
+    estimates that makes the latency. A subclass sets `estimator` and `_start()`s its own state."""
 
     uses_environment_state = False
 
-    def __init__(self, env, cfg: PerceptionConfig, seed: int = 0):
-        from twinbench.tasks.push_t import make_expert, pose_xytheta
-
+    def __init__(self, env, cfg: PerceptionConfig, seed: int, make_expert):
         u = env.unwrapped
-        self.cfg, self.seed = cfg, int(seed)
+        self.cfg, self.seed, self.env = cfg, int(seed), env
         self.expert = make_expert(env)
-        cam = _camera(cfg.camera_model) if cfg.camera_model else u.twin.camera(u.state, cfg.camera)
-        self.estimator = TPoseEstimator(u.rules.outline, cam, cfg.colors, cfg.threshold,
-                                        _overlay(u, cfg.camera), cfg.min_pixels)
-        self.goal = pose_xytheta(u.rules.goal)
-        lo, hi = u.rules.outline.bounds()
-        g = np.mgrid[lo[0]:hi[0]:0.005, lo[1]:hi[1]:0.005].reshape(2, -1).T
-        self._area = g[u.rules.outline.contains(g, tol=1e-6)]  # footprint samples for the estimated msd
+        self.camera = _camera(cfg.camera_model) if cfg.camera_model else u.twin.camera(u.state, cfg.camera)
         space = env.action_space
         self.low, self.high = np.asarray(space.low, np.float64), np.asarray(space.high, np.float64)
-        self.reset()
 
     def reset(self) -> None:
         self.expert.reset()
         self._rng = np.random.default_rng(self.seed)
         self._estimates: deque = deque(maxlen=self.cfg.latency + 1)
-        self._last: np.ndarray | None = None
         self._step = 0
+        self._start()
+
+    def _start(self) -> None:
+        """The subclass's own per-episode state."""
 
     def reseed(self, seed: int) -> None:
         self.seed = int(seed)
         self.reset()
+
+
+class PerceptionPushT(_PerceptionController):
+    """The push-T expert acting on poses estimated from images (see the module docstring)."""
+
+    def __init__(self, env, cfg: PerceptionConfig, seed: int = 0):
+        from twinbench.tasks.push_t import make_expert, pose_xytheta
+
+        super().__init__(env, cfg, seed, make_expert)
+        u = env.unwrapped
+        self.estimator = TPoseEstimator(u.rules.outline, self.camera, cfg.colors, cfg.threshold,
+                                        _overlay(u, cfg.camera), cfg.min_pixels)
+        self.goal = pose_xytheta(u.rules.goal)
+        lo, hi = u.rules.outline.bounds()
+        g = np.mgrid[lo[0]:hi[0]:0.005, lo[1]:hi[1]:0.005].reshape(2, -1).T
+        self._area = g[u.rules.outline.contains(g, tol=1e-6)]  # footprint samples for the estimated msd
+        self.reset()
+
+    def _start(self) -> None:
+        self._last: np.ndarray | None = None
 
     def _msd(self, pose) -> float:
         a = self._area @ _planar(*pose)[:, :2].T + pose[:2]
@@ -536,7 +552,7 @@ class PerceptionPushT:
         return np.clip(action, self.low, self.high).astype(np.float32)
 
 
-class PerceptionRope:
+class PerceptionRope(_PerceptionController):
     """The rope-routing expert planning from the rope estimated in the first image(s) (`RopeEstimator`)
     instead of the privileged state. The expert plans once, from the estimate of `latency` perception steps
     before its first action (the robot holds still until then; perception every `period` steps), with
@@ -544,30 +560,16 @@ class PerceptionRope:
     clip's pose is the twin's (the task's fixed geometry, as push-T's goal). `gain`: the fraction of the
     expert's position step commanded (orientation and gripper as the expert's)."""
 
-    uses_environment_state = False
-
     def __init__(self, env, cfg: PerceptionConfig, seed: int = 0):
         from twinbench.tasks.rope_routing import make_expert
 
-        u = env.unwrapped
-        self.cfg, self.seed, self.env = cfg, int(seed), env
-        self.expert = make_expert(env)
-        cam = _camera(cfg.camera_model) if cfg.camera_model else u.twin.camera(u.state, cfg.camera)
-        self.estimator = RopeEstimator(cam, cfg.colors, cfg.threshold, cfg.min_pixels, *_rope_workspace(u))
-        space = env.action_space
-        self.low, self.high = np.asarray(space.low, np.float64), np.asarray(space.high, np.float64)
+        super().__init__(env, cfg, seed, make_expert)
+        self.estimator = RopeEstimator(self.camera, cfg.colors, cfg.threshold, cfg.min_pixels,
+                                       *_rope_workspace(env.unwrapped))
         self.reset()
 
-    def reset(self) -> None:
-        self.expert.reset()
-        self._rng = np.random.default_rng(self.seed)
-        self._estimates: deque = deque(maxlen=self.cfg.latency + 1)
+    def _start(self) -> None:
         self._state: np.ndarray | None = None
-        self._step = 0
-
-    def reseed(self, seed: int) -> None:
-        self.seed = int(seed)
-        self.reset()
 
     def _plan_state(self, est: np.ndarray) -> np.ndarray:
         """[end, along, centroid, clip x y theta, 0, 0] from an estimate, with the level's noise."""
