@@ -1131,11 +1131,6 @@ def identify(data: SysIdData, cfg: FitConfig, *, base: SimParams | None = None,
                                    adam.acc_share, log)
         t0 = time.perf_counter()
         _, history2 = stage2_adam(model, data, adam, weights, cfg.progress, log, select=n_sel)
-        if by_region(model, regions):
-            try:
-                region_info = region_information(model, fit, regions)
-            except SimulationDiverged:
-                region_info = {}
         first = history2[0]["train_loss"]
         if len(history2) > 1 and not any(r.get("train_loss", math.inf) < first for r in history2[1:]):
             notes.append("stage 2 did not improve on its start's fitted loss")
@@ -1148,7 +1143,12 @@ def identify(data: SysIdData, cfg: FitConfig, *, base: SimParams | None = None,
     kept, selection = _choose_stage(evals, sel, notes)
     params, model = stage_params[kept], models[kept]
     if kept != "stage2":
-        regions, region_info = None, {}
+        regions = None
+    elif by_region(model, regions):  # measured only for the kept stage 2 (one rollout per region)
+        try:
+            region_info = region_information(model, fit, regions)
+        except SimulationDiverged:
+            region_info = {}
     evals["final"] = evals[kept]
     for note in notes:
         log(f"note: {note}")

@@ -175,10 +175,15 @@ def near_color(pixels: np.ndarray, model, threshold: float) -> np.ndarray:
     return _mahalanobis2(pixels, model) < threshold
 
 
+def pixel_centres(cam) -> np.ndarray:
+    """(H * W, 2) the (u, v) centres of every pixel of `cam`, row after row."""
+    jj, ii = np.meshgrid(np.arange(cam.width), np.arange(cam.height))
+    return np.c_[jj.ravel() + 0.5, ii.ravel() + 0.5]
+
+
 def table_mask(cam, height: float, workspace) -> np.ndarray:
     """(H, W) bool: pixels whose ray meets the plane at `height` inside `workspace` ((x0, y0), (x1, y1))."""
-    jj, ii = np.meshgrid(np.arange(cam.width), np.arange(cam.height))
-    uv = np.c_[jj.ravel() + 0.5, ii.ravel() + 0.5]
+    uv = pixel_centres(cam)
     xy = table_points(cam, uv, height)
     lo, hi = np.asarray(workspace, np.float64)
     inside = (_rays(cam, uv, height)[1] > 0) & np.all((xy >= lo) & (xy <= hi), axis=1)
@@ -281,9 +286,7 @@ class RopeEstimator:
         self.cam, self.threshold, self.min_pixels = camera, float(threshold), int(min_pixels)
         self.height = float(height)
         self.models = color_models(colors)
-        h, w = camera.height, camera.width
-        jj, ii = np.meshgrid(np.arange(w), np.arange(h))
-        uv = np.c_[jj.ravel() + 0.5, ii.ravel() + 0.5]
+        uv = pixel_centres(camera)
         self._table = table_mask(camera, height, workspace)
         self._xy, self._area = table_points(camera, uv, height), pixel_areas(camera, uv, height)
 
@@ -294,14 +297,14 @@ class RopeEstimator:
         from scipy import ndimage
 
         img = np.asarray(image, np.float64).reshape(-1, 3)
-        loglik = {k: -0.5 * (_mahalanobis2(img, m) - np.linalg.slogdet(m[1])[1])  # Gaussian, up to a constant
+        d2 = {k: _mahalanobis2(img, m) for k, m in self.models.items()}
+        loglik = {k: -0.5 * (d2[k] - np.linalg.slogdet(m[1])[1])  # Gaussian, up to a constant
                   for k, m in self.models.items()}
         table = loglik.get("table", np.full(len(img), -np.inf))
         shape = self._table.shape
 
         def seen(k):
-            near = _mahalanobis2(img, self.models[k]) < self.threshold
-            return (near & (loglik[k] > table)).reshape(shape) & self._table
+            return ((d2[k] < self.threshold) & (loglik[k] > table)).reshape(shape) & self._table
 
         mark = seen("mark")
         rope = seen("rope")
