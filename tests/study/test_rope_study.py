@@ -132,15 +132,16 @@ def test_rope_estimate_from_the_front_image_matches_the_true_rope(rope_scene):
 def test_tasks_without_perception_controllers_are_refused(tmp_path):
     from twinbench.study.evaluate import make_policies
 
-    with pytest.raises(InputError, match="toy-packing"):
-        make_policies("toy-packing", tmp_path / "real", tmp_path / "policies")
-    with pytest.raises(InputError, match="toy-packing"):
-        P.levels({}, None, "toy-packing")
-    assert set(P.levels({}, None, "rope-routing")) == set(P.LEVELS["rope-routing"])
+    with pytest.raises(InputError, match="point-reach"):
+        make_policies("point-reach", tmp_path / "real", tmp_path / "policies")
+    with pytest.raises(InputError, match="point-reach"):
+        P.levels({}, None, "point-reach")
+    for task in ("push-t", "rope-routing", "toy-packing"):
+        assert set(P.levels({}, None, task)) == set(P.LEVELS[task])
     assert not (tmp_path / "policies").exists()
     from twinbench.cli import main as cli_main
 
-    assert cli_main(["study", "run", "--out", str(tmp_path / "study"), "--task", "toy-packing"]) == 2
+    assert cli_main(["study", "run", "--out", str(tmp_path / "study"), "--task", "point-reach"]) == 2
     assert not (tmp_path / "study").exists()  # refused before any stage
 
 

@@ -16,6 +16,11 @@ Rope routing: the rope expert plans once, from [marked end, the rope point 4 cm 
 pose]; `RopeEstimator` gives the rope's part from the front image (a colour model of the rope's body and of
 its marked end, fitted as push-T's on labelled real images; the blob's pixels back-projected onto the
 table), the clip's pose is the twin's; `PerceptionRope` adds the level's noise and gain (`LEVELS`).
+
+Toy packing: the toy expert plans once, from [toy pose, box pose]; `ToyEstimator` segments the toy's torso
+and the box by colour (classes fitted on labelled real images) and fits each one's planar pose from its
+blob (`PlanarPoseFit`: the torso's surface, the box's mesh; projected inside and covering the blob);
+`PerceptionToy` adds the level's noise and gain.
 """
 
 from __future__ import annotations
@@ -190,16 +195,76 @@ def table_mask(cam, height: float, workspace) -> np.ndarray:
     return inside.reshape(cam.height, cam.width)
 
 
-class TPoseEstimator:
+class PlanarPoseFit:
+    """Fits the planar pose (x, y, theta) of a rigid shape resting on the table from its blob in one camera's
+    image: `points` (N, 3) sample the shape in its own frame (z up from its base), and the fit places them
+    so that their projection lies inside the blob. With `coverage`, the projection must also cover the
+    blob (a shape whose turned or shifted projection fits inside its blob, e.g. a box seen from above its
+    walls, is otherwise ambiguous)."""
+
+    def __init__(self, points, camera, coverage: bool = False):
+        self.points, self.cam, self.coverage = np.asarray(points, np.float64), camera, bool(coverage)
+
+    def project(self, pose_xyth) -> np.ndarray:
+        """Pixel (u, v) of the shape's points at planar pose (x, y, theta), (N, 2)."""
+        m = _planar(*pose_xyth)
+        xy = self.points[:, :2] @ m[:, :2].T + m[:, 2]
+        return project(self.cam, np.c_[xy, self.points[:, 2]])
+
+    def fit(self, mask: np.ndarray, previous=None) -> np.ndarray:
+        """(x, y, theta) of the shape whose blob is `mask` (H, W bool, not empty). `previous`: a recent
+        estimate to start from (else 12 headings about the blob's centre, the best 3 refined by Nelder-Mead).
+        The fit minimises the mean signed distance (pixels, negative inside) of the projected points to the
+        blob's edge; with `coverage`, the mean distance of the points outside the blob to it plus the mean
+        distance of (up to 500 of) the blob's pixels to the nearest projected point."""
+        from scipy import ndimage
+        from scipy.optimize import minimize
+        from scipy.spatial import cKDTree
+
+        sdf = ndimage.distance_transform_edt(~mask) - ndimage.distance_transform_edt(mask)
+        h, w = mask.shape
+        ii, jj = np.nonzero(mask)
+        blob = np.c_[jj, ii][:: max(len(ii) // 500, 1)].astype(np.float64)
+
+        def cost(p):
+            uv = self.project(p) - 0.5  # pixel centres at integer coordinates
+            d = ndimage.map_coordinates(sdf, [np.clip(uv[:, 1], 0, h - 1), np.clip(uv[:, 0], 0, w - 1)],
+                                        order=1, mode="nearest")
+            if not self.coverage:
+                return float(np.mean(np.minimum(d, 20.0)))
+            gap = np.minimum(cKDTree(uv).query(blob)[0], 20.0)
+            return float(np.mean(np.clip(d, 0.0, 20.0)) + np.mean(gap))
+
+        def refine(start, step):
+            simplex = np.array([start, start + [step, 0, 0], start + [0, step, 0], start + [0, 0, 20 * step]])
+            res = minimize(cost, start, method="Nelder-Mead", options={
+                "initial_simplex": simplex, "xatol": 2e-4, "fatol": 1e-3, "maxfev": 200})
+            x = np.asarray(res.x, np.float64)
+            x[2] = (x[2] + np.pi) % (2 * np.pi) - np.pi
+            return x, float(res.fun)
+
+        if previous is not None:  # tracking: refine the last estimate; a poor fit falls back to the search
+            x, c = refine(np.asarray(previous, np.float64), 0.004)
+            if c < TRACK_COST_PX:
+                return x
+        lo, hi = self.points[:, 2].min(), self.points[:, 2].max()
+        centre = table_points(self.cam, np.c_[jj + 0.5, ii + 0.5], 0.5 * (lo + hi)).mean(0)
+        starts = [np.r_[centre, th] for th in np.linspace(-np.pi, np.pi, 12, endpoint=False)]
+        costs = [cost(s) for s in starts]
+        fits = [refine(starts[k], 0.01) for k in np.argsort(costs)[:3]]  # the 3 best headings, refined
+        return min(fits, key=lambda f: f[1])[0]
+
+
+class TPoseEstimator(PlanarPoseFit):
     """Segments a block of footprint `outline` by colour in one camera's images and fits its planar pose."""
 
     def __init__(self, outline, camera, colors: dict, threshold: float = CHI2_3_999,
                  overlay: np.ndarray | None = None, min_pixels: int = 20):
-        self.outline, self.cam = outline, camera
+        super().__init__(_solid_points(outline), camera)
+        self.outline = outline
         self.threshold, self.min_pixels = float(threshold), int(min_pixels)
         self.overlay = None if overlay is None else np.asarray(overlay, bool)
         self.models = color_models(colors)
-        self.points = _solid_points(outline)
 
     # -- segmentation
     def segment(self, image: np.ndarray) -> np.ndarray:
@@ -214,59 +279,37 @@ class TPoseEstimator:
         for region, where in regions.items():
             model = self.models.get(region, self.models["plain"])
             mask[where] = near_color(img[where], model, self.threshold)
-        mask = ndimage.binary_opening(mask, np.ones((3, 3), bool))
-        labels, n = ndimage.label(mask)
-        if n == 0:
-            return mask
-        sizes = np.bincount(labels.ravel())[1:]
-        return labels == (1 + int(np.argmax(sizes)))
-
-    # -- pose
-    def project(self, pose_xyth) -> np.ndarray:
-        """Pixel (u, v) of the solid's points at planar pose (x, y, theta), (N, 2)."""
-        m = _planar(*pose_xyth)
-        xy = self.points[:, :2] @ m[:, :2].T + m[:, 2]
-        return project(self.cam, np.c_[xy, self.points[:, 2]])
+        return largest_blob(ndimage.binary_opening(mask, np.ones((3, 3), bool)))
 
     def estimate(self, image: np.ndarray, previous=None) -> np.ndarray | None:
-        """(x, y, theta) of the block, or None when fewer than `min_pixels` of its colour are seen.
-        `previous`: a recent estimate to start from (else 12 headings, the best 3 refined). The fit
-        minimises the mean signed distance (pixels, negative inside) of the projected solid's points to the
-        blob's edge."""
-        from scipy import ndimage
-        from scipy.optimize import minimize
-
+        """(x, y, theta) of the block (`PlanarPoseFit.fit`), or None when fewer than `min_pixels` of its
+        colour are seen."""
         mask = self.segment(image)
-        ii, jj = np.nonzero(mask)
-        if len(ii) < self.min_pixels:
+        if mask.sum() < self.min_pixels:
             return None
-        sdf = ndimage.distance_transform_edt(~mask) - ndimage.distance_transform_edt(mask)
-        h, w = mask.shape
+        return self.fit(mask, previous)
 
-        def cost(p):
-            uv = self.project(p) - 0.5  # pixel centres at integer coordinates
-            d = ndimage.map_coordinates(sdf, [np.clip(uv[:, 1], 0, h - 1), np.clip(uv[:, 0], 0, w - 1)],
-                                        order=1, mode="nearest")
-            return float(np.mean(np.minimum(d, 20.0)))
 
-        def refine(start, step):
-            simplex = np.array([start, start + [step, 0, 0], start + [0, step, 0], start + [0, 0, 20 * step]])
-            res = minimize(cost, start, method="Nelder-Mead", options={
-                "initial_simplex": simplex, "xatol": 2e-4, "fatol": 1e-3, "maxfev": 200})
-            x = np.asarray(res.x, np.float64)
-            x[2] = (x[2] + np.pi) % (2 * np.pi) - np.pi
-            return x, float(res.fun)
+def largest_blob(mask: np.ndarray, connectivity: int = 1) -> np.ndarray:
+    """The largest connected blob of `mask` (4-connected; 8-connected with `connectivity` 2)."""
+    from scipy import ndimage
 
-        if previous is not None:  # tracking: refine the last estimate; a poor fit falls back to the search
-            x, c = refine(np.asarray(previous, np.float64), 0.004)
-            if c < TRACK_COST_PX:
-                return x
-        uv = np.c_[jj + 0.5, ii + 0.5]
-        centre = table_points(self.cam, uv, 0.5 * self.outline.height).mean(0)
-        starts = [np.r_[centre, th] for th in np.linspace(-np.pi, np.pi, 12, endpoint=False)]
-        costs = [cost(s) for s in starts]
-        fits = [refine(starts[k], 0.01) for k in np.argsort(costs)[:3]]  # the 3 best headings, refined
-        return min(fits, key=lambda f: f[1])[0]
+    labels, n = ndimage.label(mask, ndimage.generate_binary_structure(2, connectivity))
+    if n == 0:
+        return mask
+    return labels == (1 + int(np.argmax(np.bincount(labels.ravel())[1:])))
+
+
+def class_masks(image: np.ndarray, models: dict, threshold: float) -> dict[str, np.ndarray]:
+    """{class: (H, W) bool} for each colour class of `models` but "table": pixels within squared Mahalanobis
+    distance `threshold` of the class's colour and more likely under it than under the table's (when the
+    models have a "table": pixels where an object meets the table are mixed)."""
+    img = np.asarray(image, np.float64)
+    shape, flat = img.shape[:2], img.reshape(-1, 3)
+    d2 = {k: _mahalanobis2(flat, m) for k, m in models.items()}
+    loglik = {k: -0.5 * (d2[k] - np.linalg.slogdet(m[1])[1]) for k, m in models.items()}  # Gaussian, + c
+    table = loglik.get("table", np.full(len(flat), -np.inf))
+    return {k: ((d2[k] < threshold) & (loglik[k] > table)).reshape(shape) for k in models if k != "table"}
 
 
 ALONG_M = 0.04  # the rope point the expert orients its grasp by: 4 cm from the marked end (rope_routing)
@@ -296,18 +339,8 @@ class RopeEstimator:
         model's "table", when it has one: the pixels where the rope meets the table are mixed)."""
         from scipy import ndimage
 
-        img = np.asarray(image, np.float64).reshape(-1, 3)
-        d2 = {k: _mahalanobis2(img, m) for k, m in self.models.items()}
-        loglik = {k: -0.5 * (d2[k] - np.linalg.slogdet(m[1])[1])  # Gaussian, up to a constant
-                  for k, m in self.models.items()}
-        table = loglik.get("table", np.full(len(img), -np.inf))
-        shape = self._table.shape
-
-        def seen(k):
-            return ((d2[k] < self.threshold) & (loglik[k] > table)).reshape(shape) & self._table
-
-        mark = seen("mark")
-        rope = seen("rope")
+        seen = class_masks(image, self.models, self.threshold)
+        mark, rope = seen["mark"] & self._table, seen["rope"] & self._table
         labels, n = ndimage.label(rope | mark, np.ones((3, 3), bool))
         if n == 0:
             return rope | mark, mark
@@ -340,20 +373,80 @@ class RopeEstimator:
         return np.r_[end, z, along, z, centroid, z]
 
 
-# ---- colour calibration -----------------------------------------------------------------------------------
-def label_mask(estimator: TPoseEstimator, pose_xyth) -> np.ndarray:
-    """Pixels of the block's silhouette at a known pose (eroded by 1 px): a labelled image."""
-    from scipy import ndimage
+TORSO_HALF_M = 0.03  # the toy's torso (the part between its limbs) is within this of its frame's x axis
 
-    h, w = estimator.cam.height, estimator.cam.width
-    mask = np.zeros((h, w), bool)
-    uv = estimator.project(pose_xyth)
+
+def toy_shapes(u, box_points: int = 800) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(torso, torso points, box points) of env `u`'s twin: which of the toy's particles are its torso (the
+    part between the limbs, which the expert grasps: within TORSO_HALF_M of the toy frame's x axis), the
+    torso's surface (its Gaussians' centres, toy frame), and points sampled on the box collider's mesh (box
+    frame)."""
+    import trimesh
+
+    name = u.rules.roles["toy"]
+    torso = np.abs(u.twin.rest_particles(name)[:, 1]) <= TORSO_HALF_M
+    skin = np.asarray(next(o for o in u.twin.spec.objects if o.name == name).gaussians.means, np.float64)
+    box = next(c for c in u.twin.spec.colliders if c.name == u.rules.roles["box"])
+    mesh = trimesh.Trimesh(np.asarray(box.vertices), np.asarray(box.faces), process=False)
+    pts, _ = trimesh.sample.sample_surface(mesh, box_points, seed=0)
+    return torso, skin[np.abs(skin[:, 1]) <= TORSO_HALF_M], np.asarray(pts, np.float64)
+
+
+class ToyEstimator:
+    """Segments the toy's torso (colour "toy") and the box ("box") in one camera's images and fits each
+    one's planar pose (`PlanarPoseFit` with the torso's surface and the box's mesh points). A pixel counts
+    for an object only where its ray meets the table, or the plane of the object's top, inside `workspace`
+    ((x0, y0), (x1, y1)); each object is the largest blob of its colour after a 3x3 opening."""
+
+    def __init__(self, camera, colors: dict, torso_points, box_points, threshold: float = CHI2_3_999,
+                 min_pixels: int = 20, workspace=((0.2, -0.4), (0.8, 0.4))):
+        self.toy = PlanarPoseFit(torso_points, camera, coverage=True)
+        self.box = PlanarPoseFit(box_points, camera, coverage=True)
+        self.models, self.threshold, self.min_pixels = color_models(colors), float(threshold), int(min_pixels)
+        table = table_mask(camera, 0.0, workspace)
+        self._where = {k: table | table_mask(camera, float(fit.points[:, 2].max()), workspace)
+                       for k, fit in (("toy", self.toy), ("box", self.box))}
+
+    def segment(self, image: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(torso, box) (H, W) bool masks (`class_masks`, then each colour's largest blob)."""
+        from scipy import ndimage
+
+        seen = class_masks(image, self.models, self.threshold)
+        return tuple(largest_blob(ndimage.binary_opening(seen[k] & self._where[k], np.ones((3, 3), bool)))
+                     for k in ("toy", "box"))
+
+    def estimate(self, image: np.ndarray) -> np.ndarray | None:
+        """[toy x, y, theta, box x, y, theta] (the toy frame's and the box frame's planar poses), or None
+        when fewer than `min_pixels` of either colour are seen."""
+        toy, box = self.segment(image)
+        if min(toy.sum(), box.sum()) < self.min_pixels:
+            return None
+        return np.r_[self.toy.fit(toy), self.box.fit(box)]
+
+
+# ---- colour calibration -----------------------------------------------------------------------------------
+def points_mask(cam, uv: np.ndarray) -> np.ndarray:
+    """(H, W) bool: the pixels of `cam` that points at pixel coordinates `uv` (N, 2) fall in."""
+    h, w = cam.height, cam.width
     j, i = np.floor(uv[:, 0]).astype(int), np.floor(uv[:, 1]).astype(int)
     ok = (i >= 0) & (i < h) & (j >= 0) & (j < w)
+    mask = np.zeros((h, w), bool)
     mask[i[ok], j[ok]] = True
-    mask = ndimage.binary_closing(mask, np.ones((3, 3), bool), iterations=2)
+    return mask
+
+
+def silhouette(cam, uv: np.ndarray) -> np.ndarray:
+    """The filled silhouette of points at pixel coordinates `uv` (eroded by 1 px): a labelled image."""
+    from scipy import ndimage
+
+    mask = ndimage.binary_closing(points_mask(cam, uv), np.ones((3, 3), bool), iterations=2)
     mask = ndimage.binary_fill_holes(mask)
     return ndimage.binary_erosion(mask, np.ones((3, 3), bool))
+
+
+def label_mask(shape: PlanarPoseFit, pose_xyth) -> np.ndarray:
+    """Pixels of a shape's silhouette at a known pose: a labelled image."""
+    return silhouette(shape.cam, shape.project(pose_xyth))
 
 
 def fit_colors(samples: dict[str, list[np.ndarray]], required: tuple[str, ...] = ("plain",)) -> dict:
@@ -430,26 +523,25 @@ def rope_labels(u, cam, table: np.ndarray) -> dict:
     rest = u.twin.rest_particles(rope)
     from_end = rest[:, 0].max() - rest[:, 0]
     pts = u.twin.particles(u.state, rope)
-    h, w = cam.height, cam.width
 
     def mask(points) -> np.ndarray:
-        uv = project(cam, points)
-        j, i = np.floor(uv[:, 0]).astype(int), np.floor(uv[:, 1]).astype(int)
-        ok = (i >= 0) & (i < h) & (j >= 0) & (j < w)
-        m = np.zeros((h, w), bool)
-        m[i[ok], j[ok]] = True
-        return m
+        return points_mask(cam, project(cam, points))
 
     body, mark = mask(pts[from_end > BODY_LABEL_M]), mask(pts[from_end < MARK_LABEL_M])
     near = ndimage.binary_dilation(mask(pts), np.ones((3, 3), bool), iterations=3)
     return {"rope": body & ~mark, "mark": mark & ~body, "table": table & ~near}
 
 
+def _workspace_xy(u) -> tuple:
+    """The task's workspace box (x, y) in env `u`: ((x0, y0), (x1, y1))."""
+    (x0, y0, _), (x1, y1, _) = u.rules.settings.workspace
+    return (x0, y0), (x1, y1)
+
+
 def _rope_workspace(u) -> tuple[float, tuple]:
     """(height, workspace) of the rope estimator in env `u`: the rope's centre line above the table (its
     rest particles' mean height) and the task's workspace box (x, y)."""
-    (x0, y0, _), (x1, y1, _) = u.rules.settings.workspace
-    return float(np.mean(u.twin.rest_particles(u.rules.roles["rope"])[:, 2])), ((x0, y0), (x1, y1))
+    return float(np.mean(u.twin.rest_particles(u.rules.roles["rope"])[:, 2])), _workspace_xy(u)
 
 
 def _rope_labels(u, cam, camera: str):
@@ -457,9 +549,34 @@ def _rope_labels(u, cam, camera: str):
     return lambda info: rope_labels(u, cam, table)
 
 
+def toy_labels(u, cam, table: np.ndarray) -> dict:
+    """{"toy", "box", "table"} pixel masks in the twin's current state: the silhouettes of the toy's torso
+    particles and of the box's mesh points (each without the pixels near the other object: the limbs and
+    torso differ in colour, the box may hide the toy), and the `table` pixels 3 px or more from both."""
+    from scipy import ndimage
+
+    torso, _, box_pts = toy_shapes(u)
+    toy = u.twin.particles(u.state, u.rules.roles["toy"])
+    box_pose = u.twin.collider_pose(u.state, u.rules.roles["box"])
+    box = silhouette(cam, project(cam, box_pts @ box_pose[:3, :3].T + box_pose[:3, 3]))
+    whole = silhouette(cam, project(cam, toy)) | points_mask(cam, project(cam, toy))
+
+    def grow(m):
+        return ndimage.binary_dilation(m, np.ones((3, 3), bool), iterations=3)
+
+    return {"toy": silhouette(cam, project(cam, toy[torso])) & ~grow(box), "box": box & ~grow(whole),
+            "table": table & ~grow(whole | box)}
+
+
+def _toy_labels(u, cam, camera: str):
+    table = table_mask(cam, 0.0, _workspace_xy(u))
+    return lambda info: toy_labels(u, cam, table)
+
+
 def _labeller(task: str):
     table = {"push-t": (_push_t_labels, ("plain",)),
-             "rope-routing": (_rope_labels, ("rope", "mark", "table"))}
+             "rope-routing": (_rope_labels, ("rope", "mark", "table")),
+             "toy-packing": (_toy_labels, ("toy", "box", "table"))}
     if task not in table:
         raise InputError(f"perception controllers (policy kind perceive): tasks {sorted(table)}, "
                          f"not {task!r}")
@@ -555,36 +672,18 @@ class PerceptionPushT(_PerceptionController):
         return np.clip(action, self.low, self.high).astype(np.float32)
 
 
-class PerceptionRope(_PerceptionController):
-    """The rope-routing expert planning from the rope estimated in the first image(s) (`RopeEstimator`)
-    instead of the privileged state. The expert plans once, from the estimate of `latency` perception steps
-    before its first action (the robot holds still until then; perception every `period` steps), with
-    Gaussian noise `noise_m` on each estimated point and the end's direction turned by `noise_rad`; the
-    clip's pose is the twin's (the task's fixed geometry, as push-T's goal). `gain`: the fraction of the
-    expert's position step commanded (orientation and gripper as the expert's)."""
-
-    def __init__(self, env, cfg: PerceptionConfig, seed: int = 0):
-        from twinbench.tasks.rope_routing import make_expert
-
-        super().__init__(env, cfg, seed, make_expert)
-        self.estimator = RopeEstimator(self.camera, cfg.colors, cfg.threshold, cfg.min_pixels,
-                                       *_rope_workspace(env.unwrapped))
-        self.reset()
+class _PlanOnceController(_PerceptionController):
+    """A gripper task's expert that plans once, from the estimate of `latency` perception steps before its
+    first action (the robot holds still until then; perception every `period` steps), with the level's
+    noise (`_plan_state`). `gain`: the fraction of the expert's position step commanded (orientation and
+    gripper as the expert's)."""
 
     def _start(self) -> None:
         self._state: np.ndarray | None = None
 
     def _plan_state(self, est: np.ndarray) -> np.ndarray:
-        """[end, along, centroid, clip x y theta, 0, 0] from an estimate, with the level's noise."""
-        u = self.env.unwrapped
-        clip = u.twin.collider_pose(u.state, u.rules.roles["clip"])
-        end, along, centroid = est[0:3].copy(), est[3:6].copy(), est[6:9].copy()
-        a = self._rng.normal(0.0, self.cfg.noise_rad)
-        c, s = np.cos(a), np.sin(a)
-        along[:2] = end[:2] + np.array([[c, -s], [s, c]]) @ (along[:2] - end[:2])
-        for p in (end, along, centroid):
-            p[:2] += self._rng.normal(0.0, self.cfg.noise_m, 2)
-        return np.r_[end, along, centroid, clip[0, 3], clip[1, 3], np.arctan2(clip[1, 0], clip[0, 0]), 0, 0]
+        """The expert's `environment_state` from an estimate, with the level's noise."""
+        raise NotImplementedError
 
     def select_action(self, obs: dict) -> np.ndarray:
         ee = np.asarray(obs["agent_pos"], np.float64)
@@ -604,7 +703,57 @@ class PerceptionRope(_PerceptionController):
         return np.clip(action, self.low, self.high).astype(np.float32)
 
 
-CONTROLLERS = {"push-t": PerceptionPushT, "rope-routing": PerceptionRope}
+class PerceptionRope(_PlanOnceController):
+    """The rope-routing expert planning from the rope estimated in the first image(s) (`RopeEstimator`)
+    instead of the privileged state, with Gaussian noise `noise_m` on each estimated point and the end's
+    direction turned by `noise_rad`; the clip's pose is the twin's (the task's fixed geometry, as push-T's
+    goal)."""
+
+    def __init__(self, env, cfg: PerceptionConfig, seed: int = 0):
+        from twinbench.tasks.rope_routing import make_expert
+
+        super().__init__(env, cfg, seed, make_expert)
+        self.estimator = RopeEstimator(self.camera, cfg.colors, cfg.threshold, cfg.min_pixels,
+                                       *_rope_workspace(env.unwrapped))
+        self.reset()
+
+    def _plan_state(self, est: np.ndarray) -> np.ndarray:
+        """[end, along, centroid, clip x y theta, 0, 0] from an estimate, with the level's noise."""
+        u = self.env.unwrapped
+        clip = u.twin.collider_pose(u.state, u.rules.roles["clip"])
+        end, along, centroid = est[0:3].copy(), est[3:6].copy(), est[6:9].copy()
+        a = self._rng.normal(0.0, self.cfg.noise_rad)
+        c, s = np.cos(a), np.sin(a)
+        along[:2] = end[:2] + np.array([[c, -s], [s, c]]) @ (along[:2] - end[:2])
+        for p in (end, along, centroid):
+            p[:2] += self._rng.normal(0.0, self.cfg.noise_m, 2)
+        return np.r_[end, along, centroid, clip[0, 3], clip[1, 3], np.arctan2(clip[1, 0], clip[0, 0]), 0, 0]
+
+
+class PerceptionToy(_PlanOnceController):
+    """The toy-packing expert planning from the toy's and the box's poses estimated in the first image(s)
+    (`ToyEstimator`) instead of the privileged state, with Gaussian noise `noise_m` on each position and
+    `noise_rad` on each heading. The toy's origin is taken on the table (z = 0)."""
+
+    def __init__(self, env, cfg: PerceptionConfig, seed: int = 0):
+        from twinbench.tasks.toy_packing import make_expert
+
+        super().__init__(env, cfg, seed, make_expert)
+        u = env.unwrapped
+        _, torso, box = toy_shapes(u)
+        self.estimator = ToyEstimator(self.camera, cfg.colors, torso, box, cfg.threshold, cfg.min_pixels,
+                                      _workspace_xy(u))
+        self.reset()
+
+    def _plan_state(self, est: np.ndarray) -> np.ndarray:
+        """[toy x, y, z, theta, box x, y, theta, 0] from an estimate, with the level's noise."""
+        sd = np.tile([self.cfg.noise_m, self.cfg.noise_m, self.cfg.noise_rad], 2)
+        noise = self._rng.normal(0.0, 1.0, 6) * sd
+        toy, box = est[:3] + noise[:3], est[3:] + noise[3:]
+        return np.r_[toy[:2], 0.0, toy[2], box, 0.0]
+
+
+CONTROLLERS = {"push-t": PerceptionPushT, "rope-routing": PerceptionRope, "toy-packing": PerceptionToy}
 
 
 def make_perceive(spec, task, env, *, seed: int):
@@ -641,6 +790,16 @@ LEVELS = {
         "r5-gain0.3": {"gain": 0.3},
         "r6-noise4cm": {"noise_m": 0.04, "noise_rad": 0.4},
         "r7-noise6cm": {"noise_m": 0.06, "noise_rad": 0.6},
+    },
+    "toy-packing": {
+        "t0-clean": {},
+        "t1-noise2cm": {"noise_m": 0.02, "noise_rad": 0.1},
+        "t2-gain0.4": {"gain": 0.4},
+        "t3-noise4cm": {"noise_m": 0.04, "noise_rad": 0.2},
+        "t4-gain0.3": {"gain": 0.3},
+        "t5-noise6cm": {"noise_m": 0.06, "noise_rad": 0.3},
+        "t6-noise8cm": {"noise_m": 0.08, "noise_rad": 0.4},
+        "t7-noise12cm": {"noise_m": 0.12, "noise_rad": 0.6},
     },
 }
 
