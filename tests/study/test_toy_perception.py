@@ -71,7 +71,7 @@ def test_clean_controller_plans_from_the_true_poses_and_noise_reseeds(toy_scene,
     assert plan is not None and plan.shape == truth.shape
     assert np.linalg.norm(plan[:2] - truth[:2]) < TOY_TOL_M
     assert np.linalg.norm(plan[4:6] - truth[4:6]) < BOX_TOL_M
-    noisy = P.PerceptionToy(env, cfg["t7-noise12cm"], seed=3)
+    noisy = P.PerceptionToy(env, cfg["t7-noise16cm"], seed=3)
     for _ in range(2):
         noisy.select_action(obs)
     first = noisy._state.copy()
