@@ -93,6 +93,31 @@ def test_build_config_collider_channel_and_colour_map(tmp_path):
     assert np.allclose(c.color_map.coeffs, cmap) and np.allclose(c.vertices, clip.vertices)
 
 
+def test_rebuilt_robot_commands_the_cells_end_effector(tmp_path):
+    """The build config's robot carries the cell's control conventions: a rope twin rebuilt without them
+    read every action as the TCP's pose where the real workcell reads the flange's (replayed real actions
+    never grasped)."""
+    from twinbench.construct.build_config import build_spec_from_config
+    from twinbench.study.reconstruct import robot_entry
+
+    cell = rope_routing_cell("fast")
+    assert cell.robot.ee_link == "link7"
+    (tmp_path / "cal.json").write_text(json.dumps({"cameras": [{
+        "name": "front", "intrinsics": [200.0, 200.0, 106.0, 60.0], "sensor_size": [212, 120],
+        "output_hw": [120, 212], "camera_to_world": np.eye(4).tolist()}]}))
+    from twinbench.twin import save_object
+
+    save_object(cell.objects[0], tmp_path / "rope")
+    robot = {k: v for k, v in robot_entry(cell.robot, None).items() if k != "aligned"}
+    config = {"name": "rope", "robot": {"urdf": cell.robot.urdf, **robot}, "objects": [{"dir": "rope"}],
+              "cameras": "cal.json"}
+    (tmp_path / "build.json").write_text(json.dumps(config))
+    spec = build_spec_from_config(tmp_path / "build.json")
+    for k in ("ee_link", "contact_links", "gripper_joint", "gripper_open", "gripper_closed", "home_q"):
+        assert getattr(spec.robot, k) == getattr(cell.robot, k), k
+    assert spec.robot.tool_contact == cell.robot.tool_contact
+
+
 @pytest.fixture(scope="module")
 def rope_scene():
     """The fast rope cell's env, its front camera, and per grid state the front image and the true

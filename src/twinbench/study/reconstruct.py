@@ -10,8 +10,9 @@ from its tracked motion; once with the fit, once at its initial guess), then one
 and `twinbench twin build`. Between sysid and the build, the identified object (particles in the world
 frame) is put in its own frame at the rest pose found by registering the task's object template to the
 segmented scan (`estimate_rest_pose`; colours tell a rope's marked end from its other end); the task's
-public definition supplies what the evidence does not hold: the object's outline and goal, the controller
-and the tool's contact.
+public definition supplies what the evidence does not hold: the object's outline and goal, the controller,
+the robot's control conventions (which link the actions command, the gripper: `ROBOT_CONVENTIONS`) and the
+tool's contact.
 
 Fixed colliders (rope-routing's clip, toy-packing's box: evidence.json `colliders`): segmented by their own
 crop box, aligned with the rest; the build config names each with the cell's mesh (written to
@@ -42,6 +43,10 @@ VARIANTS = ("full", "no-color", "no-physics", "neither")
 _COLOR = {"full": True, "no-color": False, "no-physics": True, "neither": False}
 _PHYSICS = {"full": "fitted", "no-color": "fitted", "no-physics": "initial", "neither": "initial"}
 # settings of the simulation that are the task cell's modelling choices, not the object's physics
+# the robot's control conventions: which link the actions command (a gripper task's flange), the gripper,
+# the home configuration. Like the controller, the task's public cell states them (a user knows them of their
+# robot; no scan shows them): a twin built without them reads the same actions as another point's poses
+ROBOT_CONVENTIONS = ("ee_link", "contact_links", "gripper_joint", "gripper_open", "gripper_closed", "home_q")
 _CELL_SIM = ("object_collision", "self_collision", "collision_dist", "collision_exclusion",
              "max_collision_candidates", "candidate_radius_scale", "mesh_margin")
 
@@ -166,6 +171,15 @@ def _place_object(identified: Path, template, rest_pose: np.ndarray, sim_over: d
 MIN_COLLIDER_GAUSSIANS = 50  # fewer scanned Gaussians of a fixed collider: the cell's declared pose
 
 
+def robot_entry(robot, color_map: str | None) -> dict:
+    """The build config's robot: the aligned scan, the colour map, and the cell's `ROBOT_CONVENTIONS` and
+    tool contact."""
+    conventions = {k: getattr(robot, k) for k in ROBOT_CONVENTIONS}
+    conventions = {k: (list(v) if isinstance(v, tuple) else v) for k, v in conventions.items()}
+    return {"aligned": "aligned", "color_map": color_map, **conventions,
+            "tool_contact": dataclasses.asdict(robot.tool_contact)}
+
+
 def _collider_entry(cell, name: str, scanned_file: Path, work: Path, log) -> dict:
     """The build config's entry for the cell's fixed collider `name` (the task's public definition gives its
     mesh, channel and contact; the scan its pose and Gaussians): writes WORK/colliders/NAME.obj (the mesh,
@@ -243,7 +257,8 @@ def reconstruct(evidence: Path, out: Path, variants=VARIANTS, log: Callable[[str
             run("sysid", "--data", evidence / index["motion"][o], "--out-dir", work / "sysid" / kind,
                 "--no-progress", *flags, *sysid_args)
 
-    # the task's public definition: object templates (shape, outline, goal), controller, tool contact
+    # the task's public definition: object templates (shape, outline, goal), controller, robot conventions,
+    # tool contact
     # the cell at the evidence's preset (evidence written before "preset" was recorded: its size's)
     cell = task_cell(index["task"], index["size"], preset=index.get("preset"))
     frame_dt = cell.sim.dt * cell.sim.substeps
@@ -270,8 +285,7 @@ def reconstruct(evidence: Path, out: Path, variants=VARIANTS, log: Callable[[str
         cmap = "color/color_map.json" if _COLOR[v] else None
         config = {
             "name": f"{index['task']}-{v}",
-            "robot": {"aligned": "aligned", "color_map": cmap,
-                      "tool_contact": dataclasses.asdict(cell.robot.tool_contact)},
+            "robot": robot_entry(cell.robot, cmap),
             "background": {"gaussians": "aligned/aligned/background.ply", "color_map": cmap},
             "objects": [{"dir": f"objects/{_PHYSICS[v]}/{o}", "rest_pose": rest[o].tolist(),
                          "gaussians": f"aligned/aligned/{o}.ply", "color_map": cmap} for o in objects],
