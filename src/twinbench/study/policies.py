@@ -223,8 +223,9 @@ class PlanarPoseFit:
 
         sdf = ndimage.distance_transform_edt(~mask) - ndimage.distance_transform_edt(mask)
         h, w = mask.shape
-        ii, jj = np.nonzero(mask)
-        blob = np.c_[jj, ii][:: max(len(ii) // 500, 1)].astype(np.float64)
+        if self.coverage:  # up to 500 of the blob's pixels (u, v), pixel centres at integer coordinates
+            blob = np.argwhere(mask)[:, ::-1].astype(np.float64)
+            blob = blob[:: max(len(blob) // 500, 1)]
 
         def cost(p):
             uv = self.project(p) - 0.5  # pixel centres at integer coordinates
@@ -247,6 +248,7 @@ class PlanarPoseFit:
             x, c = refine(np.asarray(previous, np.float64), 0.004)
             if c < TRACK_COST_PX:
                 return x
+        ii, jj = np.nonzero(mask)
         lo, hi = self.points[:, 2].min(), self.points[:, 2].max()
         centre = table_points(self.cam, np.c_[jj + 0.5, ii + 0.5], 0.5 * (lo + hi)).mean(0)
         starts = [np.r_[centre, th] for th in np.linspace(-np.pi, np.pi, 12, endpoint=False)]
