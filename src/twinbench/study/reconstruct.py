@@ -174,8 +174,7 @@ MIN_COLLIDER_GAUSSIANS = 50  # fewer scanned Gaussians of a fixed collider: the 
 def robot_entry(robot, color_map: str | None) -> dict:
     """The build config's robot: the aligned scan, the colour map, and the cell's `ROBOT_CONVENTIONS` and
     tool contact."""
-    conventions = {k: getattr(robot, k) for k in ROBOT_CONVENTIONS}
-    conventions = {k: (list(v) if isinstance(v, tuple) else v) for k, v in conventions.items()}
+    conventions = json.loads(json.dumps({k: getattr(robot, k) for k in ROBOT_CONVENTIONS}))  # tuples: lists
     return {"aligned": "aligned", "color_map": color_map, **conventions,
             "tool_contact": dataclasses.asdict(robot.tool_contact)}
 
