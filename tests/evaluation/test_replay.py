@@ -9,6 +9,7 @@ import pyarrow.parquet as pq
 import pytest
 
 from twinbench.evaluation.replay import (
+    RecordedEpisode,
     confusion_counts,
     load_recorded,
     replay_confusion,
@@ -177,7 +178,6 @@ def test_replay_from_measured_poses_robot_logs_and_an_index_map(tmp_path):
 def test_recorded_actions_replayed_in_the_same_world_give_the_same_outcomes(tmp_path):
     """`evaluate(record_actions=True)` writes each episode's commanded actions; replayed open loop in the
     same world they reproduce every outcome and step count."""
-    from twinbench.evaluation.replay import RecordedEpisode
     from twinbench.evaluation.runner import actions_file, evaluate
 
     store = ResultsStore(tmp_path / "r.sqlite")
@@ -193,3 +193,23 @@ def test_recorded_actions_replayed_in_the_same_world_give_the_same_outcomes(tmp_
     pairs = replay_episodes("point-reach", episodes, store, "rep")
     assert [(rep.success, rep.steps) for _, rep in pairs] == [(r.success, r.steps) for r in recs]
     assert not list(tmp_path.rglob("*.partial"))
+
+
+def test_replay_in_worker_processes_matches_in_process_and_resumes(tmp_path):
+    """`workers=2` replays each episode in a worker (its actions as an `actions:FILE.npy` policy) with the
+    outcomes, steps and rewards of the in-process replay; run again, a replay run replays only the
+    episodes it does not hold with status ok."""
+    eps = [RecordedEpisode(i, s, a, ok, "act", c) for i, (s, a, ok, c) in enumerate(EPISODES)]
+    store = ResultsStore(tmp_path / "r.sqlite")
+    here = replay_episodes("point-reach", eps, store, "in")
+    first = replay_episodes("point-reach", eps, store, "pool")
+    store.record_episodes([replace(rep, success=False, status="sim_error") for _, rep in first[2:]])
+    pooled = replay_episodes("point-reach", eps, store, "pool", workers=2)
+
+    def outcome(rep):
+        return rep.success, rep.status, rep.steps, rep.metrics["sum_reward"], rep.metrics["episode_index"]
+
+    assert [outcome(rep) for _, rep in pooled] == [outcome(rep) for _, rep in here]
+    assert [r.wall_time_s for _, r in pooled[:2]] == [r.wall_time_s for _, r in first[:2]]  # not run again
+    assert all("started_at" in r.metrics for _, r in pooled[2:])  # ran in a worker
+    check(store, "pool")

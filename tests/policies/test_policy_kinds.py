@@ -91,7 +91,7 @@ def test_unknown_kind_lists_the_known_ones(monkeypatch, kinds):
         return [FakeEntryPoint()] if group == "twinbench.policies" else []
 
     monkeypatch.setattr(importlib.metadata, "entry_points", entry_points)
-    with pytest.raises(InputError, match=r"unknown policy kind 'nope'; known kinds: broken, cnn, expert, "
+    with pytest.raises(InputError, match=r"unknown policy kind 'nope'; known kinds: actions, broken, cnn, expert, "
                                          r"lerobot, remote"):
         parse_policy_spec("nope:x")
     with pytest.raises(InputError, match=r"'broken'.*'no_such_module:make' failed: ModuleNotFoundError"):
@@ -106,3 +106,32 @@ def test_register_policy_kind_in_process(kinds):
         register_policy_kind("expert", lambda spec, task, env, *, seed: None)
     with pytest.raises(InputError, match="a kind is a letter"):
         register_policy_kind("two:parts", lambda spec, task, env, *, seed: None)
+
+
+def test_actions_kind_plays_a_recorded_npy_and_names_bad_files(tmp_path):
+    import numpy as np
+
+    from twinbench.errors import PolicyError
+
+    task = get_task("point-reach")
+    env = task.make_env()
+    acts = np.array([[0.1, -0.2], [0.0, 0.05]], np.float32)
+    np.save(tmp_path / "ep3.npy", acts)
+    spec = parse_policy_spec(f"actions:{tmp_path / 'ep3.npy'}")
+    assert (spec.kind, spec.name, spec.checkpoint, spec.train_step) == ("actions", "actions", "ep3", None)
+    policy = make_policy(spec, task, env, seed=0)
+    policy.reset()
+    np.testing.assert_array_equal([policy.select_action({}), policy.select_action({})], acts)
+    with pytest.raises(PolicyError, match="exhausted after 2 steps"):
+        policy.select_action({})
+    for bad in ("actions", "actions:x.json", f"actions:{tmp_path / 'ep3.npy'}?io=x"):
+        with pytest.raises(InputError, match="actions:FILE.npy"):
+            parse_policy_spec(bad)
+    np.save(tmp_path / "wide.npy", np.zeros((4, 3)))
+    with pytest.raises(InputError, match=r"wide.npy: actions of shape \(4, 3\).*needs a numeric \(T, 2\)"):
+        make_policy(parse_policy_spec(f"actions:{tmp_path / 'wide.npy'}"), task, env, seed=0)
+    np.save(tmp_path / "obj.npy", np.array([{"a": 1}], dtype=object), allow_pickle=True)
+    with pytest.raises(InputError, match="obj.npy: cannot read the actions"):  # never unpickled
+        make_policy(parse_policy_spec(f"actions:{tmp_path / 'obj.npy'}"), task, env, seed=0)
+    with pytest.raises(InputError, match="missing.npy: cannot read"):
+        make_policy(parse_policy_spec(f"actions:{tmp_path / 'missing.npy'}"), task, env, seed=0)

@@ -31,13 +31,16 @@ class ReplayConfig:
     index_map: Path | None = None
     """CSV (study_index,init_state) or JSON map from the recording's init_state values to the task's grid
     indices; not needed for the reference study's indices (the built-in grids are in its order)"""
+    workers: int = 0
+    """worker processes replaying episodes side by side (0: in this process); a run re-run with the same
+    --run-id replays only the episodes it does not hold yet"""
 
 
 def main(cfg: ReplayConfig) -> int:
     env_kwargs = env_kwargs_with_twin(parse_env_kwargs(cfg.env_kwargs), cfg.twin)
     episodes = load_recorded(cfg.source, cfg.outcomes)
     pairs = replay_episodes(cfg.task, episodes, cfg.db, cfg.run_id, env_kwargs=env_kwargs,
-                            index_map=cfg.index_map)
+                            index_map=cfg.index_map, workers=cfg.workers)
     print(f"replayed {len(pairs)} episodes of {cfg.source} in {cfg.task} (run {cfg.run_id!r}, {cfg.db})")
     for by in ("checkpoint", "task"):
         for key, c in replay_confusion(cfg.db, cfg.run_id, by=by).items():

@@ -66,6 +66,9 @@ class EvaluateConfig:
     bc: bool = False
     """also train small CNN policies by behaviour cloning on expert demonstrations recorded in the real
     workcell (study.bc; needs the torch extra: pip install 'twinbench[torch]')"""
+    retry_errors: bool = False
+    """run again the episodes the store holds as errors (e.g. a worker process killed), not only the
+    missing ones"""
 
 
 @dataclass(frozen=True)
@@ -74,7 +77,7 @@ class RunConfig:
 
     out: Path
     task: str = "push-t"
-    """push-t | rope-routing (the tasks with perception controllers)"""
+    """push-t | rope-routing | toy-packing (the tasks with perception controllers)"""
     size: str = "small"
     """small: the fast cell, 2 grid states, 15 s episodes | medium: the same, 8 grid states | full: the
     reference cell, every grid state, the task's episode length"""
@@ -113,7 +116,8 @@ def _evaluate(cfg: EvaluateConfig) -> int:
         from twinbench.study.bc import make_bc_policies
 
         policies += make_bc_policies(cfg.task, real, cfg.out / "policies" / "bc", cfg.size)
-    times = run_evaluations(cfg.task, real, twins, policies, cfg.out, cfg.size, cfg.workers)
+    times = run_evaluations(cfg.task, real, twins, policies, cfg.out, cfg.size, cfg.workers,
+                            retry_errors=cfg.retry_errors)
     doc = write_study_json(cfg.out, cfg.task, cfg.size, list(twins), times, {"policies": policies})
     write_study_report(cfg.out, doc)
     print(format_table(doc))

@@ -35,7 +35,7 @@ from pathlib import Path
 
 import numpy as np
 
-from twinbench.errors import InputError, PolicyError
+from twinbench.errors import InputError
 from twinbench.evaluation.store import (
     DEFAULT_DB,
     EpisodeRecord,
@@ -369,33 +369,27 @@ def load_recorded(source: str | Path, outcomes: str | Path | None = None) -> lis
     raise InputError(f"replay source {source}: expected a LeRobotDataset folder, a .json or an .npz log")
 
 
-class OpenLoopPolicy:
-    """Plays back a fixed action sequence."""
-
-    def __init__(self, actions: np.ndarray):
-        self.actions, self._t = np.asarray(actions), 0
-
-    def reset(self) -> None:
-        self._t = 0
-
-    def select_action(self, obs: dict) -> np.ndarray:
-        if self._t >= len(self.actions):
-            raise PolicyError(f"open-loop actions exhausted after {len(self.actions)} steps")
-        self._t += 1
-        return self.actions[self._t - 1]
-
-
 def replay_episodes(task: str, episodes: list[RecordedEpisode], store: ResultsStore | str | Path = DEFAULT_DB,
                     run_id: str = "replay", *, env_kwargs: dict | None = None,
-                    index_map: str | Path | None = None) -> list[tuple[EpisodeRecord, EpisodeRecord]]:
-    """Replay each recorded episode in `task`'s twin; store and return (real, replay) record pairs.
-    `index_map`: a CSV/JSON map from the recording's init_state values to the task's grid indices
-    (`grids.read_index_map`); an episode with `object_poses` starts from them instead of the grid state's."""
+                    index_map: str | Path | None = None,
+                    workers: int = 0) -> list[tuple[EpisodeRecord, EpisodeRecord]]:
+    """Replay each recorded episode in `task`'s twin; store and return (real, replay) record pairs, in the
+    episodes' order. `index_map`: a CSV/JSON map from the recording's init_state values to the task's grid
+    indices (`grids.read_index_map`); an episode with `object_poses` starts from them instead of the grid
+    state's. `workers` >= 1 replays in that many worker processes (as `evaluate` runs episodes; each
+    episode's actions go to them as an `actions:FILE.npy` policy), 0 in this process. Episodes whose
+    replay run `run_id` already holds (status ok) are not replayed again: an interrupted replay resumes."""
+    import tempfile
+
+    from twinbench.evaluation.backends import run_local
     from twinbench.evaluation.grids import grid_info, map_index, read_index_map
-    from twinbench.evaluation.rollout import run_episode
+    from twinbench.evaluation.rollout import EpisodeBatch, EpisodeJob, run_episode
+    from twinbench.evaluation.runner import _check_counts, _twin_hash
+    from twinbench.policies.base import OpenLoopPolicy
     from twinbench.tasks import get_task
 
     check_run_id(run_id)
+    _check_counts(workers, 0)
     spec = get_task(task)
     if index_map is not None:
         mapping = read_index_map(index_map, spec.n_grid_states)
@@ -415,16 +409,20 @@ def replay_episodes(task: str, episodes: list[RecordedEpisode], store: ResultsSt
         if ep.actions.shape[1:] != a_shape:
             raise InputError(f"episode {ep.episode_index}: actions of shape {ep.actions.shape[1:]} per step, "
                              f"task {task!r} expects {a_shape}")
-    store.start_run(run_id, task, {"task": task, "kind": "replay", "n_episodes": len(episodes),
-                                   "env_kwargs": dict(env_kwargs or {}), "grid": grid_info(task, env_kwargs),
-                                   "index_map": None if index_map is None else str(index_map)})
-    pairs = []
-    for ep in episodes:
-        options = None if ep.object_poses is None else {"object_poses": ep.object_poses}
-        out = run_episode(env, OpenLoopPolicy(ep.actions), init_state=ep.init_state, seed=ep.key_seed,
-                          max_steps=len(ep.actions), reset_options=options)
-        if out.status == "sim_error" and out.error and "object_poses" in out.error:
-            raise InputError(f"episode {ep.episode_index}: {out.error.removeprefix('reset: ')}")
+    if workers:
+        env.close()  # the workers build their own
+    protocol = {"task": task, "kind": "replay", "n_episodes": len(episodes),
+                "env_kwargs": dict(env_kwargs or {}), "grid": grid_info(task, env_kwargs),
+                "index_map": None if index_map is None else str(index_map)}
+    if spec.task_cls is not None:  # resuming must replay in the same twin
+        protocol["twin_hash"] = _twin_hash(task, dict(env_kwargs or {}), run_id, store)
+    store.start_run(run_id, task, protocol)
+
+    def key(ep: RecordedEpisode) -> tuple:
+        return ep.policy, ep.checkpoint, ep.init_state, ep.key_seed
+
+    def pair(ep: RecordedEpisode, success: bool, status: str, steps: int, wall_time_s: float | None,
+             metrics: dict) -> tuple[EpisodeRecord, EpisodeRecord]:
         extra = {"episode_index": ep.episode_index}
         if ep.study_index is not None:
             extra["study_index"] = ep.study_index
@@ -434,11 +432,45 @@ def replay_episodes(task: str, episodes: list[RecordedEpisode], store: ResultsSt
                       train_step=ep.train_step, init_state=ep.init_state, seed=ep.key_seed)
         real = EpisodeRecord(**common, domain="real", success=ep.success, status="ok",
                              steps=len(ep.actions), metrics=extra)
-        rep = EpisodeRecord(**common, domain="replay", success=out.success, status=out.status,
-                            steps=out.steps, wall_time_s=out.wall_time_s, metrics=out.metrics(**extra))
+        rep = EpisodeRecord(**common, domain="replay", success=success, status=status, steps=steps,
+                            wall_time_s=wall_time_s, metrics={**metrics, **extra})
+        if status == "sim_error" and "object_poses" in str(metrics.get("error", "")):
+            raise InputError(f"episode {ep.episode_index}: {str(metrics['error']).removeprefix('reset: ')}")
         store.record_episodes([real, rep])
-        pairs.append((real, rep))
-    return pairs
+        return real, rep
+
+    def stored(domain: str) -> dict:
+        recs = store.episodes(run_id, domain=domain)
+        return {(r.policy, r.checkpoint, r.init_state, r.seed): r for r in recs}
+
+    done, real_done = stored("replay"), stored("real")
+    pairs = {key(ep): (real_done[key(ep)], done[key(ep)]) for ep in episodes
+             if key(ep) in real_done and key(ep) in done and done[key(ep)].status == "ok"}
+    todo = [ep for ep in episodes if key(ep) not in pairs]
+    if not workers:
+        for ep in todo:
+            options = None if ep.object_poses is None else {"object_poses": ep.object_poses}
+            out = run_episode(env, OpenLoopPolicy(ep.actions), init_state=ep.init_state, seed=ep.key_seed,
+                              max_steps=len(ep.actions), reset_options=options)
+            pairs[key(ep)] = pair(ep, out.success, out.status, out.steps, out.wall_time_s, out.metrics())
+    elif todo:
+        with tempfile.TemporaryDirectory(prefix="twinbench-replay-") as tmp:
+            by_file, batches = {}, []
+            for i, ep in enumerate(todo):
+                path = Path(tmp) / f"ep{i}.npy"
+                np.save(path, np.asarray(ep.actions), allow_pickle=False)
+                by_file[path.stem] = ep
+                options = None if ep.object_poses is None else {"object_poses": ep.object_poses}
+                batches.append(EpisodeBatch((EpisodeJob(
+                    task, f"actions:{path}", ep.init_state, ep.key_seed, run_id, dict(env_kwargs or {}),
+                    max_steps=len(ep.actions), reset_options=options),)))
+
+            def on_done(rec: EpisodeRecord) -> None:
+                ep = by_file[rec.checkpoint]
+                pairs[key(ep)] = pair(ep, rec.success, rec.status, rec.steps, rec.wall_time_s, rec.metrics)
+
+            run_local(batches, int(workers), on_done)
+    return [pairs[key(ep)] for ep in episodes]
 
 
 @dataclass(frozen=True)

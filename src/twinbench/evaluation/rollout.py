@@ -100,6 +100,8 @@ class EpisodeJob:
     video_views: str = ALL_VIEWS  # "all" (every camera side by side) or cameras joined by "+"
     policy_timeout_s: float | None = None  # seconds per policy call (policies with a `timeout_s`)
     actions_path: str | None = None  # where the episode's commanded actions go (.npy), for replay
+    max_steps: int | None = None  # None: the env's time limit (a replay stops where its actions end)
+    reset_options: dict | None = None  # more options for env.reset (a replay's measured object poses)
 
 
 @dataclass(frozen=True)
@@ -339,8 +341,9 @@ def run_job(job: EpisodeJob) -> EpisodeRecord:
     if policy is None:
         out = EpisodeOutcome(False, "policy_error", 0, 0.0, error=build_error, started_at=time.time())
     else:
-        out = run_episode(env, policy, init_state=job.init_state, seed=job.seed, video_path=job.video_path,
-                          video_views=job.video_views)
+        out = run_episode(env, policy, init_state=job.init_state, seed=job.seed, max_steps=job.max_steps,
+                          video_path=job.video_path, video_views=job.video_views,
+                          reset_options=job.reset_options)
     return _record(job, out)
 
 
@@ -378,6 +381,8 @@ def run_batch(batch: EpisodeBatch) -> list[EpisodeRecord]:
         (j.task, j.policy, j.env_kwargs) != (first.task, first.policy, first.env_kwargs) for j in batch.jobs
     ):
         raise ValueError("an EpisodeBatch holds at most `worlds` jobs of one task, policy and env kwargs")
+    if any(j.max_steps is not None or j.reset_options is not None for j in batch.jobs):
+        raise ValueError("max_steps and reset_options are for one-world batches (worlds=1)")
     task = get_task(first.task)
     env_key = (first.task, json.dumps(first.env_kwargs, sort_keys=True), "worlds", batch.worlds)
     if env_key not in _CACHE:

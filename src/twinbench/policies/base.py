@@ -65,3 +65,19 @@ class ChunkedPolicy:
 
     def finish_action(self, action: np.ndarray, obs: dict) -> np.ndarray:
         return action
+
+
+class OpenLoopPolicy:
+    """Plays back a fixed action sequence (T, A), one row per step; PolicyError past its end."""
+
+    def __init__(self, actions: np.ndarray):
+        self.actions, self._t = np.asarray(actions), 0
+
+    def reset(self) -> None:
+        self._t = 0
+
+    def select_action(self, obs: dict) -> np.ndarray:
+        if self._t >= len(self.actions):
+            raise PolicyError(f"open-loop actions exhausted after {len(self.actions)} steps")
+        self._t += 1
+        return self.actions[self._t - 1]

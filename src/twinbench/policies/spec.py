@@ -10,6 +10,9 @@ Grammar: `[NAME=]KIND[:TARGET][?OPTIONS]` (and `expert@LEVEL`). Built-in kinds:
   train_step N when PATH contains `checkpoints/<N>/`, else the folder name).
 - `cnn:DIR`: a small CNN policy's checkpoint directory (`twinbench.policies.cnn`, the `torch` extra;
   policy "cnn", checkpoint the folder name); option `n_action_steps=N`.
+- `actions:FILE.npy`: a recorded (T, A) array of actions played open loop, one row per step (policy
+  "actions", checkpoint the file's stem), e.g. the files `eval --record-actions` writes; an episode
+  that outlives its rows ends as a policy_error (`replay_episodes` stops it at T steps).
 `NAME=` overrides the policy name stored with the episodes, e.g. `act=lerobot:outputs/.../pretrained_model`.
 `KIND:TARGET` takes options after `?`: `io=PRESET_OR_JSON_FILE` (observation mapping and action
 handling, `twinbench.policies.io`), `n_action_steps=N` and, for `remote:`, `timeout_s=SECONDS` (per
@@ -43,8 +46,8 @@ from twinbench.policies.degraded import DegradedPolicy, level_to_train_step
 ENTRY_POINT_GROUP = "twinbench.policies"
 _NAME_RE = re.compile(r"^[A-Za-z0-9_.\-]+$")
 _KIND_RE = re.compile(r"^([A-Za-z][A-Za-z0-9_.\-]*)(.*)$", re.DOTALL)  # KIND, then ":TARGET" or "@LEVEL"
-_FORMS = ("expert, expert@LEVEL, remote:ws://HOST:PORT, lerobot:PATH, cnn:DIR, KIND[:TARGET] of a plugin's "
-          "kind (optionally prefixed NAME=)")
+_FORMS = ("expert, expert@LEVEL, remote:ws://HOST:PORT, lerobot:PATH, cnn:DIR, actions:FILE.npy, "
+          "KIND[:TARGET] of a plugin's kind (optionally prefixed NAME=)")
 
 
 @dataclass(frozen=True)
@@ -268,7 +271,33 @@ def _make_cnn(spec: PolicySpec, task, env, *, seed: int):
     return make_cnn(spec, task, env, seed=seed)
 
 
+def _parse_actions(spec: str, name: str | None, rest: str) -> PolicySpec:
+    path, opts = _split_options(spec, rest[1:]) if rest.startswith(":") else ("", {})
+    if not path.endswith(".npy") or opts:
+        raise InputError(f"policy spec {spec!r}: expected actions:FILE.npy (a (T, A) array of actions, "
+                         "no options)")
+    return PolicySpec(spec, "actions", name or "actions", Path(path).stem, None, None, path)
+
+
+def _make_actions(spec: PolicySpec, task, env, *, seed: int):
+    import numpy as np
+
+    from twinbench.policies.base import OpenLoopPolicy
+
+    try:
+        actions = np.load(spec.target, allow_pickle=False)
+    except (OSError, ValueError) as err:
+        raise InputError(f"{spec.target}: cannot read the actions ({err}); give a .npy file of a "
+                         "(T, A) numeric array") from None
+    want = env.action_space.shape
+    if actions.ndim != 2 or actions.shape[1:] != want or not np.issubdtype(actions.dtype, np.number):
+        raise InputError(f"{spec.target}: actions of shape {actions.shape} ({actions.dtype}); task "
+                         f"{task.name!r} needs a numeric (T, {', '.join(map(str, want))}) array")
+    return OpenLoopPolicy(actions)
+
+
 register_policy_kind("expert", _make_expert, parse=_parse_expert)
 register_policy_kind("remote", _make_remote, parse=_parse_remote)
 register_policy_kind("lerobot", _make_lerobot, parse=_parse_lerobot)
 register_policy_kind("cnn", _make_cnn, parse=_parse_cnn)
+register_policy_kind("actions", _make_actions, parse=_parse_actions)

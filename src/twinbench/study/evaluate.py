@@ -94,9 +94,10 @@ def _real_records(store: ResultsStore, task: str, recs) -> None:
 
 
 def run_evaluations(task: str, real_world: Path, twins: dict[str, Path], policies: list[str], out: Path,
-                    size: str | StudySize = "small", workers: int = 1, log=print) -> dict[str, float]:
-    """Every policy on the real workcell and on each twin (resumable: the runner skips finished episodes).
-    Returns the wall time (s) of each evaluation."""
+                    size: str | StudySize = "small", workers: int = 1, log=print,
+                    retry_errors: bool = False) -> dict[str, float]:
+    """Every policy on the real workcell and on each twin (resumable: the runner skips finished episodes,
+    and those that ended in an error unless `retry_errors`). Returns the wall time (s) of each evaluation."""
     sz = study_size(size)
     store = ResultsStore(out / "results" / "results.sqlite")
     times = {}
@@ -104,7 +105,7 @@ def run_evaluations(task: str, real_world: Path, twins: dict[str, Path], policie
         t0 = time.perf_counter()
         recs = evaluate(task, policies, episodes=episodes_arg(sz), workers=workers, run_id=run_id,
                         store=store, env_kwargs=env_kwargs(world, sz), output_dir=out / "results", log=log,
-                        record_actions=run_id == REAL_ROLLOUTS)
+                        record_actions=run_id == REAL_ROLLOUTS, retry_errors=retry_errors)
         times[run_id] = time.perf_counter() - t0
         bad = [r for r in recs if r.status != "ok"]
         log(f"{run_id}: {sum(r.success for r in recs)}/{len(recs)} successes, {len(bad)} errors, "
@@ -113,15 +114,15 @@ def run_evaluations(task: str, real_world: Path, twins: dict[str, Path], policie
             _real_records(store, task, recs)
     for variant, world in twins.items():
         t0 = time.perf_counter()
-        replay_in_twin(task, store, out / "results", variant, world, sz, log)
+        replay_in_twin(task, store, out / "results", variant, world, sz, log, workers)
         times[replay_run_id(variant)] = time.perf_counter() - t0
     return times
 
 
 def replay_in_twin(task: str, store: ResultsStore, results: Path, variant: str, world: Path,
-                   size: StudySize, log=print) -> None:
-    """The real rollouts' recorded actions replayed open loop in twin `variant` (run `replay-<variant>`);
-    skipped when that run already holds every replay."""
+                   size: StudySize, log=print, workers: int = 1) -> None:
+    """The real rollouts' recorded actions replayed open loop in twin `variant` (run `replay-<variant>`,
+    in `workers` processes); skipped when that run already holds every replay."""
     from twinbench.evaluation.replay import RecordedEpisode, replay_episodes
     from twinbench.evaluation.runner import actions_file
 
@@ -138,7 +139,7 @@ def replay_in_twin(task: str, store: ResultsStore, results: Path, variant: str, 
         episodes.append(RecordedEpisode(i, r.init_state, np.load(path, allow_pickle=False), r.success,
                                         r.policy, r.checkpoint, train_step=r.train_step, seed=r.seed))
     blind = {**env_kwargs(world, size), "cameras": ""}  # open loop: nothing looks at images, none rendered
-    pairs = replay_episodes(task, episodes, store, run_id, env_kwargs=blind)
+    pairs = replay_episodes(task, episodes, store, run_id, env_kwargs=blind, workers=workers)
     agree = sum(rl.success == rep.success for rl, rep in pairs if rep.status == "ok")
     log(f"{run_id}: {len(pairs)} real rollouts replayed, outcomes agree in {agree}")
 
