@@ -44,6 +44,7 @@ wp.set_module_options({"enable_backward": False})
 # One 64-byte record per projected Gaussian (a single cache line per Gaussian-tile pair):
 # u, v, conic a, b, c, extent x, y, r, g, b, depth, opacity, d2max = 2 ln(255 o), 1 / a, -, -
 vec16 = wp.types.vector(length=16, dtype=wp.float32)
+vec16i = wp.types.vector(length=16, dtype=wp.int32)  # a tile's 16 rows of pixel bits
 
 
 @wp.func
@@ -342,7 +343,10 @@ def _rasterise(
     Gaussian (records in pair order, by depth within the tile) updates the pixels of its ellipse in the
     tile. A second list (`ranges_b`, `record_b`; none when `ranges_b` is empty: a full render) is merged
     in by depth, the first list's record first on equal depths: with the static Gaussians first and the
-    moving ones second, the order of a full render of [static | moving] (by depth, then index)."""
+    moving ones second, the order of a full render of [static | moving] (by depth, then index). With a
+    second list the output arrays come holding the first list's own image, and only the pixels some
+    record of the second list's spans reaches are composited again: every other pixel sees exactly the
+    first list's Gaussians, so its kept value is already the merged render's."""
     tile = wp.tid()
     if tile_list.shape[0] > 0:
         tile = tile_list[tile]
@@ -363,16 +367,38 @@ def _rasterise(
     # stopped (live_rows) without visiting their rows
     for y in range(y0, y1):
         row_done[tile * 16 + y - y0] = 0
-        for x in range(x0, x1):
-            out_rgb[vw.pixel + y * vw.width + x] = wp.vec3(0.0, 0.0, 0.0)
-            out_depth[vw.pixel + y * vw.width + x] = 0.0
-            out_t[vw.pixel + y * vw.width + x] = 1.0
-    if ranges_b.shape[0] > 0:
-        nb = ranges_b[tile][0]
-        eb = ranges_b[tile][1]
     npix = (x1 - x0) * (y1 - y0)
     ndone = int(0)  # noqa: UP018 (a Warp dynamic variable)
     live_rows = (1 << (y1 - y0)) - 1
+    kept_row = vec16i()  # per row, the bits of the pixels that keep the first list's image
+    if ranges_b.shape[0] > 0:
+        nb = ranges_b[tile][0]
+        eb = ranges_b[tile][1]
+        # the pixels the second list's spans reach (the rows' bits in row_done, inverted below): the rest
+        # keep the first list's image and start as stopped
+        for k in range(nb, eb):
+            rec = record_b[k]
+            bb = _bounds(rec, x0, y0, x1, y1)
+            for y in range(bb[1], bb[3] + 1):
+                sp = _span(rec, y, bb[0], bb[2])
+                if sp[0] <= sp[1]:
+                    row_done[tile * 16 + y - y0] = row_done[tile * 16 + y - y0] | (
+                        ((1 << (sp[1] - x0 + 1)) - 1) ^ ((1 << (sp[0] - x0)) - 1))
+        for y in range(y0, y1):
+            kept_bits = valid & ~row_done[tile * 16 + y - y0]
+            row_done[tile * 16 + y - y0] = kept_bits
+            kept_row[y - y0] = kept_bits
+            if kept_bits == valid:
+                live_rows = live_rows & ~(1 << (y - y0))
+    for y in range(y0, y1):
+        start_bits = row_done[tile * 16 + y - y0]
+        for x in range(x0, x1):
+            if ((start_bits >> (x - x0)) & 1) == 1:
+                ndone += 1
+            else:
+                out_rgb[vw.pixel + y * vw.width + x] = wp.vec3(0.0, 0.0, 0.0)
+                out_depth[vw.pixel + y * vw.width + x] = 0.0
+                out_t[vw.pixel + y * vw.width + x] = 1.0
     while (na < ea or nb < eb) and ndone < npix:
         take_b = nb < eb
         if take_b and na < ea:
@@ -406,16 +432,20 @@ def _rasterise(
                 span = ((1 << (sx1 - x0 + 1)) - 1) ^ ((1 << (sx0 - x0)) - 1)
                 if (done_bits & span) == span:
                     continue
-                while ((done_bits >> (sx0 - x0)) & 1) == 1:
-                    sx0 += 1
-                while ((done_bits >> (sx1 - x0)) & 1) == 1:
-                    sx1 -= 1
                 row = vw.pixel + y * vw.width
-                # d^2 along the row, updated incrementally: d2(x + 1) = d2(x) + step, step += 2 a
+                # d^2 along the row, updated incrementally from the span's first column (never from the
+                # first live one: a pixel's d^2, and so its value, must not depend on which of its
+                # neighbours have stopped): d2(x + 1) = d2(x) + step, step += 2 a
                 dy = float(y) + 0.5 - rec[1]
                 dx = float(sx0) + 0.5 - rec[0]
                 d2 = cn[0] * dx * dx + 2.0 * cn[1] * dx * dy + cn[2] * dy * dy
                 step = cn[0] * (2.0 * dx + 1.0) + 2.0 * cn[1] * dy
+                while ((done_bits >> (sx0 - x0)) & 1) == 1:
+                    sx0 += 1
+                    d2 += step
+                    step += 2.0 * cn[0]
+                while ((done_bits >> (sx1 - x0)) & 1) == 1:
+                    sx1 -= 1
                 for x in range(sx0, sx1 + 1):
                     d2_here = d2
                     d2 += step
@@ -440,7 +470,12 @@ def _rasterise(
                     out_depth[row + x] = out_depth[row + x] + w * z
                     out_t[row + x] = test_t
     for y in range(y0, y1):
+        final_skip = int(0)  # noqa: UP018 (a Warp dynamic variable)
+        if ranges_b.shape[0] > 0:
+            final_skip = kept_row[y - y0]
         for x in range(x0, x1):
+            if ((final_skip >> (x - x0)) & 1) == 1:
+                continue  # the kept image's pixel, final already
             p = vw.pixel + y * vw.width + x
             t = wp.abs(out_t[p])
             a = 1.0 - t
