@@ -91,8 +91,8 @@ def test_unknown_kind_lists_the_known_ones(monkeypatch, kinds):
         return [FakeEntryPoint()] if group == "twinbench.policies" else []
 
     monkeypatch.setattr(importlib.metadata, "entry_points", entry_points)
-    with pytest.raises(InputError, match=r"unknown policy kind 'nope'; known kinds: actions, broken, cnn, expert, "
-                                         r"lerobot, remote"):
+    with pytest.raises(InputError, match=r"unknown policy kind 'nope'; known kinds: actions, broken, cnn, "
+                                         r"expert, lerobot, remote"):
         parse_policy_spec("nope:x")
     with pytest.raises(InputError, match=r"'broken'.*'no_such_module:make' failed: ModuleNotFoundError"):
         parse_policy_spec("broken:x")
