@@ -370,7 +370,7 @@ def _rasterise(
     npix = (x1 - x0) * (y1 - y0)
     ndone = int(0)  # noqa: UP018 (a Warp dynamic variable)
     live_rows = (1 << (y1 - y0)) - 1
-    kept_row = vec16i()  # per row, the bits of the pixels that keep the first list's image
+    kept_row = vec16i()  # per row, the bits of the pixels that keep the first list's image (none: 0)
     if ranges_b.shape[0] > 0:
         nb = ranges_b[tile][0]
         eb = ranges_b[tile][1]
@@ -391,9 +391,8 @@ def _rasterise(
             if kept_bits == valid:
                 live_rows = live_rows & ~(1 << (y - y0))
     for y in range(y0, y1):
-        start_bits = row_done[tile * 16 + y - y0]
         for x in range(x0, x1):
-            if ((start_bits >> (x - x0)) & 1) == 1:
+            if ((kept_row[y - y0] >> (x - x0)) & 1) == 1:
                 ndone += 1
             else:
                 out_rgb[vw.pixel + y * vw.width + x] = wp.vec3(0.0, 0.0, 0.0)
@@ -470,11 +469,8 @@ def _rasterise(
                     out_depth[row + x] = out_depth[row + x] + w * z
                     out_t[row + x] = test_t
     for y in range(y0, y1):
-        final_skip = int(0)  # noqa: UP018 (a Warp dynamic variable)
-        if ranges_b.shape[0] > 0:
-            final_skip = kept_row[y - y0]
         for x in range(x0, x1):
-            if ((final_skip >> (x - x0)) & 1) == 1:
+            if ((kept_row[y - y0] >> (x - x0)) & 1) == 1:
                 continue  # the kept image's pixel, final already
             p = vw.pixel + y * vw.width + x
             t = wp.abs(out_t[p])
