@@ -27,6 +27,7 @@ from twinbench.physics.sysid import (
     evaluate,
     frame_gradient,
     identify,
+    keep_unconstrained_guesses,
     parse_ranges,
     region_information,
     rollout,
@@ -306,6 +307,42 @@ def test_a_motion_that_strains_nothing_constrains_no_stiffness_region():
     info = region_information(model, data, region)
     assert not any(row["constrained"] for row in info["regions"]), info
     assert np.array_equal(model.log_y_np, truth["log_y"].astype(np.float32))  # left as it was
+
+
+def _ident(constrained: bool | None) -> dict:
+    return {"spring_Y": {"best": 767.0, "low": 77.0, "high": 77879.0, "width": 0.75,
+                         "samples": 29 if constrained is not None else 3, "constrained": bool(constrained)}}
+
+
+@pytest.mark.parametrize("loss, constrained, kept", [(1.04, False, True), (1.2, False, False),
+                                                     (1.0, True, False), (1.0, None, False)])
+def test_a_measured_value_replaces_an_unconstrained_fit_only_within_tolerance(loss, constrained, kept):
+    """Stage 1 ended at Y 767 in a flat valley; the stiffness measured in the motion (2,132) comes back
+    when the motion does not constrain Y and the measured value costs at most 10 % of training loss
+    (constrained None: too few near-best candidates to say, nothing changes)."""
+    found = GlobalParams(spring_Y=767.0, dashpot_damping=96.0)
+    start = GlobalParams(spring_Y=2132.0)
+    guesses = {"spring_Y": {"value": 2132.0, "used": True},
+               "ground_friction": {"value": 0.9, "used": True, "lower_bound": True}}  # a bound: never kept
+    history = [{"evaluation": 0, "loss": 1.3, "best": 1.3, "params": {"spring_Y": 2132.0}},
+               {"evaluation": 1, "loss": 1.0, "best": 1.0, "params": {"spring_Y": 767.0}}]
+    asked: list[GlobalParams] = []
+
+    def score(p: GlobalParams) -> float:
+        asked.append(p)
+        return loss
+
+    ident, notes = _ident(constrained), []
+    out = keep_unconstrained_guesses(found, start, guesses, ident, history, 0.1, score, notes)
+    if constrained is not False:  # nothing to decide: not even scored
+        assert out == found and not asked and not notes and len(history) == 2
+        return
+    assert asked == [replace(found, spring_Y=2132.0)]  # only Y changes; the contact fit stays
+    assert history[-1]["guess_kept"] is kept and history[-1]["params"] == {"spring_Y": 2132.0}
+    assert out == (asked[0] if kept else found)
+    assert ident["spring_Y"].get("guess_kept", False) is kept
+    assert len(notes) == 1 and "does not constrain spring_Y" in notes[0] and "77-7.788e+04" in notes[0]
+    assert (f"{100 * (loss - 1):+.1f} %") in notes[0]
 
 
 def test_ablation_paths_hand_set_and_stage1_only():

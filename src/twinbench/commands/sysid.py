@@ -52,8 +52,9 @@ def main(cfg: SysIdConfig) -> int:
     if result.identifiability:
         fixed = [k for k, v in result.identifiability.items() if v["constrained"]]
         loose = [k for k, v in result.identifiability.items() if not v["constrained"]]
+        kept = [k for k, v in result.identifiability.items() if v.get("guess_kept")]
         say(f"constrained by the motion: {', '.join(fixed) or 'none'}; weakly: {', '.join(loose) or 'none'} "
-            "(intervals in the report)")
+            "(intervals in the report)" + (f"; measured value kept: {', '.join(kept)}" if kept else ""))
     rows = result.region_identifiability.get("regions", [])
     if rows:
         fixed = sum(r["constrained"] for r in rows)

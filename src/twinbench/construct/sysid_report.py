@@ -86,7 +86,8 @@ def _jsonable(obj):
 
 def _identifiability_panel(a, result: SysIdResult) -> None:
     """Per searched parameter: the interval of stage-1 candidates within 50 % of the best loss, as a
-    fraction of its search range (green: constrained by the motion, grey: not)."""
+    fraction of its search range (green: constrained by the motion, grey: not; a red diamond: the
+    measured value kept in place of the search's point)."""
     ident = result.identifiability
     if not ident:
         a.text(0.5, 0.5, "stage 1 off", ha="center", va="center", transform=a.transAxes)
@@ -97,7 +98,12 @@ def _identifiability_panel(a, result: SysIdResult) -> None:
         lo, hi, best = r.encode(v["low"]), r.encode(v["high"]), r.encode(v["best"])
         a.barh(i, max(hi - lo, 0.005), left=lo, color="C2" if v["constrained"] else "0.7")
         a.plot([best], [i], "k|", ms=12)
-        a.text(1.01, i, f"{v['best']:.3g} [{v['low']:.3g}, {v['high']:.3g}]", va="center", fontsize=8)
+        text = f"{v['best']:.3g} [{v['low']:.3g}, {v['high']:.3g}]"
+        if v.get("guess_kept"):  # the measured value replaced the search's point (keep_unconstrained_guesses)
+            kept = getattr(result.params, name)
+            a.plot([r.encode(kept)], [i], "rD", ms=5)
+            text += f", kept measured {kept:.3g}"
+        a.text(1.01, i, text, va="center", fontsize=8)
     a.set_yticks(range(len(ident)), list(ident))
     a.set_xlim(0.0, 1.0)
     a.set(title="identifiability: loss within 50 % of best", xlabel="position in search range")

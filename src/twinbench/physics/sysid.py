@@ -263,6 +263,10 @@ class FitConfig:
     the validation frames never fit nor choose. 0 = every training frame is fitted and the last stage run
     is kept (on the held-out family, holding out 20 % cost more accuracy than the choice gained: short
     sequences lose their most informative frames)"""
+    keep_guess: float = 0.1
+    """where stage 1's search shows that the motion does not constrain a parameter that was measured in it
+    (``guess``; see :func:`identifiability`), the measured value replaces stage 1's best point when that
+    costs at most this share of training loss (:func:`keep_unconstrained_guesses`); 0 = off"""
     guess: bool = True
     """stage 1 starts from physically scaled guesses computed from the data (stiffness from the control
     force and strain, friction from sliding, restitution from bounces: ``physics.sysid_guess``) where the
@@ -289,6 +293,7 @@ class FitConfig:
 
         need("dt", self.dt, 0.0, 0.1)
         need("select_frames", self.select_frames, 0.0, 0.5)
+        need("keep_guess", self.keep_guess, 0.0, 10.0)
         need("substeps", self.substeps, 0, 100_000, integer=True)
         c, a, w, i = self.cma, self.adam, self.weights, self.initial
         need("cma.budget", c.budget, 1, 100_000, integer=True)
@@ -558,6 +563,18 @@ PENALTY = 1e6  # loss of a candidate whose simulation diverged or whose model ca
 SCAN_POINTS = 9  # stage 1's stiffness scan (log-spaced over the spring_Y range) before CMA-ES
 
 
+def stage1_loss(data: SysIdData, params: GlobalParams, base: SimParams, loss: SequenceLoss,
+                device: str = "cpu") -> float:
+    """Stage 1's score of ``params``: Chamfer + tracking over the training frames (:data:`PENALTY` when
+    the simulation diverges or the model cannot be built)."""
+    try:
+        model = build_model(data, params, base, device)
+        ev = evaluate(model, data, loss, frames=data.train_frames.stop - 1, acc=False)
+        return ev.train_loss if math.isfinite(ev.train_loss) else PENALTY
+    except ValueError:  # e.g. a rule that gives no springs at all
+        return PENALTY
+
+
 def stage1_cma(data: SysIdData, base: SimParams, initial: GlobalParams, cfg: CMAConfig,
                weights: LossWeights = LossWeights(), device: str = "cpu", progress: bool = False,
                log: Callable[[str], None] = print,
@@ -592,7 +609,6 @@ def stage1_cma(data: SysIdData, base: SimParams, initial: GlobalParams, cfg: CMA
     if cfg.budget < 1:
         raise ValueError(f"cma.budget must be >= 1, got {cfg.budget}")
     loss = SequenceLoss(data, weights)
-    n_train = data.train_frames.stop - 1
     history: list[dict] = []
     best = (math.inf, initial)
 
@@ -601,12 +617,7 @@ def stage1_cma(data: SysIdData, base: SimParams, initial: GlobalParams, cfg: CMA
 
     def objective(params: GlobalParams) -> float:
         nonlocal best
-        try:
-            model = build_model(data, params, base_of(params) if base_of else base, device)
-            ev = evaluate(model, data, loss, frames=n_train, acc=False)
-            value = ev.train_loss if math.isfinite(ev.train_loss) else PENALTY
-        except ValueError:  # e.g. a rule that gives no springs at all
-            value = PENALTY
+        value = stage1_loss(data, params, base_of(params) if base_of else base, loss, device)
         if value < best[0]:
             best = (value, params)
         history.append({"evaluation": len(history), "loss": value, "best": best[0],
@@ -1021,6 +1032,43 @@ def identifiability(history: list[dict], ranges: dict[str, SearchRange] | None =
     return out
 
 
+def keep_unconstrained_guesses(params: GlobalParams, start: GlobalParams, guesses: dict[str, dict],
+                               ident: dict[str, dict], history: list[dict], tol: float,
+                               score: Callable[[GlobalParams], float], notes: list[str]) -> GlobalParams:
+    """``params`` with each parameter that the motion does not constrain (``ident``) set back to the value
+    measured for it in the data (``guesses`` that stage 1 started from, ``start``'s value: point
+    estimates, not lower bounds), when the parameters so changed score within ``tol`` (relative) of stage
+    1's best training loss: in a flat valley the search's best point is as arbitrary as any other, the
+    measured value is not. The trial is appended to ``history`` (``guess_kept``), the outcome to
+    ``notes``."""
+    names = [n for n, g in guesses.items()
+             if g.get("used") and not g.get("lower_bound") and n in ident and not ident[n]["constrained"]
+             and ident[n]["samples"] >= 5  # else too few near-best candidates to say
+             and not math.isclose(getattr(params, n), getattr(start, n), rel_tol=1e-3)]
+    if not names:
+        return params
+    trial = replace(params, **{n: getattr(start, n) for n in names})
+    best = min(r["loss"] for r in history)
+    value = score(trial)
+    kept = value <= best * (1.0 + tol)
+    history.append({"evaluation": len(history), "loss": value, "best": min(best, value),
+                    "params": {n: float(getattr(trial, n)) for n in history[0]["params"]},
+                    "guess_kept": kept})
+    what = ", ".join(f"{n} {getattr(params, n):.4g} -> {getattr(trial, n):.4g} (near-best candidates "
+                     f"{ident[n]['low']:.4g}-{ident[n]['high']:.4g})" for n in names)
+    change = f"{100 * (value / best - 1):+.1f} %" if value < PENALTY else "diverged"
+    if kept:
+        notes.append(f"the motion does not constrain {', '.join(names)}: the values measured in it are kept "
+                     f"instead of stage 1's arbitrary point in the flat valley: {what}; training loss "
+                     f"{change} (within {tol:.0%})")
+        for n in names:
+            ident[n]["guess_kept"] = True
+        return trial
+    notes.append(f"the motion does not constrain {', '.join(names)}, but the values measured in it score "
+                 f"{change} against stage 1's best (over {tol:.0%}): stage 1's values are kept ({what})")
+    return params
+
+
 def balanced_weights(weights: LossWeights, terms: dict[str, float], share: float,
                      log: Callable[[str], None] = print) -> LossWeights:
     """``weights`` with the acceleration weight lowered so that, at the measured ``terms`` (training
@@ -1103,6 +1151,7 @@ def identify(data: SysIdData, cfg: FitConfig, *, base: SimParams | None = None,
                 g["used"] = bool(use)
                 log(f"guess {name}: {'-' if g['value'] is None else f'{value:.4g}'}"
                     f"{'' if use else ' (not used)'}: {g['from']}")
+        fit_loss = SequenceLoss(fit, cfg.weights)
         t0 = time.perf_counter()
         params, history1 = stage1_cma(fit, base, start, cfg.cma, cfg.weights, cfg.device, cfg.progress, log,
                                       base_of=base_of if topo is not None else None,
@@ -1113,7 +1162,14 @@ def identify(data: SysIdData, cfg: FitConfig, *, base: SimParams | None = None,
         evals["stage1"] = evaluate(models["stage1"], data, loss)
         stage_params["stage1"] = params
         ident = identifiability(history1, parse_ranges(cfg.cma.ranges))
-        if params in (start, cfg.initial):
+        found = params
+        if cfg.keep_guess > 0:
+            def score(p: GlobalParams) -> float:
+                return stage1_loss(fit, p, base_of(p), fit_loss, cfg.device)
+
+            params = keep_unconstrained_guesses(params, start, guesses, ident, history1, cfg.keep_guess,
+                                                score, notes)
+        if found in (start, cfg.initial):
             notes.append(f"stage 1 did not improve on its start: none of {len(history1) - 1} candidates "
                          "beat the starting values (widen cma.ranges or check the data)")
     adam = cfg.adam
