@@ -1157,10 +1157,6 @@ def identify(data: SysIdData, cfg: FitConfig, *, base: SimParams | None = None,
                                       base_of=base_of if topo is not None else None,
                                       walk=bool(guesses.get("spring_Y", {}).get("used")),
                                       candidates=() if start == params else (params,))
-        seconds["stage1"] = time.perf_counter() - t0
-        models["stage1"] = build_model(data, params, base_of(params), cfg.device)
-        evals["stage1"] = evaluate(models["stage1"], data, loss)
-        stage_params["stage1"] = params
         ident = identifiability(history1, parse_ranges(cfg.cma.ranges))
         found = params
         if cfg.keep_guess > 0:
@@ -1169,6 +1165,10 @@ def identify(data: SysIdData, cfg: FitConfig, *, base: SimParams | None = None,
 
             params = keep_unconstrained_guesses(params, start, guesses, ident, history1, cfg.keep_guess,
                                                 score, notes)
+        seconds["stage1"] = time.perf_counter() - t0
+        models["stage1"] = build_model(data, params, base_of(params), cfg.device)
+        evals["stage1"] = evaluate(models["stage1"], data, loss)
+        stage_params["stage1"] = params
         if found in (start, cfg.initial):
             notes.append(f"stage 1 did not improve on its start: none of {len(history1) - 1} candidates "
                          "beat the starting values (widen cma.ranges or check the data)")
