@@ -361,6 +361,24 @@ def test_ablation_paths_hand_set_and_stage1_only():
     assert res.evals["stage1"].train_loss < res.evals["initial"].train_loss
 
 
+def test_stage2_holding_the_scale_fits_the_pattern_only():
+    """Stage 2 from a uniform stiffness 3x too stiff: free, it lowers the object's mean log Y; with
+    ``hold_scale`` that mean stays where it started while the regions still spread apart (the pattern)."""
+    data, truth = synthetic_case("rope", frames=12, validation_frames=3, seed=4)
+    base = SimParams(dt=1.0 / (30 * SUBSTEPS), substeps=SUBSTEPS)
+    y0 = 3.0 * float(np.exp(np.median(truth["log_y"])))
+    cfg = AdamConfig(epochs=3, lr=0.05, y_min=50.0, y_max=1e4, regions=4, fit_contact=False)
+    means = {}
+    for hold in (False, True):
+        model = build_model(data, replace(truth["params"], spring_Y=y0), base, requires_grad=True)
+        n = model.num_object_springs
+        log_y, _ = stage2_adam(model, data, cfg, log=_quiet, hold_scale=hold)
+        means[hold] = float(log_y[:n].astype(np.float64).mean())
+        assert np.ptp(log_y[:n]) > 0.05  # the regions moved apart either way
+    assert means[True] == pytest.approx(np.log(y0), abs=1e-4)
+    assert means[False] < np.log(y0) - 0.05  # free, the scale goes down towards the truth
+
+
 def test_stage2_divergence_stops_and_keeps_the_best_parameters():
     """An unstable step size (Adam pushing springs far past the explicit integrator's limit at this dt)
     ends stage 2 early, reports it, and leaves finite parameters no worse than the start."""

@@ -854,9 +854,13 @@ def _region_std(jac: np.ndarray, sigma2: float) -> np.ndarray:
 
 def stage2_adam(model: SpringMassModel, data: SysIdData, cfg: AdamConfig,
                 weights: LossWeights = LossWeights(), progress: bool = False,
-                log: Callable[[str], None] = print, select: int = 0) -> tuple[np.ndarray, list[dict]]:
+                log: Callable[[str], None] = print, select: int = 0,
+                hold_scale: bool = False) -> tuple[np.ndarray, list[dict]]:
     """Adam on ``model.log_y`` (finalized with ``requires_grad=True``) and, with ``cfg.fit_contact``, on
     the contact coefficients that act (``fitted_contacts``, in logit space), one step per fitted frame.
+    With ``hold_scale`` the object springs' mean log Y (weighted by springs per region) stays at its start
+    after every step: only the stiffness pattern is fitted, not its overall scale (for a scale that stage 1
+    found the motion does not constrain).
 
     The last ``select`` training frames are not fitted: they are the selection frames (see
     :func:`selection_count`). After each epoch the whole sequence is rolled out (fast path) and the
@@ -881,6 +885,15 @@ def stage2_adam(model: SpringMassModel, data: SysIdData, cfg: AdamConfig,
         / np.maximum(np.bincount(region, minlength=n_reg), 1)
     opt = Adam(start, cfg.lr, cfg.betas, cfg.eps, lo, hi)
     model.set_spring_log_y(opt.x[region])
+    n_obj = model.num_object_springs
+    obj_w = np.bincount(region[:n_obj], minlength=n_reg).astype(np.float64)  # 0 for the control region
+    obj_mean = float(obj_w @ start / obj_w.sum())
+
+    def step(g: np.ndarray) -> np.ndarray:
+        x = opt.step(g)
+        if hold_scale:  # back to the start's mean, the shift shared by the object regions, within bounds
+            x[obj_w > 0] = np.clip(x[obj_w > 0] - (obj_w @ x / obj_w.sum() - obj_mean), lo, hi)
+        return x
     fit = fitted_contacts(model) if cfg.fit_contact else []
     coeffs = model.contact_coeffs.numpy().astype(np.float64)
     frac = np.clip(coeffs[fit] / CONTACT_MAX[fit], 1e-4, 1.0 - 1e-4)
@@ -926,7 +939,7 @@ def stage2_adam(model: SpringMassModel, data: SysIdData, cfg: AdamConfig,
                         ctl.set_control_points(data.controls[k - 1], data.controls[k])
                     terms, g, x, v, gc = frame_gradient(model, solver, state, ctl, loss, k, prev_v, prev_acc)
                     total += terms["total"]
-                    model.set_spring_log_y(opt.step(np.bincount(region, g, n_reg))[region])
+                    model.set_spring_log_y(step(np.bincount(region, g, n_reg))[region])
                     if fit and epoch > contact_from:  # chain rule: c = max sigmoid(u)
                         sig = coeffs[fit] / CONTACT_MAX[fit]
                         set_contacts(opt_c.step(gc[fit] * CONTACT_MAX[fit] * sig * (1.0 - sig)))
@@ -1186,7 +1199,12 @@ def identify(data: SysIdData, cfg: FitConfig, *, base: SimParams | None = None,
         weights = balanced_weights(cfg.weights, evals["stage1" if cfg.stage1 else "initial"].terms,
                                    adam.acc_share, log)
         t0 = time.perf_counter()
-        _, history2 = stage2_adam(model, data, adam, weights, cfg.progress, log, select=n_sel)
+        hold = bool(ident.get("spring_Y", {}).get("guess_kept"))
+        if hold:
+            notes.append("stage 2 fits the stiffness pattern around the kept measured stiffness: the object "
+                         "springs' mean log Y is held (the motion does not constrain its scale)")
+        _, history2 = stage2_adam(model, data, adam, weights, cfg.progress, log, select=n_sel,
+                                  hold_scale=hold)
         first = history2[0]["train_loss"]
         if len(history2) > 1 and not any(r.get("train_loss", math.inf) < first for r in history2[1:]):
             notes.append("stage 2 did not improve on its start's fitted loss")
