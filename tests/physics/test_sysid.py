@@ -244,9 +244,11 @@ def _check_identification(data, truth, result):
     def fitted(ev):  # stage 1's objective over the training frames
         return ev.terms["chamfer"] + ev.terms["track"]
 
-    # never worse than the hand-set start (the data's guesses are scored against it); when it found nothing
+    # never worse than the hand-set start (the data's guesses are scored against it), but for a measured
+    # value kept where the motion leaves it free (at most keep_guess of the loss); when it found nothing
     # better it keeps that start and says so (the cloth case since stage 1 starts from the data's guesses)
-    assert fitted(stage1) <= fitted(result.evals["initial"])
+    kept_guess = any("values measured in it are kept" in n for n in result.notes)
+    assert fitted(stage1) <= fitted(result.evals["initial"]) * (1.0 + result.config.keep_guess * kept_guess)
     kept_start = any(n.startswith("stage 1 did not improve") for n in result.notes)
     moved = fitted(stage1) < fitted(result.evals["initial"]) and result.params.spring_Y != 1000.0
     assert kept_start or moved
