@@ -11,6 +11,8 @@ Two stages (DESIGN section 4), each switchable for the ablation "without physics
 1. **Stage 1** (``stage1=True``): CMA-ES (``cma`` package) over the global parameters of
    :class:`GlobalParams` within :data:`DEFAULT_RANGES` (normalised to [0, 1], stiffness in log space);
    each evaluation builds the model and simulates every training frame (fast, graph-replayed path).
+   Where the search shows the motion does not constrain a value measured in it, the measured value is
+   kept (:func:`keep_unconstrained_guesses`; for the stiffness, stage 2 then holds its scale).
 2. **Stage 2** (``stage2=True``): Adam on the per-spring log stiffness (object and control springs)
    through ``wp.Tape``, truncated to one frame: frame ``k`` is simulated from the simulated state of
    frame ``k - 1``, the loss's gradient w.r.t. the frame's final positions and velocities is injected as
