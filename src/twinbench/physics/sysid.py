@@ -1024,12 +1024,17 @@ class SysIdResult:
         return np.clip(y, self.sim.spring_Y_min, self.sim.spring_Y_max)
 
 
+MIN_NEAR = 5
+"""near-best stage-1 candidates needed before :func:`identifiability` calls a parameter constrained or not"""
+
+
 def identifiability(history: list[dict], ranges: dict[str, SearchRange] | None = None,
                     tol: float = 0.5, constrained_width: float = 0.3) -> dict[str, dict]:
     """Which global parameters stage 1's motion constrains: for each searched parameter, the interval
     of the candidates whose loss is within ``tol`` (relative) of the best, and its width as a fraction
     of the search range (normalised, log scale for stiffness); ``constrained`` when the width is below
-    ``constrained_width`` and at least 5 candidates fall within the tolerance (else too few to say)."""
+    ``constrained_width`` and at least :data:`MIN_NEAR` candidates fall within the tolerance (else too few
+    to say)."""
     ranges = ranges or DEFAULT_RANGES
     rows = [r for r in history if "params" in r and math.isfinite(r["loss"]) and r["loss"] < PENALTY]
     if not rows:
@@ -1043,7 +1048,7 @@ def identifiability(history: list[dict], ranges: dict[str, SearchRange] | None =
         width = rng.encode(max(vals)) - rng.encode(min(vals))
         out[name] = {"best": min(rows, key=lambda r: r["loss"])["params"][name], "low": min(vals),
                      "high": max(vals), "width": width, "samples": len(vals),
-                     "constrained": bool(width < constrained_width and len(vals) >= 5)}
+                     "constrained": bool(width < constrained_width and len(vals) >= MIN_NEAR)}
     return out
 
 
@@ -1058,7 +1063,7 @@ def keep_unconstrained_guesses(params: GlobalParams, start: GlobalParams, guesse
     ``notes``."""
     names = [n for n, g in guesses.items()
              if g.get("used") and not g.get("lower_bound") and n in ident and not ident[n]["constrained"]
-             and ident[n]["samples"] >= 5  # else too few near-best candidates to say
+             and ident[n]["samples"] >= MIN_NEAR  # else too few near-best candidates to say
              and not math.isclose(getattr(params, n), getattr(start, n), rel_tol=1e-3)]
     if not names:
         return params
