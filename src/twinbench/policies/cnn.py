@@ -128,11 +128,12 @@ def chunk_targets(actions: np.ndarray, episode: np.ndarray, chunk: int) -> np.nd
     return actions[np.minimum(idx, last[:, None])]
 
 
-def _images(images: np.ndarray, torch):
+def image_tensor(images: np.ndarray, torch):
+    """(N, H, W, 3) uint8 -> (N, 3, H, W) float32 in [0, 1]."""
     return torch.from_numpy(np.array(images, np.uint8)).permute(0, 3, 1, 2).float() / 255.0
 
 
-def _shift(images, pad: int, gen, torch):
+def random_shift(images, pad: int, gen, torch):
     """Random shifts by up to `pad` pixels (replicate padding), one per image, from generator `gen`."""
     if pad == 0:
         return images
@@ -146,7 +147,7 @@ def _shift(images, pad: int, gen, torch):
     return torch.gather(out, 3, cols)
 
 
-class _Adam:
+class Adam:
     """Adam (Kingma & Ba) over a module's parameters. `torch.optim` imports torch._dynamo when an
     optimiser is made (about 10 s of CPU per process), more than a whole small training run."""
 
@@ -206,10 +207,10 @@ def train(cfg: CNNConfig, images: np.ndarray, agent_pos: np.ndarray, actions: np
     try:
         torch.manual_seed(seed)
         net = build_net(cfg)
-        opt = _Adam(net.parameters(), lr=lr)
+        opt = Adam(net.parameters(), lr=lr)
         gen = torch.Generator().manual_seed(seed)
         rng = np.random.default_rng(seed)
-        x_img = _images(images, torch)
+        x_img = image_tensor(images, torch)
         state = (np.asarray(agent_pos) - np.asarray(cfg.state_mean)) / cfg.state_std
         x_state = torch.from_numpy(state.astype(np.float32))
         target = chunk_targets(actions, episode, cfg.chunk)
@@ -222,7 +223,7 @@ def train(cfg: CNNConfig, images: np.ndarray, agent_pos: np.ndarray, actions: np
             net.train()
             for b in np.array_split(rng.permutation(n), max(1, int(np.ceil(n / batch_size)))):
                 bi = torch.from_numpy(b)
-                pred = net(_shift(x_img[bi], shift_px, gen, torch), x_state[bi])
+                pred = net(random_shift(x_img[bi], shift_px, gen, torch), x_state[bi])
                 loss = torch.nn.functional.mse_loss(pred, y[bi])
                 opt.zero_grad()
                 loss.backward()
@@ -294,7 +295,7 @@ class CNNPolicy(ChunkedPolicy):
         img = resize_image(np.asarray(img, np.uint8), (cfg.image_size, cfg.image_size), "stretch")
         state = ((pos[:cfg.state_dim] - np.asarray(cfg.state_mean)) / cfg.state_std).astype(np.float32)
         with torch.no_grad():
-            out = self.net(_images(img[None], torch), torch.from_numpy(state)[None])[0].numpy()
+            out = self.net(image_tensor(img[None], torch), torch.from_numpy(state)[None])[0].numpy()
         chunk = out * np.asarray(cfg.action_std, np.float32) + np.asarray(cfg.action_mean, np.float32)
         if cfg.relative:
             chunk = chunk + pos[:cfg.action_dim]

@@ -26,7 +26,8 @@ EXTRA_HINT = "pip install 'twinbench[lerobot]'"
 PROCESSOR_FILES = ("policy_preprocessor.json", "policy_postprocessor.json")
 
 
-def _import_lerobot():
+def import_lerobot():
+    """(torch, PreTrainedConfig, get_policy_class, make_pre_post_processors); ImportError naming the extra."""
     try:
         import torch
         from lerobot.configs.policies import PreTrainedConfig
@@ -88,7 +89,7 @@ class LeRobotPolicy(ChunkedPolicy):
                  n_action_steps: int | None = None):
         from twinbench.policies.io import load_policy_io
 
-        torch, PreTrainedConfig, get_policy_class, make_pre_post_processors = _import_lerobot()
+        torch, PreTrainedConfig, get_policy_class, make_pre_post_processors = import_lerobot()
         self.path = Path(path)
         check_checkpoint(self.path)
         self.io = load_policy_io(io).with_n_action_steps(n_action_steps)

@@ -11,6 +11,14 @@ demonstrations show how to recover from small errors, as in DART) and stopped `t
 Only successful demonstrations are kept. OUT/demos.npz holds the front images downsampled to the
 policy's input size, agent_pos and the expert's actions; OUT/demos.json the per-demonstration record.
 Checkpoint OUT/bc-d<DEMOS>-e<EPOCHS>/ is a `cnn:` policy directory with train.json (loss per epoch).
+
+With `act=True` (the lerobot extra), LeRobot ACT policies are trained on the same demonstrations: LeRobot's
+own `ACTPolicy` (its loss: L1 on the action chunk + the VAE's KL term) and processors (normalisation from
+the demonstrations' statistics), a random ResNet-18 backbone (nothing is downloaded), fed by a plain loop
+instead of `lerobot-train` (the demonstrations are arrays, not a LeRobotDataset). Checkpoint
+OUT/act-d<DEMOS>-e<EPOCHS>/ is a LeRobot `pretrained_model` folder (config.json, model.safetensors, the
+processor files) with io.json (the front camera at the training image size) and train.json, evaluated
+through the `lerobot:` adapter as any LeRobot checkpoint: `act-d16-e20=lerobot:DIR?io=DIR/io.json`.
 """
 
 from __future__ import annotations
@@ -35,6 +43,8 @@ class BCSize:
     demos: int  # demonstrations attempted (the successful ones are kept)
     data_sizes: tuple[int, ...]  # demonstrations per checkpoint (the first N kept)
     epochs: tuple[int, ...]
+    act_data_sizes: tuple[int, ...] = (4, 16)  # LeRobot ACT checkpoints (`act=True`)
+    act_epochs: tuple[int, ...] = (5, 20)
     max_seconds: float = 15.0  # cap on a demonstration's length
     noise_m: float = 0.005
     tail_steps: int = 20
@@ -156,11 +166,133 @@ def train_checkpoints(demos: dict[str, np.ndarray], out: Path, data_sizes, epoch
     return paths
 
 
+def _act_parts():
+    """LeRobot's ACT classes and processor factory; InputError naming the extra when missing."""
+    from twinbench.policies.lerobot_adapter import import_lerobot
+
+    try:
+        torch, _, _, make_pre_post_processors = import_lerobot()
+        from lerobot.configs.types import FeatureType, PolicyFeature
+        from lerobot.policies.act.configuration_act import ACTConfig
+        from lerobot.policies.act.modeling_act import ACTPolicy
+    except ImportError as err:
+        raise InputError(f"behaviour cloning with LeRobot ACT: {err}") from None
+    return torch, make_pre_post_processors, FeatureType, PolicyFeature, ACTConfig, ACTPolicy
+
+
+# ACT at a CPU-trainable size: LeRobot's defaults but for the model width and layer counts
+ACT_SETTINGS = {"chunk_size": 16, "n_action_steps": 8, "dim_model": 256, "n_heads": 8,
+                "dim_feedforward": 1024, "n_encoder_layers": 2, "n_decoder_layers": 1, "latent_dim": 32,
+                "n_vae_encoder_layers": 2}
+
+
+def train_act_checkpoints(demos: dict[str, np.ndarray], out: Path, data_sizes, epochs, *, seed: int = 0,
+                          camera: str = "front", threads: int = 1, batch_size: int = 32, lr: float = 1e-4,
+                          shift_px: int = 4, settings: dict | None = None, log=print) -> list[Path]:
+    """Per data size N (the first N demonstrations), one LeRobot ACT training run of max(epochs) epochs,
+    saving OUT/act-d<N>-e<E>/ after each E in `epochs` (module docstring); a data size whose checkpoints
+    all exist is not trained again. Seeded: the same inputs, seed and `threads` give the same weights.
+    Targets: each step's next `chunk_size` actions in its episode, the last one repeated past its end (as
+    the CNN's); Adam at `lr` (backbone too: it starts random), gradients clipped at ACT's 10, random shifts
+    of up to `shift_px` pixels."""
+    from twinbench.policies.cnn import Adam, chunk_targets, image_tensor, random_shift
+
+    torch, make_processors, FeatureType, PolicyFeature, ACTConfig, ACTPolicy = _act_parts()
+    settings = {**ACT_SETTINGS, **(settings or {})}
+    n_kept = int(demos["episode"].max()) + 1
+    size = tuple(int(v) for v in demos["images"].shape[1:3])
+    paths = []
+    for d in data_sizes:
+        d = min(int(d), n_kept)
+        names = {e: out / f"act-d{d}-e{e}" for e in epochs}
+        paths += [p for p in names.values() if p not in paths]
+        if all((p / "train.json").is_file() for p in names.values()):
+            continue
+        keep = demos["episode"] < d
+        images = image_tensor(demos["images"][keep], torch)
+        state = torch.from_numpy(np.asarray(demos["agent_pos"][keep], np.float32))
+        target = torch.from_numpy(chunk_targets(demos["actions"][keep], demos["episode"][keep],
+                                                settings["chunk_size"]))
+        n, cam = len(images), f"observation.images.{camera}"
+        flat = target[:, 0]
+
+        def stat(x, dims):
+            return {"mean": x.mean(dims), "std": x.std(dims).clamp_min(1e-6)}
+
+        stats = {cam: {k: v[:, None, None] for k, v in stat(images, (0, 2, 3)).items()},
+                 "observation.state": stat(state, 0), "action": stat(flat, 0)}
+        inputs = {cam: PolicyFeature(FeatureType.VISUAL, (3, *size)),
+                  "observation.state": PolicyFeature(FeatureType.STATE, (state.shape[1],))}
+        cfg = ACTConfig(input_features=inputs,
+                        output_features={"action": PolicyFeature(FeatureType.ACTION, (target.shape[2],))},
+                        pretrained_backbone_weights=None, device="cpu", optimizer_lr=lr,
+                        optimizer_lr_backbone=lr, **settings)
+        old_threads = torch.get_num_threads()
+        torch.set_num_threads(int(threads))
+        try:
+            torch.manual_seed(seed)
+            policy = ACTPolicy(cfg)
+            pre, post = make_processors(cfg, dataset_stats=stats)
+            opt = Adam(policy.parameters(), lr=lr)
+            gen = torch.Generator().manual_seed(seed)
+            rng = np.random.default_rng(seed)
+            losses, t0 = [], time.perf_counter()
+            for epoch in range(1, max(epochs) + 1):
+                policy.train()
+                total = 0.0
+                for b in np.array_split(rng.permutation(n), max(1, int(np.ceil(n / batch_size)))):
+                    bi = torch.from_numpy(b)
+                    batch = pre({cam: random_shift(images[bi], shift_px, gen, torch),
+                                 "observation.state": state[bi], "action": target[bi],
+                                 "action_is_pad": torch.zeros(target[bi].shape[:2], dtype=torch.bool)})
+                    loss, _ = policy.forward(batch)
+                    opt.zero_grad()
+                    loss.backward()
+                    torch.nn.utils.clip_grad_norm_(policy.parameters(), 10.0)
+                    opt.step()
+                    total += loss.item() * len(b)
+                losses.append(total / n)
+                if epoch in epochs:
+                    record = {"arch": "lerobot-act", "demos": d, "frames": n, "epochs": epoch, "seed": seed,
+                              "threads": threads, "batch_size": batch_size, "lr": lr, "settings": settings,
+                              "loss": losses[-1], "loss_per_epoch": list(losses),
+                              "train_seconds": round(time.perf_counter() - t0, 1)}
+                    _save_act(names[epoch], policy, pre, post, camera, size, record)
+                    log(f"checkpoint {names[epoch].name}: {d} demos ({n} frames), {epoch} epochs, "
+                        f"loss {losses[-1]:.4f}, {record['train_seconds']:.0f} s")
+        finally:
+            torch.set_num_threads(old_threads)
+    return paths
+
+
+def _save_act(path: Path, policy, pre, post, camera: str, size: tuple[int, int], record: dict) -> None:
+    """The LeRobot folder + io.json + train.json, written beside PATH and renamed into place (a killed
+    run leaves no half checkpoint that would be taken as finished)."""
+    import shutil
+
+    tmp = path.with_name(path.name + ".partial")
+    shutil.rmtree(tmp, ignore_errors=True)
+    policy.save_pretrained(tmp)
+    pre.save_pretrained(tmp)
+    post.save_pretrained(tmp)
+    io = {"images": {camera: camera}, "image_size": list(size), "resize": "stretch", "prompt": None}
+    (tmp / "io.json").write_text(json.dumps(io, indent=1))
+    (tmp / "train.json").write_text(json.dumps(record, indent=1))
+    shutil.rmtree(path, ignore_errors=True)
+    tmp.rename(path)
+
+
+def act_spec(path: Path) -> str:
+    """The policy spec of an ACT checkpoint folder `train_act_checkpoints` wrote."""
+    return f"{path.name}=lerobot:{path}?io={path / 'io.json'}"
+
+
 def make_bc_policies(task: str, real_world: Path, out: Path, size="small", log=print,
-                     seed: int = 0) -> list[str]:
+                     seed: int = 0, act: bool = False) -> list[str]:
     """Record demonstrations in `real_world` (reused when OUT/demos.npz exists), train the size's
     checkpoints into OUT (on min(2, cpu_cores()) threads: the same seed and thread count, the same
-    weights) and return their policy specs `bc-d<N>-e<E>=cnn:DIR`."""
+    weights) and return their policy specs `bc-d<N>-e<E>=cnn:DIR`, and with `act` those of the LeRobot ACT
+    checkpoints (module docstring)."""
     bs = bc_size(size)
     out = Path(out)
     if not (out / "demos.npz").is_file():
@@ -173,4 +305,10 @@ def make_bc_policies(task: str, real_world: Path, out: Path, size="small", log=p
     paths = train_checkpoints(load_demos(out), out, bs.data_sizes, bs.epochs, seed=seed,
                               image_size=doc["image_size"], camera=doc["camera"],
                               threads=min(2, cpu_cores()), log=log)
-    return [f"{p.name}=cnn:{p}" for p in paths]
+    specs = [f"{p.name}=cnn:{p}" for p in paths]
+    if act:
+        data = load_demos(out)
+        specs += [act_spec(p) for p in train_act_checkpoints(
+            data, out, bs.act_data_sizes, bs.act_epochs, seed=seed, camera=doc["camera"],
+            threads=min(2, cpu_cores()), log=log)]
+    return specs

@@ -32,9 +32,11 @@ class _Timer:
 
 
 def run_study(task: str, out: Path, size: str = "small", seed: int = 0, workers: int = 1,
-              variants: tuple[str, ...] | None = None, log=print, bc: bool = False) -> dict:
+              variants: tuple[str, ...] | None = None, log=print, bc: bool = False,
+              bc_act: bool = False) -> dict:
     """Every stage of a study of `task` into `out`; returns study.json's content. `bc`: also the CNN
-    behaviour-cloning policies (study.bc; the torch extra)."""
+    behaviour-cloning policies (study.bc; the torch extra); `bc_act`: those and LeRobot ACT policies
+    trained on the same demonstrations (the lerobot extra)."""
     from twinbench.study.evaluate import make_policies, run_evaluations, study_size, write_study_json
     from twinbench.study.evidence import make_evidence
     from twinbench.study.real import make_real
@@ -57,10 +59,11 @@ def run_study(task: str, out: Path, size: str = "small", seed: int = 0, workers:
     camera_twin = twins.get("full", next(iter(twins.values())))
     world = real / "world"
     policies = timer("policies", make_policies, task, world, out / "policies", size, camera_twin, log)
-    if bc:
+    if bc or bc_act:
         from twinbench.study.bc import make_bc_policies
 
-        policies += timer("bc", make_bc_policies, task, world, out / "policies" / "bc", size, log)
+        policies += timer("bc", make_bc_policies, task, world, out / "policies" / "bc", size, log,
+                          act=bc_act)
     eval_times = timer("evaluate", run_evaluations, task, world, twins, policies, out, size, workers, log)
     extra = {"evaluation_seconds": eval_times, "policies": policies, "seed": seed}
     doc = write_study_json(out, task, size, list(twins), timer.seconds, extra)
