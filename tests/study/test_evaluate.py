@@ -87,3 +87,37 @@ def test_bad_size_is_refused():
     with pytest.raises(InputError, match=r"study size 'huge' \(--size\)"):
         E.study_size("huge")
     assert E.episodes_arg(E.study_size("small")) == "grid:0,9"
+
+
+def test_a_twin_that_differs_only_in_appearance_takes_the_replays_of_its_physics_twin(tmp_path):
+    """`no-color` (the fast cell with a colour map and another name) has `full`'s physics: its replay run is
+    `full`'s records, copied with a protocol naming the source, and no replay is run; a replay run that
+    exists already is left to resume as it was started."""
+    import dataclasses
+
+    from twinbench.gaussians.colormap import identity_color_map
+    from twinbench.tasks import get_task
+    from twinbench.twin import ColorMap, save_twin
+
+    cell = get_task("push-t").task_cls().default_twin("fast")
+    cmap = identity_color_map(2)
+    cmap[0, 0] = 0.1
+    tinted = dataclasses.replace(cell, name="tinted", background_color_map=ColorMap(2, cmap))
+    twins = {"full": tmp_path / "full", "no-color": tmp_path / "no-color"}
+    save_twin(cell, twins["full"])
+    save_twin(tinted, twins["no-color"])
+    store = ResultsStore(tmp_path / "results.sqlite")
+    store.start_run_with_episodes(E.REAL_ROLLOUTS, "push-t", {"task": "push-t"},
+                                  _records(E.REAL_ROLLOUTS, "sim", REAL_RATES))
+    run = E.replay_run_id("full")  # every replay in `full` done: replay_in_twin has nothing to run
+    full = _records(run, "real", REAL_RATES) + _records(run, "replay", {p: [0, 1, 0, 1] for p in REAL_RATES})
+    store.start_run_with_episodes(run, "push-t", {"task": "push-t", "kind": "replay"}, full)
+    logs = []
+    E.replay_in_twins("push-t", store, tmp_path, twins, E.study_size("small"), logs.append)
+    copied = store.episodes(E.replay_run_id("no-color"))
+    assert [dataclasses.replace(r, run_id=run) for r in copied] == store.episodes(run)
+    assert store.run_protocol(E.replay_run_id("no-color"))["copied_from"] == run
+    assert any("only in appearance" in m for m in logs)
+    logs.clear()  # again: the copied run exists and is complete, so nothing is copied or run
+    E.replay_in_twins("push-t", store, tmp_path, twins, E.study_size("small"), logs.append)
+    assert logs == [] and len(store.episodes(E.replay_run_id("no-color"))) == 32

@@ -387,3 +387,36 @@ def test_not_a_twin_directory(tmp_path):
     (tmp_path / "empty" / "twin.json").write_text("{not json")
     with pytest.raises(TwinFormatError, match="not valid JSON"):
         load_twin(tmp_path / "empty")
+
+
+def test_physics_hash_ignores_appearance_only(tmp_path):
+    """Twins that differ only in what rendering reads (name, cameras, Gaussians, colour maps) share a physics
+    hash, read back from their folders too; any physical difference (an object's stiffness or mass, a
+    collider's pose or contact, the robot's tool friction, the sim) gives another."""
+    from twinbench.twin.files import twin_physics_hash
+
+    spec = _rich_spec()
+    rope, block = spec.objects
+    box = spec.colliders[0]
+    plain = dataclasses.replace(
+        spec, name="other", cameras=spec.cameras[:1], background=_disc(10, (0.5, 0.5, 0.5)),
+        background_color_map=None, render_background=(0.0, 0.0, 0.0),
+        robot=dataclasses.replace(spec.robot, color_map=None, gaussians=None, gaussian_labels=None,
+                                  gaussian_links=(), gaussians_q=None),
+        objects=(dataclasses.replace(rope, color_map=None, gaussians=_disc(5, (1.0, 0.0, 0.0))), block),
+        colliders=(dataclasses.replace(box, color_map=None, gaussians=None),))
+    key = twin_physics_hash(spec)
+    assert twin_physics_hash(plain) == key
+    for name, s in (("a", spec), ("b", plain)):  # read back: the same (numbers typed as files give them)
+        save_twin(s, tmp_path / name)
+    assert twin_physics_hash(load_twin(tmp_path / "a")) == twin_physics_hash(load_twin(tmp_path / "b"))
+    physical = [
+        dataclasses.replace(spec, objects=(dataclasses.replace(rope, spring_Y=rope.spring_Y * 1.01), block)),
+        dataclasses.replace(spec, objects=(rope, dataclasses.replace(block, mass=2.0))),
+        dataclasses.replace(spec, colliders=(dataclasses.replace(box, pose=planar_pose(0.56, 0.2, 0.3)),)),
+        dataclasses.replace(spec, colliders=(dataclasses.replace(box, contact=ContactSpec(0.1, 0.6)),)),
+        dataclasses.replace(spec, robot=dataclasses.replace(spec.robot, tool_contact=ContactSpec(0.0, 1.0))),
+        dataclasses.replace(spec, sim=dataclasses.replace(spec.sim, substeps=spec.sim.substeps + 1)),
+    ]
+    keys = {twin_physics_hash(s) for s in physical}
+    assert len(keys) == len(physical) and key not in keys

@@ -7,7 +7,9 @@ commanded actions under DIR/results/actions/), copied as domain "real" into run 
 stores a robot's outcomes, so `twinbench report --real-run-id real` pairs them), one run `twin-<variant>`
 per twin, and one run `replay-<variant>` per twin: the real rollouts' actions replayed open loop in that
 twin (domain "replay", next to the real outcome), whose confusion matrix says how often the twin, given
-exactly what the robot did, ends as the real episode did.
+exactly what the robot did, ends as the real episode did. A twin that differs from an earlier one only in
+appearance (`no-color` from `full`, `neither` from `no-physics`) takes that twin's replays (copied, the
+protocol naming the source): a replay renders no camera.
 """
 
 from __future__ import annotations
@@ -24,6 +26,7 @@ from twinbench.evaluation import metrics
 from twinbench.evaluation.runner import evaluate
 from twinbench.evaluation.store import ResultsStore
 from twinbench.study.sizes import SIZES, StudySize, size_name, study_size  # noqa: F401 - re-exported
+from twinbench.twin.files import load_twin, twin_physics_hash
 
 REAL_ROLLOUTS, REAL = "real-rollouts", "real"
 
@@ -112,11 +115,46 @@ def run_evaluations(task: str, real_world: Path, twins: dict[str, Path], policie
             f"{times[run_id]:.0f} s")
         if run_id == REAL_ROLLOUTS:
             _real_records(store, task, recs)
+    return times | replay_in_twins(task, store, out / "results", twins, sz, log, workers)
+
+
+def replay_in_twins(task: str, store: ResultsStore, results: Path, twins: dict[str, Path], size: StudySize,
+                    log=print, workers: int = 1) -> dict[str, float]:
+    """`replay_in_twin` for each twin, except that a twin whose physics equals an earlier one's
+    (`twin_physics_hash`: it differs only in appearance, as `no-color` from `full`) gets that twin's replays
+    copied (`copy_replays`): a replay renders no camera. A replay run that exists already is resumed as it
+    was started. Returns the wall time (s) per replay run."""
+    physics: dict[str, str] = {}  # twin_physics_hash -> the first variant with that physics
+    times = {}
     for variant, world in twins.items():
         t0 = time.perf_counter()
-        replay_in_twin(task, store, out / "results", variant, world, sz, log, workers)
+        same = physics.setdefault(twin_physics_hash(load_twin(world)), variant)
+        if same == variant or _has_run(store, replay_run_id(variant)):
+            replay_in_twin(task, store, results, variant, world, size, log, workers)
+        else:
+            copy_replays(store, same, variant)
+            log(f"{replay_run_id(variant)}: the twin differs from {same!r} only in appearance and a replay "
+                f"renders no camera: {replay_run_id(same)}'s outcomes, not run again")
         times[replay_run_id(variant)] = time.perf_counter() - t0
     return times
+
+
+def _has_run(store: ResultsStore, run_id: str) -> bool:
+    try:
+        store.run_protocol(run_id)
+    except KeyError:
+        return False
+    return True
+
+
+def copy_replays(store: ResultsStore, source: str, variant: str) -> None:
+    """Store run `replay-<source>`'s records (both domains) as the new run `replay-<variant>`, its protocol
+    naming the source: for a twin whose physics is the source's."""
+    src, run_id = replay_run_id(source), replay_run_id(variant)
+    recs = [replace(r, run_id=run_id) for r in store.episodes(src)]
+    protocol = {**store.run_protocol(src), "copied_from": src,
+                "why": "the twins differ only in appearance (twin_physics_hash); replays render no camera"}
+    store.start_run_with_episodes(run_id, store.run_task(src), protocol, recs)
 
 
 def replay_in_twin(task: str, store: ResultsStore, results: Path, variant: str, world: Path,

@@ -634,20 +634,37 @@ def twin_spec_hash(spec: TwinSpec) -> str:
     """SHA-256 (hex) of a TwinSpec's data as it is built: every field (arrays by dtype, shape and bytes),
     and the bytes of the robot's URDF and the meshes it references (a built-in robot's from its assets).
     A built-in cell whose code changed what it builds hashes differently."""
+    return _spec_digest(spec, spec.robot)
+
+
+def twin_physics_hash(spec: TwinSpec) -> str:
+    """`twin_spec_hash` of what simulation reads of `spec`: not its name, cameras, Gaussian clouds, colour
+    maps or render background. Equal for twins that differ only in appearance (e.g. with and without colour
+    alignment): an episode that renders no camera runs the same in both."""
+    look = {"gaussians": None, "color_map": None}
+    robot = dataclasses.replace(spec.robot, gaussian_labels=None, gaussian_links=(), gaussians_q=None, **look)
+    return _spec_digest(("physics", robot, tuple(dataclasses.replace(o, **look) for o in spec.objects),
+                         tuple(dataclasses.replace(c, **look) for c in spec.colliders), spec.sim,
+                         spec.controller), spec.robot)
+
+
+def _spec_digest(data, robot: RobotSpec) -> str:
+    """SHA-256 of `data` (`_feed`) and of `robot`'s URDF and mesh files."""
     import hashlib
 
     from twinbench.robot.builtin import ASSETS
     from twinbench.robot.model import urdf_mesh_files
 
     h = hashlib.sha256()
-    _feed(h, spec)
-    tool = spec.robot.builtin_tool
-    urdf = ASSETS / f"xarm7_{tool}.urdf" if tool is not None else Path(spec.robot.urdf)
+    _feed(h, data)
+    tool = robot.builtin_tool
+    urdf = ASSETS / f"xarm7_{tool}.urdf" if tool is not None else Path(robot.urdf)
     files = [urdf, urdf.with_suffix(".json")] if tool is not None else [urdf]
     for path in files + sorted(p for _, p in urdf_mesh_files(urdf)):
         h.update(f"{path.name}\0{path.stat().st_size}\0".encode())
         h.update(path.read_bytes())
     return h.hexdigest()
+
 
 def _jsonable(value):
     if dataclasses.is_dataclass(value):
