@@ -59,8 +59,16 @@ def test_metrics_from_the_store(study):
 
 
 def test_study_json_table_and_page(study):
+    # policy c as a behaviour-cloned checkpoint: its train.json joins study.json and the page
+    ckpt = study / "bc" / "c.json"
+    ckpt.mkdir(parents=True)
+    (ckpt / "train.json").write_text(json.dumps({"demos": 8, "frames": 1200, "epochs": 40, "loss": 0.0123,
+                                                 "train_seconds": 61.0}))
+    training = E.training_records([f"c=cnn:{ckpt}", "d=expert"])
+    assert training == [{"policy": "c", "checkpoint": "c.json", "arch": "cnn", "demos": 8, "frames": 1200,
+                         "epochs": 40, "loss": 0.0123, "train_seconds": 61.0}]
     doc = E.write_study_json(study, "push-t", "small", ["full", "no-color", "neither"],
-                             {"make-real": 1.0, "evaluate": 2.0})
+                             {"make-real": 1.0, "evaluate": 2.0}, {"training": training})
     assert json.loads((study / "study.json").read_text()) == doc
     table = E.format_table(doc)
     assert "| push-t | full | 1.000 [1.00, 1.00] | 0.000 [0.000, " in table and "| 4 | 16 / 16 |" in table
@@ -73,6 +81,10 @@ def test_study_json_table_and_page(study):
     text = page.read_text()
     assert "Sim vs real, per twin variant" in text and "0.875" in text and "stage" in text.lower()
     assert "0.50 (8 / 8 / 0 / 0)" in text
+    # c: real 0.75, full 0.75 (the same outcomes), no-color 0.25 (b's, backwards), neither 1
+    assert "Behaviour-cloned checkpoints" in text
+    assert ("<td>c</td><td>cnn</td><td>8</td><td>1200</td><td>40</td><td>0.0123</td><td>61</td><td>0.75</td>"
+            "<td>0.75</td><td>0.25</td><td>1.00</td>") in text
     for variant in ("full", "no-color", "neither"):
         assert (study / "reports" / f"{variant}.html").is_file()
     if Path(CHROMIUM).exists():

@@ -106,7 +106,13 @@ StudyCommand = (
 
 def _evaluate(cfg: EvaluateConfig) -> int:
     from twinbench.errors import InputError
-    from twinbench.study.evaluate import format_table, make_policies, run_evaluations, write_study_json
+    from twinbench.study.evaluate import (
+        format_table,
+        make_policies,
+        run_evaluations,
+        training_records,
+        write_study_json,
+    )
     from twinbench.study.report import write_study_report
 
     real, twins_dir = cfg.out / "real" / "world", cfg.out / "twins"
@@ -124,7 +130,8 @@ def _evaluate(cfg: EvaluateConfig) -> int:
         policies += make_bc_policies(cfg.task, real, cfg.out / "policies" / "bc", cfg.size, act=cfg.bc_act)
     times = run_evaluations(cfg.task, real, twins, policies, cfg.out, cfg.size, cfg.workers,
                             retry_errors=cfg.retry_errors)
-    doc = write_study_json(cfg.out, cfg.task, cfg.size, list(twins), times, {"policies": policies})
+    doc = write_study_json(cfg.out, cfg.task, cfg.size, list(twins), times,
+                           {"policies": policies, "training": training_records(policies)})
     write_study_report(cfg.out, doc)
     print(format_table(doc))
     print(f"wrote {cfg.out / 'study.json'} and {cfg.out / 'report.html'}")

@@ -240,6 +240,24 @@ def write_study_json(out: Path, task: str, size: str | StudySize, variants, stag
     return json.loads(text)  # as a reader of study.json sees it (lists, not tuples)
 
 
+def training_records(policies: list[str]) -> list[dict]:
+    """Per policy whose checkpoint folder holds a train.json (the study's behaviour-cloned policies): its
+    name and checkpoint with the record's architecture, data size, epochs, final training loss and
+    training time (study.json's "training"; the page joins them with each checkpoint's success)."""
+    from twinbench.policies import parse_policy_spec
+
+    out = []
+    for text in policies:
+        spec = parse_policy_spec(text)
+        path = Path(spec.target) / "train.json" if spec.target else None
+        if path is None or not path.is_file():
+            continue
+        rec = json.loads(path.read_text())
+        out.append({"policy": spec.name, "checkpoint": spec.checkpoint, "arch": rec.get("arch", "cnn"),
+                    **{k: rec.get(k) for k in ("demos", "frames", "epochs", "loss", "train_seconds")}})
+    return out
+
+
 def format_table(doc: dict) -> str:
     """The study table as Markdown (the README's form)."""
     lines = ["| task | variant | Pearson r [95% CI] | MMRV [95% CI] | policies | episodes (sim / real) | "

@@ -40,6 +40,25 @@ def _table_section(doc: dict) -> str:
                       "matches the real one, and the confusion matrix (positive = success)."))
 
 
+def _training_section(doc: dict) -> str:
+    """The behaviour-cloned checkpoints: training record and success, real and in each twin."""
+    rates = {(d["policy"], d["checkpoint"]): {} for d in doc.get("training", [])}
+    for row in doc["variants"]:
+        for d in row["policies"]:
+            if (d["policy"], d["checkpoint"]) in rates:
+                rates[(d["policy"], d["checkpoint"])].update({"real": d["real"], row["variant"]: d["sim"]})
+    variants = [row["variant"] for row in doc["variants"]]
+    rows = []
+    for t in doc.get("training", []):
+        r = rates[(t["policy"], t["checkpoint"])]
+        rows.append([_e(t["policy"]), _e(t["arch"]), str(t["demos"]), str(t["frames"]), str(t["epochs"]),
+                     _num(t["loss"], ".4f"), _num(t["train_seconds"], ".0f"), _num(r.get("real"), ".2f"),
+                     *(_num(r.get(v), ".2f") for v in variants)])
+    return "<h2>Behaviour-cloned checkpoints</h2>" + _table(
+        ["checkpoint", "architecture", "demos", "frames", "epochs", "final training loss", "training s",
+         "success real", *(f"success {_e(v)}" for v in variants)], rows)
+
+
 def _scatter_section(doc: dict) -> str:
     import matplotlib.pyplot as plt
 
@@ -113,6 +132,8 @@ def write_study_report(out: Path, doc: dict, frames: bool = True,
     stages = "".join(f"<tr><td>{_e(k)}</td><td>{v:.0f} s</td></tr>" for k, v in doc["stage_seconds"].items())
     body = [f"<h1>twinbench study — {_e(doc['task'])} ({_e(doc['size'])})</h1>",
             _table_section(doc), _scatter_section(doc)]
+    if doc.get("training"):
+        body.append(_training_section(doc))
     if frames and (out / "real" / "world").is_dir() and all(p.is_dir() for p in twins.values()):
         body.append(_frames_section(doc["task"], out / "real" / "world", twins))
     body.append(f"<h2>Stage wall times</h2><table><tbody>{stages}</tbody></table>")

@@ -37,7 +37,13 @@ def run_study(task: str, out: Path, size: str = "small", seed: int = 0, workers:
     """Every stage of a study of `task` into `out`; returns study.json's content. `bc`: also the CNN
     behaviour-cloning policies (study.bc; the torch extra); `bc_act`: those and LeRobot ACT policies
     trained on the same demonstrations (the lerobot extra)."""
-    from twinbench.study.evaluate import make_policies, run_evaluations, study_size, write_study_json
+    from twinbench.study.evaluate import (
+        make_policies,
+        run_evaluations,
+        study_size,
+        training_records,
+        write_study_json,
+    )
     from twinbench.study.evidence import make_evidence
     from twinbench.study.real import make_real
     from twinbench.study.reconstruct import VARIANTS, reconstruct
@@ -65,7 +71,8 @@ def run_study(task: str, out: Path, size: str = "small", seed: int = 0, workers:
         policies += timer("bc", make_bc_policies, task, world, out / "policies" / "bc", size, log,
                           act=bc_act)
     eval_times = timer("evaluate", run_evaluations, task, world, twins, policies, out, size, workers, log)
-    extra = {"evaluation_seconds": eval_times, "policies": policies, "seed": seed}
+    extra = {"evaluation_seconds": eval_times, "policies": policies, "seed": seed,
+             "training": training_records(policies)}
     doc = write_study_json(out, task, size, list(twins), timer.seconds, extra)
     timer("report", write_study_report, out, doc)
     return write_study_json(out, task, size, list(twins), timer.seconds, extra)  # with the report's time
