@@ -41,9 +41,18 @@ def test_two_workers_grid_and_resume(tmp_path):
                      log=logs.append)
     assert "16 already finished, 0 to run" in logs[-1]
     assert [r.metrics["started_at"] for r in recs2] == [r.metrics["started_at"] for r in recs]
-    # different protocol under the same run id is refused
-    with pytest.raises(ValueError, match="different"):
-        evaluate("point-reach", ["expert"], "grid", 0, "run1", store, output_dir=tmp_path)
+    # the same run with fewer policies runs nothing new; with more, it is extended by their episodes only
+    assert evaluate("point-reach", ["expert"], "grid", 0, "run1", store, output_dir=tmp_path) == expert
+    logs.clear()
+    more = evaluate("point-reach", ["expert", "expert@1.0", "expert@0.5"], "grid", 0, "run1", store,
+                    output_dir=tmp_path, log=logs.append)
+    assert "adding 1 policies" in logs[0] and "24 episodes, 16 already finished, 8 to run" in logs[1]
+    assert more[:16] == recs and len(store.episodes("run1")) == 24  # job order: the policies' order
+    assert store.run_protocol("run1")["policies"] == ["expert", "expert@1.0", "expert@0.5"]
+    # any other difference of protocol under the same run id is refused (here the episodes)
+    keys = r"\['episodes', 'init_states', 'policies', 'seeds'\]"
+    with pytest.raises(ValueError, match=f"different protocol keys {keys}"):
+        evaluate("point-reach", ["expert"], "grid:0,1", 0, "run1", store, output_dir=tmp_path)
 
 
 def test_sampled_episodes_determinism_and_partial_resume(tmp_path):

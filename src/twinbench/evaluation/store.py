@@ -220,19 +220,23 @@ class ResultsStore:
             return con.execute("PRAGMA journal_mode").fetchone()[0]
 
     # ---- runs -------------------------------------------------------------------------------------
-    def start_run(self, run_id: str, task: str, protocol: dict) -> None:
+    def start_run(self, run_id: str, task: str, protocol: dict, grow: str | None = None) -> list:
         """Register a run with its protocol (JSON). Idempotent: calling again with the same task and
         protocol does nothing; a different task or protocol for an existing run id raises ValueError
-        (resuming must not mix protocols: use a new run id). The run id must be a name (`check_run_id`)."""
-        self.start_run_with_episodes(run_id, task, protocol, [])
+        (resuming must not mix protocols: use a new run id). `grow`: a protocol key holding a list (the
+        runner's "policies") that may differ: the stored list gains the new entries (the episodes already
+        stored keep their meaning). Returns the entries added to it. The run id must be a name
+        (`check_run_id`)."""
+        return self.start_run_with_episodes(run_id, task, protocol, [], grow=grow)
 
     def start_run_with_episodes(self, run_id: str, task: str, protocol: dict,
-                                recs: list[EpisodeRecord]) -> None:
+                                recs: list[EpisodeRecord], grow: str | None = None) -> list:
         """`start_run` and `record_episodes(recs)` in ONE transaction: all of it is stored, or nothing
         (no empty run row is left behind when a record cannot be written)."""
         check_run_id(run_id)
         proto = _dumps(dict(protocol), "protocol")
         rows = self._episode_rows(recs)
+        added: list = []
         with self._connect() as con:
             con.execute("BEGIN IMMEDIATE")
             try:
@@ -242,14 +246,22 @@ class ResultsStore:
                 elif row[0] != task or row[1] != proto:
                     old, new = json.loads(row[1]), json.loads(proto)
                     keys = sorted(k for k in set(old) | set(new) if old.get(k) != new.get(k))
-                    what = f"task {row[0]!r} != {task!r}" if row[0] != task else f"protocol keys {keys}"
-                    raise InputError(f"run {run_id!r} already exists in {self.path} with a different "
-                                     f"{what}; use a new run id to evaluate a different protocol")
+                    if row[0] == task and keys == [grow] and isinstance(old.get(grow), list) and isinstance(
+                            new.get(grow), list):
+                        added = [v for v in new[grow] if v not in old[grow]]
+                        if added:
+                            con.execute("UPDATE runs SET protocol = ? WHERE run_id = ?",
+                                        (_dumps({**old, grow: old[grow] + added}, "protocol"), run_id))
+                    else:
+                        what = f"task {row[0]!r} != {task!r}" if row[0] != task else f"protocol keys {keys}"
+                        raise InputError(f"run {run_id!r} already exists in {self.path} with a different "
+                                         f"{what}; use a new run id to evaluate a different protocol")
                 self._insert_episodes(con, rows)
                 con.execute("COMMIT")
             except BaseException:
                 con.execute("ROLLBACK")
                 raise
+        return added
 
     def _run_row(self, run_id: str) -> tuple[str, str]:
         """(task, protocol JSON) of a started run; KeyError when the run was never started."""
