@@ -213,3 +213,17 @@ def test_replay_in_worker_processes_matches_in_process_and_resumes(tmp_path):
     assert [r.wall_time_s for _, r in pooled[:2]] == [r.wall_time_s for _, r in first[:2]]  # not run again
     assert all("started_at" in r.metrics for _, r in pooled[2:])  # ran in a worker
     check(store, "pool")
+
+
+def test_a_replay_run_grows_with_more_recorded_episodes(tmp_path):
+    """A study that gains policies replays their real rollouts into the existing run: only the new episodes
+    are replayed, the protocol's count follows; another twin under the same run id is still refused."""
+    eps = [RecordedEpisode(i, s, a, ok, "act", c) for i, (s, a, ok, c) in enumerate(EPISODES)]
+    store = ResultsStore(tmp_path / "r.sqlite")
+    first = replay_episodes("point-reach", eps[:2], store, "grow")
+    both = replay_episodes("point-reach", eps, store, "grow")
+    assert [r.wall_time_s for _, r in both[:2]] == [r.wall_time_s for _, r in first]  # not run again
+    assert len(store.episodes("grow", domain="replay")) == len(eps)
+    assert store.run_protocol("grow")["n_episodes"] == len(eps)
+    with pytest.raises(ValueError, match="different protocol keys"):
+        replay_episodes("point-reach", eps, store, "grow", env_kwargs={"fail_step": 7})

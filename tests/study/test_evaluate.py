@@ -130,6 +130,24 @@ def test_a_twin_that_differs_only_in_appearance_takes_the_replays_of_its_physics
     assert [dataclasses.replace(r, run_id=run) for r in copied] == store.episodes(run)
     assert store.run_protocol(E.replay_run_id("no-color"))["copied_from"] == run
     assert any("only in appearance" in m for m in logs)
-    logs.clear()  # again: the copied run exists and is complete, so nothing is copied or run
+    # the source gains replays (a study extended with a policy): the copy follows, nothing is run
+    extra = {"e": [1, 0]}
+    store.start_run_with_episodes(run, "push-t", {"task": "push-t", "kind": "replay"},
+                                  _records(run, "real", extra) + _records(run, "replay", extra))
+    store.record_episodes(_records(E.REAL_ROLLOUTS, "sim", extra))
     E.replay_in_twins("push-t", store, tmp_path, twins, E.study_size("small"), logs.append)
-    assert logs == [] and len(store.episodes(E.replay_run_id("no-color"))) == 32
+    assert len(store.episodes(E.replay_run_id("no-color"))) == 36
+    # a replay run that was run, not copied (an older study), is resumed as it is: here complete, nothing
+    # runs and nothing is copied over it
+    other = ResultsStore(tmp_path / "other.sqlite")
+    other.start_run_with_episodes(E.REAL_ROLLOUTS, "push-t", {"task": "push-t"},
+                                  _records(E.REAL_ROLLOUTS, "sim", REAL_RATES))
+    other.start_run_with_episodes(run, "push-t", {"task": "push-t", "kind": "replay"}, full)
+    own = E.replay_run_id("no-color")
+    kept = _records(own, "real", REAL_RATES) + _records(own, "replay", REAL_RATES)
+    other.start_run_with_episodes(own, "push-t", {"task": "push-t", "kind": "replay"}, kept)
+    logs.clear()
+    E.replay_in_twins("push-t", other, tmp_path, twins, E.study_size("small"), logs.append)
+    assert logs == [] and "copied_from" not in other.run_protocol(own)
+    assert [r.success for r in other.episodes(own, domain="replay")] == [
+        bool(v) for p in sorted(REAL_RATES) for v in REAL_RATES[p]]  # its own outcomes, not full's

@@ -416,7 +416,7 @@ def replay_episodes(task: str, episodes: list[RecordedEpisode], store: ResultsSt
                 "index_map": None if index_map is None else str(index_map)}
     if spec.task_cls is not None:  # resuming must replay in the same twin
         protocol["twin_hash"] = _twin_hash(task, dict(env_kwargs or {}), run_id, store)
-    store.start_run(run_id, task, protocol)
+    store.start_run(run_id, task, protocol, grow=("n_episodes",))  # more recorded episodes extend the run
 
     def key(ep: RecordedEpisode) -> tuple:
         return ep.policy, ep.checkpoint, ep.init_state, ep.key_seed

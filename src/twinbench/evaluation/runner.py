@@ -194,7 +194,7 @@ def evaluate(task: str, policies: Sequence[str], episodes: str | int = "grid", w
                 "env_id": spec_task.env_id, "grid": grid_info(task, env_kwargs), "versions": _versions()}
     if spec_task.task_cls is not None:  # a twin (directory or built-in cell): resuming needs the same one
         protocol["twin_hash"] = _twin_hash(task, env_kwargs, run_id, store)
-    added = store.start_run(run_id, task, protocol, grow="policies")
+    added = store.start_run(run_id, task, protocol, grow=("policies",))
     if added and log is not None:  # a resumed run extended with more policies (other settings unchanged)
         log(f"run {run_id!r}: adding {len(added)} policies to those it was started with")
     out_dir = Path(output_dir)

@@ -220,17 +220,17 @@ class ResultsStore:
             return con.execute("PRAGMA journal_mode").fetchone()[0]
 
     # ---- runs -------------------------------------------------------------------------------------
-    def start_run(self, run_id: str, task: str, protocol: dict, grow: str | None = None) -> list:
+    def start_run(self, run_id: str, task: str, protocol: dict, grow: tuple[str, ...] = ()) -> list:
         """Register a run with its protocol (JSON). Idempotent: calling again with the same task and
         protocol does nothing; a different task or protocol for an existing run id raises ValueError
-        (resuming must not mix protocols: use a new run id). `grow`: a protocol key holding a list (the
-        runner's "policies") that may differ: the stored list gains the new entries (the episodes already
-        stored keep their meaning). Returns the entries added to it. The run id must be a name
-        (`check_run_id`)."""
+        (resuming must not mix protocols: use a new run id). `grow`: protocol keys that may differ when a
+        run is extended by more episodes (the runner's "policies"): a stored list gains the new entries,
+        another value becomes the new one; the episodes already stored keep their meaning. Returns the
+        entries added to the lists. The run id must be a name (`check_run_id`)."""
         return self.start_run_with_episodes(run_id, task, protocol, [], grow=grow)
 
     def start_run_with_episodes(self, run_id: str, task: str, protocol: dict,
-                                recs: list[EpisodeRecord], grow: str | None = None) -> list:
+                                recs: list[EpisodeRecord], grow: tuple[str, ...] = ()) -> list:
         """`start_run` and `record_episodes(recs)` in ONE transaction: all of it is stored, or nothing
         (no empty run row is left behind when a record cannot be written)."""
         check_run_id(run_id)
@@ -246,12 +246,16 @@ class ResultsStore:
                 elif row[0] != task or row[1] != proto:
                     old, new = json.loads(row[1]), json.loads(proto)
                     keys = sorted(k for k in set(old) | set(new) if old.get(k) != new.get(k))
-                    if row[0] == task and keys == [grow] and isinstance(old.get(grow), list) and isinstance(
-                            new.get(grow), list):
-                        added = [v for v in new[grow] if v not in old[grow]]
-                        if added:
-                            con.execute("UPDATE runs SET protocol = ? WHERE run_id = ?",
-                                        (_dumps({**old, grow: old[grow] + added}, "protocol"), run_id))
+                    if row[0] == task and set(keys) <= set(grow) and all(k in old and k in new for k in keys):
+                        merged = dict(old)
+                        for k in keys:
+                            if isinstance(old[k], list) and isinstance(new[k], list):
+                                added += [v for v in new[k] if v not in old[k]]
+                                merged[k] = old[k] + [v for v in new[k] if v not in old[k]]
+                            else:
+                                merged[k] = new[k]
+                        con.execute("UPDATE runs SET protocol = ? WHERE run_id = ?",
+                                    (_dumps(merged, "protocol"), run_id))
                     else:
                         what = f"task {row[0]!r} != {task!r}" if row[0] != task else f"protocol keys {keys}"
                         raise InputError(f"run {run_id!r} already exists in {self.path} with a different "

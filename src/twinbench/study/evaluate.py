@@ -122,14 +122,15 @@ def replay_in_twins(task: str, store: ResultsStore, results: Path, twins: dict[s
                     log=print, workers: int = 1) -> dict[str, float]:
     """`replay_in_twin` for each twin, except that a twin whose physics equals an earlier one's
     (`twin_physics_hash`: it differs only in appearance, as `no-color` from `full`) gets that twin's replays
-    copied (`copy_replays`): a replay renders no camera. A replay run that exists already is resumed as it
-    was started. Returns the wall time (s) per replay run."""
+    copied (`copy_replays`; again when the source gains replays): a replay renders no camera. A replay run
+    that was run rather than copied is resumed as it was started. Returns the wall time (s) per replay
+    run."""
     physics: dict[str, str] = {}  # twin_physics_hash -> the first variant with that physics
     times = {}
     for variant, world in twins.items():
         t0 = time.perf_counter()
         same = physics.setdefault(twin_physics_hash(load_twin(world)), variant)
-        if same == variant or _has_run(store, replay_run_id(variant)):
+        if same == variant or _copied_from(store, replay_run_id(variant)) not in (None, replay_run_id(same)):
             replay_in_twin(task, store, results, variant, world, size, log, workers)
         else:
             copy_replays(store, same, variant)
@@ -139,22 +140,22 @@ def replay_in_twins(task: str, store: ResultsStore, results: Path, twins: dict[s
     return times
 
 
-def _has_run(store: ResultsStore, run_id: str) -> bool:
+def _copied_from(store: ResultsStore, run_id: str) -> str | None:
+    """The run a replay run was copied from; None for a run not started; "" for one run as it is."""
     try:
-        store.run_protocol(run_id)
+        return store.run_protocol(run_id).get("copied_from", "")
     except KeyError:
-        return False
-    return True
+        return None
 
 
 def copy_replays(store: ResultsStore, source: str, variant: str) -> None:
-    """Store run `replay-<source>`'s records (both domains) as the new run `replay-<variant>`, its protocol
-    naming the source: for a twin whose physics is the source's."""
+    """Store run `replay-<source>`'s records (both domains) as run `replay-<variant>`, its protocol naming
+    the source: for a twin whose physics is the source's."""
     src, run_id = replay_run_id(source), replay_run_id(variant)
     recs = [replace(r, run_id=run_id) for r in store.episodes(src)]
     protocol = {**store.run_protocol(src), "copied_from": src,
                 "why": "the twins differ only in appearance (twin_physics_hash); replays render no camera"}
-    store.start_run_with_episodes(run_id, store.run_task(src), protocol, recs)
+    store.start_run_with_episodes(run_id, store.run_task(src), protocol, recs, grow=("n_episodes",))
 
 
 def replay_in_twin(task: str, store: ResultsStore, results: Path, variant: str, world: Path,
