@@ -130,6 +130,22 @@ def load_demos(out: Path) -> dict[str, np.ndarray]:
         return {k: z[k] for k in z.files}
 
 
+def _pending_runs(demos: dict[str, np.ndarray], out: Path, prefix: str, data_sizes, epochs,
+                  paths: list[Path]):
+    """Per data size N (capped at the demonstrations there are): add its checkpoint folders
+    OUT/<prefix>-d<N>-e<E>/ to `paths` and, unless each holds a train.json already, yield (N, {E: folder},
+    the first N demonstrations' arrays)."""
+    n_kept = int(demos["episode"].max()) + 1
+    for d in data_sizes:
+        d = min(int(d), n_kept)
+        names = {e: out / f"{prefix}-d{d}-e{e}" for e in epochs}
+        paths += [p for p in names.values() if p not in paths]
+        if all((p / "train.json").is_file() for p in names.values()):
+            continue
+        keep = demos["episode"] < d
+        yield d, names, {k: v[keep] for k, v in demos.items()}
+
+
 def train_checkpoints(demos: dict[str, np.ndarray], out: Path, data_sizes, epochs, *, seed: int = 0,
                       image_size: int = 64, camera: str = "front", threads: int = 1, log=print) -> list[Path]:
     """Per data size N (the first N demonstrations), one training run of max(epochs) epochs on `threads`
@@ -137,16 +153,8 @@ def train_checkpoints(demos: dict[str, np.ndarray], out: Path, data_sizes, epoch
     per epoch, seconds). A data size whose checkpoints all exist is not trained again."""
     from twinbench.policies.cnn import make_config, save_policy, train
 
-    n_kept = int(demos["episode"].max()) + 1
-    paths = []
-    for d in data_sizes:
-        d = min(int(d), n_kept)
-        names = {e: out / f"bc-d{d}-e{e}" for e in epochs}
-        paths += [p for p in names.values() if p not in paths]
-        if all((p / "train.json").is_file() for p in names.values()):
-            continue
-        keep = demos["episode"] < d
-        data = {k: v[keep] for k, v in demos.items()}
+    paths: list[Path] = []
+    for d, names, data in _pending_runs(demos, out, "bc", data_sizes, epochs, paths):
         cfg = make_config(data["agent_pos"], data["actions"], data["episode"], camera=camera,
                           image_size=image_size)
         t0 = time.perf_counter()
@@ -199,20 +207,12 @@ def train_act_checkpoints(demos: dict[str, np.ndarray], out: Path, data_sizes, e
 
     torch, make_processors, FeatureType, PolicyFeature, ACTConfig, ACTPolicy = _act_parts()
     settings = {**ACT_SETTINGS, **(settings or {})}
-    n_kept = int(demos["episode"].max()) + 1
     size = tuple(int(v) for v in demos["images"].shape[1:3])
-    paths = []
-    for d in data_sizes:
-        d = min(int(d), n_kept)
-        names = {e: out / f"act-d{d}-e{e}" for e in epochs}
-        paths += [p for p in names.values() if p not in paths]
-        if all((p / "train.json").is_file() for p in names.values()):
-            continue
-        keep = demos["episode"] < d
-        images = image_tensor(demos["images"][keep], torch)
-        state = torch.from_numpy(np.asarray(demos["agent_pos"][keep], np.float32))
-        target = torch.from_numpy(chunk_targets(demos["actions"][keep], demos["episode"][keep],
-                                                settings["chunk_size"]))
+    paths: list[Path] = []
+    for d, names, data in _pending_runs(demos, out, "act", data_sizes, epochs, paths):
+        images = image_tensor(data["images"], torch)
+        state = torch.from_numpy(np.asarray(data["agent_pos"], np.float32))
+        target = torch.from_numpy(chunk_targets(data["actions"], data["episode"], settings["chunk_size"]))
         n, cam = len(images), f"observation.images.{camera}"
         flat = target[:, 0]
 

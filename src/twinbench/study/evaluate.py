@@ -132,8 +132,8 @@ def replay_in_twins(task: str, store: ResultsStore, results: Path, twins: dict[s
         same = physics.setdefault(twin_physics_hash(load_twin(world)), variant)
         if same == variant or _copied_from(store, replay_run_id(variant)) not in (None, replay_run_id(same)):
             replay_in_twin(task, store, results, variant, world, size, log, workers)
-        else:
-            copy_replays(store, same, variant)
+        elif len(store.episodes(replay_run_id(variant))) != len(store.episodes(replay_run_id(same))):
+            copy_replays(store, same, variant)  # (only when the source holds replays the copy lacks)
             log(f"{replay_run_id(variant)}: the twin differs from {same!r} only in appearance and a replay "
                 f"renders no camera: {replay_run_id(same)}'s outcomes, not run again")
         times[replay_run_id(variant)] = time.perf_counter() - t0
