@@ -17,6 +17,7 @@ from twinbench.policies import make_policy, parse_policy_spec  # noqa: E402
 from twinbench.policies.cnn import (  # noqa: E402
     CNNPolicy,
     chunk_targets,
+    episode_window,
     load_policy,
     make_config,
     save_policy,
@@ -43,6 +44,13 @@ def test_chunk_targets_stop_at_the_episode_end():
     a = np.arange(5, dtype=np.float32)[:, None]
     t = chunk_targets(a, np.array([0, 0, 0, 1, 1]), 3)
     assert t[:, :, 0].tolist() == [[0, 1, 2], [1, 2, 2], [2, 2, 2], [3, 4, 4], [4, 4, 4]]
+
+
+def test_episode_window_clamps_to_each_episode_and_marks_the_padding():
+    idx, pad = episode_window(np.array([0, 0, 0, 1, 1]), [-1, 0, 1])
+    assert idx.tolist() == [[0, 0, 1], [0, 1, 2], [1, 2, 2], [3, 3, 4], [3, 4, 4]]
+    assert pad.tolist() == [[True, False, False], [False, False, False], [False, False, True],
+                            [True, False, False], [False, False, True]]
 
 
 def test_training_is_reproducible_with_a_seed():

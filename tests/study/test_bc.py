@@ -54,27 +54,36 @@ def test_unknown_size():
         bc_size("huge")
 
 
-def test_lerobot_act_checkpoints_train_reproducibly_and_load_through_the_lerobot_adapter(tmp_path):
-    """LeRobot ACT trained on demonstrations whose action is a known function of the state: the loss falls,
-    the same seed gives the same weights, and the checkpoint loads from its policy spec like any LeRobot
-    checkpoint, taking the env's 240x240 front image down to its training size."""
+TINY = {"act": {"chunk_size": 4, "n_action_steps": 2, "dim_model": 32, "n_heads": 2, "dim_feedforward": 64,
+                "n_encoder_layers": 1, "n_decoder_layers": 1, "latent_dim": 8, "n_vae_encoder_layers": 1},
+        "dp": {"horizon": 8, "n_action_steps": 4, "down_dims": (16, 32), "crop_shape": (14, 14),
+               "diffusion_step_embed_dim": 16, "spatial_softmax_num_keypoints": 8, "n_groups": 4}}
+
+
+@pytest.mark.parametrize("arch", ["act", "dp"])
+def test_lerobot_checkpoints_train_reproducibly_and_load_through_the_lerobot_adapter(tmp_path, arch):
+    """LeRobot ACT and Diffusion Policy trained on demonstrations whose action is a known function of the
+    state: the loss falls, the same seed gives the same weights, and the checkpoint loads from its policy
+    spec like any LeRobot checkpoint, taking the env's 240x240 front image down to its training size, and
+    acts (Diffusion Policy: from its two-step observation queue)."""
     pytest.importorskip("lerobot", reason="needs the lerobot extra (make install EXTRAS='dev lerobot')")
     from twinbench.policies import make_policy
-    from twinbench.study.bc import act_spec, train_act_checkpoints
+    from twinbench.study.bc import lerobot_spec, train_lerobot_checkpoints
 
     data = demos(n_episodes=4, steps=8)
     data["actions"] = data["agent_pos"] + np.float32(0.05)  # learnable from the state alone
-    tiny = {"chunk_size": 4, "n_action_steps": 2, "dim_model": 32, "n_heads": 2, "dim_feedforward": 64,
-            "n_encoder_layers": 1, "n_decoder_layers": 1, "latent_dim": 8, "n_vae_encoder_layers": 1}
-    kw = {"settings": tiny, "batch_size": 8, "lr": 1e-3, "log": lambda m: None}
-    paths = train_act_checkpoints(data, tmp_path / "a", (2, 4), (1, 5), **kw)
-    assert [p.name for p in paths] == ["act-d2-e1", "act-d2-e5", "act-d4-e1", "act-d4-e5"]
-    rec = json.loads((tmp_path / "a" / "act-d4-e5" / "train.json").read_text())
-    assert rec["frames"] == 32 and len(rec["loss_per_epoch"]) == 5
-    assert rec["loss_per_epoch"][-1] < 0.5 * rec["loss_per_epoch"][0]
+    kw = {"arch": arch, "settings": TINY[arch], "batch_size": 8, "lr": 1e-3, "log": lambda m: None}
+    epochs = (1, 5) if arch == "act" else (1, 15)  # noise prediction learns more slowly
+    paths = train_lerobot_checkpoints(data, tmp_path / "a", (2, 4), epochs, **kw)
+    assert [p.name for p in paths] == [f"{arch}-d{d}-e{e}" for d in (2, 4) for e in epochs]
+    rec = json.loads((paths[-1] / "train.json").read_text())
+    assert rec["frames"] == 32 and len(rec["loss_per_epoch"]) == epochs[-1]
+    assert rec["arch"] == f"lerobot-{arch}"
+    # ACT's L1 halves; Diffusion Policy's noise prediction error starts at the noise's variance (1)
+    assert rec["loss_per_epoch"][-1] < (0.5 if arch == "act" else 0.7) * rec["loss_per_epoch"][0]
     assert not list((tmp_path / "a").glob("*.partial"))
-    again = train_act_checkpoints(data, tmp_path / "b", (2,), (5,), **kw)[0]
-    weights = [(p / "model.safetensors").read_bytes() for p in (tmp_path / "a" / "act-d2-e5", again)]
+    again = train_lerobot_checkpoints(data, tmp_path / "b", (2,), (epochs[-1],), **kw)[0]
+    weights = [(p / "model.safetensors").read_bytes() for p in (paths[1], again)]
     assert weights[0] == weights[1]
 
     class Env:  # what make_policy reads of an env: its spaces and task text
@@ -84,12 +93,20 @@ def test_lerobot_act_checkpoints_train_reproducibly_and_load_through_the_lerobot
         class action_space:  # noqa: N801
             low, high, shape = np.zeros(2, np.float32), np.ones(2, np.float32), (2,)
 
-    spec = parse_policy_spec(act_spec(paths[-1]))
-    assert (spec.kind, spec.name) == ("lerobot", "act-d4-e5")
+    spec = parse_policy_spec(lerobot_spec(paths[-1]))
+    assert (spec.kind, spec.name) == ("lerobot", paths[-1].name)
     policy = make_policy(spec, "push-t", Env(), seed=0)
     rng = np.random.default_rng(1)
-    obs = {"pixels": {"front": rng.integers(0, 255, (240, 240, 3), dtype=np.uint8)},
-           "agent_pos": np.array([0.4, 0.3], np.float32)}
     policy.reset()
-    action = np.asarray(policy.select_action(obs))
-    assert action.shape == (2,) and np.all(np.isfinite(action))
+    for _ in range(3):
+        obs = {"pixels": {"front": rng.integers(0, 255, (240, 240, 3), dtype=np.uint8)},
+               "agent_pos": np.array([0.4, 0.3], np.float32)}
+        action = np.asarray(policy.select_action(obs))
+        assert action.shape == (2,) and np.all(np.isfinite(action))
+
+
+def test_unknown_lerobot_architecture(tmp_path):
+    from twinbench.study.bc import train_lerobot_checkpoints
+
+    with pytest.raises(InputError, match="'act', 'dp'"):
+        train_lerobot_checkpoints(demos(), tmp_path, (1,), (1,), arch="pi0")

@@ -69,6 +69,8 @@ class EvaluateConfig:
     bc_act: bool = False
     """--bc and also LeRobot ACT policies trained on the same demonstrations, evaluated as LeRobot
     checkpoints (needs the lerobot extra: pip install 'twinbench[lerobot]')"""
+    bc_dp: bool = False
+    """--bc and also LeRobot Diffusion Policy policies trained on the same demonstrations (as --bc-act)"""
     retry_errors: bool = False
     """run again the episodes the store holds as errors (e.g. a worker process killed), not only the
     missing ones"""
@@ -93,6 +95,8 @@ class RunConfig:
     bc_act: bool = False
     """--bc and also LeRobot ACT policies trained on the same demonstrations, evaluated as LeRobot
     checkpoints (needs the lerobot extra: pip install 'twinbench[lerobot]')"""
+    bc_dp: bool = False
+    """--bc and also LeRobot Diffusion Policy policies trained on the same demonstrations (as --bc-act)"""
 
 
 StudyCommand = (
@@ -124,10 +128,11 @@ def _evaluate(cfg: EvaluateConfig) -> int:
     rank = {v: i for i, v in enumerate(VARIANTS)}
     twins = dict(sorted(twins.items(), key=lambda kv: (rank.get(kv[0], len(rank)), kv[0])))
     policies = make_policies(cfg.task, real, cfg.out / "policies", cfg.size, twins.get("full"))
-    if cfg.bc or cfg.bc_act:
+    if cfg.bc or cfg.bc_act or cfg.bc_dp:
         from twinbench.study.bc import make_bc_policies
 
-        policies += make_bc_policies(cfg.task, real, cfg.out / "policies" / "bc", cfg.size, act=cfg.bc_act)
+        policies += make_bc_policies(cfg.task, real, cfg.out / "policies" / "bc", cfg.size, act=cfg.bc_act,
+                                     dp=cfg.bc_dp)
     times = run_evaluations(cfg.task, real, twins, policies, cfg.out, cfg.size, cfg.workers,
                             retry_errors=cfg.retry_errors)
     doc = write_study_json(cfg.out, cfg.task, cfg.size, list(twins), times,
@@ -158,7 +163,8 @@ def main(cfg) -> int:
         from twinbench.study.evaluate import format_table
         from twinbench.study.run import run_study
 
-        doc = run_study(cfg.task, cfg.out, cfg.size, cfg.seed, cfg.workers, bc=cfg.bc, bc_act=cfg.bc_act)
+        doc = run_study(cfg.task, cfg.out, cfg.size, cfg.seed, cfg.workers, bc=cfg.bc, bc_act=cfg.bc_act,
+                        bc_dp=cfg.bc_dp)
         print(format_table(doc))
         print("stage wall times: " + ", ".join(f"{k} {v:.0f} s" for k, v in doc["stage_seconds"].items()))
         print(f"wrote {cfg.out / 'study.json'} and {cfg.out / 'report.html'}")

@@ -114,18 +114,24 @@ def build_net(cfg: CNNConfig):
 
 
 # ---- data -------------------------------------------------------------------------------------------------
+def episode_window(episode: np.ndarray, offsets) -> tuple[np.ndarray, np.ndarray]:
+    """(idx, pad), each (N, len(offsets)): per step, the indices of the steps at `offsets` from it, clamped
+    to its own episode (`episode`: the episode index per step, episodes contiguous), and where clamping
+    replaced a step that lies outside the episode."""
+    episode = np.asarray(episode)
+    n = len(episode)
+    ends = np.r_[np.nonzero(np.diff(episode))[0], n - 1]
+    starts = np.r_[0, ends[:-1] + 1]
+    first, last = np.repeat(starts, ends - starts + 1), np.repeat(ends, ends - starts + 1)
+    raw = np.arange(n)[:, None] + np.asarray(offsets, np.int64)[None]
+    idx = np.clip(raw, first[:, None], last[:, None])
+    return idx, idx != raw
+
+
 def chunk_targets(actions: np.ndarray, episode: np.ndarray, chunk: int) -> np.ndarray:
     """(N, chunk, A): for each step, its action and the next chunk - 1 of its episode (the episode's last
     action repeated past its end)."""
-    actions, episode = np.asarray(actions, np.float32), np.asarray(episode)
-    n = len(actions)
-    idx = np.arange(n)[:, None] + np.arange(chunk)[None]
-    last = np.empty(n, np.int64)  # each step's episode's last index
-    ends = np.r_[np.nonzero(np.diff(episode))[0], n - 1]
-    starts = np.r_[0, ends[:-1] + 1]
-    for s, e in zip(starts, ends, strict=True):
-        last[s:e + 1] = e
-    return actions[np.minimum(idx, last[:, None])]
+    return np.asarray(actions, np.float32)[episode_window(episode, np.arange(chunk))[0]]
 
 
 def image_tensor(images: np.ndarray, torch):

@@ -12,13 +12,15 @@ Only successful demonstrations are kept. OUT/demos.npz holds the front images do
 policy's input size, agent_pos and the expert's actions; OUT/demos.json the per-demonstration record.
 Checkpoint OUT/bc-d<DEMOS>-e<EPOCHS>/ is a `cnn:` policy directory with train.json (loss per epoch).
 
-With `act=True` (the lerobot extra), LeRobot ACT policies are trained on the same demonstrations: LeRobot's
-own `ACTPolicy` (its loss: L1 on the action chunk + the VAE's KL term) and processors (normalisation from
-the demonstrations' statistics), a random ResNet-18 backbone (nothing is downloaded), fed by a plain loop
-instead of `lerobot-train` (the demonstrations are arrays, not a LeRobotDataset). Checkpoint
-OUT/act-d<DEMOS>-e<EPOCHS>/ is a LeRobot `pretrained_model` folder (config.json, model.safetensors, the
-processor files) with io.json (the front camera at the training image size) and train.json, evaluated
-through the `lerobot:` adapter as any LeRobot checkpoint: `act-d16-e20=lerobot:DIR?io=DIR/io.json`.
+With `act=True` / `dp=True` (the lerobot extra), LeRobot ACT / Diffusion Policy policies are trained on the
+same demonstrations: LeRobot's own `ACTPolicy` (its loss: L1 on the action chunk + the VAE's KL term) or
+`DiffusionPolicy` (noise prediction on the action horizon, conditioned on two observation steps) and
+processors (normalisation from the demonstrations' statistics), a random ResNet-18 backbone (nothing is
+downloaded), fed by a plain loop instead of `lerobot-train` (the demonstrations are arrays, not a
+LeRobotDataset). Checkpoint OUT/act-d<DEMOS>-e<EPOCHS>/ (OUT/dp-...) is a LeRobot `pretrained_model` folder
+(config.json, model.safetensors, the processor files) with io.json (the front camera at the training image
+size) and train.json, evaluated through the `lerobot:` adapter as any LeRobot checkpoint:
+`act-d16-e20=lerobot:DIR?io=DIR/io.json`.
 """
 
 from __future__ import annotations
@@ -43,8 +45,8 @@ class BCSize:
     demos: int  # demonstrations attempted (the successful ones are kept)
     data_sizes: tuple[int, ...]  # demonstrations per checkpoint (the first N kept)
     epochs: tuple[int, ...]
-    act_data_sizes: tuple[int, ...] = (4, 16)  # LeRobot ACT checkpoints (`act=True`)
-    act_epochs: tuple[int, ...] = (5, 20)
+    lerobot_data_sizes: tuple[int, ...] = (4, 16)  # LeRobot ACT / Diffusion Policy checkpoints
+    lerobot_epochs: tuple[int, ...] = (5, 20)
     max_seconds: float = 15.0  # cap on a demonstration's length
     noise_m: float = 0.005
     tail_steps: int = 20
@@ -174,64 +176,96 @@ def train_checkpoints(demos: dict[str, np.ndarray], out: Path, data_sizes, epoch
     return paths
 
 
-def _act_parts():
-    """LeRobot's ACT classes and processor factory; InputError naming the extra when missing."""
+LEROBOT_ARCHS = {"act": "ACT", "dp": "Diffusion Policy"}  # checkpoint prefix -> LeRobot policy
+
+
+def _lerobot_parts(arch: str):
+    """LeRobot's config and policy classes for `arch` (LEROBOT_ARCHS) and the processor factory; InputError
+    naming the extra when missing."""
     from twinbench.policies.lerobot_adapter import import_lerobot
 
     try:
         torch, _, _, make_pre_post_processors = import_lerobot()
         from lerobot.configs.types import FeatureType, PolicyFeature
-        from lerobot.policies.act.configuration_act import ACTConfig
-        from lerobot.policies.act.modeling_act import ACTPolicy
+        if arch == "act":
+            from lerobot.policies.act.configuration_act import ACTConfig as Config
+            from lerobot.policies.act.modeling_act import ACTPolicy as Policy
+        else:
+            from lerobot.policies.diffusion.configuration_diffusion import DiffusionConfig as Config
+            from lerobot.policies.diffusion.modeling_diffusion import DiffusionPolicy as Policy
     except ImportError as err:
-        raise InputError(f"behaviour cloning with LeRobot ACT: {err}") from None
-    return torch, make_pre_post_processors, FeatureType, PolicyFeature, ACTConfig, ACTPolicy
+        raise InputError(f"behaviour cloning with LeRobot {LEROBOT_ARCHS[arch]}: {err}") from None
+    return torch, make_pre_post_processors, FeatureType, PolicyFeature, Config, Policy
 
 
 # ACT at a CPU-trainable size: LeRobot's defaults but for the model width and layer counts
 ACT_SETTINGS = {"chunk_size": 16, "n_action_steps": 8, "dim_model": 256, "n_heads": 8,
                 "dim_feedforward": 1024, "n_encoder_layers": 2, "n_decoder_layers": 1, "latent_dim": 32,
                 "n_vae_encoder_layers": 2}
+# Diffusion Policy at a CPU-trainable size: LeRobot's defaults but for the U-Net widths, a 16-step horizon
+# (the ACT chunk), random 56-pixel crops of the 64-pixel images, group norm (a backbone trained from
+# scratch) and DDIM sampling in 10 steps (training keeps the 100-step schedule)
+DP_SETTINGS = {"n_obs_steps": 2, "horizon": 16, "n_action_steps": 8, "down_dims": (64, 128, 256),
+               "crop_shape": (56, 56), "use_group_norm": True, "noise_scheduler_type": "DDIM",
+               "num_inference_steps": 10}
+SETTINGS = {"act": ACT_SETTINGS, "dp": DP_SETTINGS}
 
 
-def train_act_checkpoints(demos: dict[str, np.ndarray], out: Path, data_sizes, epochs, *, seed: int = 0,
-                          camera: str = "front", threads: int = 1, batch_size: int = 32, lr: float = 1e-4,
-                          shift_px: int = 4, settings: dict | None = None, log=print) -> list[Path]:
-    """Per data size N (the first N demonstrations), one LeRobot ACT training run of max(epochs) epochs,
-    saving OUT/act-d<N>-e<E>/ after each E in `epochs` (module docstring); a data size whose checkpoints
-    all exist is not trained again. Seeded: the same inputs, seed and `threads` give the same weights.
-    Targets: each step's next `chunk_size` actions in its episode, the last one repeated past its end (as
-    the CNN's); Adam at `lr` (backbone too: it starts random), gradients clipped at ACT's 10, random shifts
-    of up to `shift_px` pixels."""
-    from twinbench.policies.cnn import Adam, chunk_targets, image_tensor, random_shift
+def train_lerobot_checkpoints(demos: dict[str, np.ndarray], out: Path, data_sizes, epochs, *,
+                              arch: str = "act", seed: int = 0, camera: str = "front", threads: int = 1,
+                              batch_size: int = 32, lr: float = 1e-4, shift_px: int = 4,
+                              settings: dict | None = None, log=print) -> list[Path]:
+    """Per data size N (the first N demonstrations), one training run of LeRobot's `arch` policy ("act" or
+    "dp", LEROBOT_ARCHS) for max(epochs) epochs, saving OUT/<arch>-d<N>-e<E>/ after each E in `epochs`
+    (module docstring); a data size whose checkpoints all exist is not trained again. Seeded: the same
+    inputs, seed and `threads` give the same weights. Samples as LeRobot's dataset makes them: ACT sees a
+    step's image and state and its next `chunk_size` actions; Diffusion Policy the last `n_obs_steps`
+    observations and `horizon` actions from the first of them; steps outside the episode are its first or
+    last one repeated (marked as padding). Adam at `lr` (backbone too: it starts random), gradients
+    clipped at 10; ACT sees random shifts of up to `shift_px` pixels, Diffusion Policy its own random
+    crops."""
+    from twinbench.policies.cnn import Adam, episode_window, image_tensor, random_shift
 
-    torch, make_processors, FeatureType, PolicyFeature, ACTConfig, ACTPolicy = _act_parts()
-    settings = {**ACT_SETTINGS, **(settings or {})}
+    if arch not in LEROBOT_ARCHS:
+        raise InputError(f"LeRobot policy {arch!r}: give one of {sorted(LEROBOT_ARCHS)}")
+    torch, make_processors, FeatureType, PolicyFeature, Config, Policy = _lerobot_parts(arch)
+    settings = {**SETTINGS[arch], **(settings or {})}
+    if arch == "act":
+        obs_at, act_at, shift = [0], range(settings["chunk_size"]), shift_px
+    else:
+        past = settings["n_obs_steps"] - 1
+        obs_at, act_at, shift = range(-past, 1), range(-past, settings["horizon"] - past), 0
     size = tuple(int(v) for v in demos["images"].shape[1:3])
+    cam = f"observation.images.{camera}"
     paths: list[Path] = []
-    for d, names, data in _pending_runs(demos, out, "act", data_sizes, epochs, paths):
+    for d, names, data in _pending_runs(demos, out, arch, data_sizes, epochs, paths):
         images = image_tensor(data["images"], torch)
         state = torch.from_numpy(np.asarray(data["agent_pos"], np.float32))
-        target = torch.from_numpy(chunk_targets(data["actions"], data["episode"], settings["chunk_size"]))
-        n, cam = len(images), f"observation.images.{camera}"
-        flat = target[:, 0]
+        action = torch.from_numpy(np.asarray(data["actions"], np.float32))
+        obs_idx = torch.from_numpy(episode_window(data["episode"], obs_at)[0])
+        act_idx, act_pad = (torch.from_numpy(a) for a in episode_window(data["episode"], act_at))
+        if arch == "act":  # one observation step (no step axis); the loss sees every action (as the CNN's)
+            obs_idx, act_pad = obs_idx[:, 0], torch.zeros_like(act_pad)
+        n = len(images)
 
         def stat(x, dims):
-            return {"mean": x.mean(dims), "std": x.std(dims).clamp_min(1e-6)}
+            return {"mean": x.mean(dims), "std": x.std(dims).clamp_min(1e-6), "min": x.amin(dims),
+                    "max": x.amax(dims)}
 
         stats = {cam: {k: v[:, None, None] for k, v in stat(images, (0, 2, 3)).items()},
-                 "observation.state": stat(state, 0), "action": stat(flat, 0)}
+                 "observation.state": stat(state, 0), "action": stat(action, 0)}
         inputs = {cam: PolicyFeature(FeatureType.VISUAL, (3, *size)),
                   "observation.state": PolicyFeature(FeatureType.STATE, (state.shape[1],))}
-        cfg = ACTConfig(input_features=inputs,
-                        output_features={"action": PolicyFeature(FeatureType.ACTION, (target.shape[2],))},
-                        pretrained_backbone_weights=None, device="cpu", optimizer_lr=lr,
-                        optimizer_lr_backbone=lr, **settings)
+        lrs = {"optimizer_lr_backbone": lr} if arch == "act" else {}
+        cfg = Config(input_features=inputs,
+                     output_features={"action": PolicyFeature(FeatureType.ACTION, (action.shape[1],))},
+                     pretrained_backbone_weights=None, device="cpu", optimizer_lr=lr, **lrs, **settings)
+
         old_threads = torch.get_num_threads()
         torch.set_num_threads(int(threads))
         try:
             torch.manual_seed(seed)
-            policy = ACTPolicy(cfg)
+            policy = Policy(cfg)
             pre, post = make_processors(cfg, dataset_stats=stats)
             opt = Adam(policy.parameters(), lr=lr)
             gen = torch.Generator().manual_seed(seed)
@@ -242,10 +276,11 @@ def train_act_checkpoints(demos: dict[str, np.ndarray], out: Path, data_sizes, e
                 total = 0.0
                 for b in np.array_split(rng.permutation(n), max(1, int(np.ceil(n / batch_size)))):
                     bi = torch.from_numpy(b)
-                    batch = pre({cam: random_shift(images[bi], shift_px, gen, torch),
-                                 "observation.state": state[bi], "action": target[bi],
-                                 "action_is_pad": torch.zeros(target[bi].shape[:2], dtype=torch.bool)})
-                    loss, _ = policy.forward(batch)
+                    o = obs_idx[bi]
+                    img = random_shift(images[o], shift, gen, torch) if shift else images[o]
+                    batch = {cam: img, "observation.state": state[o], "action": action[act_idx[bi]],
+                             "action_is_pad": act_pad[bi]}
+                    loss, _ = policy.forward(pre(batch))
                     opt.zero_grad()
                     loss.backward()
                     torch.nn.utils.clip_grad_norm_(policy.parameters(), 10.0)
@@ -253,11 +288,12 @@ def train_act_checkpoints(demos: dict[str, np.ndarray], out: Path, data_sizes, e
                     total += loss.item() * len(b)
                 losses.append(total / n)
                 if epoch in epochs:
-                    record = {"arch": "lerobot-act", "demos": d, "frames": n, "epochs": epoch, "seed": seed,
-                              "threads": threads, "batch_size": batch_size, "lr": lr, "settings": settings,
+                    record = {"arch": f"lerobot-{arch}", "demos": d, "frames": n, "epochs": epoch,
+                              "seed": seed, "threads": threads, "batch_size": batch_size, "lr": lr,
+                              "settings": settings,
                               "loss": losses[-1], "loss_per_epoch": list(losses),
                               "train_seconds": round(time.perf_counter() - t0, 1)}
-                    _save_act(names[epoch], policy, pre, post, camera, size, record)
+                    _save_lerobot(names[epoch], policy, pre, post, camera, size, record)
                     log(f"checkpoint {names[epoch].name}: {d} demos ({n} frames), {epoch} epochs, "
                         f"loss {losses[-1]:.4f}, {record['train_seconds']:.0f} s")
         finally:
@@ -265,7 +301,7 @@ def train_act_checkpoints(demos: dict[str, np.ndarray], out: Path, data_sizes, e
     return paths
 
 
-def _save_act(path: Path, policy, pre, post, camera: str, size: tuple[int, int], record: dict) -> None:
+def _save_lerobot(path: Path, policy, pre, post, camera: str, size: tuple[int, int], record: dict) -> None:
     """The LeRobot folder + io.json + train.json, written beside PATH and renamed into place (a killed
     run leaves no half checkpoint that would be taken as finished)."""
     import shutil
@@ -282,17 +318,17 @@ def _save_act(path: Path, policy, pre, post, camera: str, size: tuple[int, int],
     tmp.rename(path)
 
 
-def act_spec(path: Path) -> str:
-    """The policy spec of an ACT checkpoint folder `train_act_checkpoints` wrote."""
+def lerobot_spec(path: Path) -> str:
+    """The policy spec of a checkpoint folder `train_lerobot_checkpoints` wrote."""
     return f"{path.name}=lerobot:{path}?io={path / 'io.json'}"
 
 
 def make_bc_policies(task: str, real_world: Path, out: Path, size="small", log=print,
-                     seed: int = 0, act: bool = False) -> list[str]:
+                     seed: int = 0, act: bool = False, dp: bool = False) -> list[str]:
     """Record demonstrations in `real_world` (reused when OUT/demos.npz exists), train the size's
     checkpoints into OUT (on min(2, cpu_cores()) threads: the same seed and thread count, the same
-    weights) and return their policy specs `bc-d<N>-e<E>=cnn:DIR`, and with `act` those of the LeRobot ACT
-    checkpoints (module docstring)."""
+    weights) and return their policy specs `bc-d<N>-e<E>=cnn:DIR`, and with `act` / `dp` those of the
+    LeRobot ACT / Diffusion Policy checkpoints (module docstring)."""
     bs = bc_size(size)
     out = Path(out)
     if not (out / "demos.npz").is_file():
@@ -306,9 +342,8 @@ def make_bc_policies(task: str, real_world: Path, out: Path, size="small", log=p
                               image_size=doc["image_size"], camera=doc["camera"],
                               threads=min(2, cpu_cores()), log=log)
     specs = [f"{p.name}=cnn:{p}" for p in paths]
-    if act:
-        data = load_demos(out)
-        specs += [act_spec(p) for p in train_act_checkpoints(
-            data, out, bs.act_data_sizes, bs.act_epochs, seed=seed, camera=doc["camera"],
-            threads=min(2, cpu_cores()), log=log)]
+    for arch in [a for a, wanted in (("act", act), ("dp", dp)) if wanted]:
+        specs += [lerobot_spec(p) for p in train_lerobot_checkpoints(
+            load_demos(out), out, bs.lerobot_data_sizes, bs.lerobot_epochs, arch=arch, seed=seed,
+            camera=doc["camera"], threads=min(2, cpu_cores()), log=log)]
     return specs

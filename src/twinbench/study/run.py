@@ -33,10 +33,10 @@ class _Timer:
 
 def run_study(task: str, out: Path, size: str = "small", seed: int = 0, workers: int = 1,
               variants: tuple[str, ...] | None = None, log=print, bc: bool = False,
-              bc_act: bool = False) -> dict:
+              bc_act: bool = False, bc_dp: bool = False) -> dict:
     """Every stage of a study of `task` into `out`; returns study.json's content. `bc`: also the CNN
-    behaviour-cloning policies (study.bc; the torch extra); `bc_act`: those and LeRobot ACT policies
-    trained on the same demonstrations (the lerobot extra)."""
+    behaviour-cloning policies (study.bc; the torch extra); `bc_act` / `bc_dp`: those and LeRobot ACT /
+    Diffusion Policy policies trained on the same demonstrations (the lerobot extra)."""
     from twinbench.study.evaluate import (
         make_policies,
         run_evaluations,
@@ -65,11 +65,11 @@ def run_study(task: str, out: Path, size: str = "small", seed: int = 0, workers:
     camera_twin = twins.get("full", next(iter(twins.values())))
     world = real / "world"
     policies = timer("policies", make_policies, task, world, out / "policies", size, camera_twin, log)
-    if bc or bc_act:
+    if bc or bc_act or bc_dp:
         from twinbench.study.bc import make_bc_policies
 
         policies += timer("bc", make_bc_policies, task, world, out / "policies" / "bc", size, log,
-                          act=bc_act)
+                          act=bc_act, dp=bc_dp)
     eval_times = timer("evaluate", run_evaluations, task, world, twins, policies, out, size, workers, log)
     extra = {"evaluation_seconds": eval_times, "policies": policies, "seed": seed,
              "training": training_records(policies)}
