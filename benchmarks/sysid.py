@@ -18,7 +18,17 @@ Prints `name value unit` lines per case and the spread:
   truth's geometric mean;
 - median and worst of each over the family, and the count of diverged cases.
 
+With ``--oracle truth|uniform``, instead of fitting: what the tracks support. Per case, the region
+stiffness is fitted with the TRUE global parameters (contact, damping, control attachment) by
+Levenberg-Marquardt on whole-sequence rollouts (finite-difference Jacobian over the regions, the stage-2
+frames, the fit's substep rule), starting from the truth's own region values (``truth``: the nearest
+maximum-likelihood regions, a local upper bound; unconstrained regions stay where they start) or from one
+value, the truth's median (``uniform``: what a fit with perfect global parameters would reach from an
+uninformed start). Printed: the rank correlation over every region and over the regions the motion
+constrains at the estimate, and the validation error.
+
 Usage: python benchmarks/sysid.py [--cases 12] [--seed 0] [--first 0] [--jobs 1] [--json rows.json]
+       [--oracle truth|uniform]
 """
 
 from __future__ import annotations
@@ -90,6 +100,72 @@ def run_case(i: int, seed: int) -> dict:
     return out
 
 
+def oracle_case(i: int, seed: int, start: str = "truth", iterations: int = 10) -> dict:
+    """Case ``i``'s regions fitted with the true global parameters from ``start`` (module docstring)."""
+    from dataclasses import replace
+
+    from twinbench._runtime import quiet_warp
+    from twinbench.construct.sysid_family import family_case
+    from twinbench.physics import sysid as S
+    from twinbench.physics.params import SimParams
+    from twinbench.physics.solver import SpringMassSolver
+
+    quiet_warp()
+    data, truth = family_case(i, seed)
+    t0 = time.perf_counter()
+    n = len(truth["springs"])
+    log_y = truth["log_y"][:n].astype(np.float64)
+    params = replace(truth["params"], spring_Y=float(np.exp(np.median(log_y))))
+    hi = float(log_y.max()) + math.log(3.0)  # the LM steps' bounds; substeps stable at the upper one
+    lo = float(log_y.min()) - math.log(10.0)
+    topo = S.build_model(data, params, SimParams())
+    base = S.FitConfig().base_params(data.fps, S.stable_substeps(topo, math.exp(hi), params.dashpot_damping,
+                                                                  data.fps))
+    model = S.build_model(data, params, base)
+    region = S.spring_regions(model, S.AdamConfig().regions)  # the fit's regions (seeded k-means)
+    ids = np.unique(region[:n])
+    truth_r = np.array([log_y[region[:n] == r].mean() for r in ids])
+    x = np.full(int(region.max()) + 1, math.log(params.spring_Y))  # control springs: the median
+    if start == "truth":
+        x[ids] = truth_r
+    frames, solver = S._fitted_frames(data), SpringMassSolver(model)
+
+    def cost(v: np.ndarray) -> float:
+        model.set_spring_log_y(v[region].astype(np.float32))
+        try:
+            xs = S.rollout(model, data.controls, max(frames), solver)[0].astype(np.float64)
+        except S.SimulationDiverged:
+            return math.inf
+        r = S._track_vector(xs, data, frames)
+        return float(r @ r)
+
+    lam = 1e-2
+    for _ in range(iterations):
+        model.set_spring_log_y(x[region].astype(np.float32))
+        jac, r0 = S._region_jacobian(model, data, region, frames, 0.05, solver)
+        c0, jtj, g = float(r0 @ r0), jac.T @ jac, jac.T @ r0
+        damp = np.diag(np.diag(jtj) + 1e-9 * np.trace(jtj) + 1e-30)
+        while lam < 1e6:  # Levenberg-Marquardt: a smaller step until the whole rollout improves
+            trial = np.clip(x - np.clip(np.linalg.solve(jtj + lam * damp, g), -1.0, 1.0), lo, hi)
+            if cost(trial) < c0 * (1.0 - 1e-6):
+                x, lam = trial, max(lam / 3.0, 1e-6)
+                break
+            lam *= 4.0
+        else:
+            break
+    model.set_spring_log_y(x[region].astype(np.float32))
+    jac, r0 = S._region_jacobian(model, data, region, frames, 0.05, solver)
+    std = S._region_std(jac, max(float(np.mean(r0 * r0)), 1e-12))[ids]
+    con = std < S.REGION_STD
+    ev = S.evaluate(model, data, S.SequenceLoss(data))
+    return {"case": data.name, "start": start, "pattern": truth["pattern"],
+            "seconds": time.perf_counter() - t0,
+            "val_final": ev.val_error, "constrained": int(con.sum()), "regions": len(ids),
+            "spearman": _rank(list(x[ids]), list(truth_r)),
+            "spearman_constrained": _rank(list(x[ids][con]), list(truth_r[con])) if con.sum() > 2
+            else float("nan")}
+
+
 def _print_case(r: dict) -> None:
     if "error" in r:
         print(f"sysid_case_{r['case']}_failed 1 count  # {r['error']}", flush=True)
@@ -120,10 +196,28 @@ def main() -> None:
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--jobs", type=int, default=1)
     ap.add_argument("--json", default="", help="also write the per-case rows to this JSON file")
+    ap.add_argument("--oracle", choices=("truth", "uniform"), default=None,
+                    help="fit the regions with the true global parameters instead (module docstring)")
     args = ap.parse_args()
     ids = list(range(args.first, args.first + args.cases))
     t0 = time.perf_counter()
     rows = []
+    if args.oracle:
+        with ProcessPoolExecutor(max_workers=max(args.jobs, 1)) as pool:
+            for fut in as_completed([pool.submit(oracle_case, i, args.seed, args.oracle) for i in ids]):
+                r = fut.result()
+                rows.append(r)
+                print(f"sysid_oracle_{args.oracle}_{r['case']} spearman {r['spearman']:.3f} "
+                      f"spearman_constrained {r['spearman_constrained']:.3f} "
+                      f"({r['constrained']} of {r['regions']} regions constrained) val_mm "
+                      f"{1e3 * r['val_final']:.2f} ({r['pattern']}, {r['seconds']:.0f} s)", flush=True)
+        _spread(f"spearman_oracle_{args.oracle}", [r["spearman"] for r in rows], "ratio")
+        _spread(f"spearman_constrained_oracle_{args.oracle}", [r["spearman_constrained"] for r in rows],
+                "ratio")
+        print(f"sysid_family_oracle_{args.oracle}_constrained_cases "
+              f"{sum(math.isfinite(r['spearman_constrained']) for r in rows)} count")
+        print(f"sysid_family_total {time.perf_counter() - t0:.0f} s")
+        return
     with ProcessPoolExecutor(max_workers=max(args.jobs, 1)) as pool:
         for fut in as_completed([pool.submit(run_case, i, args.seed) for i in ids]):
             rows.append(fut.result())
