@@ -337,13 +337,12 @@ def make_bc_policies(task: str, real_world: Path, out: Path, size="small", log=p
                            tail_steps=bs.tail_steps, log=log)
         kept = sum(r["kept"] for r in doc["demos"])
         log(f"recorded {kept}/{bs.demos} successful demonstrations in {time.perf_counter() - t0:.0f} s")
-    doc = json.loads((out / "demos.json").read_text())
-    paths = train_checkpoints(load_demos(out), out, bs.data_sizes, bs.epochs, seed=seed,
-                              image_size=doc["image_size"], camera=doc["camera"],
-                              threads=min(2, cpu_cores()), log=log)
+    doc, demos = json.loads((out / "demos.json").read_text()), load_demos(out)
+    paths = train_checkpoints(demos, out, bs.data_sizes, bs.epochs, seed=seed, image_size=doc["image_size"],
+                              camera=doc["camera"], threads=min(2, cpu_cores()), log=log)
     specs = [f"{p.name}=cnn:{p}" for p in paths]
     for arch in [a for a, wanted in (("act", act), ("dp", dp)) if wanted]:
         specs += [lerobot_spec(p) for p in train_lerobot_checkpoints(
-            load_demos(out), out, bs.lerobot_data_sizes, bs.lerobot_epochs, arch=arch, seed=seed,
+            demos, out, bs.lerobot_data_sizes, bs.lerobot_epochs, arch=arch, seed=seed,
             camera=doc["camera"], threads=min(2, cpu_cores()), log=log)]
     return specs
