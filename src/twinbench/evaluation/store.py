@@ -250,8 +250,9 @@ class ResultsStore:
                         merged = dict(old)
                         for k in keys:
                             if isinstance(old[k], list) and isinstance(new[k], list):
-                                added += [v for v in new[k] if v not in old[k]]
-                                merged[k] = old[k] + [v for v in new[k] if v not in old[k]]
+                                gained = [v for v in new[k] if v not in old[k]]
+                                added += gained
+                                merged[k] = old[k] + gained
                             else:
                                 merged[k] = new[k]
                         con.execute("UPDATE runs SET protocol = ? WHERE run_id = ?",
