@@ -624,8 +624,12 @@ class _Bins:
         n_tile_total = _tile_count(cam)
         counts = ws.n_tiles.numpy()[:n]
         visible = np.flatnonzero(counts).astype(np.int32)
-        # a stable sort: equal depths keep the records' order (the radix sorts' order too)
-        order = visible[np.argsort(ws.depth.numpy()[visible], kind="stable")].astype(np.int32)
+        # by depth, equal depths in the records' order (the radix sorts' order too): the visible depths are
+        # > 0, so their float bits sort as integers; with the rank below them every key is distinct
+        keys64 = ws.depth.numpy()[visible].view(np.uint32).astype(np.uint64) << np.uint64(32)
+        keys64 |= np.arange(len(visible), dtype=np.uint64)
+        keys64.sort()
+        order = visible[(keys64 & np.uint64(0xFFFFFFFF)).astype(np.intp)]
         offsets = np.cumsum(counts[order], dtype=np.int64)
         total = int(offsets[-1]) if len(offsets) else 0
         if total >= 2**31:
