@@ -63,7 +63,11 @@ class Outline:
         """Whether object-frame points lie inside the prism, boundary included (within `tol`): (N, 3)
         points, or (N, 2) for the footprint alone."""
         p = np.asarray(points, dtype=np.float64)
-        inside = self._in_polygon(p[:, :2]) | (self._boundary_distance(p[:, :2]) <= tol)
+        inside = self._in_polygon(p[:, :2])
+        # the boundary test only where it can change the answer: outside, within tol of the bounding box
+        lo, hi = self.polygon.min(0) - tol, self.polygon.max(0) + tol
+        near = np.flatnonzero(~inside & np.all((p[:, :2] >= lo) & (p[:, :2] <= hi), axis=1))
+        inside[near] = self._boundary_distance(p[near, :2]) <= tol
         if p.shape[1] == 3:
             inside &= (p[:, 2] >= -tol) & (p[:, 2] <= self.height + tol)
         return inside
