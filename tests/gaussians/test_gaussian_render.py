@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import multiprocessing
+import os
+
 import numpy as np
 import pytest
 
@@ -144,6 +147,31 @@ def test_single_extreme_ellipses_match_reference_per_pixel(ref_render, seed):
         assert np.abs(out.alpha - alpha)[~cut].max() < 1e-4, k
         assert np.abs(out.rgb - rgb)[~cut].max() < 1e-4, k
         assert cut.sum() <= 0.01 * cut.size, k
+
+
+def _render_in_child(queue, cloud, cam) -> None:
+    queue.put(render(cloud, cam, threads=2).rgb)
+
+
+@pytest.mark.skipif(not hasattr(os, "fork"), reason="needs os.fork")
+def test_threaded_render_in_a_forked_child(make_cloud):
+    """The render threads' pool, started in this process, is not inherited by a forked child (gymnasium's
+    AsyncVectorEnv forks on Linux): the child starts its own instead of waiting on threads that do not
+    exist there."""
+    cloud = make_cloud(300, degree=1, seed=7)
+    cam = _cam()
+    want = render(cloud, cam, threads=2).rgb  # the pool now runs in this process
+    ctx = multiprocessing.get_context("fork")
+    queue = ctx.Queue()
+    child = ctx.Process(target=_render_in_child, args=(queue, cloud, cam))
+    child.start()
+    try:
+        got = queue.get(timeout=120)
+    finally:
+        child.join(timeout=30)
+        if child.is_alive():
+            child.kill()
+    np.testing.assert_array_equal(got, want)
 
 
 def test_near_plane_cull_and_empty_background():

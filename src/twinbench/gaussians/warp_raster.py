@@ -28,6 +28,7 @@ equal a full render of [static | moving] bit for bit.
 
 from __future__ import annotations
 
+import os
 import threading
 from collections import OrderedDict
 from concurrent.futures import ThreadPoolExecutor
@@ -548,6 +549,18 @@ _IN_POOL = threading.local()
 
 def _pool_thread_init() -> None:
     _IN_POOL.active = True
+
+
+def _forget_pool() -> None:
+    """In a forked child: the parent's pool threads do not exist there (a task sent to them would never
+    run), and its lock may have been held at the fork; start afresh."""
+    global _POOL_LOCK
+    _POOL_LOCK = threading.Lock()
+    _POOL.clear()
+
+
+if hasattr(os, "register_at_fork"):
+    os.register_at_fork(after_in_child=_forget_pool)
 
 
 def _run_threads(fns) -> None:
