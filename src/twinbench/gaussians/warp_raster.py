@@ -14,9 +14,9 @@ is culled before its covariance is formed) -> stable depth sort (equal depths in
 thread per tile walks its Gaussians front to back and updates only the pixels of each Gaussian's ellipse
 (o exp(-d^2/2) stepped along each row by two products a pixel, from two exp a row: within 1e-6 of the
 direct exp), skipping runs of stopped pixels (per-row bitmasks), Gaussians whose rows have all stopped,
-and the tile once every pixel has stopped. CPU threads come from one pool, started once. On CPU the pair sorts run in NumPy; on CUDA (`_render_warp_batch`) they are
-Warp radix sorts (the same order), and a batch of views (every camera of every world) runs each stage
-once for all of them.
+and the tile once every pixel has stopped. CPU threads come from one pool, started once. On CPU the
+pair sorts run in NumPy; on CUDA (`_render_warp_batch`) they are Warp radix sorts (the same order), and a
+batch of views (every camera of every world) runs each stage once for all of them.
 
 Static/moving split (`RenderCache`, `SplitGaussians(static, moving)`): for a camera that has not moved,
 the static part's records, (tile, depth)-ordered pair lists and the image it makes alone are kept (on the
