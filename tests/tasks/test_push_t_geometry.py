@@ -133,3 +133,19 @@ def test_outlines_are_validated():
         Outline(np.zeros((2, 2)), 0.03)
     with pytest.raises(ValueError, match="height"):
         Outline(TBlockShape().outline_xy(), 0.0)
+
+
+def test_outline_contains_its_boundary_within_tol_and_nothing_beyond():
+    outline = TBlockShape().outline()
+    a = outline.polygon
+    b = np.roll(a, -1, axis=0)
+    t = np.linspace(0.0, 1.0, 7)[:, None, None]
+    on_edges = (a[None] + t * (b - a)[None]).reshape(-1, 2)  # every edge, corners included
+    assert outline.contains(on_edges, tol=1e-9).all()
+    # pushed 1 mm out along each edge's outward normal (the polygon is counter-clockwise)
+    e = b - a
+    normal = np.c_[e[:, 1], -e[:, 0]] / np.linalg.norm(e, axis=1, keepdims=True)
+    mid = 0.5 * (a + b)
+    assert not outline.contains(mid + 1e-3 * normal, tol=1e-6).any()
+    assert outline.contains(mid + 1e-7 * normal, tol=1e-6).all()
+    assert outline.contains(mid - 1e-3 * normal, tol=1e-9).all()
