@@ -543,7 +543,7 @@ class _Image:
 
 
 _POOL_LOCK = threading.Lock()
-_POOL: list[ThreadPoolExecutor] = []  # the render threads, started once (a thread start costs ~0.1 ms)
+_POOL: ThreadPoolExecutor | None = None  # the render threads, started once (a thread start costs ~0.1 ms)
 _IN_POOL = threading.local()
 
 
@@ -554,9 +554,9 @@ def _pool_thread_init() -> None:
 def _forget_pool() -> None:
     """In a forked child: the parent's pool threads do not exist there (a task sent to them would never
     run), and its lock may have been held at the fork; start afresh."""
-    global _POOL_LOCK
+    global _POOL, _POOL_LOCK
     _POOL_LOCK = threading.Lock()
-    _POOL.clear()
+    _POOL = None
 
 
 if hasattr(os, "register_at_fork"):
@@ -573,11 +573,12 @@ def _run_threads(fns) -> None:
         for fn in fns:
             fn()
         return
+    global _POOL
     with _POOL_LOCK:
-        if not _POOL:
-            _POOL.append(ThreadPoolExecutor(8, thread_name_prefix="twinbench-render",
-                                            initializer=_pool_thread_init))  # fmt: skip
-    futures = [_POOL[0].submit(fn) for fn in fns[1:]]
+        if _POOL is None:
+            _POOL = ThreadPoolExecutor(8, "twinbench-render", initializer=_pool_thread_init)
+        pool = _POOL
+    futures = [pool.submit(fn) for fn in fns[1:]]
     error: BaseException | None = None
     try:
         fns[0]()
