@@ -11,7 +11,8 @@ cameras in one `Twin.render_worlds` call against one `Twin.render` call per worl
 
 Render cache A/B (`Twin.render_cache`, the static scene's work kept per unmoved camera): the env steps and
 renders alternate between the cache on and off in one run (the state is the same either way); `*_cache_off`
-lines give the figures without it.
+lines give the figures without it (on CUDA, where twins render without it by default, the plain lines use
+a cache made for the A/B).
 
 Prints `name value unit` lines (medians over the timed steps, after warm-up steps).
 """
@@ -28,6 +29,7 @@ import warp as wp
 from twinbench._runtime import quiet_warp
 from twinbench.env import TwinEnv, TwinVectorEnv
 from twinbench.evaluation.rollout import policy_observation
+from twinbench.gaussians.render import RenderCache
 from twinbench.tasks import get_task
 
 TASKS = {"push-t": "pusht", "rope-routing": "rope", "toy-packing": "toy"}
@@ -41,7 +43,7 @@ def bench(task: str, preset: str, device: str, steps: int, warmup: int = 5, core
     obs, info = env.reset(seed=0, options={"init_state": 0})
     expert = get_task(task).make_expert(env)
     twin, state = env.twin, env.state
-    cache = twin.render_cache
+    cache = twin.render_cache or RenderCache()  # on CUDA twins render without it by default
     physics, render, total = [], {True: [], False: []}, {True: [], False: []}
     for k in range(warmup + 2 * steps):
         on = k % 2 == 0  # A/B: the render cache on in even steps, off in odd ones (the state is the same)
@@ -91,7 +93,7 @@ def bench_worlds(device: str, counts: list[int], steps: int, render_steps: int =
                 physics.append(time.perf_counter() - t0)
         # every world's two cameras: one render_worlds call / a call per world (cache off: the same states
         # rendered again would find even the wrist cameras kept)
-        cache, envs.twin.render_cache = envs.twin.render_cache, None
+        cache, envs.twin.render_cache = envs.twin.render_cache or RenderCache(), None
         batched, one_by_one = [], []
         for k in range(1 + render_steps):
             t0 = time.perf_counter()

@@ -23,7 +23,7 @@ import warp as wp
 from twinbench.gaussians.camera import Camera
 from twinbench.gaussians.cloud import GaussianCloud
 from twinbench.gaussians.primitives import quat_z_to
-from twinbench.gaussians.render import gsplat_available, render
+from twinbench.gaussians.render import RenderCache, gsplat_available, render
 from twinbench.gaussians.skinning import LBSSkinner, bind
 
 
@@ -83,7 +83,7 @@ def bench_twin(device: str, steps: int, warmup: int = 4) -> None:
     obs, info = env.reset(seed=0, options={"init_state": 0})
     expert = get_task("push-t").make_expert(env)
     twin, state = env.twin, env.state
-    cache = twin.render_cache
+    cache = twin.render_cache or RenderCache()  # on CUDA twins render without it by default
     both: dict = {True: [], False: []}
     front: dict = {True: [], False: []}
     cpu: dict = {True: [], False: []}  # process CPU time of both cameras (all threads)

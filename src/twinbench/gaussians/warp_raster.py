@@ -15,15 +15,21 @@ thread per tile walks its Gaussians front to back and updates only the pixels of
 (o exp(-d^2/2) stepped along each row by two products a pixel, from two exp a row: within 1e-6 of the
 direct exp), skipping runs of stopped pixels (per-row bitmasks), Gaussians whose rows have all stopped,
 and the tile once every pixel has stopped. CPU threads come from one pool, started once. On CPU the
-pair sorts run in NumPy; on CUDA (`_render_warp_batch`) they are Warp radix sorts (the same order), and a
-batch of views (every camera of every world) runs each stage once for all of them.
+pair sorts run in NumPy; on CUDA (`_render_warp_batch`) they are Warp radix sorts (the same order), a
+batch of views (every camera of every world) runs each stage once for all of them, and the last stage is
+one thread per pixel walking its tile's list with o exp(-d^2/2) at the pixel (`_rasterise_pixels`: a
+tile per thread leaves a GPU idle; 240x240 images have 225 tiles): CUDA images agree with CPU ones
+within a level (~1e-6 relative in alpha), not bit for bit.
 
 Static/moving split (`RenderCache`, `SplitGaussians(static, moving)`): for a camera that has not moved,
 the static part's records, (tile, depth)-ordered pair lists and the image it makes alone are kept (on the
 render's device, shared by every view of that camera, e.g. many worlds); a render projects and bins only
 the moving part, rasterises only the tiles its pairs reach, merging the two lists by depth (static first
 on equal depths: the full render's order), and copies the kept pixels of every other tile. The images
-equal a full render of [static | moving] bit for bit.
+equal a full render of [static | moving] on the same device bit for bit. On CUDA the cached views of a
+call run as one batch (`_render_kept_batch`), but the cache saves little there: projecting and sorting
+the static Gaussians is ~0.1 ms of GPU time, and a render's cost is its launches and read-backs (push-T's
+two cameras, one world, H100: 3.4 ms cached, 3.2 ms in full), so twins keep it on CPU only.
 """
 
 from __future__ import annotations
@@ -121,7 +127,8 @@ class _View:
 
 @wp.func
 def _view_of(views: wp.array(dtype=_View), k: int, field: int):
-    """The last view whose first record (field 0) or first tile (field 1) is <= k (binary search)."""
+    """The last view whose first record (field 0), first tile (field 1) or first pixel (field 2) is <= k
+    (binary search)."""
     lo = int(0)  # noqa: UP018 (a Warp dynamic variable)
     hi = views.shape[0] - 1
     while lo < hi:
@@ -129,6 +136,8 @@ def _view_of(views: wp.array(dtype=_View), k: int, field: int):
         start = views[mid].item
         if field == 1:
             start = views[mid].tile
+        elif field == 2:
+            start = views[mid].pixel
         if start <= k:
             lo = mid
         else:
@@ -492,6 +501,86 @@ def _rasterise(
             out_t[p] = a
 
 
+@wp.func
+def _alpha(rec: vec16, px: float, py: float):
+    """Record `rec`'s o exp(-d^2 / 2) at the pixel centre (px, py), at most ALPHA_MAX."""
+    dx = px - rec[0]
+    dy = py - rec[1]
+    d2 = rec[2] * dx * dx + 2.0 * rec[3] * dx * dy + rec[4] * dy * dy
+    return wp.min(ALPHA_MAX, rec[11] * wp.exp(-0.5 * d2))
+
+
+@wp.kernel
+def _rasterise_pixels(
+    ranges: wp.array(dtype=wp.vec2i),
+    record: wp.array(dtype=vec16),
+    ranges_b: wp.array(dtype=wp.vec2i),
+    record_b: wp.array(dtype=vec16),
+    views: wp.array(dtype=_View),
+    out_rgb: wp.array(dtype=wp.vec3),
+    out_depth: wp.array(dtype=wp.float32),
+    out_t: wp.array(dtype=wp.float32),
+):
+    """The CUDA rasteriser: one thread per pixel of the batch (every view's pixels, view after view) walks
+    its tile's records front to back with o exp(-d^2/2) evaluated at the pixel (the tile kernel's row
+    products agree within ~1e-6: images within a level of it). With a second list (`ranges_b` not empty)
+    the output arrays come holding the first list's own image: the pixels of a tile with no second-list
+    pair keep it (their full render composites exactly the first list's Gaussians), every other pixel
+    composites both lists merged by depth, the first list's record first on equal depths (with the
+    static Gaussians first: a full render's order). Cached and full renders through this kernel are
+    equal bit for bit. (Testing each pixel against the second list's ellipses first cost more than it
+    saved: 3.8 against 0.8 ms for push-T's front camera on an H100, every record of a tile's list read
+    by every pixel without the early stop.)"""
+    p = wp.tid()
+    vw = views[_view_of(views, p, 2)]
+    local = p - vw.pixel
+    y = local / vw.width
+    x = local - y * vw.width
+    tile = vw.tile + (y / 16) * vw.tiles_x + x / 16
+    px = float(x) + 0.5
+    py = float(y) + 0.5
+    na = ranges[tile][0]
+    ea = ranges[tile][1]
+    nb = int(0)  # noqa: UP018 (a Warp dynamic variable)
+    eb = int(0)  # noqa: UP018
+    if ranges_b.shape[0] > 0:
+        nb = ranges_b[tile][0]
+        eb = ranges_b[tile][1]
+        if nb == eb:
+            return
+    t = float(1.0)  # noqa: UP018 (a Warp dynamic variable)
+    rgb = wp.vec3(0.0, 0.0, 0.0)
+    dep = float(0.0)  # noqa: UP018
+    while na < ea or nb < eb:
+        take_b = nb < eb
+        if take_b and na < ea:
+            take_b = record_b[nb][10] < record[na][10]
+        rec = vec16()
+        if take_b:
+            rec = record_b[nb]
+            nb += 1
+        else:
+            rec = record[na]
+            na += 1
+        alpha = _alpha(rec, px, py)
+        if alpha < ALPHA_MIN:
+            continue
+        test_t = t * (1.0 - alpha)
+        if test_t < T_MIN:
+            break
+        w = alpha * t
+        rgb = rgb + w * wp.vec3(rec[7], rec[8], rec[9])
+        dep = dep + w * rec[10]
+        t = test_t
+    a = 1.0 - t
+    c = rgb + t * vw.background
+    out_rgb[p] = wp.vec3(wp.clamp(c[0], 0.0, 1.0), wp.clamp(c[1], 0.0, 1.0), wp.clamp(c[2], 0.0, 1.0))
+    if a > 0.0:
+        dep = dep / a
+    out_depth[p] = dep
+    out_t[p] = a
+
+
 def _tile_count(cam: Camera) -> int:
     return ((cam.width + TILE - 1) // TILE) * ((cam.height + TILE - 1) // TILE)
 
@@ -717,14 +806,22 @@ class _Kept:
     """What a RenderCache keeps of one (static cloud, camera, background): the static Gaussians' pairs
     in (tile, depth) order and the image they make alone."""
 
-    def __init__(self, static: DeviceGaussians, cam: Camera, background, threads: int) -> None:
+    def __init__(self, static: DeviceGaussians, cam: Camera, background, threads: int,
+                 per_pixel: bool | None = None) -> None:
         self.static = static  # holds the arrays (and so their addresses, part of the key) alive
-        if static.device.is_cpu and threads > 1:
-            wp.load_module(device=static.device)  # compile once, not concurrently in the worker threads
+        device = static.device
+        if device.is_cpu and threads > 1:
+            wp.load_module(device=device)  # compile once, not concurrently in the worker threads
         ws, n, views = _project([static], cam, background, threads)
         self.bins = _Bins(ws, n, views, cam, threads)
-        self.image = _Image(cam.width * cam.height, static.device)
-        _raster(np.arange(_tile_count(cam)), self.bins, None, views, cam, self.image, threads)
+        self.image = _Image(cam.width * cam.height, device)
+        if not device.is_cpu if per_pixel is None else per_pixel:  # the kernel of the device's renders
+            wp.launch(_rasterise_pixels, dim=cam.width * cam.height,
+                      inputs=[self.bins.ranges, self.bins.records, wp.empty(0, dtype=wp.vec2i, device=device),
+                              self.bins.records, views],
+                      outputs=[self.image.rgb, self.image.depth, self.image.t], device=device)  # fmt: skip
+        else:
+            _raster(np.arange(_tile_count(cam)), self.bins, None, views, cam, self.image, threads)
 
 
 def _render_kept(kept: _Kept, moving: DeviceGaussians, cam: Camera, background, threads: int) -> RenderOutput:
@@ -744,7 +841,8 @@ def _render_kept(kept: _Kept, moving: DeviceGaussians, cam: Camera, background, 
 
 
 class RenderCache:
-    """Per-camera work on the static Gaussians kept between renders (the "warp" backend, CPU and CUDA).
+    """Per-camera work on the static Gaussians kept between renders (the "warp" backend, CPU and CUDA;
+    it pays on CPU: on CUDA a full render costs about the same, see the module's docstring).
 
     Pass it to `render_batch(..., cache=)` with views whose cloud is a `SplitGaussians(static, moving)`.
     For each (static cloud, camera pose and intrinsics, background) asked for a second time it keeps the
@@ -802,73 +900,129 @@ class RenderCache:
         return kept
 
 
-def _render_warp_batch(jobs: list[tuple[DeviceGaussians, Camera]], background) -> list[RenderOutput]:
-    """Every view of `jobs` in one launch per stage (render_batch's path on CUDA; it runs on CPU too):
-    the views' clouds in one buffer, a record per (view, Gaussian), one depth sort, pairs keyed by the
-    batch's tile ids (view after view), one stable tile sort, one rasterisation over every view's tiles.
-    Each image equals the view rendered alone with the same (radix) sorts."""
-    device = jobs[0][0].device
-    starts: dict[int, int] = {}
-    clouds: list[DeviceGaussians] = []
-    for g, _ in jobs:
-        if id(g) not in starts:
-            starts[id(g)] = sum(len(c) for c in clouds)
-            clouds.append(g)
-    parents = [g.parent() for g in clouds]
-    if len(clouds) > 1 and len({id(root) for root, _ in parents}) == 1:
-        cloud = parents[0][0]  # segments of one cloud (e.g. a twin's worlds): read it in place
-        starts = {id(g): first for g, (_, first) in zip(clouds, parents, strict=True)}
-    else:
-        cloud = clouds[0] if len(clouds) == 1 else DeviceGaussians.concatenate(clouds)
-    views, shapes = [], []
-    item = tile = pixel = 0
-    for g, cam in jobs:
-        views.append(_view(cam, background, starts[id(g)], item, tile, pixel))
-        shapes.append((pixel, cam.height, cam.width))
-        item, tile, pixel = item + len(g), tile + _tile_count(cam), pixel + cam.width * cam.height
-    vw = wp.array(views, dtype=_View, device=device)
-    n = item
-    ws = _Workspace(n, device)
-    g = cloud
-    inputs = [g.means, g.quats, g.scales, g.opacities, g.sh, g.sh.shape[1], vw, NEAR, 0]
-    wp.launch(_preprocess, dim=n, inputs=inputs, outputs=[ws.record, ws.depth, ws.rect, ws.n_tiles],
-              device=device)
-    dkeys = wp.empty(2 * n, dtype=wp.float32, device=device)
-    order = wp.empty(2 * n, dtype=wp.int32, device=device)
-    wp.launch(_init_depth_sort, dim=n, inputs=[ws.depth], outputs=[dkeys, order], device=device)
-    wp.utils.radix_sort_pairs(dkeys, order, n)
-    counts = wp.empty(n, dtype=wp.int32, device=device)
-    wp.launch(_gather_counts, dim=n, inputs=[order, ws.n_tiles], outputs=[counts], device=device)
-    offsets = wp.empty(n, dtype=wp.int32, device=device)
-    wp.utils.array_scan(counts, offsets, inclusive=True)
-    total = int(offsets.numpy()[-1]) if n else 0  # the one device -> host wait before the images
-    if total < 0:  # the int32 scan overflowed
-        raise ValueError("render: the views' Gaussian-tile pairs exceed int32; render fewer views per call")
-    keys = wp.empty(max(2 * total, 2), dtype=wp.int32, device=device)
-    values = wp.empty(max(2 * total, 2), dtype=wp.int32, device=device)
-    ranges = wp.zeros(tile, dtype=wp.vec2i, device=device)
-    pair_records = wp.empty(max(total, 1), dtype=vec16, device=device)
-    if total:
-        wp.launch(_emit_pairs, dim=n, inputs=[order, offsets, ws.rect, ws.n_tiles, vw, 0],
-                  outputs=[keys, values], device=device)
-        wp.utils.radix_sort_pairs(keys, values, total)
-        wp.launch(_tile_ranges, dim=total, inputs=[keys, total], outputs=[ranges], device=device)
-        wp.launch(_gather_records, dim=total, inputs=[values, ws.record, 0], outputs=[pair_records],
+class _Batch:
+    """Stages 1-3 of a batch of views, every stage once for all of them (the CUDA path; it runs on CPU
+    too): the views' clouds in one buffer, a record per (view, Gaussian), one depth sort, pairs keyed by
+    the batch's tile ids (view after view), one stable tile sort -> each tile's [start, end) in `ranges`
+    and the records in pair order. `views` holds each view's first tile and pixel in the batch's images."""
+
+    def __init__(self, jobs: list[tuple[DeviceGaussians, Camera]], background) -> None:
+        device = self.device = jobs[0][0].device
+        starts: dict[int, int] = {}
+        clouds: list[DeviceGaussians] = []
+        for g, _ in jobs:
+            if id(g) not in starts:
+                starts[id(g)] = sum(len(c) for c in clouds)
+                clouds.append(g)
+        parents = [g.parent() for g in clouds]
+        if len(clouds) > 1 and len({id(root) for root, _ in parents}) == 1:
+            cloud = parents[0][0]  # segments of one cloud (e.g. a twin's worlds): read it in place
+            starts = {id(g): first for g, (_, first) in zip(clouds, parents, strict=True)}
+        else:
+            cloud = clouds[0] if len(clouds) == 1 else DeviceGaussians.concatenate(clouds)
+        views, self.shapes = [], []
+        item = tile = pixel = 0
+        for g, cam in jobs:
+            views.append(_view(cam, background, starts[id(g)], item, tile, pixel))
+            self.shapes.append((pixel, cam.height, cam.width))
+            item, tile, pixel = item + len(g), tile + _tile_count(cam), pixel + cam.width * cam.height
+        self.tiles, self.pixels = tile, pixel
+        vw = self.views = wp.array(views, dtype=_View, device=device)
+        n = item
+        ws = _Workspace(n, device)
+        g = cloud
+        inputs = [g.means, g.quats, g.scales, g.opacities, g.sh, g.sh.shape[1], vw, NEAR, 0]
+        wp.launch(_preprocess, dim=n, inputs=inputs, outputs=[ws.record, ws.depth, ws.rect, ws.n_tiles],
                   device=device)
-    out_rgb = wp.empty(pixel, dtype=wp.vec3, device=device)
-    out_depth = wp.empty(pixel, dtype=wp.float32, device=device)
-    out_t = wp.empty(pixel, dtype=wp.float32, device=device)
-    every_tile = wp.empty(0, dtype=wp.int32, device=device)
-    no_ranges = wp.empty(0, dtype=wp.vec2i, device=device)
-    wp.launch(_rasterise, dim=tile, inputs=[every_tile, ranges, pair_records, no_ranges, pair_records, vw],
-              outputs=[out_rgb, out_depth, out_t, wp.empty(tile * 16, dtype=wp.int32, device=device)],
-              device=device)  # fmt: skip
-    rgb, depth, alpha = out_rgb.numpy(), out_depth.numpy(), out_t.numpy()
-    return [
-        RenderOutput(rgb=rgb[p : p + h * w].reshape(h, w, 3), depth=depth[p : p + h * w].reshape(h, w),
-                     alpha=alpha[p : p + h * w].reshape(h, w))
-        for p, h, w in shapes
-    ]  # fmt: skip
+        dkeys = wp.empty(2 * n, dtype=wp.float32, device=device)
+        order = wp.empty(2 * n, dtype=wp.int32, device=device)
+        wp.launch(_init_depth_sort, dim=n, inputs=[ws.depth], outputs=[dkeys, order], device=device)
+        wp.utils.radix_sort_pairs(dkeys, order, n)
+        counts = wp.empty(n, dtype=wp.int32, device=device)
+        wp.launch(_gather_counts, dim=n, inputs=[order, ws.n_tiles], outputs=[counts], device=device)
+        offsets = wp.empty(n, dtype=wp.int32, device=device)
+        wp.utils.array_scan(counts, offsets, inclusive=True)
+        total = int(offsets.numpy()[-1]) if n else 0  # the one device -> host wait before the images
+        if total < 0:  # the int32 scan overflowed
+            raise ValueError("render: the views' Gaussian-tile pairs exceed int32; render fewer views a call")
+        keys = wp.empty(max(2 * total, 2), dtype=wp.int32, device=device)
+        values = wp.empty(max(2 * total, 2), dtype=wp.int32, device=device)
+        self.ranges = wp.zeros(tile, dtype=wp.vec2i, device=device)
+        self.records = wp.empty(max(total, 1), dtype=vec16, device=device)
+        if total:
+            wp.launch(_emit_pairs, dim=n, inputs=[order, offsets, ws.rect, ws.n_tiles, vw, 0],
+                      outputs=[keys, values], device=device)
+            wp.utils.radix_sort_pairs(keys, values, total)
+            wp.launch(_tile_ranges, dim=total, inputs=[keys, total], outputs=[self.ranges], device=device)
+            wp.launch(_gather_records, dim=total, inputs=[values, ws.record, 0], outputs=[self.records],
+                      device=device)
+
+    def raster(self, image: _Image, ranges, records, per_pixel: bool) -> list[RenderOutput]:
+        """Rasterise every tile of the batch into `image`: the batch's own lists (a full render), or, with
+        `ranges`, `records` (the kept static lists, indexed by the batch's tile ids), those merged with
+        the batch's (image: the kept images); per pixel (the CUDA kernel) or per tile (the CPU one)."""
+        device = self.device
+        if ranges is None:
+            ranges, records, ranges_b = self.ranges, self.records, wp.empty(0, dtype=wp.vec2i, device=device)
+        else:
+            ranges_b = self.ranges
+        if per_pixel:
+            wp.launch(_rasterise_pixels, dim=self.pixels,
+                      inputs=[ranges, records, ranges_b, self.records, self.views],
+                      outputs=[image.rgb, image.depth, image.t], device=device)  # fmt: skip
+        else:
+            row_done = wp.empty(self.tiles * 16, dtype=wp.int32, device=device)
+            wp.launch(_rasterise, dim=self.tiles,
+                      inputs=[wp.empty(0, dtype=wp.int32, device=device), ranges, records, ranges_b,
+                              self.records, self.views],
+                      outputs=[image.rgb, image.depth, image.t, row_done], device=device)  # fmt: skip
+        rgb, depth, alpha = image.rgb.numpy(), image.depth.numpy(), image.t.numpy()
+        return [
+            RenderOutput(rgb=rgb[p : p + h * w].reshape(h, w, 3), depth=depth[p : p + h * w].reshape(h, w),
+                         alpha=alpha[p : p + h * w].reshape(h, w))
+            for p, h, w in self.shapes
+        ]  # fmt: skip
+
+
+def _render_warp_batch(jobs: list[tuple[DeviceGaussians, Camera]], background,
+                       per_pixel: bool | None = None) -> list[RenderOutput]:
+    """Every view of `jobs` in one launch per stage (render_batch's path on CUDA; it runs on CPU too).
+    per_pixel (default: on CUDA) rasterises with one thread per pixel, else per tile: then each image
+    equals the view rendered alone with the same (radix) sorts, bit for bit."""
+    batch = _Batch(jobs, background)
+    per_pixel = not batch.device.is_cpu if per_pixel is None else per_pixel
+    return batch.raster(_Image(batch.pixels, batch.device), None, None, per_pixel)
+
+
+def _render_kept_batch(items: list[tuple[_Kept, DeviceGaussians, Camera]], background,
+                       per_pixel: bool | None = None) -> list[RenderOutput]:
+    """Views of [static | moving] from kept static work, one launch per stage for all of them (the CUDA
+    path of cached views; it runs on CPU too): the moving clouds batched as in `_render_warp_batch`, every
+    tile of the batch rasterised with its lists merged into the view's kept ones (a tile no moving pair
+    reaches keeps its kept pixels at once). Equals `_render_warp_batch` of the whole clouds with the same
+    kernel, bit for bit."""
+    batch = _Batch([(moving, cam) for _, moving, cam in items], background)
+    device = batch.device
+    per_pixel = not device.is_cpu if per_pixel is None else per_pixel
+    first: dict[int, int] = {}  # id(kept) -> its first record in `records`
+    distinct: list[_Kept] = []
+    for kept, _, _ in items:
+        if id(kept) not in first:
+            first[id(kept)] = sum(len(k.bins.records) for k in distinct)
+            distinct.append(kept)
+    if len(distinct) == 1:
+        records = distinct[0].bins.records  # e.g. one camera of many worlds: its kept lists read in place
+    else:
+        records = wp.empty(sum(len(k.bins.records) for k in distinct), dtype=vec16, device=device)
+        for k in distinct:
+            wp.copy(records, k.bins.records, first[id(k)], 0, len(k.bins.records))
+    ranges = wp.array(np.concatenate([k.bins.ranges_np + first[id(k)] for k, _, _ in items]), dtype=wp.vec2i,
+                      device=device)  # fmt: skip
+    image = _Image(batch.pixels, device)
+    for (kept, _, _), (p, h, w) in zip(items, batch.shapes, strict=True):
+        for name in ("rgb", "depth", "t"):
+            wp.copy(getattr(image, name), getattr(kept.image, name), p, 0, h * w)
+    return batch.raster(image, ranges, records, per_pixel)
 
 
 def _whole(g: DeviceGaussians | SplitGaussians) -> DeviceGaussians:
@@ -909,14 +1063,16 @@ def render_views(views: list[tuple[GaussianCloud | DeviceGaussians | SplitGaussi
             outs[i] = _render_kept(kept[i], g.moving, cam, background, th)
 
     full = [i for i in range(len(jobs)) if kept[i] is None]
-    if not jobs[0][0].device.is_cpu:
-        if len(full) > 1:  # one launch per stage for every view rendered in full
-            batch = _render_warp_batch([(_whole(jobs[i][0]), jobs[i][1]) for i in full], background)
-            for i, out in zip(full, batch, strict=True):
+    if not jobs[0][0].device.is_cpu:  # one launch per stage for the full views, one for the cached ones
+        cached = [i for i in range(len(jobs)) if kept[i] is not None]
+        if full:
+            for i, out in zip(full, _render_warp_batch([(_whole(jobs[i][0]), jobs[i][1]) for i in full],
+                                                       background), strict=True):  # fmt: skip
                 outs[i] = out
-        for i in range(len(jobs)):
-            if outs[i] is None:
-                one(i, threads)
+        if cached:
+            items = [(kept[i], jobs[i][0].moving, jobs[i][1]) for i in cached]
+            for i, out in zip(cached, _render_kept_batch(items, background), strict=True):
+                outs[i] = out
         return outs
     if threads > 1 and len(full) >= threads:
         # as many full renders as threads: whole views per thread (every stage runs in parallel, not only

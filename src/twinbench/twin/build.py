@@ -23,8 +23,8 @@ latch, DESIGN §5), the tool meshes' vertices are interpolated over the physics 
 frame runs, and the fingers' contact forces feed the latch on the next step. Rendering poses the
 Gaussians from the state (robot links by FK, rigid objects by the best-fit rigid motion of their
 particles, deformable ones by LBS) into the state's Gaussian buffer, then renders the cameras; for a camera
-that has not moved, the background's render work is kept (`twin.render_cache`, shared by the worlds; set
-it to None for full renders: the images are the same).
+that has not moved, the background's render work is kept (`twin.render_cache`, shared by the worlds; on
+CPU only, where it pays; set it to None for full renders: the images are the same).
 """
 
 from __future__ import annotations
@@ -32,6 +32,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
+import warp as wp
 
 from twinbench.gaussians.camera import Camera
 from twinbench.gaussians.cloud import DeviceGaussians, GaussianCloud, SplitGaussians
@@ -249,8 +250,9 @@ class Twin:
         self._rest_gaussians = GaussianCloud.concatenate(parts)
         self._robot_range = (n_static, len(self.robot_gaussians))
         self._robot_poser = self.robot_gaussians.device_poser(device)
-        # the static scene's per-camera render work, kept while a camera does not move (None: full renders)
-        self.render_cache: RenderCache | None = RenderCache()
+        # the static scene's per-camera render work, kept while a camera does not move (None: full renders;
+        # the default on CUDA, where a full render of a batch costs about what a cached one does)
+        self.render_cache: RenderCache | None = RenderCache() if wp.get_device(device).is_cpu else None
         self._static_gaussians: DeviceGaussians | None = None  # the background, shared by every world
 
     # ------------------------------------------------------------------ state
