@@ -338,6 +338,19 @@ def _bounds(rec: vec16, x0: int, y0: int, x1: int, y1: int):
     )
 
 
+@wp.func
+def _merge_next(record: wp.array(dtype=vec16), na: int, ea: int, record_b: wp.array(dtype=vec16), nb: int,
+                eb: int):
+    """The next record of two depth-ordered lists [na, ea) and [nb, eb) merged (the first list's record
+    first on equal depths), and both lists' next positions."""
+    take_b = nb < eb
+    if take_b and na < ea:
+        take_b = record_b[nb][10] < record[na][10]
+    if take_b:
+        return record_b[nb], na, nb + 1
+    return record[na], na + 1, nb
+
+
 @wp.kernel
 def _rasterise(
     tile_list: wp.array(dtype=wp.int32),
@@ -411,16 +424,7 @@ def _rasterise(
                 out_depth[vw.pixel + y * vw.width + x] = 0.0
                 out_t[vw.pixel + y * vw.width + x] = 1.0
     while (na < ea or nb < eb) and ndone < npix:
-        take_b = nb < eb
-        if take_b and na < ea:
-            take_b = record_b[nb][10] < record[na][10]
-        rec = vec16()
-        if take_b:
-            rec = record_b[nb]
-            nb += 1
-        else:
-            rec = record[na]
-            na += 1
+        rec, na, nb = _merge_next(record, na, ea, record_b, nb, eb)
         bb = _bounds(rec, x0, y0, x1, y1)
         live = bool(False)  # noqa: UP018 (a Warp dynamic variable)
         if bb[1] <= bb[3]:
@@ -552,16 +556,7 @@ def _rasterise_pixels(
     rgb = wp.vec3(0.0, 0.0, 0.0)
     dep = float(0.0)  # noqa: UP018
     while na < ea or nb < eb:
-        take_b = nb < eb
-        if take_b and na < ea:
-            take_b = record_b[nb][10] < record[na][10]
-        rec = vec16()
-        if take_b:
-            rec = record_b[nb]
-            nb += 1
-        else:
-            rec = record[na]
-            na += 1
+        rec, na, nb = _merge_next(record, na, ea, record_b, nb, eb)
         alpha = _alpha(rec, px, py)
         if alpha < ALPHA_MIN:
             continue
