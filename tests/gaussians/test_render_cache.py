@@ -247,6 +247,7 @@ def test_cuda_path_run_on_cpu_cached_batch_equals_full_batch(make_cloud, ref_ren
     # depth ties: moving copies of static Gaussians (other colours) keep the full render's order
     twins = static.subset(np.arange(0, 900, 3))
     twins.sh = np.random.default_rng(4).normal(scale=1.0, size=twins.sh.shape).astype(np.float32)
-    tie = _render_kept_batch([(kept[0], twins.to_device("cpu"), cams[0])], np.asarray(bg, np.float32), True)[0]
+    bg32 = np.asarray(bg, np.float32)
+    tie = _render_kept_batch([(kept[0], twins.to_device("cpu"), cams[0])], bg32, per_pixel=True)[0]
     whole = GaussianCloud.concatenate([static, twins]).to_device("cpu")
-    _assert_same(tie, _render_warp_batch([(whole, cams[0])], np.asarray(bg, np.float32), per_pixel=True)[0])
+    _assert_same(tie, _render_warp_batch([(whole, cams[0])], bg32, per_pixel=True)[0])
