@@ -251,3 +251,7 @@ def test_cuda_path_run_on_cpu_cached_batch_equals_full_batch(make_cloud, ref_ren
     tie = _render_kept_batch([(kept[0], twins.to_device("cpu"), cams[0])], bg32, per_pixel=True)[0]
     whole = GaussianCloud.concatenate([static, twins]).to_device("cpu")
     _assert_same(tie, _render_warp_batch([(whole, cams[0])], bg32, per_pixel=True)[0])
+    # nothing moving: the kept image
+    nothing = twins.subset(np.arange(0)).to_device("cpu")
+    still = _render_kept_batch([(kept[1], nothing, cams[1])], bg32, per_pixel=True)[0]
+    _assert_same(still, _render_warp_batch([(s_dev, cams[1])], bg32, per_pixel=True)[0])

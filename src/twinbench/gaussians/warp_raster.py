@@ -929,15 +929,17 @@ class _Batch:
         inputs = [g.means, g.quats, g.scales, g.opacities, g.sh, g.sh.shape[1], vw, NEAR, 0]
         wp.launch(_preprocess, dim=n, inputs=inputs, outputs=[ws.record, ws.depth, ws.rect, ws.n_tiles],
                   device=device)
-        dkeys = wp.empty(2 * n, dtype=wp.float32, device=device)
-        order = wp.empty(2 * n, dtype=wp.int32, device=device)
-        wp.launch(_init_depth_sort, dim=n, inputs=[ws.depth], outputs=[dkeys, order], device=device)
-        wp.utils.radix_sort_pairs(dkeys, order, n)
-        counts = wp.empty(n, dtype=wp.int32, device=device)
-        wp.launch(_gather_counts, dim=n, inputs=[order, ws.n_tiles], outputs=[counts], device=device)
-        offsets = wp.empty(n, dtype=wp.int32, device=device)
-        wp.utils.array_scan(counts, offsets, inclusive=True)
-        total = int(offsets.numpy()[-1]) if n else 0  # the one device -> host wait before the images
+        total = 0
+        if n:  # (no Gaussians, e.g. a cached view with nothing moving: no sorts)
+            dkeys = wp.empty(2 * n, dtype=wp.float32, device=device)
+            order = wp.empty(2 * n, dtype=wp.int32, device=device)
+            wp.launch(_init_depth_sort, dim=n, inputs=[ws.depth], outputs=[dkeys, order], device=device)
+            wp.utils.radix_sort_pairs(dkeys, order, n)
+            counts = wp.empty(n, dtype=wp.int32, device=device)
+            wp.launch(_gather_counts, dim=n, inputs=[order, ws.n_tiles], outputs=[counts], device=device)
+            offsets = wp.empty(n, dtype=wp.int32, device=device)
+            wp.utils.array_scan(counts, offsets, inclusive=True)
+            total = int(offsets.numpy()[-1])  # the one device -> host wait before the images
         if total < 0:  # the int32 scan overflowed
             raise ValueError("render: the views' Gaussian-tile pairs exceed int32; render fewer views a call")
         keys = wp.empty(max(2 * total, 2), dtype=wp.int32, device=device)
