@@ -81,7 +81,10 @@ def test_default_fit_on_family_cases_improves_and_reports(i):
     fitted = {k: e.terms["chamfer"] + e.terms["track"] for k, e in res.evals.items()}  # stage 1's objective
     assert fitted["final"] < fitted["initial"]
     # by default every training frame is fitted and the last stage is kept (--select-frames chooses)
-    assert res.selection["kept"] == "stage2" and res.evals["final"] is res.evals["stage2"]
+    assert res.selection["kept"] == "stage3" and res.evals["final"] is res.evals["stage3"]
+    # stage 3 searched the global parameters other than the spring rule with stage 2's stiffness held
+    assert res.stage3_history and "spring_Y" not in res.stage3_history[0]["params"]
+    assert res.evals["stage3"].train_loss <= res.evals["stage2"].train_loss * 1.001
     assert res.selection["frames"] == [] and "last stage" in res.selection["rule"]
     assert set(res.identifiability) >= {"spring_Y", "ground_friction", "dashpot_damping"}
     sy = res.identifiability["spring_Y"]

@@ -23,8 +23,8 @@ SEARCH = ("spring_Y", "control_radius", "control_max_neighbors", "ground_restitu
 
 @pytest.fixture(scope="module")
 def identified():
-    """A short rope identified by both stages (80 CMA-ES evaluations, 10 Adam epochs), the last 2 training
-    frames held out from fitting to choose the stage."""
+    """A short rope identified by the three stages (80 CMA-ES evaluations, 10 Adam epochs, stage 3's default
+    budget), the last 2 training frames held out from fitting to choose the stage."""
     data, truth = synthetic_case("rope", frames=12, validation_frames=3, seed=0)
     cfg = FitConfig(dt=1.0 / (30 * SUBSTEPS), substeps=SUBSTEPS, progress=False,
                     initial=GlobalParams(spring_Y=1000.0, control_radius=0.02, control_max_neighbors=8),
@@ -97,14 +97,16 @@ def test_outputs_object_directory_and_report(identified, tmp_path):
     assert len(rep["evaluations"]["final"]["per_frame_error_m"]) == data.num_frames
     # every stage-1 evaluation (CMA-ES stops after 3 generations without a 1 % better loss, at most 80)
     assert rep["stage1_history"] == json.loads(json.dumps(result.stage1_history))
-    assert 20 <= len(rep["stage1_history"]) <= 80 and rep["stages"] == {"stage1": True, "stage2": True}
+    assert 20 <= len(rep["stage1_history"]) <= 80
+    assert rep["stages"] == {"stage1": True, "stage2": True, "stage3": True}
+    assert rep["stage3_history"] == json.loads(json.dumps(result.stage3_history)) and rep["stage3_history"]
     assert rep["stiffness_fit"]["per"] == "region" and sum(rep["stiffness_fit"]["springs"]) == n
     assert rep["global_params"]["spring_Y"] == pytest.approx(result.params.spring_Y)
     # the starting guesses from the data and the stage kept by the selection frames (not the validation ones)
     assert set(rep["guesses"]) == {"spring_Y", "ground_friction", "ground_restitution"}
     assert all(isinstance(g["from"], str) and isinstance(g["used"], bool) for g in rep["guesses"].values())
     sel = rep["selection"]
-    errs, order = sel["errors_m"], ["initial", "stage1", "stage2"]
+    errs, order = sel["errors_m"], ["initial", "stage1", "stage2", "stage3"]
     assert sel["frames"] == [7, 8] and list(errs) == order
     # the kept stage beats every later one by 2 % on the selection frames and is within 2 % of the best
     assert all(errs[sel["kept"]] < 0.98 * errs[s] for s in order[order.index(sel["kept"]) + 1:])

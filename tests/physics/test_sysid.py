@@ -42,7 +42,7 @@ SEARCH = ("spring_Y", "control_radius", "control_max_neighbors", "ground_restitu
 
 
 def _config(**kw) -> FitConfig:
-    base = dict(dt=1.0 / (30 * SUBSTEPS), substeps=SUBSTEPS, progress=False,
+    base = dict(dt=1.0 / (30 * SUBSTEPS), substeps=SUBSTEPS, progress=False, stage3=False,
                 initial=GlobalParams(spring_Y=1000.0, control_radius=0.02, control_max_neighbors=8),
                 cma=CMAConfig(budget=80, search=SEARCH, ranges=("spring_Y=100:10000",), seed=0),
                 adam=AdamConfig(epochs=10, lr=0.02, y_min=50.0, y_max=1e4))
@@ -232,6 +232,44 @@ def test_stage2_fits_ground_contact_toward_the_hidden_values():
     assert (kept.params.ground_restitution, kept.params.ground_friction) == (0.5, 0.3)
     assert "ground_friction" in fitted.stage2_history[-1]
     assert fitted.sim.ground_friction == pytest.approx(fitted.params.ground_friction)
+
+
+def test_stage3_searches_contact_again_with_stage2_stiffness_held():
+    """A soft rope lying on the ground, dragged 6 cm from one end (ground friction 0.8 hidden; stiffness
+    known): stages 1-2 leave friction at its start 0.3 (stage 2 moves nothing: lr 0, contact not fitted);
+    stage 3 searches friction and restitution again with stage 2's stiffness held, lowers the training
+    loss and recovers friction within 0.1; the stiffness stays as stage 2 left it."""
+    from twinbench.physics.model import lattice
+
+    pts = lattice(12, 1, 1, 0.01, origin=(0.0, 0.0, 0.003))
+    frames = 24
+    t = np.clip(np.arange(frames) / 16.0, 0.0, 1.0)
+    grip = pts[:1] + np.array([-0.004, 0.0, 0.0])
+    ctl = np.repeat(grip[None], frames, 0) + (0.06 * t)[:, None, None] * np.array([-1.0, 0.0, 0.0])
+    truth = GlobalParams(spring_Y=300.0, control_radius=0.005, control_max_neighbors=1,
+                         ground_restitution=0.1, ground_friction=0.8, drag_damping=1.0, dashpot_damping=20.0)
+    base = SimParams(dt=1.0 / (30 * SUBSTEPS), substeps=SUBSTEPS)
+    n = len(pts)
+    still = SysIdData(pts, np.repeat(pts[None], 2, 0), np.ones((2, n), bool), np.arange(n),
+                      np.repeat(pts[None], 2, 0), np.ones((2, n), bool), ctl[:2], fps=30.0,
+                      validation_frames=0)
+    xs = rollout(build_model(still, truth, base), ctl, frames - 1)[0].astype(np.float64)[:, :n]
+    rng = np.random.default_rng(0)
+    assert np.ptp(xs[:, -1, 0]) > 0.02  # the far end slides
+    data = SysIdData(pts, xs + rng.normal(0, 3e-4, xs.shape), np.ones((frames, n), bool), np.arange(n),
+                     xs + rng.normal(0, 3e-4, xs.shape), np.ones((frames, n), bool), ctl, fps=30.0,
+                     validation_frames=4, name="drag")
+    cfg = _config(stage1=False, stage3=True, stage3_budget=40, initial=replace(truth, ground_friction=0.3),
+                  cma=CMAConfig(search=("ground_restitution", "ground_friction"), seed=0),
+                  adam=AdamConfig(epochs=2, lr=0.0, y_min=50.0, y_max=1e4, fit_contact=False))
+    res = identify(data, cfg, log=_quiet)
+    assert res.evals["stage2"].train_loss < 1.01 * res.evals["initial"].train_loss  # stage 2 moved nothing
+    assert res.evals["stage3"].train_loss < 0.5 * res.evals["stage2"].train_loss
+    assert abs(res.params.ground_friction - 0.8) < 0.1, res.params.ground_friction
+    assert res.selection["kept"] == "stage3" and len(res.stage3_history) == 40  # the whole budget
+    n_obj = res.model.num_object_springs
+    np.testing.assert_allclose(res.log_y[:n_obj], np.log(300.0), rtol=1e-6)
+    assert set(res.identifiability) >= {"ground_friction", "ground_restitution"}
 
 
 # ------------------------------------------------------------------------------------- identification
