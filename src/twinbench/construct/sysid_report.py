@@ -140,7 +140,7 @@ def write_report(result: SysIdResult, data: SysIdData, directory: str | Path) ->
         a.legend()
     else:
         a.text(0.5, 0.5, "stage 1 off", ha="center", va="center", transform=a.transAxes)
-    a.set(title="stages 1 and 3: CMA-ES training loss (Chamfer + tracking)", xlabel="evaluation")
+    a.set(title="CMA-ES (stages 1, 3): Chamfer + tracking loss", xlabel="evaluation")
     a = ax[0, 1]
     rows = [r for r in result.stage2_history if "train_loss" in r]
     if rows:
