@@ -1270,17 +1270,18 @@ def identify(data: SysIdData, cfg: FitConfig, *, base: SimParams | None = None,
                                        cfg.progress, log, base_of=base3, hold=hold, stage="stage 3")
         ident.update(identifiability(history3, parse_ranges(cfg.cma.ranges)))
         seconds["stage3"] = time.perf_counter() - t0
+        if params3 == stage_params["stage2"]:
+            notes.append(f"stage 3 did not improve on stage 2's global parameters ({len(history3) - 1} "
+                         "candidates)")
         models["stage3"] = build_model(data, params3, base3(params3), cfg.device, hold=hold)
         evals["stage3"] = evaluate(models["stage3"], data, loss)
         stage_params["stage3"] = params3
-        per_spring = len(np.unique(regions)) == len(regions)
-        n3 = models["stage3"].num_springs
-        regions = np.arange(n3) if per_spring else \
-            np.concatenate([regions[:n_obj], np.full(n3 - n_obj, regions[:n_obj].max() + 1)])
     kept, selection = _choose_stage(evals, sel, notes)
     params, model = stage_params[kept], models[kept]
-    if kept == "stage2" and "stage3" in models:  # stage 2's own regions (its control springs)
-        regions = spring_regions(model, adam.regions)
+    if kept == "stage3":  # stage 2's regions over stage 3's springs (its own control springs: one region)
+        n_obj, n3 = model.num_object_springs, model.num_springs
+        regions = np.arange(n3) if len(np.unique(regions)) == len(regions) else \
+            np.concatenate([regions[:n_obj], np.full(n3 - n_obj, regions[:n_obj].max() + 1)])
     if kept not in ("stage2", "stage3"):
         regions = None
     elif by_region(model, regions):  # measured only for the kept stage 2 (one rollout per region)
