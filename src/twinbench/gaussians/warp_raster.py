@@ -1031,7 +1031,8 @@ def render_views(views: list[tuple[GaussianCloud | DeviceGaussians | SplitGaussi
                  cache: RenderCache | None = None) -> list[RenderOutput]:
     """The "warp" backend (see render.render_batch): host clouds uploaded once each; with a `cache`, the
     views of a SplitGaussians whose camera has not moved reuse the kept static work (RenderCache). On CUDA
-    the other views run every stage once for all of them (`_render_warp_batch`); on CPU, with at least as
+    the full views run every stage once for all of them (`_render_warp_batch`), and the cached ones
+    likewise (`_render_kept_batch`); on CPU, with at least as
     many full renders as threads, the views are dealt to the threads (each thread renders whole views,
     every stage in parallel; the full renders first, then the cached ones, each thread taking the next
     view when done), else each view in turn is split over the threads by Gaussians and tile rows."""
