@@ -580,6 +580,17 @@ def _tile_count(cam: Camera) -> int:
     return ((cam.width + TILE - 1) // TILE) * ((cam.height + TILE - 1) // TILE)
 
 
+def _use_pixels(device, per_pixel: bool | None) -> bool:
+    """Whether to rasterise per pixel (`_rasterise_pixels`): by default on CUDA, per tile on CPU."""
+    return not device.is_cpu if per_pixel is None else per_pixel
+
+
+def _raster_pixels(image, pixels: int, ranges, records, ranges_b, records_b, views) -> None:
+    """`_rasterise_pixels` over the first `pixels` pixels of `image` (`ranges_b` empty: a full render)."""
+    wp.launch(_rasterise_pixels, dim=pixels, inputs=[ranges, records, ranges_b, records_b, views],
+              outputs=[image.rgb, image.depth, image.t], device=image.rgb.device)
+
+
 def _view(cam: Camera, background, src: int = 0, item: int = 0, tile: int = 0, pixel: int = 0) -> _View:
     """The kernels' view of `cam`, whose Gaussians, records, tiles and pixels start at the given slots."""
     w, h = cam.width, cam.height
@@ -810,11 +821,9 @@ class _Kept:
         ws, n, views = _project([static], cam, background, threads)
         self.bins = _Bins(ws, n, views, cam, threads)
         self.image = _Image(cam.width * cam.height, device)
-        if not device.is_cpu if per_pixel is None else per_pixel:  # the kernel of the device's renders
-            wp.launch(_rasterise_pixels, dim=cam.width * cam.height,
-                      inputs=[self.bins.ranges, self.bins.records, wp.empty(0, dtype=wp.vec2i, device=device),
-                              self.bins.records, views],
-                      outputs=[self.image.rgb, self.image.depth, self.image.t], device=device)  # fmt: skip
+        if _use_pixels(device, per_pixel):  # the kernel of the device's renders
+            _raster_pixels(self.image, cam.width * cam.height, self.bins.ranges, self.bins.records,
+                           wp.empty(0, dtype=wp.vec2i, device=device), self.bins.records, views)
         else:
             _raster(np.arange(_tile_count(cam)), self.bins, None, views, cam, self.image, threads)
 
@@ -964,9 +973,7 @@ class _Batch:
         else:
             ranges_b = self.ranges
         if per_pixel:
-            wp.launch(_rasterise_pixels, dim=self.pixels,
-                      inputs=[ranges, records, ranges_b, self.records, self.views],
-                      outputs=[image.rgb, image.depth, image.t], device=device)  # fmt: skip
+            _raster_pixels(image, self.pixels, ranges, records, ranges_b, self.records, self.views)
         else:
             row_done = wp.empty(self.tiles * 16, dtype=wp.int32, device=device)
             wp.launch(_rasterise, dim=self.tiles,
@@ -987,8 +994,7 @@ def _render_warp_batch(jobs: list[tuple[DeviceGaussians, Camera]], background,
     per_pixel (default: on CUDA) rasterises with one thread per pixel, else per tile: then each image
     equals the view rendered alone with the same (radix) sorts, bit for bit."""
     batch = _Batch(jobs, background)
-    per_pixel = not batch.device.is_cpu if per_pixel is None else per_pixel
-    return batch.raster(_Image(batch.pixels, batch.device), None, None, per_pixel)
+    return batch.raster(_Image(batch.pixels, batch.device), None, None, _use_pixels(batch.device, per_pixel))
 
 
 def _render_kept_batch(items: list[tuple[_Kept, DeviceGaussians, Camera]], background,
@@ -1000,7 +1006,6 @@ def _render_kept_batch(items: list[tuple[_Kept, DeviceGaussians, Camera]], backg
     kernel, bit for bit."""
     batch = _Batch([(moving, cam) for _, moving, cam in items], background)
     device = batch.device
-    per_pixel = not device.is_cpu if per_pixel is None else per_pixel
     first: dict[int, int] = {}  # id(kept) -> its first record in `records`
     distinct: list[_Kept] = []
     for kept, _, _ in items:
@@ -1019,7 +1024,7 @@ def _render_kept_batch(items: list[tuple[_Kept, DeviceGaussians, Camera]], backg
     for (kept, _, _), (p, h, w) in zip(items, batch.shapes, strict=True):
         for name in ("rgb", "depth", "t"):
             wp.copy(getattr(image, name), getattr(kept.image, name), p, 0, h * w)
-    return batch.raster(image, ranges, records, per_pixel)
+    return batch.raster(image, ranges, records, _use_pixels(device, per_pixel))
 
 
 def _whole(g: DeviceGaussians | SplitGaussians) -> DeviceGaussians:
