@@ -49,6 +49,9 @@ def main(cfg: SysIdConfig) -> int:
             f"{1e3 * e.train_error:.2f} mm, validation {1e3 * e.val_error:.2f} mm")
     if result.selection:
         say(f"kept: {result.selection['kept']} ({result.selection['rule']})")
+    if data.has_tool:
+        say(f"tool contact: friction {result.params.tool_friction:.3f}, restitution "
+            f"{result.params.tool_restitution:.3f} (a twin's robot.tool_contact)")
     if result.identifiability:
         fixed = [k for k, v in result.identifiability.items() if v["constrained"]]
         loose = [k for k, v in result.identifiability.items() if not v["constrained"]]

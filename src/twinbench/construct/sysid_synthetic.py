@@ -1,6 +1,6 @@
-"""A synthetic system-identification case with known answers (tests, benchmark, demos): an object with
-hidden, spatially varying stiffness and hidden contact values, moved by control points and observed with
-noise, occlusion and unreliable tracks."""
+"""Synthetic system-identification cases with known answers (tests, benchmark, demos): an object with
+hidden, spatially varying stiffness and hidden contact values, moved by control points (or pushed by a
+tool) and observed with noise, occlusion and unreliable tracks."""
 
 from __future__ import annotations
 
@@ -15,11 +15,12 @@ from twinbench.physics.sysid_data import SysIdData
 
 
 def simulated_tracks(model, controls: np.ndarray, frames: int, rng: np.random.Generator, noise: float,
-                     visible_fraction: float, tracked_idx: np.ndarray):
-    """Roll `model` out under `controls` and observe it as a tracker would: (positions, observed points with
-    `noise`, visibility (each particle seen with `visible_fraction`, never an empty frame), the tracked
-    points `tracked_idx` with noise, their motion validity (5 % dropped))."""
-    xs = rollout(model, controls, frames - 1)[0].astype(np.float64)
+                     visible_fraction: float, tracked_idx: np.ndarray, tool: np.ndarray | None = None):
+    """Roll `model` out under `controls` (and the kinematic `tool`'s world vertices per frame) and observe
+    it as a tracker would: (positions, observed points with `noise`, visibility (each particle seen with
+    `visible_fraction`, never an empty frame), the tracked points `tracked_idx` with noise, their motion
+    validity (5 % dropped))."""
+    xs = rollout(model, controls, frames - 1, tool=tool)[0].astype(np.float64)
     n = xs.shape[1]
     observed = xs + rng.normal(0.0, noise, xs.shape)
     visibility = rng.random((frames, n)) < visible_fraction
@@ -146,3 +147,43 @@ def phystwin_rope_case(*, seed: int = 0, nx: int = 20, frames: int = 45, validat
                      validation_frames=validation_frames, name="phystwin_rope")
     return data, {"params": truth, "sim": truth.sim_params(base), "log_y": log_y, "springs": sp,
                   "positions": xs, "region": region}
+
+
+def pushed_block_case(*, tool_friction: float = 0.5, ground_friction: float = 0.5, frames: int = 36,
+                      validation_frames: int = 6, substeps: int = 40, noise: float = 1e-3,
+                      visible_fraction: float = 0.8, seed: int = 0) -> tuple[SysIdData, dict]:
+    """A 5 x 4 x 2 block (1 cm lattice, Y 3000) on the ground, pushed 7 cm along x and 5 cm along y by a
+    1 x 2 x 3 cm box tool (``SysIdData.tool_*``) whose face meets its -x side: the tool slides along that
+    face unless its friction holds the block, so how far the block follows the tool sideways and how far it
+    turns depend on ``tool_friction``. No control points. Returns the data and the truth {"params",
+    "sim", "positions"}."""
+    import trimesh
+
+    rng = np.random.default_rng(seed)
+    pts = lattice(5, 4, 2, spacing=0.01)
+    lo, hi = pts.min(axis=0), pts.max(axis=0)
+    box = trimesh.creation.box((0.01, 0.02, 0.03))
+    t = np.arange(frames) / 30.0
+    u = np.clip((t - 0.1) / 0.9, 0.0, 1.0)
+    u = u * u * (3.0 - 2.0 * u)
+    poses = np.repeat(np.eye(4)[None], frames, axis=0)
+    poses[:, 0, 3] = lo[0] - 0.011 + 0.07 * u  # the face 6 mm from the block at rest
+    poses[:, 1, 3] = 0.5 * (lo[1] + hi[1]) + 0.05 * u
+    poses[:, 2, 3] = 0.016
+    truth = GlobalParams(spring_Y=3000.0, spring_radius=0.02, spring_max_neighbors=30, ground_restitution=0.0,
+                         ground_friction=ground_friction, drag_damping=1.0, dashpot_damping=50.0,
+                         tool_friction=tool_friction, tool_restitution=0.0)
+    base = SimParams(dt=1.0 / (30.0 * substeps), substeps=substeps)
+    tool = np.einsum("fij,vj->fvi", poses[:, :3, :3], box.vertices) + poses[:, None, :3, 3]
+    b = ModelBuilder(truth.sim_params(base))
+    b.add_body(pts, radius=truth.spring_radius, max_neighbors=truth.spring_max_neighbors,
+               spring_Y=truth.spring_Y)
+    b.add_kinematic_mesh(tool[0], box.faces, restitution=truth.tool_restitution, friction=truth.tool_friction)
+    model = b.finalize()
+    tracked_idx = np.arange(len(pts))
+    xs, observed, visibility, tracked, motion_valid = simulated_tracks(
+        model, np.zeros((frames, 0, 3)), frames, rng, noise, visible_fraction, tracked_idx, tool)
+    data = SysIdData(pts, observed, visibility, tracked_idx, tracked, motion_valid, np.zeros((frames, 0, 3)),
+                     fps=30.0, validation_frames=validation_frames, name="block",
+                     tool_vertices=box.vertices, tool_faces=box.faces, tool_poses=poses)
+    return data, {"params": truth, "sim": truth.sim_params(base), "positions": xs}

@@ -77,6 +77,9 @@ class GlobalParams:
     collision_dist: float = 0.02
     drag_damping: float = 3.0
     dashpot_damping: float = 100.0
+    tool_friction: float = 0.3
+    """friction between a kinematic tool (``SysIdData.tool_*``) and the object (twinbench's tool default)"""
+    tool_restitution: float = 0.0
 
     def sim_params(self, base: SimParams) -> SimParams:
         """``base`` with this object's contact and damping values."""
@@ -124,13 +127,15 @@ DEFAULT_RANGES: dict[str, SearchRange] = {
     "collision_dist": SearchRange(0.005, 0.05),
     "drag_damping": SearchRange(0.0, 20.0),
     "dashpot_damping": SearchRange(0.0, 200.0),
+    "tool_friction": SearchRange(0.0, 2.0),
+    "tool_restitution": SearchRange(0.0, 1.0),
 }
 
 
 def applicable_parameters(data: SysIdData, base: SimParams) -> tuple[str, ...]:
     """The global parameters that change the simulation of ``data``: topology rules only without
     explicit springs, control rules only with control points, self-contact only with self-collision,
-    ground contact only with the ground on."""
+    ground contact only with the ground on, the tool's contact only with a tool."""
     names = ["spring_Y"]
     if data.springs is None:
         names += ["spring_radius", "spring_max_neighbors"]
@@ -140,6 +145,8 @@ def applicable_parameters(data: SysIdData, base: SimParams) -> tuple[str, ...]:
         names += ["ground_restitution", "ground_friction"]
     if base.self_collision:
         names += ["object_restitution", "object_friction", "collision_dist"]
+    if data.has_tool:
+        names += ["tool_restitution", "tool_friction"]
     return tuple(names + ["drag_damping", "dashpot_damping"])
 
 
@@ -333,9 +340,9 @@ class FitConfig:
         need("initial.control_radius", i.control_radius, 0.0, 10.0, lo_open=True)
         need("initial.spring_max_neighbors", i.spring_max_neighbors, 1, 1_000, integer=True)
         need("initial.control_max_neighbors", i.control_max_neighbors, 1, 1_000, integer=True)
-        for name in ("ground_restitution", "object_restitution"):
+        for name in ("ground_restitution", "object_restitution", "tool_restitution"):
             need(f"initial.{name}", getattr(i, name), 0.0, 1.0)
-        for name in ("ground_friction", "object_friction"):
+        for name in ("ground_friction", "object_friction", "tool_friction"):
             need(f"initial.{name}", getattr(i, name), 0.0, 2.0)
         need("initial.collision_dist", i.collision_dist, 0.0, 1.0)
         need("initial.drag_damping", i.drag_damping, 0.0, 1e4)
@@ -363,7 +370,8 @@ def build_model(data: SysIdData, params: GlobalParams, base: SimParams, device: 
                 requires_grad: bool = False, log_y: np.ndarray | None = None,
                 hold: tuple[np.ndarray, float] | None = None) -> SpringMassModel:
     """The spring-mass model of ``data`` under ``params`` (springs by rule or explicit, control points
-    attached at their frame-0 positions, every spring at ``params.spring_Y`` unless ``log_y``, or with
+    attached at their frame-0 positions, the tool as a kinematic mesh at its frame-0 pose, every spring at
+    ``params.spring_Y`` unless ``log_y``, or with
     ``hold`` = (object springs' log Y, one log Y for the control springs, however many the control rule
     gives))."""
     b = ModelBuilder(params.sim_params(base))
@@ -377,6 +385,9 @@ def build_model(data: SysIdData, params: GlobalParams, base: SimParams, device: 
     if data.num_controls:
         b.add_control_points(data.controls[0], radius=params.control_radius,
                              max_neighbors=int(params.control_max_neighbors), spring_Y=params.spring_Y)
+    if data.has_tool:
+        b.add_kinematic_mesh(data.tool_path()[0], data.tool_faces, restitution=params.tool_restitution,
+                             friction=params.tool_friction)
     model = b.finalize(device, requires_grad=requires_grad)
     if hold is not None:
         obj_y, ctl_y = hold
@@ -486,19 +497,29 @@ class SequenceEval:
     """each loss term (chamfer, track, acc) averaged over the training frames"""
 
 
-def rollout(model: SpringMassModel, controls: np.ndarray, frames: int,
-            solver: SpringMassSolver | None = None) -> tuple[np.ndarray, np.ndarray]:
+def set_frame_inputs(model: SpringMassModel, ctl, controls: np.ndarray, tool: np.ndarray | None,
+                     k: int) -> None:
+    """Frame k's kinematic inputs in ``ctl``: the control points from ``controls[k-1]`` to ``controls[k]``
+    and the tool (``tool``: its world vertices per frame, ``SysIdData.tool_path``) from frame k-1 to k."""
+    if controls.shape[1]:
+        ctl.set_control_points(controls[k - 1], controls[k])
+    if tool is not None:
+        mesh = next(i for i, m in enumerate(model.meshes) if m.kinematic)
+        ctl.set_kinematic_mesh(mesh, tool[k - 1], tool[k])
+
+
+def rollout(model: SpringMassModel, controls: np.ndarray, frames: int, solver: SpringMassSolver | None = None,
+            tool: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Simulate frames 1..``frames`` (fast path) with the control points moving from ``controls[k-1]``
-    to ``controls[k]`` in frame k; returns positions and velocities (frames + 1, P, 3). Raises
-    SimulationDiverged."""
+    to ``controls[k]`` and the tool (``SysIdData.tool_path()``, if any) from its frame k-1 to frame k
+    vertices in frame k; returns positions and velocities (frames + 1, P, 3). Raises SimulationDiverged."""
     solver = solver or SpringMassSolver(model)
     state, ctl = model.state(requires_grad=False), model.control()
     xs = np.empty((frames + 1, model.num_particles, 3), np.float32)
     vs = np.empty_like(xs)
     xs[0], vs[0] = state.numpy()
     for k in range(1, frames + 1):
-        if controls.shape[1]:
-            ctl.set_control_points(controls[k - 1], controls[k])
+        set_frame_inputs(model, ctl, controls, tool, k)
         solver.simulate_frame(state, ctl)
         xs[k], vs[k] = state.numpy()
     return xs, vs
@@ -512,7 +533,7 @@ def evaluate(model: SpringMassModel, data: SysIdData, loss: SequenceLoss, *, fra
     lossv = np.full(n + 1, np.nan)
     err = np.full(n + 1, np.nan)
     try:
-        xs, vs = rollout(model, data.controls, n, solver)
+        xs, vs = rollout(model, data.controls, n, solver, data.tool_path())
     except SimulationDiverged:
         return SequenceEval(lossv, err, math.inf, math.inf, math.inf, diverged=True)
     train = [k for k in data.train_frames if k <= n]
@@ -811,13 +832,14 @@ def _region_jacobian(model: SpringMassModel, data: SysIdData, region: np.ndarray
     whose rollout diverged is NaN. ``model``'s stiffness is left as it was."""
     log_y0 = model.log_y_np.copy()
     last = max(frames)
-    r0 = _track_vector(rollout(model, data.controls, last, solver)[0].astype(np.float64), data, frames)
+    tool = data.tool_path()
+    r0 = _track_vector(rollout(model, data.controls, last, solver, tool)[0].astype(np.float64), data, frames)
     jac = np.zeros((r0.size, int(region.max()) + 1))
     try:
         for r in range(jac.shape[1]):
             model.set_spring_log_y(log_y0 - delta * (region == r))
             try:
-                xs = rollout(model, data.controls, last, solver)[0].astype(np.float64)
+                xs = rollout(model, data.controls, last, solver, tool)[0].astype(np.float64)
                 jac[:, r] = (r0 - _track_vector(xs, data, frames)) / delta
             except SimulationDiverged:
                 jac[:, r] = np.nan
@@ -898,7 +920,7 @@ def stage2_adam(model: SpringMassModel, data: SysIdData, cfg: AdamConfig,
     loss = SequenceLoss(data, weights)
     solver = SpringMassSolver(model)
     eval_solver = SpringMassSolver(model)
-    ctl = model.control()
+    ctl, tool = model.control(), data.tool_path()
     lo, hi = math.log(cfg.y_min), math.log(cfg.y_max)
     region = spring_regions(model, cfg.regions)
     n_reg = int(region.max()) + 1
@@ -956,8 +978,7 @@ def stage2_adam(model: SpringMassModel, data: SysIdData, cfg: AdamConfig,
             total, t0 = 0.0, time.perf_counter()
             try:
                 for k in train:
-                    if data.num_controls:
-                        ctl.set_control_points(data.controls[k - 1], data.controls[k])
+                    set_frame_inputs(model, ctl, data.controls, tool, k)
                     terms, g, x, v, gc = frame_gradient(model, solver, state, ctl, loss, k, prev_v, prev_acc)
                     total += terms["total"]
                     model.set_spring_log_y(step(np.bincount(region, g, n_reg))[region])

@@ -27,7 +27,15 @@ key                 shape        meaning
 ``masses``          (P,)         optional per-particle masses (default 1, as PhysTwin)
 ``surface_indices`` (S,) int     optional particles the Chamfer term may match (default: all;
                                  PhysTwin excludes interior completions)
+``tool_vertices``   (V, 3)       optional kinematic tool that touches the object (pusher, finger): its
+                                 triangle mesh's vertices in the tool's own frame
+``tool_faces``      (C, 3) int   with ``tool_vertices``: the mesh's triangles
+``tool_poses``      (F, 4, 4)    with ``tool_vertices``: world-from-tool rigid transform per frame
 =================== ============ ==================================================================
+
+The tool moves from ``tool_poses[k-1]`` to ``tool_poses[k]`` in frame k (its vertices linearly
+interpolated over the substeps) and acts on the object by contact only, with its own friction and
+restitution (``GlobalParams.tool_friction``, ``tool_restitution``): pushes, not grips.
 
 Every array is validated on construction; errors name the file and field (:class:`SysIdFormatError`).
 """
@@ -44,7 +52,9 @@ from twinbench.errors import InputError
 MIN_SPRING_LENGTH = 1e-4  # as the builder's radius rule: shorter springs make a 0/0 strain
 REQUIRED_ARRAYS = ("particles", "observed", "visibility", "tracked_indices", "tracked", "motion_valid",
                    "controls")
-OPTIONAL_ARRAYS = ("springs", "rest_lengths", "masses", "surface_indices")
+OPTIONAL_ARRAYS = ("springs", "rest_lengths", "masses", "surface_indices", "tool_vertices", "tool_faces",
+                   "tool_poses")
+TOOL_ARRAYS = ("tool_vertices", "tool_faces", "tool_poses")
 
 
 class SysIdFormatError(InputError):
@@ -119,6 +129,9 @@ class SysIdData:
     rest_lengths: np.ndarray | None = None
     masses: np.ndarray | None = None
     surface_indices: np.ndarray | None = None
+    tool_vertices: np.ndarray | None = None
+    tool_faces: np.ndarray | None = None
+    tool_poses: np.ndarray | None = None
     source: str = field(default="<memory>", compare=False)
 
     def __post_init__(self) -> None:
@@ -178,6 +191,36 @@ class SysIdData:
             if si.size == 0:
                 raise _err(src, "surface_indices", "is empty; omit it to match all particles")
             s(self, "surface_indices", np.unique(si))
+        self._check_tool(n_f)
+
+    def _check_tool(self, n_f: int) -> None:
+        src = self.source
+        given = [k for k in TOOL_ARRAYS if getattr(self, k) is not None]
+        if not given:
+            return
+        if len(given) < len(TOOL_ARRAYS):
+            missing = [k for k in TOOL_ARRAYS if k not in given]
+            raise _err(src, missing[0], f"is missing while {', '.join(given)} is given; a tool needs "
+                                        f"{', '.join(TOOL_ARRAYS)} (or none of them)")
+        verts = _float_array(src, "tool_vertices", self.tool_vertices, (None, 3))
+        if verts.shape[0] < 3:
+            raise _err(src, "tool_vertices", f"has {verts.shape[0]} vertices; a mesh needs at least 3")
+        faces = _index_array(src, "tool_faces", self.tool_faces, (None, 3), verts.shape[0], "vertex")
+        if faces.shape[0] == 0:
+            raise _err(src, "tool_faces", "is empty; give the tool mesh's triangles")
+        poses = _float_array(src, "tool_poses", self.tool_poses, (n_f, 4, 4))
+        rot = poses[:, :3, :3]
+        bad = np.flatnonzero(
+            (np.abs(rot @ rot.transpose(0, 2, 1) - np.eye(3)).max(axis=(1, 2)) > 1e-4)
+            | (np.linalg.det(rot) < 0) | (np.abs(poses[:, 3] - [0.0, 0.0, 0.0, 1.0]).max(axis=1) > 1e-9)
+        )
+        if bad.size:
+            raise _err(src, "tool_poses", f"frame {bad[0]} is not a rigid transform (rotation block "
+                                          "orthonormal with det +1, last row 0 0 0 1)")
+        s = object.__setattr__
+        s(self, "tool_vertices", verts)
+        s(self, "tool_faces", faces.astype(np.int32))
+        s(self, "tool_poses", poses)
 
     def _check_springs(self, p: np.ndarray) -> None:
         src = self.source
@@ -227,6 +270,17 @@ class SysIdData:
     @property
     def num_controls(self) -> int:
         return int(self.controls.shape[1])
+
+    @property
+    def has_tool(self) -> bool:
+        return self.tool_vertices is not None
+
+    def tool_path(self) -> np.ndarray | None:
+        """The tool's vertices in the world frame per frame, (F, V, 3); None without a tool."""
+        if self.tool_vertices is None:
+            return None
+        v = self.tool_vertices
+        return np.einsum("fij,vj->fvi", self.tool_poses[:, :3, :3], v) + self.tool_poses[:, None, :3, 3]
 
     @property
     def train_frames(self) -> range:
