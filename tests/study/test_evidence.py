@@ -29,10 +29,12 @@ def made(tmp_path_factory):
 def test_evidence_files_and_index(made):
     real, ev = made
     names = sorted(p.relative_to(ev).as_posix() for p in ev.rglob("*") if p.is_file())
-    assert names == ["README.md", "boxes.json", "calibration.json", "evidence.json", "motion/tblock/data.npz",
+    assert names == ["README.md", "boxes.json", "calibration.json", "evidence.json",
+                     "motion/tblock-push/data.npz", "motion/tblock-push/sysid.json", "motion/tblock/data.npz",
                      "motion/tblock/sysid.json", "real/front.png", "scan.ply"]
     index = json.loads((ev / "evidence.json").read_text())
     assert index["task"] == "push-t" and index["objects"] == ["tblock"]
+    assert index["push"] == {"tblock": "motion/tblock-push"}
     assert index["urdf"] == task_cell("push-t", "small").robot.urdf
     hidden = (real / "hidden.json").read_text()
     assert "factors" not in (ev / "README.md").read_text() and "hidden" not in json.dumps(index)
@@ -92,3 +94,23 @@ def test_tracked_motion_is_coarse_noisy_with_gaps(made):
     gaps = [longest_gap(data.motion_valid[:, j]) for j in range(data.motion_valid.shape[1])]
     assert sum(g >= 4 for g in gaps) >= len(gaps) // 5
     assert 0.6 < data.visibility.mean() < 0.8
+
+
+def test_push_recording_holds_the_tool_and_its_path_not_its_friction(made):
+    real, ev = made
+    hidden = json.loads((real / "hidden.json").read_text())
+    data = load_sysid_data(ev / "motion/tblock-push")
+    spec = load_twin(real / "world")
+    twin, _ = build_twin(spec)
+    pusher = twin.robot.contact_vertices(twin.robot.home_q, "pusher")
+    # the tool is the robot's pusher (home orientation), moved down to the table beside the T, then along
+    assert data.has_tool and data.num_controls == 0
+    np.testing.assert_allclose(data.tool_vertices, pusher)
+    path = data.tool_path()
+    assert abs(path[0, :, 2].min() - 0.005) < 0.003
+    assert 0.07 < np.linalg.norm(data.tool_poses[-1, :3, 3] - data.tool_poses[0, :3, 3]) < 0.09
+    # it pushed the T: tracks move by centimetres along the table, not up
+    move = data.tracked[-1] - data.tracked[0]
+    assert np.linalg.norm(move[:, :2], axis=1).max() > 0.03 and np.abs(move[:, 2]).max() < 0.01
+    friction = hidden["tool_contact"]["friction"]
+    assert str(round(friction, 6)) not in (ev / "motion/tblock-push/sysid.json").read_text()

@@ -14,6 +14,7 @@ import pytest
 
 from twinbench.gaussians.colormap import map_colors
 from twinbench.gaussians.response import CameraResponse
+from twinbench.study.real import task_cell
 from twinbench.study.reconstruct import VARIANTS, estimate_rest_pose
 from twinbench.transforms import invert_pose, planar_pose, rotation_angle, transform_points
 from twinbench.twin.cells import push_t_cell
@@ -57,8 +58,8 @@ def test_reconstruction_from_evidence_alone(tmp_path):
     twins = reconstruct(ev, tmp_path / "TW", log=lines.append, sysid_args=("--cma.budget", "30",
                                                                           "--adam.epochs", "3"))
     assert sorted(twins) == sorted(VARIANTS)
-    assert [ln.split()[1] for ln in lines if ln.startswith("twinbench ")][:6] == [
-        "segment", "align-robot", "align-color", "sysid", "sysid", "twin"]
+    assert [ln.split()[1] for ln in lines if ln.startswith("twinbench ")][:7] == [
+        "segment", "align-robot", "align-color", "sysid", "sysid", "sysid", "twin"]
     work = tmp_path / "TW/construction"
 
     # robot pose: align-robot's transform composed with the user's coarse one undoes the scan's frame
@@ -108,6 +109,13 @@ def test_reconstruction_from_evidence_alone(tmp_path):
     assert specs["neither"].robot.color_map is None and specs["no-physics"].robot.color_map is not None
     assert np.allclose(specs["no-physics"].objects[0].spring_Y, 3e4)  # sysid's initial guess
     assert not np.allclose(specs["full"].objects[0].spring_Y, 3e4)
+    # the tool's friction: fitted to the push recording in the fitted variants, the cell's in the others
+    pushed = json.loads((work / "sysid/push/tblock/sysid_report.json").read_text())
+    assert pushed["config"]["cma"]["search"] == ["tool_friction"]
+    assert specs["full"].robot.tool_contact.friction == pushed["global_params"]["tool_friction"]
+    assert specs["no-color"].robot.tool_contact == specs["full"].robot.tool_contact
+    cell_tool = task_cell("push-t", "small").robot.tool_contact
+    assert specs["no-physics"].robot.tool_contact == specs["neither"].robot.tool_contact == cell_tool
     image = iio.imread(ev / "real/front.png").astype(np.float64) / 255.0
 
     def image_error(v):

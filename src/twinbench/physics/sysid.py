@@ -290,6 +290,9 @@ class FitConfig:
     motion shows them; off: from the ``initial`` values"""
     ground: bool = True
     self_collision: bool = False
+    mesh_margin: float = 0.005
+    """contact distance of a tool's mesh (``SysIdData.tool_*``); give the twin's ``sim.mesh_margin``, so the
+    fitted tool friction is the one its contact model needs"""
     progress: bool = True
 
     @property
@@ -345,6 +348,7 @@ class FitConfig:
         for name in ("ground_friction", "object_friction", "tool_friction"):
             need(f"initial.{name}", getattr(i, name), 0.0, 2.0)
         need("initial.collision_dist", i.collision_dist, 0.0, 1.0)
+        need("mesh_margin", self.mesh_margin, 0.0, 1.0)
         need("initial.drag_damping", i.drag_damping, 0.0, 1e4)
         need("initial.dashpot_damping", i.dashpot_damping, 0.0, 1e6)
 
@@ -353,13 +357,14 @@ class FitConfig:
         if self.auto_substeps:
             n = substeps or round(1.0 / (fps * 5e-5))
             return SimParams(dt=1.0 / (fps * n), substeps=n, ground=self.ground,
-                             self_collision=self.self_collision)
+                             self_collision=self.self_collision, mesh_margin=self.mesh_margin)
         if not self.substeps and 1.0 / (fps * self.dt) > 100_000.5:  # --substeps itself is range-checked
             raise ValueError(f"--dt {self.dt}: gives {1.0 / (fps * self.dt):.3g} substeps per frame at "
                              f"{fps:g} fps (at most 100000); give a larger --dt, or 0 for automatic substeps")
         n = self.substeps or max(1, round(1.0 / (fps * self.dt)))
         dt = self.dt or 1.0 / (fps * n)
-        return SimParams(dt=dt, substeps=n, ground=self.ground, self_collision=self.self_collision)
+        return SimParams(dt=dt, substeps=n, ground=self.ground, self_collision=self.self_collision,
+                         mesh_margin=self.mesh_margin)
 
 
 # ----------------------------------------------------------------------------------------------

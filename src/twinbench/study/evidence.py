@@ -16,6 +16,9 @@ EV/ holds (EV/README.md lists them for the user):
 - `motion/OBJECT/`: tracked motion of the object under a probe's interactions (lift, lower, drag) in the
   real workcell, in the sysid folder format (`twinbench.construct.sysid_io`): a coarse subset of its
   points as particles, subsampled noisy tracks with occlusion gaps, visibility-masked observed points;
+- `motion/OBJECT-push/`: the same, while the robot's tool (its contact links' meshes, e.g. push-T's pusher)
+  pushes the object along the table, in a direction that slides along the face it meets: the tool's path
+  is in the sysid folder too (`tool_*`), its friction is not;
 - `evidence.json`: the index of the above (task, size, robot URDF, object names, files).
 """
 
@@ -131,8 +134,6 @@ def probe_motion(real_spec, obj, hidden: dict, rng, frames: int, validation: int
     contact) and observe it as a tracker would. Returns (SysIdData, the real positions (F, P, 3))."""
     from twinbench.physics.model import ModelBuilder
     from twinbench.physics.sysid import rollout
-    from twinbench.physics.sysid_data import SysIdData
-    from twinbench.transforms import transform_points
 
     pts = transform_points(obj.rest_pose, np.asarray(obj.particles, np.float64))
     controls = _probe_path(pts, frames)
@@ -140,7 +141,65 @@ def probe_motion(real_spec, obj, hidden: dict, rng, frames: int, validation: int
     b.add_body(pts, springs=obj.springs, rest_lengths=obj.rest_lengths, spring_Y=obj.spring_Y, mass=obj.mass)
     b.add_control_points(controls[0], radius=0.02, max_neighbors=10, spring_Y=float(np.median(obj.spring_Y)))
     xs = rollout(b.finalize(), controls, frames - 1)[0].astype(np.float64)[:, : len(pts)]
+    return _observed(xs, hidden, rng, validation, obj.name, controls), xs
 
+
+def _tool_mesh(robot) -> tuple[np.ndarray, np.ndarray]:
+    """The robot's contact links' meshes at its home configuration, as one mesh (world vertices, faces)."""
+    verts, faces, offset = [], [], 0
+    for link in robot.contact_links:
+        v = robot.contact_vertices(robot.home_q, link)
+        verts.append(v)
+        faces.append(np.asarray(robot.contact_faces(link)) + offset)
+        offset += len(v)
+    return np.concatenate(verts), np.concatenate(faces)
+
+
+def _push_path(points: np.ndarray, tool: np.ndarray, frames: int) -> np.ndarray:
+    """(frames, 3) translations of the tool (home orientation): its lowest point 5 mm above the table,
+    6 mm behind the object's end along its long axis, then 5 cm along that axis and 6 cm sideways (so the
+    tool slides along the face it meets unless friction holds the object) over 1 s after 0.1 s."""
+    centre = points.mean(axis=0)
+    _, _, vt = np.linalg.svd((points - centre)[:, :2], full_matrices=False)
+    axis = np.array([*vt[0], 0.0])
+    side = np.array([-axis[1], axis[0], 0.0])
+    tool_c = np.array([*tool[:, :2].mean(axis=0), tool[:, 2].min()])
+    start = centre + (((points - centre) @ axis).min() - np.abs((tool - tool_c) @ axis).max() - 0.006) * axis
+    start[2] = 0.005
+    u = np.clip((np.arange(frames) / 30.0 - 0.1) / 1.0, 0.0, 1.0)
+    u = u * u * (3.0 - 2.0 * u)
+    return (start - tool_c)[None] + u[:, None] * (0.05 * axis + 0.06 * side)[None]
+
+
+def push_motion(real_spec, robot, obj, hidden: dict, rng, frames: int, validation: int):
+    """Simulate the real object pushed by the real robot's tool (`_push_path`; the real tool contact) and
+    observe it as `probe_motion` does; the tool's mesh and path (with tracking noise) go in the data.
+    Returns (SysIdData, the real positions (F, P, 3))."""
+    from twinbench.physics.model import ModelBuilder
+    from twinbench.physics.sysid import rollout
+
+    pts = transform_points(obj.rest_pose, np.asarray(obj.particles, np.float64))
+    verts, faces = _tool_mesh(robot)
+    path = _push_path(pts, verts, frames)
+    contact = real_spec.robot.tool_contact
+    b = ModelBuilder(real_spec.sim)
+    b.add_body(pts, springs=obj.springs, rest_lengths=obj.rest_lengths, spring_Y=obj.spring_Y, mass=obj.mass)
+    b.add_kinematic_mesh(verts + path[0], faces, restitution=contact.restitution, friction=contact.friction)
+    xs = rollout(b.finalize(), np.zeros((frames, 0, 3)), frames - 1, tool=verts[None] + path[:, None])[0]
+    poses = np.repeat(np.eye(4)[None], frames, axis=0)
+    poses[:, :3, 3] = path + rng.normal(0.0, 0.5 * TRACK_NOISE, path.shape)
+    data = _observed(xs.astype(np.float64), hidden, rng, validation, obj.name, np.zeros((frames, 0, 3)),
+                     tool_vertices=verts, tool_faces=faces, tool_poses=poses)
+    return data, xs
+
+
+def _observed(xs: np.ndarray, hidden: dict, rng, validation: int, name: str, controls: np.ndarray, **tool):
+    """The SysIdData a tracker gives of the real positions `xs` (F, P, 3): a coarser particle layout, noisy
+    observed points and tracks with gaps, `controls` with noise; `tool` (SysIdData's tool_* fields) as
+    given."""
+    from twinbench.physics.sysid_data import SysIdData
+
+    frames = xs.shape[0]
     # a coarser layout than the real object's (one point per cell-spacing voxel) as the particles; where
     # that gives under half the cell's particles (a rope: its section is finer than the spacing along it,
     # and a 2-particle section slips out of the gripper), smaller voxels until it gives half or more
@@ -151,7 +210,7 @@ def probe_motion(real_spec, obj, hidden: dict, rng, frames: int, validation: int
         chosen = _voxel_pick(xs[0], voxel)
     particles = xs[0, chosen] + rng.normal(0.0, 0.5 * TRACK_NOISE, (len(chosen), 3))
     # observed points: a fixed 60 % of the real points, each visible in 70 % of the frames
-    seen = np.sort(rng.choice(len(pts), int(0.6 * len(pts)), replace=False))
+    seen = np.sort(rng.choice(xs.shape[1], int(0.6 * xs.shape[1]), replace=False))
     observed = xs[:, seen] + rng.normal(0.0, TRACK_NOISE, (frames, len(seen), 3))
     visibility = rng.random((frames, len(seen))) < 0.7
     visibility[np.arange(frames), rng.integers(0, len(seen), frames)] = True
@@ -163,9 +222,8 @@ def probe_motion(real_spec, obj, hidden: dict, rng, frames: int, validation: int
         start, length = int(rng.integers(1, frames - 4)), int(rng.integers(4, 11))
         valid[start:start + length, j] = False
     ctl = controls + rng.normal(0.0, 0.5 * TRACK_NOISE, controls.shape)
-    data = SysIdData(particles, observed, visibility, tracked_idx, tracked, valid, ctl, fps=30.0,
-                     validation_frames=validation, name=obj.name)
-    return data, xs
+    return SysIdData(particles, observed, visibility, tracked_idx, tracked, valid, ctl, fps=30.0,
+                     validation_frames=validation, name=name, **tool)
 
 
 def make_evidence(real: Path, out: Path, seed: int = 0, size: str = "small") -> Path:
@@ -215,16 +273,20 @@ def make_evidence(real: Path, out: Path, seed: int = 0, size: str = "small") -> 
         iio.imwrite(out / "real" / f"{name}.png", rgb if resp is None else resp.apply(rgb, rng))
 
     frames, validation = study_size(size).motion_frames
-    motion = {}
+    motion, push = {}, {}
     for o in spec.objects:
         data, _ = probe_motion(spec, o, hidden, rng, frames, validation)
         save_sysid_data(data, out / "motion" / o.name)
         motion[o.name] = f"motion/{o.name}"
+    for o in spec.objects if twin.robot.contact_links else ():  # after every probe: their draws unchanged
+        data, _ = push_motion(spec, twin.robot, o, hidden, rng, frames, validation)
+        save_sysid_data(data, out / "motion" / f"{o.name}-push")
+        push[o.name] = f"motion/{o.name}-push"
     index = {"task": hidden["task"], "size": size_name(size), "preset": preset_of(size),
              "urdf": spec.robot.urdf, "scan": "scan.ply", "boxes": "boxes.json",
              "calibration": "calibration.json", "real_images": "real",
              "objects": [o.name for o in spec.objects], "colliders": [c.name for c in spec.colliders],
-             "motion": motion}
+             "motion": motion, "push": push}
     write_json(out / "evidence.json", index)
     (out / "README.md").write_text(README.format(
         task=hidden["task"], size=index["size"], urdf=spec.robot.urdf, objects=", ".join(motion),
@@ -246,5 +308,7 @@ What a user has of the workcell, nothing more (`twinbench study reconstruct` reb
 - `motion/OBJECT/`: tracked motion of each object ({objects}) while a probe lifts one end, lowers it and
   drags it sideways: {frames} frames at 30 Hz (the last {validation} held out), in the sysid folder format
   (`twinbench sysid --data motion/OBJECT`).
+- `motion/OBJECT-push/`: the same while the robot's tool pushes the object along the table (the tool's
+  mesh and path as `tool_*` arrays: `twinbench sysid` fits its friction).
 - `evidence.json`: this list as data; the robot's URDF is `{urdf}`.
 """

@@ -6,13 +6,14 @@ study's ablation twins.
 The chain (each command printed as typed): `twinbench segment` (scan -> robot / background / objects),
 `twinbench align-robot` (scan frame -> robot base frame, Gaussians labelled with links), `twinbench
 align-color` (the scan's colours -> the real cameras' colours), `twinbench sysid` (each object's physics
-from its tracked motion; once with the fit, once at its initial guess), then one build config per variant
-and `twinbench twin build`. Between sysid and the build, the identified object (particles in the world
+from its tracked motion; once with the fit, once at its initial guess; with the fit, the tool's friction from
+a push recording, the object's other values held), then one build config per variant and `twinbench twin
+build`. Between sysid and the build, the identified object (particles in the world
 frame) is put in its own frame at the rest pose found by registering the task's object template to the
 segmented scan (`estimate_rest_pose`; colours tell a rope's marked end from its other end); the task's
 public definition supplies what the evidence does not hold: the object's outline and goal, the controller,
 the robot's control conventions (which link the actions command, the gripper: `ROBOT_CONVENTIONS`) and the
-tool's contact.
+tool's contact (its friction from the push recording in the fitted variants, when the evidence has one).
 
 Fixed colliders (rope-routing's clip, toy-packing's box: evidence.json `colliders`): segmented by their own
 crop box, aligned with the rest; the build config names each with the cell's mesh (written to
@@ -30,6 +31,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import shlex
+import shutil
 import subprocess
 import sys
 from collections.abc import Callable
@@ -213,6 +215,18 @@ def _collider_entry(cell, name: str, scanned_file: Path, work: Path, log) -> dic
     return entry
 
 
+def _tool_friction(run, push: Path, report: Path, out: Path, mesh_margin: float) -> float:
+    """`twinbench sysid` of a push recording: the tool's friction on a line of 16 values in [0, 1.5], the
+    object's global values held at its fit (`report`), the tool's contact distance the twin's."""
+    fitted = json.loads(report.read_text())["global_params"]
+    held = [a for k, v in fitted.items() if not k.startswith("tool_")
+            for a in (f"--initial.{k.replace('_', '-')}", str(v))]
+    run("sysid", "--data", push, "--out-dir", out, "--no-progress", "--no-guess", "--no-stage2",
+        "--no-stage3", "--cma.search", "tool_friction", "--cma.ranges", "tool_friction=0:1.5",
+        "--cma.budget", "16", "--mesh-margin", str(mesh_margin), *held)
+    return float(json.loads((out / "sysid_report.json").read_text())["global_params"]["tool_friction"])
+
+
 def reconstruct(evidence: Path, out: Path, variants=VARIANTS, log: Callable[[str], None] = print,
                 sysid_args: tuple[str, ...] = ()) -> dict[str, Path]:
     """Rebuild the workcell of EVIDENCE (made by `make_evidence`) into OUT/<variant>/ twin directories,
@@ -255,12 +269,22 @@ def reconstruct(evidence: Path, out: Path, variants=VARIANTS, log: Callable[[str
         for o in objects:
             run("sysid", "--data", evidence / index["motion"][o], "--out-dir", work / "sysid" / kind,
                 "--no-progress", *flags, *sysid_args)
+            # each object's report beside its object (the next object's run writes its own)
+            shutil.copy(work / "sysid" / kind / "sysid_report.json",
+                        work / "sysid" / kind / o / "report.json")
 
     # the task's public definition: object templates (shape, outline, goal), controller, robot conventions,
     # tool contact
     # the cell at the evidence's preset (evidence written before "preset" was recorded: its size's)
     cell = task_cell(index["task"], index["size"], preset=index.get("preset"))
     frame_dt = cell.sim.dt * cell.sim.substeps
+    tool = {kind: dataclasses.asdict(cell.robot.tool_contact) for kind in physics}
+    pushes = {o: index["push"][o] for o in objects if o in index.get("push", {})}
+    if "fitted" in physics and pushes:
+        fits = [_tool_friction(run, evidence / rel, work / "sysid" / "fitted" / o / "report.json",
+                               work / "sysid" / "push" / o, cell.sim.mesh_margin)
+                for o, rel in pushes.items()]
+        tool["fitted"]["friction"] = float(np.median(fits))
     write_json(work / "calibration.json", json.loads((evidence / index["calibration"]).read_text()))
     rest = {}
     for o in objects:
@@ -284,7 +308,7 @@ def reconstruct(evidence: Path, out: Path, variants=VARIANTS, log: Callable[[str
         cmap = "color/color_map.json" if _COLOR[v] else None
         config = {
             "name": f"{index['task']}-{v}",
-            "robot": robot_entry(cell.robot, cmap),
+            "robot": {**robot_entry(cell.robot, cmap), "tool_contact": tool[_PHYSICS[v]]},
             "background": {"gaussians": "aligned/aligned/background.ply", "color_map": cmap},
             "objects": [{"dir": f"objects/{_PHYSICS[v]}/{o}", "rest_pose": rest[o].tolist(),
                          "gaussians": f"aligned/aligned/{o}.ply", "color_map": cmap} for o in objects],
