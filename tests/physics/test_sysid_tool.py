@@ -4,6 +4,7 @@ validated and travel through the sysid directory and the command."""
 
 from __future__ import annotations
 
+import json
 from dataclasses import replace
 
 import numpy as np
@@ -97,3 +98,8 @@ def test_cli_fits_and_prints_the_tool_contact(pushed, tmp_path, capsys):
     assert rc == 0
     assert "tool contact: friction" in capsys.readouterr().err
     assert (tmp_path / "out" / "block" / "object.json").is_file()
+    rep = json.loads((tmp_path / "out" / "sysid_report.json").read_text())
+    assert rep["config"]["mesh_margin"] == 0.005 and "tool_friction" in rep["global_params"]
+    rc = cli_main(["sysid", "--data", str(tmp_path / "case"), "--out-dir", str(tmp_path / "out2"),
+                   "--no-progress", "--mesh-margin", "-0.01"])
+    assert rc == 2 and "--mesh-margin" in capsys.readouterr().err
