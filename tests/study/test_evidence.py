@@ -114,3 +114,12 @@ def test_push_recording_holds_the_tool_and_its_path_not_its_friction(made):
     assert np.linalg.norm(move[:, :2], axis=1).max() > 0.03 and np.abs(move[:, 2]).max() < 0.01
     friction = hidden["tool_contact"]["friction"]
     assert str(round(friction, 6)) not in (ev / "motion/tblock-push/sysid.json").read_text()
+
+
+def test_a_gripper_gets_no_push_recording(tmp_path):
+    # a gripper's fingers hold by friction under the latch's force: a push would not show what a grasp needs
+    real = make_real("rope-routing", 0, tmp_path / "REAL", "small")
+    ev = make_evidence(real, tmp_path / "EV", seed=0, size="small")
+    index = json.loads((ev / "evidence.json").read_text())
+    assert index["push"] == {} and not (ev / "motion/rope-push").exists()
+    assert not load_sysid_data(ev / "motion/rope").has_tool

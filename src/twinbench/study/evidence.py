@@ -16,9 +16,9 @@ EV/ holds (EV/README.md lists them for the user):
 - `motion/OBJECT/`: tracked motion of the object under a probe's interactions (lift, lower, drag) in the
   real workcell, in the sysid folder format (`twinbench.construct.sysid_io`): a coarse subset of its
   points as particles, subsampled noisy tracks with occlusion gaps, visibility-masked observed points;
-- `motion/OBJECT-push/`: the same, while the robot's tool (its contact links' meshes, e.g. push-T's pusher)
-  pushes the object along the table, in a direction that slides along the face it meets: the tool's path
-  is in the sysid folder too (`tool_*`), its friction is not;
+- `motion/OBJECT-push/` (a robot with a pushing tool, not a gripper: push-T's pusher): the same, while the
+  tool pushes the object along the table, in a direction that slides along the face it meets: the tool's
+  path is in the sysid folder too (`tool_*`), its friction is not;
 - `evidence.json`: the index of the above (task, size, robot URDF, object names, files).
 """
 
@@ -278,7 +278,10 @@ def make_evidence(real: Path, out: Path, seed: int = 0, size: str = "small") -> 
         data, _ = probe_motion(spec, o, hidden, rng, frames, validation)
         save_sysid_data(data, out / "motion" / o.name)
         motion[o.name] = f"motion/{o.name}"
-    for o in spec.objects if twin.robot.contact_links else ():  # after every probe: their draws unchanged
+    # a pushing tool's push (a gripper's fingers hold by friction under the latch's normal force: a push
+    # would not show the friction a grasp needs); after every probe, so their random draws are unchanged
+    pusher = twin.robot.contact_links and twin.robot.gripper_joint is None
+    for o in spec.objects if pusher else ():
         data, _ = push_motion(spec, twin.robot, o, hidden, rng, frames, validation)
         save_sysid_data(data, out / "motion" / f"{o.name}-push")
         push[o.name] = f"motion/{o.name}-push"
