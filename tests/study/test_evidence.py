@@ -122,4 +122,5 @@ def test_a_gripper_gets_no_push_recording(tmp_path):
     ev = make_evidence(real, tmp_path / "EV", seed=0, size="small")
     index = json.loads((ev / "evidence.json").read_text())
     assert index["push"] == {} and not (ev / "motion/rope-push").exists()
+    assert "OBJECT-push" not in (ev / "README.md").read_text()
     assert not load_sysid_data(ev / "motion/rope").has_tool

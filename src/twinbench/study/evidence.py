@@ -293,9 +293,15 @@ def make_evidence(real: Path, out: Path, seed: int = 0, size: str = "small") -> 
     write_json(out / "evidence.json", index)
     (out / "README.md").write_text(README.format(
         task=hidden["task"], size=index["size"], urdf=spec.robot.urdf, objects=", ".join(motion),
+        push=PUSH_README if push else "",
         frames=frames, colliders=", ".join(index["colliders"]) or "none", validation=validation))
     return out
 
+
+PUSH_README = (
+    "- `motion/OBJECT-push/`: the same while the robot's tool pushes the object along the table (the tool's\n"
+    "  mesh and path as `tool_*` arrays: `twinbench sysid` fits its friction).\n"
+)
 
 README = """# Evidence of a {task} workcell ({size})
 
@@ -311,7 +317,5 @@ What a user has of the workcell, nothing more (`twinbench study reconstruct` reb
 - `motion/OBJECT/`: tracked motion of each object ({objects}) while a probe lifts one end, lowers it and
   drags it sideways: {frames} frames at 30 Hz (the last {validation} held out), in the sysid folder format
   (`twinbench sysid --data motion/OBJECT`).
-- `motion/OBJECT-push/`: the same while the robot's tool pushes the object along the table (the tool's
-  mesh and path as `tool_*` arrays: `twinbench sysid` fits its friction).
-- `evidence.json`: this list as data; the robot's URDF is `{urdf}`.
+{push}- `evidence.json`: this list as data; the robot's URDF is `{urdf}`.
 """
