@@ -69,3 +69,15 @@ def test_fit_rigid_transform_recovers_a_known_pose():
     truth[:3, 3] = [0.3, -0.2, 0.05]
     dst = src @ truth[:3, :3].T + truth[:3, 3]
     np.testing.assert_allclose(fit_rigid_transform(src, dst), truth, atol=1e-12)
+
+
+def test_transform_points_with_a_pose_per_frame():
+    from twinbench.transforms import planar_pose, transform_points
+
+    poses = np.stack([planar_pose(0.1 * k, -0.2, 0.3 * k) for k in range(4)])
+    pts = np.array([[1.0, 0.0, 0.3], [0.0, 2.0, -1.0]])
+    out = transform_points(poses, pts)
+    assert out.shape == (4, 2, 3)
+    for k in range(4):  # each frame as the single-pose form gives it
+        np.testing.assert_array_equal(out[k], transform_points(poses[k], pts))
+    np.testing.assert_allclose(out[2, 0], [0.2 + np.cos(0.6), -0.2 + np.sin(0.6), 0.3], atol=1e-12)

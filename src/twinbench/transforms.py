@@ -192,9 +192,10 @@ def planar_pose(x: float, y: float, theta: float) -> np.ndarray:
 
 
 def transform_points(pose: np.ndarray, points: np.ndarray) -> np.ndarray:
-    """Apply a 4x4 rigid transform to (N, 3) points."""
+    """Apply a 4x4 rigid transform to (N, 3) points; with poses (..., 4, 4), each of them -> (..., N, 3)."""
     pose = np.asarray(pose, dtype=np.float64)
-    return np.asarray(points, dtype=np.float64) @ pose[:3, :3].T + pose[:3, 3]
+    rot_t = np.swapaxes(pose[..., :3, :3], -1, -2)
+    return np.asarray(points, dtype=np.float64) @ rot_t + pose[..., None, :3, 3]
 
 
 def fit_rigid_transform(src: np.ndarray, dst: np.ndarray) -> np.ndarray:

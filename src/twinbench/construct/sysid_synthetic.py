@@ -12,6 +12,7 @@ from twinbench.physics.model import ModelBuilder, lattice
 from twinbench.physics.params import SimParams
 from twinbench.physics.sysid import GlobalParams, rollout
 from twinbench.physics.sysid_data import SysIdData
+from twinbench.transforms import transform_points
 
 
 def simulated_tracks(model, controls: np.ndarray, frames: int, rng: np.random.Generator, noise: float,
@@ -174,7 +175,7 @@ def pushed_block_case(*, tool_friction: float = 0.5, ground_friction: float = 0.
                          ground_friction=ground_friction, drag_damping=1.0, dashpot_damping=50.0,
                          tool_friction=tool_friction, tool_restitution=0.0)
     base = SimParams(dt=1.0 / (30.0 * substeps), substeps=substeps)
-    tool = np.einsum("fij,vj->fvi", poses[:, :3, :3], box.vertices) + poses[:, None, :3, 3]
+    tool = transform_points(poses, box.vertices)
     b = ModelBuilder(truth.sim_params(base))
     b.add_body(pts, radius=truth.spring_radius, max_neighbors=truth.spring_max_neighbors,
                spring_Y=truth.spring_Y)

@@ -48,6 +48,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from twinbench.errors import InputError
+from twinbench.transforms import transform_points
 
 MIN_SPRING_LENGTH = 1e-4  # as the builder's radius rule: shorter springs make a 0/0 strain
 REQUIRED_ARRAYS = ("particles", "observed", "visibility", "tracked_indices", "tracked", "motion_valid",
@@ -279,8 +280,7 @@ class SysIdData:
         """The tool's vertices in the world frame per frame, (F, V, 3); None without a tool."""
         if self.tool_vertices is None:
             return None
-        v = self.tool_vertices
-        return np.einsum("fij,vj->fvi", self.tool_poses[:, :3, :3], v) + self.tool_poses[:, None, :3, 3]
+        return transform_points(self.tool_poses, self.tool_vertices)
 
     @property
     def train_frames(self) -> range:

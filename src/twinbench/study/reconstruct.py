@@ -173,12 +173,12 @@ def _place_object(identified: Path, template, rest_pose: np.ndarray, sim_over: d
 MIN_COLLIDER_GAUSSIANS = 50  # fewer scanned Gaussians of a fixed collider: the cell's declared pose
 
 
-def robot_entry(robot, color_map: str | None) -> dict:
-    """The build config's robot: the aligned scan, the colour map, and the cell's `ROBOT_CONVENTIONS` and
-    tool contact."""
+def robot_entry(robot, color_map: str | None, tool_contact: dict | None = None) -> dict:
+    """The build config's robot: the aligned scan, the colour map, the cell's `ROBOT_CONVENTIONS`, and
+    `tool_contact` (default: the cell's)."""
     conventions = json.loads(json.dumps({k: getattr(robot, k) for k in ROBOT_CONVENTIONS}))  # tuples: lists
     return {"aligned": "aligned", "color_map": color_map, **conventions,
-            "tool_contact": dataclasses.asdict(robot.tool_contact)}
+            "tool_contact": tool_contact or dataclasses.asdict(robot.tool_contact)}
 
 
 def _collider_entry(cell, name: str, scanned_file: Path, work: Path, log) -> dict:
@@ -308,7 +308,7 @@ def reconstruct(evidence: Path, out: Path, variants=VARIANTS, log: Callable[[str
         cmap = "color/color_map.json" if _COLOR[v] else None
         config = {
             "name": f"{index['task']}-{v}",
-            "robot": {**robot_entry(cell.robot, cmap), "tool_contact": tool[_PHYSICS[v]]},
+            "robot": robot_entry(cell.robot, cmap, tool[_PHYSICS[v]]),
             "background": {"gaussians": "aligned/aligned/background.ply", "color_map": cmap},
             "objects": [{"dir": f"objects/{_PHYSICS[v]}/{o}", "rest_pose": rest[o].tolist(),
                          "gaussians": f"aligned/aligned/{o}.ply", "color_map": cmap} for o in objects],
