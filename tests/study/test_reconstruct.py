@@ -15,7 +15,7 @@ import pytest
 from twinbench.gaussians.colormap import map_colors
 from twinbench.gaussians.response import CameraResponse
 from twinbench.study.real import task_cell
-from twinbench.study.reconstruct import VARIANTS, estimate_rest_pose
+from twinbench.study.reconstruct import VARIANTS, adopt_tool_fit, estimate_rest_pose
 from twinbench.transforms import invert_pose, planar_pose, rotation_angle, transform_points
 from twinbench.twin.cells import push_t_cell
 
@@ -38,6 +38,27 @@ def test_estimate_rest_pose_known_answer():
     pose = estimate_rest_pose(np.concatenate([seen, floaters]), template)
     assert np.linalg.norm(pose[:2, 3] - truth[:2, 3]) < 0.002
     assert np.degrees(rotation_angle(pose[:3, :3], truth[:3, :3])) < 1.0
+
+
+def _push_report(fitted: float, initial: tuple, final: tuple) -> dict:
+    stage = {}
+    for name, (train, val) in (("initial", initial), ("final", final)):
+        stage[name] = {"train_loss": 1e-4, "train_error_m": train, "val_error_m": val, "diverged": False}
+    return {"global_params": {"tool_friction": fitted}, "evaluations": stage}
+
+
+def test_tool_friction_is_adopted_only_where_it_tracks_the_push_better():
+    # the two push-T medium workcells' push fits (seed 0: better on both; seed 1: a lower loss, but the
+    # tracked points drift further, on the held-out frames twice as far)
+    seed0 = adopt_tool_fit(_push_report(0.64, (7.65e-3, 11.67e-3), (3.66e-3, 4.45e-3)), 0.3)
+    assert seed0["adopted"] and seed0["chosen"] == 0.64 and "3.66 against 7.65 mm" in seed0["reason"]
+    seed1 = adopt_tool_fit(_push_report(0.86, (5.34e-3, 4.91e-3), (5.58e-3, 9.71e-3)), 0.3)
+    assert not seed1["adopted"] and seed1["chosen"] == 0.3 and seed1["fitted"] == 0.86
+    # better on the fitted frames only, or on the held-out ones only: not adopted
+    assert not adopt_tool_fit(_push_report(0.5, (5e-3, 5e-3), (4e-3, 6e-3)), 0.3)["adopted"]
+    assert not adopt_tool_fit(_push_report(0.5, (5e-3, 5e-3), (6e-3, 4e-3)), 0.3)["adopted"]
+    # no held-out frames (their error null in the report): the fitted frames decide
+    assert adopt_tool_fit(_push_report(0.5, (5e-3, None), (4e-3, None)), 0.3)["chosen"] == 0.5
 
 
 @pytest.mark.slow
@@ -110,9 +131,12 @@ def test_reconstruction_from_evidence_alone(tmp_path):
     assert np.allclose(specs["no-physics"].objects[0].spring_Y, 3e4)  # sysid's initial guess
     assert not np.allclose(specs["full"].objects[0].spring_Y, 3e4)
     # the tool's friction: fitted to the push recording in the fitted variants, the cell's in the others
+    # (adopted only where it tracks the push better than the cell's value)
     pushed = json.loads((work / "sysid/push/tblock/sysid_report.json").read_text())
     assert pushed["config"]["cma"]["search"] == ["tool_friction"]
-    assert specs["full"].robot.tool_contact.friction == pushed["global_params"]["tool_friction"]
+    choice = json.loads((work / "sysid/push/tblock/choice.json").read_text())
+    assert choice == adopt_tool_fit(pushed, task_cell("push-t", "small").robot.tool_contact.friction)
+    assert specs["full"].robot.tool_contact.friction == choice["chosen"]
     assert specs["no-color"].robot.tool_contact == specs["full"].robot.tool_contact
     cell_tool = task_cell("push-t", "small").robot.tool_contact
     assert specs["no-physics"].robot.tool_contact == specs["neither"].robot.tool_contact == cell_tool

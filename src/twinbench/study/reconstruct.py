@@ -7,7 +7,8 @@ The chain (each command printed as typed): `twinbench segment` (scan -> robot / 
 `twinbench align-robot` (scan frame -> robot base frame, Gaussians labelled with links), `twinbench
 align-color` (the scan's colours -> the real cameras' colours), `twinbench sysid` (each object's physics
 from its tracked motion; once with the fit, once at its initial guess; with the fit, the tool's friction from
-a push recording, the object's other values held), then one build config per variant and `twinbench twin
+a push recording, the object's other values held, adopted only where it tracks the push better than the
+task's value), then one build config per variant and `twinbench twin
 build`. Between sysid and the build, the identified object (particles in the world
 frame) is put in its own frame at the rest pose found by registering the task's object template to the
 segmented scan (`estimate_rest_pose`; colours tell a rope's marked end from its other end); the task's
@@ -215,16 +216,46 @@ def _collider_entry(cell, name: str, scanned_file: Path, work: Path, log) -> dic
     return entry
 
 
-def _tool_friction(run, push: Path, report: Path, out: Path, mesh_margin: float) -> float:
-    """`twinbench sysid` of a push recording: the tool's friction on a line of 16 values in [0, 1.5], the
-    object's global values held at its fit (`report`), the tool's contact distance the twin's."""
+def _tool_friction(run, push: Path, report: Path, out: Path, mesh_margin: float, prior: float,
+                   log: Callable[[str], None]) -> float:
+    """`twinbench sysid` of a push recording: the tool's friction on a line of 16 values in [0, 1.5] from
+    `prior` (the task's value), the object's global values held at its fit (`report`), the tool's contact
+    distance the twin's. The fitted value is adopted only when it tracks the push better than `prior` on
+    both the fitted and the held-out frames (`adopt_tool_fit`); else `prior` is kept. The choice is
+    written to OUT/choice.json and logged."""
+    from twinbench.construct._json import write_json
+
     fitted = json.loads(report.read_text())["global_params"]
     held = [a for k, v in fitted.items() if not k.startswith("tool_")
             for a in (f"--initial.{k.replace('_', '-')}", str(v))]
     run("sysid", "--data", push, "--out-dir", out, "--no-progress", "--no-guess", "--no-stage2",
         "--no-stage3", "--cma.search", "tool_friction", "--cma.ranges", "tool_friction=0:1.5",
-        "--cma.budget", "16", "--mesh-margin", str(mesh_margin), *held)
-    return float(json.loads((out / "sysid_report.json").read_text())["global_params"]["tool_friction"])
+        "--cma.budget", "16", "--mesh-margin", str(mesh_margin), "--initial.tool-friction", str(prior), *held)
+    result = json.loads((out / "sysid_report.json").read_text())
+    choice = adopt_tool_fit(result, prior)
+    write_json(out / "choice.json", choice)
+    log(f"# {push.name}: tool friction {choice['chosen']:.3g} ({choice['reason']})")
+    return choice["chosen"]
+
+
+def adopt_tool_fit(result: dict, prior: float) -> dict:
+    """Whether a tool-friction fit (a `twinbench sysid` report whose initial values hold `prior`) is adopted:
+    only when its tracking error is lower than the prior's on the fitted frames and on the held-out ones
+    (those the report has; a lower loss alone is not enough: the Chamfer term can fall while the tracked
+    points drift). Returns the record: chosen value, fitted value, both stages' errors (m), the reason."""
+    fit = float(result["global_params"]["tool_friction"])
+    ev = result["evaluations"]
+    errors = {stage: {"train_error_m": ev[stage]["train_error_m"], "val_error_m": ev[stage]["val_error_m"]}
+              for stage in ("initial", "final")}
+    a, b = errors["initial"], errors["final"]
+    known = [k for k in a if a[k] is not None and b[k] is not None]  # no held-out frames: fitted ones only
+    adopted = bool(known) and all(b[k] < a[k] for k in known)
+    span = ", ".join(f"{k.split('_')[0]} {1e3 * b[k]:.2f} against {1e3 * a[k]:.2f} mm" for k in known)
+    reason = (f"fitted {fit:.3g} adopted: it tracks the push better than {prior:.3g} ({span})" if adopted else
+              f"fitted {fit:.3g} not adopted: it does not track the push better than the task's "
+              f"{prior:.3g} on both the fitted and the held-out frames ({span})")
+    return {"chosen": fit if adopted else float(prior), "fitted": fit, "prior": float(prior),
+            "adopted": adopted, "errors_m": errors, "reason": reason}
 
 
 def reconstruct(evidence: Path, out: Path, variants=VARIANTS, log: Callable[[str], None] = print,
@@ -281,8 +312,9 @@ def reconstruct(evidence: Path, out: Path, variants=VARIANTS, log: Callable[[str
     tool = {kind: dataclasses.asdict(cell.robot.tool_contact) for kind in physics}
     pushes = {o: index["push"][o] for o in objects if o in index.get("push", {})}
     if "fitted" in physics and pushes:
+        prior = cell.robot.tool_contact.friction
         fits = [_tool_friction(run, evidence / rel, work / "sysid" / "fitted" / o / "report.json",
-                               work / "sysid" / "push" / o, cell.sim.mesh_margin)
+                               work / "sysid" / "push" / o, cell.sim.mesh_margin, prior, log)
                 for o, rel in pushes.items()]
         tool["fitted"]["friction"] = float(np.median(fits))
     write_json(work / "calibration.json", json.loads((evidence / index["calibration"]).read_text()))
