@@ -61,6 +61,28 @@ def test_tool_friction_is_adopted_only_where_it_tracks_the_push_better():
     assert adopt_tool_fit(_push_report(0.5, (5e-3, None), (4e-3, None)), 0.3)["chosen"] == 0.5
 
 
+def test_fit_summary_reports_each_objects_fit_and_the_tool_choice(tmp_path):
+    from twinbench.construct._json import write_json
+    from twinbench.study.reconstruct import fit_summary
+    from twinbench.study.report import _sysid_section
+
+    sysid = tmp_path / "construction" / "sysid"
+    report = _push_report(0.3, (9e-3, 12e-3), (4e-3, 5e-3))
+    write_json(sysid / "fitted" / "tblock" / "report.json",
+               {**report, "selection": {"kept": "stage3"}, "notes": ["stage 3 did not improve"]})
+    choice = adopt_tool_fit(_push_report(0.86, (5.34e-3, 4.91e-3), (5.58e-3, 9.71e-3)), 0.3)
+    write_json(sysid / "push" / "tblock" / "choice.json", choice)
+    write_json(sysid / "initial" / "tblock" / "report.json", report)  # the no-physics fit: not summarised
+    summary = fit_summary(tmp_path)
+    assert list(summary) == ["tblock"] and summary["tblock"]["kept"] == "stage3"
+    assert summary["tblock"]["final"] == {"train_error_m": 4e-3, "val_error_m": 5e-3}
+    assert summary["tblock"]["tool_friction"] == choice
+    page = _sysid_section({"sysid": summary})
+    assert "9.00 → 4.00" in page and "12.00 → 5.00" in page and "0.3 (fitted 0.86 not adopted" in page
+    assert "tblock: stage 3 did not improve" in page
+    assert fit_summary(tmp_path / "nothing") == {} and _sysid_section({"sysid": {}}) == ""
+
+
 @pytest.mark.slow
 @pytest.mark.timeout(1800)
 def test_reconstruction_from_evidence_alone(tmp_path):

@@ -231,11 +231,15 @@ def study_table(store: ResultsStore, variants) -> list[dict]:
 def write_study_json(out: Path, task: str, size: str | StudySize, variants, stages: dict[str, float],
                      extra: dict | None = None) -> dict:
     """DIR/study.json: the table (per variant r with interval, MMRV with interval, n policies, n episodes)
-    from the store, the per-stage wall times and the study's settings."""
+    from the store, the per-stage wall times, the study's settings and what the fits of DIR/twins reached
+    (`reconstruct.fit_summary`)."""
+    from twinbench.study.reconstruct import fit_summary
+
     store = ResultsStore(out / "results" / "results.sqlite")
     doc = {"task": task, "size": size_name(size),
            "settings": asdict(study_size(size)), "variants": study_table(store, variants),
-           "stage_seconds": {k: round(v, 1) for k, v in stages.items()}, **(extra or {})}
+           "stage_seconds": {k: round(v, 1) for k, v in stages.items()}, "sysid": fit_summary(out / "twins"),
+           **(extra or {})}
     text = json.dumps(doc, indent=1)
     (out / "study.json").write_text(text)
     return json.loads(text)  # as a reader of study.json sees it (lists, not tuples)

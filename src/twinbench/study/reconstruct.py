@@ -258,6 +258,26 @@ def adopt_tool_fit(result: dict, prior: float) -> dict:
             "adopted": adopted, "errors_m": errors, "reason": reason}
 
 
+def fit_summary(twins: Path) -> dict:
+    """What the reconstruction's fits reached (study.json's "sysid"), per object of TWINS/construction: the
+    fitted sysid's tracking error on its fitted and held-out frames at the initial guess and at the kept
+    stage, the kept stage and its notes, and the tool friction's choice where a push was fitted. Empty
+    when TWINS holds no fitted sysid."""
+    work = Path(twins) / "construction" / "sysid"
+    summary = {}
+    for path in sorted((work / "fitted").glob("*/report.json")):
+        report = json.loads(path.read_text())
+        ev = report["evaluations"]
+        record = {stage: {k: ev[stage][k] for k in ("train_error_m", "val_error_m")}
+                  for stage in ("initial", "final")}
+        record.update(kept=report.get("selection", {}).get("kept"), notes=report.get("notes", []))
+        choice = work / "push" / path.parent.name / "choice.json"
+        if choice.is_file():
+            record["tool_friction"] = json.loads(choice.read_text())
+        summary[path.parent.name] = record
+    return summary
+
+
 def reconstruct(evidence: Path, out: Path, variants=VARIANTS, log: Callable[[str], None] = print,
                 sysid_args: tuple[str, ...] = ()) -> dict[str, Path]:
     """Rebuild the workcell of EVIDENCE (made by `make_evidence`) into OUT/<variant>/ twin directories,

@@ -1,5 +1,6 @@
 """The study page (DIR/report.html): the table (Pearson r and MMRV with intervals per variant), a sim-vs-real
-scatter per variant, example frame pairs real | twin (the front camera at the first grid state, as each
+scatter per variant, what the fitted twins' system identification reached (tracking errors, the tool
+friction's choice), example frame pairs real | twin (the front camera at the first grid state, as each
 env renders it, camera response included), stage times; and the evaluation report of each variant
 (`evaluation.report.write_report` of run `twin-<variant>` against the real rollouts) linked from it."""
 
@@ -57,6 +58,28 @@ def _training_section(doc: dict) -> str:
     return "<h2>Behaviour-cloned checkpoints</h2>" + _table(
         ["checkpoint", "architecture", "demos", "frames", "epochs", "final training loss", "training s",
          "success real", *(f"success {_e(v)}" for v in variants)], rows)
+
+
+def _sysid_section(doc: dict) -> str:
+    """What the fitted twins' system identification reached: where the pipeline loses what it measures."""
+    rows, notes = [], []
+
+    def mm(x) -> str:
+        return "–" if x is None else f"{1e3 * x:.2f}"
+
+    for name, r in doc.get("sysid", {}).items():
+        a, b = r["initial"], r["final"]
+        tool = r.get("tool_friction")
+        rows.append([_e(name), f"{mm(a['train_error_m'])} → {mm(b['train_error_m'])}",
+                     f"{mm(a['val_error_m'])} → {mm(b['val_error_m'])}", _e(str(r.get("kept"))),
+                     "–" if tool is None else _e(f"{tool['chosen']:.3g} ({tool['reason']})")])
+        notes += [f"{name}: {n}" for n in r.get("notes", [])]
+    if not rows:
+        return ""
+    return "<h2>System identification of the fitted twins</h2>" + _table(
+        ["object", "tracking error, fitted frames (mm): initial → fit", "held-out frames (mm)", "kept stage",
+         "tool friction"], rows) + "".join(_note(n) for n in notes) + _note(
+        "From each object's recorded motion (the evidence): the no-physics twins keep the initial guess.")
 
 
 def _scatter_section(doc: dict) -> str:
@@ -134,6 +157,7 @@ def write_study_report(out: Path, doc: dict, frames: bool = True,
             _table_section(doc), _scatter_section(doc)]
     if doc.get("training"):
         body.append(_training_section(doc))
+    body.append(_sysid_section(doc))
     if frames and (out / "real" / "world").is_dir() and all(p.is_dir() for p in twins.values()):
         body.append(_frames_section(doc["task"], out / "real" / "world", twins))
     body.append(f"<h2>Stage wall times</h2><table><tbody>{stages}</tbody></table>")
