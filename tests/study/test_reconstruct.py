@@ -156,8 +156,10 @@ def test_reconstruction_from_evidence_alone(tmp_path):
     # (adopted only where it tracks the push better than the cell's value)
     pushed = json.loads((work / "sysid/push/tblock/sysid_report.json").read_text())
     assert pushed["config"]["cma"]["search"] == ["tool_friction"]
+    prior = task_cell("push-t", "small").robot.tool_contact.friction
+    assert pushed["config"]["initial"]["tool_friction"] == prior  # the comparison's start: the cell's value
     choice = json.loads((work / "sysid/push/tblock/choice.json").read_text())
-    assert choice == adopt_tool_fit(pushed, task_cell("push-t", "small").robot.tool_contact.friction)
+    assert choice == adopt_tool_fit(pushed, prior)
     assert specs["full"].robot.tool_contact.friction == choice["chosen"]
     assert specs["no-color"].robot.tool_contact == specs["full"].robot.tool_contact
     cell_tool = task_cell("push-t", "small").robot.tool_contact

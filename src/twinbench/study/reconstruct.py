@@ -238,15 +238,21 @@ def _tool_friction(run, push: Path, report: Path, out: Path, mesh_margin: float,
     return choice["chosen"]
 
 
+def tracking_errors(report: dict) -> dict:
+    """A `twinbench sysid` report's tracking errors (m) on its fitted and held-out frames, at the initial
+    values and at the kept stage: {"initial" | "final": {"train_error_m", "val_error_m"}}."""
+    ev = report["evaluations"]
+    return {stage: {k: ev[stage][k] for k in ("train_error_m", "val_error_m")}
+            for stage in ("initial", "final")}
+
+
 def adopt_tool_fit(result: dict, prior: float) -> dict:
     """Whether a tool-friction fit (a `twinbench sysid` report whose initial values hold `prior`) is adopted:
     only when its tracking error is lower than the prior's on the fitted frames and on the held-out ones
     (those the report has; a lower loss alone is not enough: the Chamfer term can fall while the tracked
     points drift). Returns the record: chosen value, fitted value, both stages' errors (m), the reason."""
     fit = float(result["global_params"]["tool_friction"])
-    ev = result["evaluations"]
-    errors = {stage: {"train_error_m": ev[stage]["train_error_m"], "val_error_m": ev[stage]["val_error_m"]}
-              for stage in ("initial", "final")}
+    errors = tracking_errors(result)
     a, b = errors["initial"], errors["final"]
     known = [k for k in a if a[k] is not None and b[k] is not None]  # no held-out frames: fitted ones only
     adopted = bool(known) and all(b[k] < a[k] for k in known)
@@ -267,10 +273,8 @@ def fit_summary(twins: Path) -> dict:
     summary = {}
     for path in sorted((work / "fitted").glob("*/report.json")):
         report = json.loads(path.read_text())
-        ev = report["evaluations"]
-        record = {stage: {k: ev[stage][k] for k in ("train_error_m", "val_error_m")}
-                  for stage in ("initial", "final")}
-        record.update(kept=report.get("selection", {}).get("kept"), notes=report.get("notes", []))
+        record = {**tracking_errors(report), "kept": report.get("selection", {}).get("kept"),
+                  "notes": report.get("notes", [])}
         choice = work / "push" / path.parent.name / "choice.json"
         if choice.is_file():
             record["tool_friction"] = json.loads(choice.read_text())

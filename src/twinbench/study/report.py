@@ -65,7 +65,7 @@ def _sysid_section(doc: dict) -> str:
     rows, notes = [], []
 
     def mm(x) -> str:
-        return "–" if x is None else f"{1e3 * x:.2f}"
+        return _num(None if x is None else 1e3 * x, ".2f")
 
     for name, r in doc.get("sysid", {}).items():
         a, b = r["initial"], r["final"]
