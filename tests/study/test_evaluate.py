@@ -35,6 +35,10 @@ def study(tmp_path) -> Path:
     run = E.replay_run_id("full")
     store.start_run_with_episodes(run, "push-t", {"task": "push-t"}, _records(run, "real", REAL_RATES)
                                   + _records(run, "replay", {p: [1, 1, 1, 1] for p in REAL_RATES}))
+    # the real workcell again (other seeds): a and b swap, c and d swap
+    again = {"a": [0, 0, 0, 1], "b": [0, 0, 0, 0], "c": [1, 1, 1, 1], "d": [1, 1, 1, 0]}
+    store.start_run_with_episodes(E.REAL_AGAIN, "push-t", {"task": "push-t"},
+                                  _records(E.REAL_AGAIN, "sim", again))
     # an errored episode is left out of the rates, never counted as a failure
     store.record_episode(EpisodeRecord(E.twin_run_id("full"), "push-t", "a", "a.json", None, 9, 9, "sim",
                                        True, "sim_error"))
@@ -56,6 +60,12 @@ def test_metrics_from_the_store(study):
     assert constant["mmrv"]["value"] == pytest.approx((0 + 0.25 + 0.75 + 1) / 4)
     assert full["replay"] == {"tp": 8, "fp": 8, "fn": 0, "tn": 0, "excluded": 0, "accuracy": 0.5}
     assert backwards["replay"] is None  # no replays in that twin
+    again = E.real_again_metrics(store)  # rates .25, 0, 1, .75 against 0, .25, .75, 1
+    assert again["variant"] == "real again" and again["n_episodes"] == {"sim": 16, "real": 16}
+    assert again["pearson"]["r"] == pytest.approx(0.8)
+    # two pairs flipped, each by 0.25 in real rate: every policy's worst violation is 0.25
+    assert again["mmrv"]["value"] == pytest.approx(0.25) and "replay" not in again
+    assert E.real_again_metrics(ResultsStore(study / "empty.sqlite")) is None
 
 
 def test_study_json_table_and_page(study):
@@ -73,7 +83,8 @@ def test_study_json_table_and_page(study):
     table = E.format_table(doc)
     assert "| push-t | full | 1.000 [1.00, 1.00] | 0.000 [0.000, " in table and "| 4 | 16 / 16 |" in table
     assert "| push-t | neither | undefined |" in table
-    assert "| 0.50 (8/8/0/0) |" in table and table.count("| - |") == 2
+    assert "| 0.50 (8/8/0/0) |" in table and table.count("| - |") == 3
+    assert table.splitlines()[-1].startswith("| push-t | real again | 0.800 [")  # the yardstick, last
 
     from twinbench.study.report import write_study_report
 
@@ -81,6 +92,7 @@ def test_study_json_table_and_page(study):
     text = page.read_text()
     assert "Sim vs real, per twin variant" in text and "0.875" in text and "stage" in text.lower()
     assert "0.50 (8 / 8 / 0 / 0)" in text
+    assert "<td>real again</td><td>0.800 [" in text and "evaluated a second time" in text
     # c: real 0.75, full 0.75 (the same outcomes), no-color 0.25 (b's, backwards), neither 1
     assert "Behaviour-cloned checkpoints" in text
     assert ("<td>c</td><td>cnn</td><td>8</td><td>1200</td><td>40</td><td>0.0123</td><td>61</td><td>0.75</td>"
@@ -90,7 +102,7 @@ def test_study_json_table_and_page(study):
     if Path(CHROMIUM).exists():
         res = check_page(page)
         assert res.errors == []
-        assert len(res.images) == 1 and res.images[0]["naturalWidth"] > 0
+        assert len(res.images) == 1 and res.images[0]["naturalWidth"] > 0  # the scatter, real again in it
 
 
 def test_bad_size_is_refused():

@@ -58,6 +58,11 @@ def test_tiny_study_end_to_end(tmp_path, monkeypatch):
     assert all(d["sim"] == d["real"] for d in perfect["policies"])
     assert perfect["replay"]["accuracy"] == 1.0 and perfect["replay"]["excluded"] == 0  # same world: exact
     assert np.isfinite(doc["variants"][1]["mmrv"]["value"])
+    # the real workcell again with every episode seed offset: the same episodes otherwise, in the table
+    again = store.episodes(E.REAL_AGAIN)
+    assert sorted((r.policy, r.init_state, r.seed) for r in again) == sorted(
+        (r.policy, r.init_state, r.seed + E.AGAIN_SEED) for r in real_eps)
+    assert doc["real_again"]["n_episodes"] == {"sim": 3, "real": 3}
 
     page = write_study_report(tmp_path, doc, twins=twins).read_text()
     assert "real | perfect" in page and "real | cell" in page

@@ -9,7 +9,9 @@ per twin, and one run `replay-<variant>` per twin: the real rollouts' actions re
 twin (domain "replay", next to the real outcome), whose confusion matrix says how often the twin, given
 exactly what the robot did, ends as the real episode did. A twin that differs from an earlier one only in
 appearance (`no-color` from `full`, `neither` from `no-physics`) takes that twin's replays (copied, the
-protocol naming the source): a replay renders no camera.
+protocol naming the source): a replay renders no camera. Run `real-again`: the real workcell evaluated a
+second time, every episode seed offset by AGAIN_SEED, scored against the first as a twin is (study.json's
+`real_again`): the r and MMRV that sampling noise alone leaves at this number of episodes.
 """
 
 from __future__ import annotations
@@ -29,6 +31,9 @@ from twinbench.study.sizes import SIZES, StudySize, size_name, study_size  # noq
 from twinbench.twin.files import load_twin, twin_physics_hash
 
 REAL_ROLLOUTS, REAL = "real-rollouts", "real"
+# the real workcell evaluated again, every episode seed offset by AGAIN_SEED (the real rollouts use 0):
+# rates that differ from the first evaluation's only by sampling (policy and sensor noise)
+REAL_AGAIN, AGAIN_SEED = "real-again", 1000
 
 
 def episodes_arg(size: StudySize) -> str:
@@ -99,16 +104,21 @@ def _real_records(store: ResultsStore, task: str, recs) -> None:
 def run_evaluations(task: str, real_world: Path, twins: dict[str, Path], policies: list[str], out: Path,
                     size: str | StudySize = "small", workers: int = 1, log=print,
                     retry_errors: bool = False) -> dict[str, float]:
-    """Every policy on the real workcell and on each twin (resumable: the runner skips finished episodes,
-    and those that ended in an error unless `retry_errors`). Returns the wall time (s) of each evaluation."""
+    """Every policy on the real workcell (a second time with other episode seeds where the size's
+    `real_again`) and on each twin (resumable: the runner skips finished episodes, and those that ended in
+    an error unless `retry_errors`), then the real rollouts replayed in each twin. Returns the wall time (s)
+    of each evaluation."""
     sz = study_size(size)
     store = ResultsStore(out / "results" / "results.sqlite")
     times = {}
-    for run_id, world in ((REAL_ROLLOUTS, real_world), *((twin_run_id(v), p) for v, p in twins.items())):
+    runs = [(REAL_ROLLOUTS, real_world), *([(REAL_AGAIN, real_world)] if sz.real_again else []),
+            *((twin_run_id(v), p) for v, p in twins.items())]
+    for run_id, world in runs:
         t0 = time.perf_counter()
         recs = evaluate(task, policies, episodes=episodes_arg(sz), workers=workers, run_id=run_id,
                         store=store, env_kwargs=env_kwargs(world, sz), output_dir=out / "results", log=log,
-                        record_actions=run_id == REAL_ROLLOUTS, retry_errors=retry_errors)
+                        record_actions=run_id == REAL_ROLLOUTS, retry_errors=retry_errors,
+                        seed=AGAIN_SEED if run_id == REAL_AGAIN else 0)
         times[run_id] = time.perf_counter() - t0
         bad = [r for r in recs if r.status != "ok"]
         log(f"{run_id}: {sum(r.success for r in recs)}/{len(recs)} successes, {len(bad)} errors, "
@@ -193,9 +203,27 @@ def _outcomes(store: ResultsStore, run_id: str, domain: str) -> dict[tuple[str, 
 
 def variant_metrics(store: ResultsStore, variant: str) -> dict:
     """Per-policy success rates in the twin `variant` and in the real workcell, Pearson r (Fisher-z
-    interval) and MMRV (bootstrap interval) over the policies both have, from the store."""
-    sim = _outcomes(store, twin_run_id(variant), "sim")
-    real = _outcomes(store, REAL, "real")
+    interval) and MMRV (bootstrap interval) over the policies both have, from the store; and the replays'
+    confusion matrix."""
+    row = _agreement(variant, _outcomes(store, twin_run_id(variant), "sim"), _outcomes(store, REAL, "real"))
+    from twinbench.evaluation.replay import replay_confusion
+
+    c = replay_confusion(store, replay_run_id(variant), by="task")
+    c = next(iter(c.values()), None)
+    row["replay"] = None if c is None or not c.n else {
+        "tp": c.tp, "fp": c.fp, "fn": c.fn, "tn": c.tn, "excluded": c.excluded, "accuracy": c.accuracy}
+    return row
+
+
+def real_again_metrics(store: ResultsStore) -> dict | None:
+    """The second real evaluation (`REAL_AGAIN`) against the first, as `variant_metrics` scores a twin (no
+    replays); None when the store has none. A twin that matched the real workcell's success rates exactly
+    would score about this, given the episodes' sampling noise: at few episodes per policy, r well below 1."""
+    again = _outcomes(store, REAL_AGAIN, "sim")
+    return _agreement("real again", again, _outcomes(store, REAL, "real")) if again else None
+
+
+def _agreement(variant: str, sim: dict, real: dict) -> dict:
     keys = sorted(set(sim) & set(real))
     row: dict = {"variant": variant, "n_policies": len(keys),
                  "n_episodes": {"sim": sum(len(sim[k]) for k in keys),
@@ -215,12 +243,6 @@ def variant_metrics(store: ResultsStore, variant: str) -> dict:
         row["mmrv"] = {"value": est.value, "low": est.low, "high": est.high}
     else:
         row["mmrv"] = {"value": None, "low": None, "high": None}
-    from twinbench.evaluation.replay import replay_confusion
-
-    c = replay_confusion(store, replay_run_id(variant), by="task")
-    c = next(iter(c.values()), None)
-    row["replay"] = None if c is None or not c.n else {
-        "tp": c.tp, "fp": c.fp, "fn": c.fn, "tn": c.tn, "excluded": c.excluded, "accuracy": c.accuracy}
     return row
 
 
@@ -231,13 +253,15 @@ def study_table(store: ResultsStore, variants) -> list[dict]:
 def write_study_json(out: Path, task: str, size: str | StudySize, variants, stages: dict[str, float],
                      extra: dict | None = None) -> dict:
     """DIR/study.json: the table (per variant r with interval, MMRV with interval, n policies, n episodes)
-    from the store, the per-stage wall times, the study's settings and what the fits of DIR/twins reached
+    from the store, the same for a second real evaluation (`real_again`, null without one), the per-stage
+    wall times, the study's settings and what the fits of DIR/twins reached
     (`reconstruct.fit_summary`)."""
     from twinbench.study.reconstruct import fit_summary
 
     store = ResultsStore(out / "results" / "results.sqlite")
     doc = {"task": task, "size": size_name(size),
            "settings": asdict(study_size(size)), "variants": study_table(store, variants),
+           "real_again": real_again_metrics(store),
            "stage_seconds": {k: round(v, 1) for k, v in stages.items()}, "sysid": fit_summary(out / "twins"),
            **(extra or {})}
     text = json.dumps(doc, indent=1)
@@ -263,11 +287,16 @@ def training_records(policies: list[str]) -> list[dict]:
     return out
 
 
+def table_rows(doc: dict) -> list[dict]:
+    """study.json's rows in table order: the twin variants, then the second real evaluation if any."""
+    return [*doc["variants"], *([doc["real_again"]] if doc.get("real_again") else [])]
+
+
 def format_table(doc: dict) -> str:
-    """The study table as Markdown (the README's form)."""
+    """The study table as Markdown (the README's form); the second real evaluation, if any, last."""
     lines = ["| task | variant | Pearson r [95% CI] | MMRV [95% CI] | policies | episodes (sim / real) | "
              "replay agrees (TP/FP/FN/TN) |", "|---|---|---|---|---|---|---|"]
-    for row in doc["variants"]:
+    for row in table_rows(doc):
         p, m = row["pearson"], row["mmrv"]
         r = "undefined" if p["r"] is None else f"{p['r']:.3f} [{p['low']:.2f}, {p['high']:.2f}]"
         mm = "-" if m["value"] is None else f"{m['value']:.3f} [{m['low']:.3f}, {m['high']:.3f}]"

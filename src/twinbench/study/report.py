@@ -21,24 +21,30 @@ def _num(x, fmt: str = ".3f") -> str:
 
 
 def _table_section(doc: dict) -> str:
+    from twinbench.study.evaluate import table_rows
+
     rows = []
-    for row in doc["variants"]:
+    for row in table_rows(doc):
         p, m = row["pearson"], row["mmrv"]
         r = (_e(p.get("why", "undefined")) if p["r"] is None
              else f"{p['r']:.3f} [{_num(p['low'], '.2f')}, {_num(p['high'], '.2f')}]")
         mm = "–" if m["value"] is None else f"{m['value']:.3f} [{m['low']:.3f}, {m['high']:.3f}]"
         rp = row.get("replay")
         rep = "–" if not rp else f"{rp['accuracy']:.2f} ({rp['tp']} / {rp['fp']} / {rp['fn']} / {rp['tn']})"
+        link = ("" if row is doc.get("real_again")
+                else f'<a href="reports/{_e(row["variant"])}.html">report</a>')
         rows.append([_e(row["variant"]), r, mm, str(row["n_policies"]),
-                     f"{row['n_episodes']['sim']} / {row['n_episodes']['real']}", rep,
-                     f'<a href="reports/{_e(row["variant"])}.html">report</a>'])
+                     f"{row['n_episodes']['sim']} / {row['n_episodes']['real']}", rep, link])
     return ("<h2>Sim vs real, per twin variant</h2>" + _table(
         ["variant", "Pearson r [95% CI]", "MMRV [95% bootstrap CI]", "policies", "episodes sim / real",
          "replay agrees (TP / FP / FN / TN)", ""],
         rows) + _note("r: Fisher-z interval over the policies' success rates; MMRV: mean maximum rank "
                       "violation, 0 = the twin ranks the policies as the real workcell does. Replay: the "
                       "real rollouts' actions replayed open loop in the twin; the share whose outcome "
-                      "matches the real one, and the confusion matrix (positive = success)."))
+                      "matches the real one, and the confusion matrix (positive = success)."
+                      + (" Real again: the real workcell evaluated a second time with other episode seeds "
+                         "against the first, what a twin with exactly the real success rates would score "
+                         "at this number of episodes." if doc.get("real_again") else "")))
 
 
 def _training_section(doc: dict) -> str:
@@ -85,7 +91,9 @@ def _sysid_section(doc: dict) -> str:
 def _scatter_section(doc: dict) -> str:
     import matplotlib.pyplot as plt
 
-    rows = doc["variants"]
+    from twinbench.study.evaluate import table_rows
+
+    rows = table_rows(doc)
     if not rows:
         return ""
     fig, axes = plt.subplots(1, len(rows), figsize=(3.2 * len(rows), 3.2), squeeze=False)
@@ -102,7 +110,7 @@ def _scatter_section(doc: dict) -> str:
         ax.set_title(f"{row['variant']}  r={_num(r, '.2f')}  MMRV={mm}", fontsize=9)
         ax.set_xlim(-0.05, 1.05)
         ax.set_ylim(-0.05, 1.05)
-        ax.set_xlabel("twin success rate")
+        ax.set_xlabel("second real evaluation" if row is doc.get("real_again") else "twin success rate")
         ax.set_ylabel("real success rate")
     fig.tight_layout()
     return "<h2>Success rates, twin vs real</h2>" + _fig_html(fig, "sim vs real scatter per variant")

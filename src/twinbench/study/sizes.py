@@ -10,13 +10,16 @@ from twinbench.errors import InputError
 @dataclass(frozen=True)
 class StudySize:
     """Grid states evaluated (None: all), episode length (None: the task's), colour-calibration images, the
-    built-in cell the real workcell derives from, and (frames, validation frames) of each probe's motion."""
+    built-in cell the real workcell derives from, (frames, validation frames) of each probe's motion, and
+    whether the real workcell is evaluated a second time with other episode seeds (`real_again`: how well
+    one real evaluation predicts another of the same size, the yardstick for the twins' r and MMRV)."""
 
     states: tuple[int, ...] | None
     episode_seconds: float | None
     calibration_images: int
     preset: str = "fast"
     motion_frames: tuple[int, int] = (45, 10)
+    real_again: bool = True
 
 
 SIZES = {
