@@ -36,7 +36,7 @@ def test_tiny_study_end_to_end(tmp_path, monkeypatch):
     cell = get_task("push-t").task_cls().default_twin("fast")
     save_twin(cell, tmp_path / "twins" / "cell")
     twins = {"perfect": real / "world", "cell": tmp_path / "twins" / "cell"}
-    tiny = E.StudySize((0,), 3.0, 2)
+    tiny = E.StudySize((0,), 3.0, 2, real_again=True)
     monkeypatch.setattr(spec_module, "POLICY_KINDS", dict(spec_module.POLICY_KINDS))  # evaluate adds perceive
     policies = E.make_policies("push-t", real / "world", tmp_path / "policies", tiny, None,
                                names=("p0-clean", "p5-noise4cm", "p7-noise8cm"))
