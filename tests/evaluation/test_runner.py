@@ -96,6 +96,7 @@ def test_error_statuses(tmp_path):
     nan = evaluate("point-reach", ["expert"], 2, 0, "nan", store,
                    env_kwargs={"fail_mode": "nan", "fail_step": 4}, output_dir=tmp_path)
     assert [(r.status, r.success, r.steps) for r in nan] == [("sim_error", False, 4)] * 2
+    assert all("at step 4: point_reach: position [nan nan] is not finite" in r.metrics["error"] for r in nan)
     raised = evaluate("point-reach", ["expert"], 1, 0, "raise", store,
                       env_kwargs={"fail_mode": "raise", "fail_step": 2}, output_dir=tmp_path)
     assert raised[0].status == "sim_error" and "SimulationDiverged" in raised[0].metrics["error"]

@@ -194,8 +194,10 @@ class _Rollout:
         self.steps += 1
         self.rewards.append(float(reward))
         env_status = self.info.get("status", "ok")
-        if env_status != "ok":
-            self._end("sim_error", f"env status {env_status!r} at step {self.steps}")
+        if env_status != "ok":  # with the env's reason where it gives one (TwinEnv: what diverged, how)
+            why = self.info.get("error")
+            self._end("sim_error", f"env status {env_status!r} at step {self.steps}"
+                      + (f": {why}" if why else ""))
             return
         if not np.all(np.isfinite(np.asarray(self.obs["agent_pos"], dtype=np.float64))):
             self._end("sim_error", f"non-finite agent_pos at step {self.steps}")

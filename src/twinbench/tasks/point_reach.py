@@ -96,7 +96,8 @@ class PointReachEnv(gymnasium.Env):
                 os._exit(70)
             self._pos = np.full(2, np.nan)
         if not np.all(np.isfinite(self._pos)):
-            return self._obs(), 0.0, True, False, {"is_success": False, "status": "sim_error"}
+            why = f"point_reach: position {self._pos} is not finite"
+            return self._obs(), 0.0, True, False, {"is_success": False, "status": "sim_error", "error": why}
         dist = float(np.linalg.norm(self._pos - GOAL))
         self._hold = self._hold + 1 if dist < GOAL_RADIUS else 0
         success = self._hold >= HOLD_STEPS
