@@ -22,8 +22,8 @@ def _records(run_id: str, domain: str, rates: dict) -> list[EpisodeRecord]:
 
 @pytest.fixture
 def study(tmp_path) -> Path:
-    """A study folder whose store holds real outcomes and three twins: one that agrees (same outcomes), one
-    that ranks the policies backwards, one where every policy succeeds."""
+    """A study folder whose store holds real outcomes, three twins (one that agrees: the same outcomes, one
+    that ranks the policies backwards, one where every policy succeeds) and a second real evaluation."""
     store = ResultsStore(tmp_path / "results" / "results.sqlite")
     store.start_run_with_episodes(E.REAL, "push-t", {"task": "push-t"}, _records(E.REAL, "real", REAL_RATES))
     backwards = dict(zip(REAL_RATES, reversed(list(REAL_RATES.values())), strict=True))

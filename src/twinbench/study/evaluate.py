@@ -111,14 +111,13 @@ def run_evaluations(task: str, real_world: Path, twins: dict[str, Path], policie
     sz = study_size(size)
     store = ResultsStore(out / "results" / "results.sqlite")
     times = {}
-    runs = [(REAL_ROLLOUTS, real_world), *([(REAL_AGAIN, real_world)] if sz.real_again else []),
-            *((twin_run_id(v), p) for v, p in twins.items())]
-    for run_id, world in runs:
+    again = [(REAL_AGAIN, real_world, AGAIN_SEED)] if sz.real_again else []
+    runs = [(REAL_ROLLOUTS, real_world, 0), *again, *((twin_run_id(v), p, 0) for v, p in twins.items())]
+    for run_id, world, seed in runs:
         t0 = time.perf_counter()
         recs = evaluate(task, policies, episodes=episodes_arg(sz), workers=workers, run_id=run_id,
                         store=store, env_kwargs=env_kwargs(world, sz), output_dir=out / "results", log=log,
-                        record_actions=run_id == REAL_ROLLOUTS, retry_errors=retry_errors,
-                        seed=AGAIN_SEED if run_id == REAL_AGAIN else 0)
+                        record_actions=run_id == REAL_ROLLOUTS, retry_errors=retry_errors, seed=seed)
         times[run_id] = time.perf_counter() - t0
         bad = [r for r in recs if r.status != "ok"]
         log(f"{run_id}: {sum(r.success for r in recs)}/{len(recs)} successes, {len(bad)} errors, "
