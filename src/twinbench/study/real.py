@@ -8,7 +8,8 @@ Derived from the task's built-in cell (the size's preset: "fast" for "small" and
 - physics: the object has a finer particle layout than the cell's (model mismatch: no reconstruction can
   produce it), explicit springs whose stiffness varies over 3 spatial regions along the object's long
   axis (factors 0.3-3x the cell's), another total mass, ground friction / restitution, drag and dashpot
-  damping, tool (and collider) friction; substeps as many as its stiffest springs need;
+  damping, tool (and collider) friction, inelastic self contact; substeps as many as its stiffest springs
+  need;
 - appearance: each camera has a `CameraResponse` (colour matrix + offset, gamma, white balance,
   vignetting, sensor noise, slight blur), and the robot's Gaussians are finer than the cell's;
 - geometry: the cameras sit slightly off the cell's poses (known to a user only through calibration).
@@ -158,6 +159,11 @@ def make_real(task: str, seed: int, out: Path, size: str = "small") -> Path:
         ground_restitution=_uniform(rng, 0.0, 0.15),
         drag_damping=sim0.drag_damping * _uniform(rng, 0.5, 2.0),
         dashpot_damping=sim0.dashpot_damping * _uniform(rng, 0.5, 2.0),
+        # a soft body's contact with itself is inelastic; with the cells' PhysTwin default 0.7 (or even 0.3)
+        # the finer plush squeezed by the gripper buzzes (springs drive pinched pairs together at ~m/s a
+        # substep, each substep bounces them apart: particles at 2-5 m/s while held, and one real episode
+        # diverged). Not drawn, so the other draws of a seed are unchanged.
+        object_restitution=0.0,
     )
     # substeps: the cell's preset, times what the real object's stiffest springs and lighter particles need
     # more than the cell's object by the stability bound (the presets run below that conservative bound)
