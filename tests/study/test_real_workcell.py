@@ -83,7 +83,8 @@ def test_real_plush_held_by_the_gripper_stays_calm(tmp_path):
 
     spec = load_twin(make_real("toy-packing", 0, tmp_path / "REAL", "small") / "world")
     assert spec.sim.self_collision and spec.sim.object_restitution == 0.0
-    quat = np.array([0.0, 0.989, 0.149, 0.0]) / np.linalg.norm([0.0, 0.989, 0.149, 0.0])
+    quat = np.array([0.0, 0.989, 0.149, 0.0])
+    quat /= np.linalg.norm(quat)
 
     def action(z: float, closed: bool) -> np.ndarray:
         return np.array([0.48, -0.191, z, *quat, float(closed)], dtype=np.float32)
