@@ -40,6 +40,8 @@ COMMANDS: dict[str, tuple[str, str, str, str]] = {
                     "register robot Gaussians to the URDF (RANSAC + ICP) and label them by link"),
     "align-color": ("twinbench.commands.align_color", "AlignColorConfig", "main",
                     "fit the rendered -> real colour map (IRLS) and apply it to Gaussians"),
+    "refine-cameras": ("twinbench.commands.refine_cameras", "RefineCamerasConfig", "main",
+                       "correct static cameras' pose and intrinsics against their real images of the scan"),
     "import-phystwin": ("twinbench.commands.import_phystwin", "ImportPhysTwinConfig", "main",
                         "import a trained PhysTwin case as a twin object (restricted loader)"),
     "export-phystwin": ("twinbench.commands.export_phystwin", "ExportPhysTwinConfig", "main",

@@ -115,6 +115,7 @@ def _evaluate(cfg: EvaluateConfig) -> int:
         make_policies,
         run_evaluations,
         training_records,
+        user_calibration,
         write_study_json,
     )
     from twinbench.study.report import write_study_report
@@ -127,7 +128,8 @@ def _evaluate(cfg: EvaluateConfig) -> int:
                          "reconstruct); `twinbench study run` makes them")
     rank = {v: i for i, v in enumerate(VARIANTS)}
     twins = dict(sorted(twins.items(), key=lambda kv: (rank.get(kv[0], len(rank)), kv[0])))
-    policies = make_policies(cfg.task, real, cfg.out / "policies", cfg.size, twins.get("full"))
+    policies = make_policies(cfg.task, real, cfg.out / "policies", cfg.size,
+                             user_calibration(cfg.out / "evidence"))
     if cfg.bc or cfg.bc_act or cfg.bc_dp:
         from twinbench.study.bc import make_bc_policies
 

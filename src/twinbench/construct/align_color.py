@@ -210,7 +210,6 @@ def render_pairs(scan_files, calibration: Path, real_dir: Path, out_dir: Path,
     import imageio.v3 as iio
 
     from twinbench.construct.calibration import load_calibration
-    from twinbench.gaussians.camera import Camera
     from twinbench.gaussians.cloud import GaussianCloud
     from twinbench.gaussians.io import load_gaussians
     from twinbench.gaussians.render import render
@@ -227,8 +226,7 @@ def render_pairs(scan_files, calibration: Path, real_dir: Path, out_dir: Path,
         h, w = cam.output_hw
         if img.shape[:2] != (h, w):
             raise ValueError(f"{real}: size {img.shape[:2]} differs from camera output_hw {(h, w)}")
-        fx, fy, cx, cy = cam.output_intrinsics()
-        out = render(cloud, [Camera(fx, fy, cx, cy, w, h, cam.pose)], background=background)[0]
+        out = render(cloud, [cam.view()], background=background)[0]
         iio.imwrite(out_dir / f"{cam.name}_render.png", out.rgb_uint8())
         iio.imwrite(out_dir / f"{cam.name}_mask.png", ((out.alpha > 0.99) * 255).astype(np.uint8))
         shutil.copyfile(real, out_dir / f"{cam.name}_real.png")

@@ -12,7 +12,8 @@ hand-eye transform, from a JSON (or YAML, with PyYAML installed) file -> `Camera
      ]}
 
 The twin's world frame is the robot base frame: with `base_to_world`, poses become
-inv(base_to_world) @ camera_to_world.
+inv(base_to_world) @ camera_to_world. `calibration_doc` writes camera specs back in this format (robot base
+frame, OpenCV axes).
 """
 
 from __future__ import annotations
@@ -131,3 +132,21 @@ def load_calibration(path) -> list[CameraSpec]:
         except ValueError as exc:
             raise ValueError(f"{path}: {exc}") from exc
     return out
+
+
+def calibration_doc(cameras) -> dict:
+    """The calibration file's content (robot base frame, OpenCV axes) of camera specs: what
+    `load_calibration` reads back as the same specs."""
+    docs = []
+    for c in cameras:
+        d = {"name": c.name, "intrinsics": [float(v) for v in c.intrinsics],
+             "sensor_size": list(c.sensor_size), "output_hw": list(c.output_hw),
+             "crop": None if c.crop is None else list(c.crop)}
+        if c.mount_link is None:
+            d["camera_to_world"] = np.asarray(c.pose).tolist()
+        else:
+            d.update(hand_eye=np.asarray(c.pose).tolist(), mount_link=c.mount_link)
+        if c.depth:
+            d["depth"] = True
+        docs.append(d)
+    return {"cameras": docs}

@@ -58,12 +58,20 @@ def replay_run_id(variant: str) -> str:
     return f"replay-{variant}"
 
 
+def user_calibration(evidence: Path) -> Path | None:
+    """The evidence's camera calibration file (the user's calibration), None without evidence."""
+    index = Path(evidence) / "evidence.json"
+    return Path(evidence) / json.loads(index.read_text())["calibration"] if index.is_file() else None
+
+
 def make_policies(task: str, real_world: Path, out: Path, size: str | StudySize = "small",
-                  camera_twin: Path | None = None, log=print, names=None) -> list[str]:
+                  calibration: Path | None = None, log=print, names=None) -> list[str]:
     """Write the study's perception controllers to OUT (one JSON config each, plus calibration.json) and
     return their policy specs. The object's colours (push-T's T, the rope and its marked end) are calibrated
-    on labelled images of `real_world`; the camera is `camera_twin`'s front camera (the reconstructed,
-    calibrated one; None: each env's own). `names`: a subset of `policies.levels` (None: all)."""
+    on labelled images of `real_world`; the camera model is the front camera of `calibration` (the user's
+    calibration file, errors and all, as their perception stack would use it: the same in the real workcell
+    and in every twin, whose own cameras `refine-cameras` corrected; None: each env's own camera).
+    `names`: a subset of `policies.levels` (None: all)."""
     from twinbench.study import policies as perception
 
     if task not in perception.LEVELS:
@@ -77,8 +85,8 @@ def make_policies(task: str, real_world: Path, out: Path, size: str | StudySize 
     t0 = time.perf_counter()
     colors = perception.calibrate_colors({"twin": str(real_world)}, images, OBSERVED, task=task)
     camera = None
-    if camera_twin is not None:
-        camera = perception.twin_camera(camera_twin, OBSERVED, task)
+    if calibration is not None:
+        camera = perception.calibration_camera(calibration, OBSERVED)
     out.mkdir(parents=True, exist_ok=True)
     (out / "calibration.json").write_text(json.dumps(
         {"colors": colors, "images": images, "camera_model": camera, "source": "real workcell, labelled"},

@@ -24,6 +24,7 @@ EV/ holds (EV/README.md lists them for the user):
 
 from __future__ import annotations
 
+import dataclasses
 import json
 from pathlib import Path
 
@@ -73,6 +74,7 @@ def make_scan(world, hidden: dict, rng):
 
 def _calibration(real_spec, hidden: dict) -> dict:
     """Each camera's calibration as a user's calibration would give it: pose and intrinsics with error."""
+    from twinbench.construct.calibration import calibration_doc
     from twinbench.study.real import perturbed_pose
 
     cams = []
@@ -81,14 +83,8 @@ def _calibration(real_spec, hidden: dict) -> dict:
         rng = np.random.default_rng(err["seed"])
         pose = perturbed_pose(c.pose, rng, err["translation_m"], err["rotation_deg"])
         k = np.asarray(c.intrinsics) * (1.0 + rng.normal(0.0, err["intrinsics_rel"], 4))
-        d = {"name": c.name, "intrinsics": k.tolist(), "sensor_size": list(c.sensor_size),
-             "output_hw": list(c.output_hw), "crop": None if c.crop is None else list(c.crop)}
-        if c.mount_link is None:
-            d["camera_to_world"] = pose.tolist()
-        else:
-            d.update(hand_eye=pose.tolist(), mount_link=c.mount_link)
-        cams.append(d)
-    return {"cameras": cams}
+        cams.append(dataclasses.replace(c, pose=pose, intrinsics=tuple(k), response=None))
+    return calibration_doc(cams)
 
 
 def _probe_path(points: np.ndarray, frames: int) -> np.ndarray:

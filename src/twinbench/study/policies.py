@@ -821,16 +821,11 @@ def levels(colors: dict, camera_model: dict | None = None,
     return {name: replace(base, extra={"level": name}, **kw) for name, kw in LEVELS[task].items()}
 
 
-def twin_camera(twin_dir: str | Path, camera: str = "front", task: str = "push-t") -> dict:
-    """The `camera_model` of a twin directory's camera (as the task's env places it at the start
-    configuration)."""
-    import gymnasium
+def calibration_camera(calibration: str | Path, camera: str = "front") -> dict:
+    """The `camera_model` of a static camera of a calibration file (`construct.calibration`)."""
+    from twinbench.construct.calibration import load_calibration
 
-    import twinbench  # noqa: F401 - registers the envs
-
-    env = gymnasium.make(_env_id(task), twin=str(twin_dir))
-    try:
-        u = env.unwrapped
-        return camera_dict(u.twin.camera(u.state, camera))
-    finally:
-        env.close()
+    cams = {c.name: c for c in load_calibration(calibration)}
+    if camera not in cams or cams[camera].mount_link is not None:
+        raise InputError(f"{calibration}: no static camera {camera!r} (cameras: {sorted(cams)})")
+    return camera_dict(cams[camera].view())

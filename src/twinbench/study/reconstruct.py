@@ -5,16 +5,17 @@ study's ablation twins.
 
 The chain (each command printed as typed): `twinbench segment` (scan -> robot / background / objects),
 `twinbench align-robot` (scan frame -> robot base frame, Gaussians labelled with links), `twinbench
-align-color` (the scan's colours -> the real cameras' colours), `twinbench sysid` (each object's physics
-from its tracked motion; once with the fit, once at its initial guess; with the fit, the tool's friction from
-a push recording, the object's other values held, adopted only where it tracks the push better than the
-task's value), then one build config per variant and `twinbench twin
-build`. Between sysid and the build, the identified object (particles in the world
-frame) is put in its own frame at the rest pose found by registering the task's object template to the
-segmented scan (`estimate_rest_pose`; colours tell a rope's marked end from its other end); the task's
-public definition supplies what the evidence does not hold: the object's outline and goal, the controller,
-the robot's control conventions (which link the actions command, the gripper: `ROBOT_CONVENTIONS`) and the
-tool's contact (its friction from the push recording in the fitted variants, when the evidence has one).
+refine-cameras` (the calibration corrected so that the scan's render lines up with each real image: the
+twins' cameras), `twinbench align-color` (the scan's colours -> the real cameras' colours), `twinbench sysid`
+(each object's physics from its tracked motion; once with the fit, once at its initial guess; with the fit,
+the tool's friction from a push recording, the object's other values held, adopted only where it tracks the
+push better than the task's value), then one build config per variant and `twinbench twin build`.
+Between sysid and the build, the identified object (particles in the world frame) is put in its own frame at
+the rest pose found by registering the task's object template to the segmented scan (`estimate_rest_pose`;
+colours tell a rope's marked end from its other end); the task's public definition supplies what the evidence
+does not hold: the object's outline and goal, the controller, the robot's control conventions (which link the
+actions command, the gripper: `ROBOT_CONVENTIONS`) and the tool's contact (its friction from the push
+recording in the fitted variants, when the evidence has one).
 
 Fixed colliders (rope-routing's clip, toy-packing's box: evidence.json `colliders`): segmented by their own
 crop box, aligned with the rest; the build config names each with the cell's mesh (written to
@@ -315,8 +316,12 @@ def reconstruct(evidence: Path, out: Path, variants=VARIANTS, log: Callable[[str
         seg / "background.ply", *[seg / "objects" / f"{o}.ply" for o in (*objects, *colliders)])
     parts = [aligned / "robot.ply", aligned / "aligned" / "background.ply",
              *[aligned / "aligned" / f"{o}.ply" for o in (*objects, *colliders)]]
+    # the calibration corrected on the real images (every variant: it is the twin's view, not an ablation)
+    run("refine-cameras", "--scan", *parts, "--calibration", evidence / index["calibration"], "--real",
+        evidence / index["real_images"], "--out", work / "cameras")
+    calibration = work / "cameras" / "calibration.json"
     if any(_COLOR[v] for v in variants):
-        run("align-color", "--scan", *parts, "--calibration", evidence / index["calibration"], "--real",
+        run("align-color", "--scan", *parts, "--calibration", calibration, "--real",
             evidence / index["real_images"], "--out", color)
     physics = sorted({_PHYSICS[v] for v in variants})
     for kind in physics:
@@ -341,7 +346,7 @@ def reconstruct(evidence: Path, out: Path, variants=VARIANTS, log: Callable[[str
                                work / "sysid" / "push" / o, cell.sim.mesh_margin, prior, log)
                 for o, rel in pushes.items()]
         tool["fitted"]["friction"] = float(np.median(fits))
-    write_json(work / "calibration.json", json.loads((evidence / index["calibration"]).read_text()))
+    write_json(work / "calibration.json", json.loads(calibration.read_text()))
     rest = {}
     for o in objects:
         template = cell.object(o)

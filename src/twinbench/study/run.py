@@ -42,6 +42,7 @@ def run_study(task: str, out: Path, size: str = "small", seed: int = 0, workers:
         run_evaluations,
         study_size,
         training_records,
+        user_calibration,
         write_study_json,
     )
     from twinbench.study.evidence import make_evidence
@@ -62,9 +63,9 @@ def run_study(task: str, out: Path, size: str = "small", seed: int = 0, workers:
     real = timer("make-real", make_real, task, seed, out / "real", size)
     evidence = timer("evidence", make_evidence, real, out / "evidence", seed, size)
     twins = timer("reconstruct", reconstruct, evidence, out / "twins", variants, log=log)
-    camera_twin = twins.get("full", next(iter(twins.values())))
     world = real / "world"
-    policies = timer("policies", make_policies, task, world, out / "policies", size, camera_twin, log)
+    policies = timer("policies", make_policies, task, world, out / "policies", size,
+                     user_calibration(evidence), log)
     if bc or bc_act or bc_dp:
         from twinbench.study.bc import make_bc_policies
 

@@ -511,9 +511,7 @@ class Twin:
         pose = spec.pose
         if spec.mount_link is not None:
             pose = self.robot.link_pose(state.robot.q, spec.mount_link) @ pose
-        fx, fy, cx, cy = spec.output_intrinsics()
-        h, w = spec.output_hw
-        return Camera(fx=fx, fy=fy, cx=cx, cy=cy, width=w, height=h, cam_to_world=pose)
+        return spec.view(pose)
 
     def render(self, state: TwinState, cameras: list[str] | None = None) -> dict[str, RenderOutput]:
         """Render the named cameras (default: all) -> {name: RenderOutput (rgb, depth, alpha)}."""

@@ -316,6 +316,16 @@ class CameraSpec:
         sx, sy = self.output_hw[1] / w, self.output_hw[0] / h
         return fx * sx, fy * sy, (cx - x0) * sx, (cy - y0) * sy
 
+    def view(self, cam_to_world: np.ndarray | None = None):
+        """The `gaussians.camera.Camera` of the output image, at `cam_to_world` (default: `pose`, a static
+        camera's world pose; a mounted camera's world pose is its link's pose @ `pose`)."""
+        from twinbench.gaussians.camera import Camera
+
+        fx, fy, cx, cy = self.output_intrinsics()
+        h, w = self.output_hw
+        return Camera(fx=fx, fy=fy, cx=cx, cy=cy, width=w, height=h,
+                      cam_to_world=self.pose if cam_to_world is None else cam_to_world)
+
 
 @dataclass(frozen=True, eq=False)
 class TwinSpec:
