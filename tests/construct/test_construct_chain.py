@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 
 from twinbench.cli import main as cli
+from twinbench.construct.calibration import calibration_doc
 from twinbench.gaussians.cloud import GaussianCloud
 from twinbench.gaussians.colormap import apply_color_map, identity_color_map
 from twinbench.gaussians.io import save_gaussians
@@ -19,19 +20,6 @@ from twinbench.transforms import rotvec_to_matrix
 from twinbench.twin import build_twin, load_twin, save_object
 from twinbench.twin.build import _robot_gaussians, load_spec_robot
 from twinbench.twin.cells import push_t_cell
-
-
-def _calibration(spec) -> dict:
-    cams = []
-    for c in spec.cameras:
-        d = {"name": c.name, "intrinsics": list(c.intrinsics), "sensor_size": list(c.sensor_size),
-             "output_hw": list(c.output_hw), "crop": None if c.crop is None else list(c.crop)}
-        if c.mount_link is None:
-            d["camera_to_world"] = c.pose.tolist()
-        else:
-            d.update(hand_eye=c.pose.tolist(), mount_link=c.mount_link)
-        cams.append(d)
-    return {"cameras": cams}
 
 
 @pytest.mark.timeout(300)
@@ -78,7 +66,7 @@ def test_chain_rebuilds_the_cell(tmp_path):
     err = np.asarray(report["transform"]) @ off @ coarse @ true  # world -> world, identity when exact
     assert np.abs(err - np.eye(4)).max() < 3e-3
     # colour: render the aligned scan from the calibrated front camera beside the "real" image
-    (tmp_path / "calibration.json").write_text(json.dumps(_calibration(spec)))
+    (tmp_path / "calibration.json").write_text(json.dumps(calibration_doc(spec.cameras)))
     (tmp_path / "real").mkdir()
     iio.imwrite(tmp_path / "real/front.png", (np.clip(original, 0, 1) * 255 + 0.5).astype(np.uint8))
     parts = [tmp_path / "aligned/robot.ply", tmp_path / "aligned/aligned/background.ply",

@@ -1,6 +1,6 @@
-"""reconstruct: the public CLI chain rebuilds a hidden workcell from its evidence alone (REAL/ moved away,
-its hidden file deleted), recovering the robot's pose, the colour map and the object's rest pose within
-stated tolerances, with system identification lowering the tracking error; the ablation twins differ
+"""reconstruct: the public CLI chain rebuilds a hidden workcell from its evidence alone (REAL/ moved away, its
+hidden file deleted), recovering the robot's pose, the cameras, the colour map and the object's rest pose
+within stated tolerances, with system identification lowering the tracking error; the ablation twins differ
 from the full one where they should."""
 
 from __future__ import annotations
@@ -22,6 +22,7 @@ from twinbench.twin.cells import push_t_cell
 # stated tolerances of the reconstruction (push-T, size small)
 ROBOT_ROTATION_DEG, ROBOT_TRANSLATION_M = 0.3, 0.003
 REST_XY_M, REST_YAW_DEG = 0.004, 1.5
+CAMERA_PX = 1.0  # median image error of the twins' front camera (240 px) against the real camera
 # mean absolute error of the fitted colour map against the true scan -> camera colours (the camera's
 # response at the image centre): on the object (near the image centre), and on the scene the camera sees
 # (the table reaches the corners: a colour map takes in the mean vignetting, which the truth leaves out)
@@ -102,7 +103,7 @@ def test_reconstruction_from_evidence_alone(tmp_path):
                                                                           "--adam.epochs", "3"))
     assert sorted(twins) == sorted(VARIANTS)
     assert [ln.split()[1] for ln in lines if ln.startswith("twinbench ")][:7] == [
-        "segment", "align-robot", "align-color", "sysid", "sysid", "sysid", "twin"]
+        "segment", "align-robot", "refine-cameras", "align-color", "sysid", "sysid", "sysid"]
     work = tmp_path / "TW/construction"
 
     # robot pose: align-robot's transform composed with the user's coarse one undoes the scan's frame
@@ -111,6 +112,20 @@ def test_reconstruction_from_evidence_alone(tmp_path):
     err = found @ coarse @ np.asarray(hidden["scan"]["world_to_scan"])
     assert np.degrees(rotation_angle(err[:3, :3], np.eye(3))) < ROBOT_ROTATION_DEG
     assert np.linalg.norm(err[:3, 3]) < ROBOT_TRANSLATION_M
+
+    # cameras: the twins' front camera puts the scene where the real camera does, closer than the
+    # calibration did (the user's calibration, which the study's policies keep)
+    from twinbench.construct.calibration import load_calibration
+    from twinbench.construct.refine_camera import image_shift
+
+    given = {c.name: c for c in load_calibration(ev / "calibration.json")}
+    scene = real_spec.background.means
+    before = float(np.median(image_shift(given["front"], real_spec.camera("front"), scene)))
+    after = {v: float(np.median(image_shift(load_twin(p).camera("front"), real_spec.camera("front"), scene)))
+             for v, p in twins.items()}
+    print(f"front camera's median image error: calibration {before:.2f} px, twins {after}")
+    assert all(e < CAMERA_PX and e < 0.5 * before for e in after.values())
+    assert np.allclose(load_twin(twins["full"]).camera("wrist").pose, given["wrist"].pose)
 
     # colour: the fitted map sends the scan's colours to the front camera's response of the true colours
     cmap = json.loads((work / "color/color_map.json").read_text())
@@ -173,3 +188,19 @@ def test_reconstruction_from_evidence_alone(tmp_path):
     full, plain = image_error("full"), image_error("no-color")
     print(f"front image error: full {full:.4f}, no-color {plain:.4f}")
     assert full < 0.04 and full < plain
+
+
+def test_camera_summary_and_its_section(tmp_path):
+    from twinbench.construct._json import write_json
+    from twinbench.study.reconstruct import camera_summary
+    from twinbench.study.report import _camera_section
+
+    fit = {"rms_before": 15.6, "rms_after": 7.4, "rotation_deg": 0.413, "translation_m": 0.00832,
+           "intrinsics_change": {"fx_rel": -0.0017, "fy_rel": 0.0006, "cx_px": -0.19, "cy_px": 0.41},
+           "shift_px": 4.3, "evaluations": 1747, "adopted": True}
+    write_json(tmp_path / "construction" / "cameras" / "refine.json", {"front": fit})
+    summary = camera_summary(tmp_path)
+    assert summary == {"front": fit}
+    page = _camera_section({"cameras": summary})
+    assert "Camera refinement" in page and "15.60 → 7.40" in page and "4.30" in page and "8.32" in page
+    assert camera_summary(tmp_path / "nothing") == {} and _camera_section({}) == ""

@@ -26,15 +26,18 @@ class RefineCamerasConfig:
     """image blurs (px) of the coarse-to-fine search"""
     prior: float = PRIOR
     """pull toward the calibration (squared change in search units, against the image residual)"""
+    max_evals: int = 1000
+    """at most this many renders per blur"""
 
 
 def main(cfg: RefineCamerasConfig) -> int:
     fits = refine_camera_files(cfg.scan, cfg.calibration, cfg.real, cfg.out, blurs=cfg.blurs,
-                               prior=cfg.prior)
+                               prior=cfg.prior, max_evals=cfg.max_evals)
     for name, f in fits.items():
         state = "refined" if f.adopted else "kept as calibrated (no lower residual)"
         fx, fy, cx, cy = f.intrinsics_change
-        print(f"{name}: {state}; residual {f.rms_before:.2f} -> {f.rms_after:.2f} levels; moved "
+        print(f"{name}: {state}; residual {f.rms_before:.2f} -> {f.rms_after:.2f} levels; image moved "
+              f"{f.shift_px:.2f} px (median): "
               f"{f.rotation_deg:.3f} deg, {1000 * f.translation_m:.2f} mm; fx {100 * fx:+.2f} %, "
               f"fy {100 * fy:+.2f} %, cx {cx:+.2f} px, cy {cy:+.2f} px ({f.evaluations} renders)")
     print(f"wrote {cfg.out / 'calibration.json'}")

@@ -40,16 +40,17 @@ class CameraFit:
     rotation_deg: float
     translation_m: float
     intrinsics_change: tuple[float, float, float, float]  # fx, fy (relative), cx, cy (sensor px)
+    shift_px: float  # median move of the scan's points in the image, calibration -> refined
     evaluations: int
     adopted: bool  # False: the refinement did not lower the residual, the calibration is kept
 
     def to_json(self) -> dict:
-        return {"rms_before": round(self.rms_before, 3), "rms_after": round(self.rms_after, 3),
+        return {"rms_before": round(float(self.rms_before), 3), "rms_after": round(float(self.rms_after), 3),
                 "rotation_deg": round(self.rotation_deg, 4), "translation_m": round(self.translation_m, 5),
-                "intrinsics_change": {k: round(v, 5) for k, v in
+                "intrinsics_change": {k: round(float(v), 5) for k, v in
                                       zip(("fx_rel", "fy_rel", "cx_px", "cy_px"), self.intrinsics_change,
                                           strict=True)},
-                "evaluations": self.evaluations, "adopted": self.adopted}
+                "shift_px": round(self.shift_px, 3), "evaluations": self.evaluations, "adopted": self.adopted}
 
 
 def moved_camera(cam, x: np.ndarray):
@@ -65,6 +66,22 @@ def moved_camera(cam, x: np.ndarray):
     k = (fx * (1.0 + UNITS["focal_rel"] * x[6]), fy * (1.0 + UNITS["focal_rel"] * x[7]),
          cx + UNITS["principal_px"] * x[8], cy + UNITS["principal_px"] * x[9])
     return dataclasses.replace(cam, pose=np.asarray(cam.pose) @ d, intrinsics=k)
+
+
+def image_shift(cam, other, points: np.ndarray) -> np.ndarray:
+    """Distance (output px) between where cameras `cam` and `other` (CameraSpecs of one output size) put
+    each of the world `points` that `other` sees in its image."""
+    from twinbench.transforms import invert_pose, transform_points
+
+    def project(c):
+        fx, fy, cx, cy = c.output_intrinsics()
+        p = transform_points(invert_pose(np.asarray(c.pose)), np.asarray(points, np.float64))
+        return np.c_[fx * p[:, 0] / p[:, 2] + cx, fy * p[:, 1] / p[:, 2] + cy], p[:, 2]
+
+    (a, _), (b, depth) = project(cam), project(other)
+    h, w = other.output_hw
+    seen = (depth > 0) & (b[:, 0] >= 0) & (b[:, 0] < w) & (b[:, 1] >= 0) & (b[:, 1] < h)
+    return np.linalg.norm(a[seen] - b[seen], axis=1)
 
 
 def _blur(img: np.ndarray, sigma: float) -> np.ndarray:
@@ -92,7 +109,7 @@ def colour_fitted_residual(cloud, cam, real: np.ndarray, blur: float) -> tuple[n
 def refine_camera(cloud, cam, real: np.ndarray, *, blurs=BLURS, prior: float = PRIOR,
                   max_evals: int = 1000) -> CameraFit:
     """Refine a static camera (CameraSpec) on its real image `real` (uint8 or float RGB, the camera's
-    output size) of the Gaussians `cloud` (world frame)."""
+    output size) of the Gaussians `cloud` (world frame); at most `max_evals` renders per blur."""
     from scipy.optimize import minimize
     from scipy.spatial.transform import Rotation
 
@@ -131,6 +148,7 @@ def refine_camera(cloud, cam, real: np.ndarray, *, blurs=BLURS, prior: float = P
                      rotation_deg=float(np.degrees(Rotation.from_matrix(rel[:3, :3]).magnitude())),
                      translation_m=float(np.linalg.norm(rel[:3, 3])),
                      intrinsics_change=(*(k1[:2] / k0[:2] - 1.0), *(k1[2:] - k0[2:])),
+                     shift_px=float(np.median(image_shift(moved, cam, cloud.means))),
                      evaluations=evals, adopted=adopted)
 
 

@@ -262,15 +262,15 @@ def write_study_json(out: Path, task: str, size: str | StudySize, variants, stag
     """DIR/study.json: the table (per variant r with interval, MMRV with interval, n policies, n episodes)
     from the store, the same for a second real evaluation (`real_again`, null without one), the per-stage
     wall times, the study's settings and what the fits of DIR/twins reached
-    (`reconstruct.fit_summary`)."""
-    from twinbench.study.reconstruct import fit_summary
+    (`reconstruct.fit_summary`, `reconstruct.camera_summary`)."""
+    from twinbench.study.reconstruct import camera_summary, fit_summary
 
     store = ResultsStore(out / "results" / "results.sqlite")
     doc = {"task": task, "size": size_name(size),
            "settings": asdict(study_size(size)), "variants": study_table(store, variants),
            "real_again": real_again_metrics(store),
            "stage_seconds": {k: round(v, 1) for k, v in stages.items()}, "sysid": fit_summary(out / "twins"),
-           **(extra or {})}
+           "cameras": camera_summary(out / "twins"), **(extra or {})}
     text = json.dumps(doc, indent=1)
     (out / "study.json").write_text(text)
     return json.loads(text)  # as a reader of study.json sees it (lists, not tuples)

@@ -265,6 +265,13 @@ def adopt_tool_fit(result: dict, prior: float) -> dict:
             "adopted": adopted, "errors_m": errors, "reason": reason}
 
 
+def camera_summary(twins: Path) -> dict:
+    """What `refine-cameras` did to each camera of TWINS/construction (its refine.json): residual before and
+    after, how far the camera moved, the image's shift. Empty without one (a reconstruction before it)."""
+    path = Path(twins) / "construction" / "cameras" / "refine.json"
+    return json.loads(path.read_text()) if path.is_file() else {}
+
+
 def fit_summary(twins: Path) -> dict:
     """What the reconstruction's fits reached (study.json's "sysid"), per object of TWINS/construction: the
     fitted sysid's tracking error on its fitted and held-out frames at the initial guess and at the kept
