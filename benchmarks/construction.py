@@ -1,5 +1,7 @@
-"""Construction tools on CPU: robot registration of a 200k-Gaussian scan (FPFH + RANSAC + ICP + labels)
-and the IRLS colour-map fit (two 848x480 image pairs) plus its application to the 200k Gaussians.
+"""Construction tools on CPU: robot registration of a 200k-Gaussian scan (FPFH + RANSAC + ICP + labels),
+the IRLS colour-map fit (two 848x480 image pairs) plus its application to the 200k Gaussians, and camera
+refinement of the push-T cell's front camera (240x240, the study's calibration error) on a recoloured,
+noisy image of the cell's scene.
 
 Prints `name value unit` lines; run as `python benchmarks/construction.py`.
 """
@@ -65,6 +67,36 @@ def main() -> None:
     t_apply = time.perf_counter() - t0
     print(f"color_fit_2x848x480_irls {t_fit:.2f} s ({fit.iterations} iterations)")
     print(f"color_apply_{n_robot // 1000}k_gaussians {t_apply * 1e3:.1f} ms")
+    refine_benchmark(rng)
+
+
+def refine_benchmark(rng) -> None:
+    import dataclasses
+
+    from twinbench.construct.refine_camera import image_shift, refine_camera
+    from twinbench.gaussians.cloud import GaussianCloud
+    from twinbench.gaussians.render import render
+    from twinbench.study.real import perturbed_pose
+    from twinbench.twin import build_twin
+    from twinbench.twin.cells import push_t_cell
+
+    cell = push_t_cell("fast")
+    twin, _ = build_twin(cell)
+    block = cell.objects[0]
+    scene = GaussianCloud.concatenate([twin.robot_gaussians.posed(twin.robot.home_q),
+                                       block.gaussians.transform(block.rest_pose), cell.background])
+    true = cell.camera("front")
+    rgb = np.asarray(render(scene, [true.view()])[0].rgb, np.float64)
+    real = np.clip((rgb @ np.array([[0.9, 0.08, 0.0], [0.05, 0.85, 0.1], [0.0, 0.1, 0.95]]).T + 0.03) ** 0.8
+                   + rng.normal(0.0, 0.01, rgb.shape), 0.0, 1.0)
+    k = np.asarray(true.intrinsics) * (1.0 + rng.normal(0.0, 0.005, 4))
+    calib = dataclasses.replace(true, pose=perturbed_pose(true.pose, rng, 0.003, 0.3), intrinsics=tuple(k))
+    t0 = time.perf_counter()
+    fit = refine_camera(scene, calib, real)
+    took = time.perf_counter() - t0
+    before, after = (float(np.median(image_shift(c, true, scene.means))) for c in (calib, fit.camera))
+    print(f"refine_camera_240px_{len(scene) // 1000}k_gaussians {took:.1f} s ({fit.evaluations} renders)")
+    print(f"refine_camera_image_error {before:.2f} -> {after:.3f} px (median)")
 
 
 def world_labels(model, n_robot: int) -> np.ndarray:

@@ -7,6 +7,8 @@ import json
 import subprocess
 import sys
 
+import imageio.v3 as iio
+import numpy as np
 import pytest
 
 from twinbench.cli import main
@@ -61,13 +63,34 @@ def _case(tmp_path, name):
         return ["report", "--run-id", "nope", "--db", str(db), "--out", str(tmp_path / "r.html")], "'nope'"
     if name == "render-missing":
         return ["render-ply", str(tmp_path / "none.ply"), "--out", str(tmp_path / "x.png")], "none.ply"
+    if name.startswith("refine-"):
+        from twinbench.gaussians.io import save_gaussians
+        from twinbench.gaussians.primitives import surface_discs
+
+        pts = np.random.default_rng(0).uniform(0, 0.1, (50, 3))
+        save_gaussians(surface_discs(pts, np.tile([0, 0, 1.0], (50, 1)), np.full((50, 3), 0.5), 0.003),
+                       tmp_path / "scan.ply")
+        cam = {"name": "front", "intrinsics": [400, 400, 120, 120], "sensor_size": [240, 240],
+               "camera_to_world": np.eye(4).tolist()}
+        (tmp_path / "calibration.json").write_text(json.dumps({"cameras": [cam]}))
+        (tmp_path / "real").mkdir()
+        argv = ["refine-cameras", "--scan", str(tmp_path / "scan.ply"), "--calibration",
+                str(tmp_path / ("none.json" if name == "refine-missing-calibration" else "calibration.json")),
+                "--real", str(tmp_path / "real"), "--out", str(tmp_path / "cams")]
+        if name == "refine-missing-calibration":
+            return argv, "none.json"
+        if name == "refine-no-real-image":
+            return argv, "no real image NAME.png for any static camera"
+        iio.imwrite(tmp_path / "real" / "front.png", np.zeros((240, 240, 3), np.uint8))
+        return argv, "front.png: camera 'front': the scan covers"  # the camera sees little of the scan
     raise AssertionError(name)
 
 
 CASES = ["malformed-urdf", "missing-urdf", "bad-tool", "bad-lerobot-info", "missing-replay-source",
          "replay-env-kwargs", "eval-db-under-a-file", "eval-db-not-sqlite", "eval-other-protocol",
          "eval-unknown-task", "eval-run-id-path", "eval-bad-policy", "import-real-missing",
-         "report-unknown-run", "render-missing"]
+         "report-unknown-run", "render-missing", "refine-missing-calibration", "refine-no-real-image",
+         "refine-scan-out-of-view"]
 
 
 @pytest.mark.parametrize("name", CASES)
