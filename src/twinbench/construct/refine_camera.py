@@ -125,6 +125,8 @@ def refine_camera(cloud, cam, real: np.ndarray, *, blurs=BLURS, prior: float = P
 
     def mse(x, blur):
         res, m = colour_fitted_residual(cloud, moved_camera(cam, x), real, blur)
+        if m.mean() < MIN_COVERAGE:  # a camera turned off the scan: a few pixels would fit too well
+            return 1.0
         return float(np.mean(res[m] ** 2))
 
     x, evals = np.zeros(10), 0
