@@ -233,7 +233,8 @@ def test_tiny_rope_study_end_to_end(tmp_path, monkeypatch):
 
     # perception policies calibrated on the real workcell, evaluated there and in the twins
     monkeypatch.setattr(spec_module, "POLICY_KINDS", dict(spec_module.POLICY_KINDS))  # evaluate adds perceive
-    policies = E.make_policies("rope-routing", real / "world", tmp_path / "policies", tiny, E.user_calibration(ev),
+    policies = E.make_policies("rope-routing", real / "world", tmp_path / "policies", tiny,
+                               E.user_calibration(ev),
                                names=("r0-clean", "r6-noise4cm"))
     assert len(policies) == 2
     E.run_evaluations("rope-routing", real / "world", {"full": twins["full"]}, policies, tmp_path, tiny)
