@@ -71,14 +71,10 @@ def moved_camera(cam, x: np.ndarray):
 def image_shift(cam, other, points: np.ndarray) -> np.ndarray:
     """Distance (output px) between where cameras `cam` and `other` (CameraSpecs of one output size) put
     each of the world `points` that `other` sees in its image."""
-    from twinbench.transforms import invert_pose, transform_points
+    from twinbench.gaussians.reference import project_means
 
-    def project(c):
-        fx, fy, cx, cy = c.output_intrinsics()
-        p = transform_points(invert_pose(np.asarray(c.pose)), np.asarray(points, np.float64))
-        return np.c_[fx * p[:, 0] / p[:, 2] + cx, fy * p[:, 1] / p[:, 2] + cy], p[:, 2]
-
-    (a, _), (b, depth) = project(cam), project(other)
+    points = np.asarray(points, np.float64)
+    (a, _), (b, depth) = project_means(points, cam.view()), project_means(points, other.view())
     h, w = other.output_hw
     seen = (depth > 0) & (b[:, 0] >= 0) & (b[:, 0] < w) & (b[:, 1] >= 0) & (b[:, 1] < h)
     return np.linalg.norm(a[seen] - b[seen], axis=1)

@@ -83,7 +83,7 @@ def _calibration(real_spec, hidden: dict) -> dict:
         rng = np.random.default_rng(err["seed"])
         pose = perturbed_pose(c.pose, rng, err["translation_m"], err["rotation_deg"])
         k = np.asarray(c.intrinsics) * (1.0 + rng.normal(0.0, err["intrinsics_rel"], 4))
-        cams.append(dataclasses.replace(c, pose=pose, intrinsics=tuple(k), response=None))
+        cams.append(dataclasses.replace(c, pose=pose, intrinsics=tuple(k)))
     return calibration_doc(cams)
 
 
