@@ -77,7 +77,11 @@ def main() -> None:
     quiet_warp()
     has_cuda = wp.get_cuda_device_count() > 0
     if has_cuda:
-        print(f"cuda device: {wp.get_device('cuda:0').name}")
+        from twinbench.gaussians.render import gsplat_available
+
+        # render_batch's "auto" backend: a twin on CUDA renders with gsplat whenever the extra is installed
+        print(f"cuda device: {wp.get_device('cuda:0').name}; renderer: "
+              f"{'gsplat' if gsplat_available() else 'warp'}")
     else:
         print("no CUDA device: CPU figures only")
     for task in args.tasks:

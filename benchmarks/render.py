@@ -144,7 +144,6 @@ def main() -> None:
         g = cloud.to_device(device)
         backends = ["warp"] + (["gsplat"] if device != "cpu" and gsplat_available() else [])
         for backend in backends:
-            src = g if backend == "warp" else cloud
             if backend == "warp":
                 pair = [
                     cams["848x480"],
@@ -159,7 +158,7 @@ def main() -> None:
                     ),
                 ]
                 ms = median_ms(
-                    lambda src=src, d=device, pair=pair: render(src, pair, backend="warp", device=d),
+                    lambda src=g, d=device, pair=pair: render(src, pair, backend="warp", device=d),
                     args.repeats,
                 )
                 print(f"render_{backend}_{device.replace(':', '')}_2cams_848x480_200k {ms:.1f} ms")
@@ -167,7 +166,7 @@ def main() -> None:
                     print(f"render_{backend}_cpu_2cams_848x480_200k_cpu_time {LAST_CPU_MS:.1f} ms")
             for name, cam in cams.items():
                 ms = median_ms(
-                    lambda src=src, cam=cam, b=backend, d=device: render(src, cam, backend=b, device=d),
+                    lambda src=g, cam=cam, b=backend, d=device: render(src, cam, backend=b, device=d),
                     args.repeats,
                 )
                 print(f"render_{backend}_{device.replace(':', '')}_{name}_200k {ms:.1f} ms")

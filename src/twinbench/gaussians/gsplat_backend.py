@@ -57,7 +57,6 @@ def _render_gsplat(cloud: GaussianCloud | DeviceGaussians, cams: list[Camera], b
             np.stack([cams[i].world_to_cam for i in idx]), dtype=torch.float32, device=dev
         )
         ks = torch.as_tensor(np.stack([cams[i].K for i in idx]), dtype=torch.float32, device=dev)
-        bgs = torch.as_tensor(np.tile(np.asarray(background, dtype=np.float32), (len(idx), 1)), device=dev)
         colors, alphas, _ = gsplat.rasterization(
             t["means"],
             t["quats"],
@@ -72,15 +71,17 @@ def _render_gsplat(cloud: GaussianCloud | DeviceGaussians, cams: list[Camera], b
             eps2d=LOW_PASS,
             sh_degree=degree,
             tile_size=TILE,
-            backgrounds=bgs,
             render_mode="RGB+ED",
         )
+        # the background composited here (colour + transmittance * background, as gsplat would): gsplat
+        # 1.5's packed mode refuses its own `backgrounds` argument once it appends the depth channel
         colors = colors.detach().cpu().numpy()
         alphas = alphas.detach().cpu().numpy()
+        bg = np.asarray(background, dtype=np.float32)
         for j, i in enumerate(idx):
             a = alphas[j, :, :, 0]
             outputs[i] = RenderOutput(
-                rgb=np.clip(colors[j, :, :, :3], 0, 1).astype(np.float32),
+                rgb=np.clip(colors[j, :, :, :3] + (1.0 - a)[..., None] * bg, 0, 1).astype(np.float32),
                 depth=np.where(a > 0, colors[j, :, :, 3], 0).astype(np.float32),
                 alpha=a.astype(np.float32),
             )
