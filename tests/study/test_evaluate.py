@@ -68,6 +68,27 @@ def test_metrics_from_the_store(study):
     assert E.real_again_metrics(ResultsStore(study / "empty.sqlite")) is None
 
 
+def test_rates_per_grid_state(study):
+    """Episode i of each policy starts from grid state i: real rates per state .75, .5, .5, .25."""
+    store = ResultsStore(study / "results" / "results.sqlite")
+    full, backwards, constant = E.study_table(store, ["full", "no-color", "neither"])
+    real = [0.75, 0.5, 0.5, 0.25]
+    assert [d["init_state"] for d in full["states"]["rates"]] == [0, 1, 2, 3]
+    assert [d["real"] for d in full["states"]["rates"]] == real
+    assert [d["sim"] for d in full["states"]["rates"]] == real  # the errored episode (state 9) left out
+    assert all(d["n_sim"] == d["n_real"] == 4 for d in full["states"]["rates"])
+    assert full["states"]["pearson"]["r"] == pytest.approx(1.0)
+    # the policies' outcomes swapped round: every policy ranked backwards, every state's rate right
+    assert backwards["pearson"]["r"] == pytest.approx(-1.0)
+    assert [d["sim"] for d in backwards["states"]["rates"]] == real
+    assert backwards["states"]["pearson"]["r"] == pytest.approx(1.0)
+    undefined = constant["states"]["pearson"]
+    assert undefined["r"] is None and "zero variance" in undefined["why"]
+    again = E.real_again_metrics(store)  # states: (0+0+1+1)/4 ... every state 0.5
+    assert [d["sim"] for d in again["states"]["rates"]] == [0.5] * 4
+    assert again["states"]["pearson"]["r"] is None
+
+
 def test_study_json_table_and_page(study):
     # policy c as a behaviour-cloned checkpoint: its train.json joins study.json and the page
     ckpt = study / "bc" / "c.json"
@@ -92,6 +113,10 @@ def test_study_json_table_and_page(study):
     text = page.read_text()
     assert "Sim vs real, per twin variant" in text and "0.875" in text and "stage" in text.lower()
     assert "0.50 (8 / 8 / 0 / 0)" in text
+    # per grid state: real .75 (4 episodes), full and no-color the same, neither 1; r over the states
+    assert "Success per grid state" in text
+    assert "<td>0</td><td>0.75 (4)</td><td>0.75</td><td>0.75</td><td>1.00</td><td>0.50</td>" in text
+    assert "<td>r over the states</td><td></td><td>1.000</td><td>1.000</td>" in text
     assert "<td>real again</td><td>0.800 [" in text and "evaluated a second time" in text
     # c: real 0.75, full 0.75 (the same outcomes), no-color 0.25 (b's, backwards), neither 1
     assert "Behaviour-cloned checkpoints" in text

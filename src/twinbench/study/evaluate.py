@@ -200,19 +200,24 @@ def replay_in_twin(task: str, store: ResultsStore, results: Path, variant: str, 
     log(f"{run_id}: {len(pairs)} real rollouts replayed, outcomes agree in {agree}")
 
 
-def _outcomes(store: ResultsStore, run_id: str, domain: str) -> dict[tuple[str, str], list[int]]:
-    out: dict[tuple[str, str], list[int]] = {}
+def _outcomes(store: ResultsStore, run_id: str, domain: str, by: str = "policy") -> dict:
+    """The run's successes (0/1, episodes that ran without error) per (policy, checkpoint), or per grid
+    state with by="state"."""
+    out: dict = {}
     for r in store.episodes(run_id, domain=domain):
         if r.status == "ok":
-            out.setdefault((r.policy, r.checkpoint), []).append(int(r.success))
+            key = (r.policy, r.checkpoint) if by == "policy" else r.init_state
+            out.setdefault(key, []).append(int(r.success))
     return out
 
 
 def variant_metrics(store: ResultsStore, variant: str) -> dict:
     """Per-policy success rates in the twin `variant` and in the real workcell, Pearson r (Fisher-z
-    interval) and MMRV (bootstrap interval) over the policies both have, from the store; and the replays'
-    confusion matrix."""
+    interval) and MMRV (bootstrap interval) over the policies both have, from the store; the same rates per
+    grid state with r over the states ("states"); and the replays' confusion matrix."""
     row = _agreement(variant, _outcomes(store, twin_run_id(variant), "sim"), _outcomes(store, REAL, "real"))
+    row["states"] = _state_agreement(_outcomes(store, twin_run_id(variant), "sim", by="state"),
+                                     _outcomes(store, REAL, "real", by="state"))
     from twinbench.evaluation.replay import replay_confusion
 
     c = replay_confusion(store, replay_run_id(variant), by="task")
@@ -227,7 +232,30 @@ def real_again_metrics(store: ResultsStore) -> dict | None:
     replays); None when the store has none. A twin that matched the real workcell's success rates exactly
     would score about this, given the episodes' sampling noise: at few episodes per policy, r well below 1."""
     again = _outcomes(store, REAL_AGAIN, "sim")
-    return _agreement("real again", again, _outcomes(store, REAL, "real")) if again else None
+    if not again:
+        return None
+    row = _agreement("real again", again, _outcomes(store, REAL, "real"))
+    row["states"] = _state_agreement(_outcomes(store, REAL_AGAIN, "sim", by="state"),
+                                     _outcomes(store, REAL, "real", by="state"))
+    return row
+
+
+def _pearson(sim: list[float], real: list[float]) -> dict:
+    try:
+        pr = metrics.pearson(sim=sim, real=real)
+        return {"r": pr.r, "low": pr.low, "high": pr.high}
+    except ValueError as err:  # fewer than 3 values or a constant vector: r is undefined, said why
+        return {"r": None, "low": None, "high": None, "why": str(err)}
+
+
+def _state_agreement(sim: dict, real: dict) -> dict:
+    """Success rate per grid state (over all policies) in the twin and the real workcell, and Pearson r
+    over the states: where a twin is wrong, which initial states it gets wrong (a twin can rank the
+    policies well and still fail from states where the real workcell succeeds, or the other way round)."""
+    keys = sorted(set(sim) & set(real))
+    rates = [{"init_state": k, "sim": float(np.mean(sim[k])), "real": float(np.mean(real[k])),
+              "n_sim": len(sim[k]), "n_real": len(real[k])} for k in keys]
+    return {"rates": rates, "pearson": _pearson([d["sim"] for d in rates], [d["real"] for d in rates])}
 
 
 def _agreement(variant: str, sim: dict, real: dict) -> dict:
@@ -238,13 +266,7 @@ def _agreement(variant: str, sim: dict, real: dict) -> dict:
                  "policies": [{"policy": p, "checkpoint": c, "sim": float(np.mean(sim[(p, c)])),
                                "real": float(np.mean(real[(p, c)])), "n_sim": len(sim[(p, c)]),
                                "n_real": len(real[(p, c)])} for p, c in keys]}
-    s = [d["sim"] for d in row["policies"]]
-    r = [d["real"] for d in row["policies"]]
-    try:
-        pr = metrics.pearson(sim=s, real=r)
-        row["pearson"] = {"r": pr.r, "low": pr.low, "high": pr.high}
-    except ValueError as err:  # fewer than 3 policies or a constant vector: r is undefined, said why
-        row["pearson"] = {"r": None, "low": None, "high": None, "why": str(err)}
+    row["pearson"] = _pearson([d["sim"] for d in row["policies"]], [d["real"] for d in row["policies"]])
     if keys:
         est = metrics.mmrv_bootstrap(sim=[sim[k] for k in keys], real=[real[k] for k in keys])
         row["mmrv"] = {"value": est.value, "low": est.low, "high": est.high}

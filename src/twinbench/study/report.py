@@ -47,6 +47,27 @@ def _table_section(doc: dict) -> str:
                          "at this number of episodes." if doc.get("real_again") else "")))
 
 
+def _states_section(doc: dict) -> str:
+    """Success rate per grid state, real and in each twin (and the real workcell again): which initial states
+    a twin gets wrong."""
+    from twinbench.study.evaluate import table_rows
+
+    rows = [row for row in table_rows(doc) if row.get("states", {}).get("rates")]
+    if not rows:
+        return ""
+    real = {d["init_state"]: d for d in rows[0]["states"]["rates"]}
+    cols = {row["variant"]: {d["init_state"]: d["sim"] for d in row["states"]["rates"]} for row in rows}
+    body = [[str(k), f"{real[k]['real']:.2f} ({real[k]['n_real']})",
+             *[_num(cols[v].get(k), ".2f") for v in cols]] for k in sorted(real)]
+    body.append(["r over the states", "", *[
+        _e(row["states"]["pearson"].get("why", "undefined")) if row["states"]["pearson"]["r"] is None
+        else f"{row['states']['pearson']['r']:.3f}" for row in rows]])
+    return "<h2>Success per grid state</h2>" + _table(
+        ["grid state", "real (episodes)", *[_e(v) for v in cols]], body) + _note(
+        "Each initial state's success rate over all policies. A twin can rank the policies as the real "
+        "workcell does and still succeed from the wrong states (or the other way round).")
+
+
 def _training_section(doc: dict) -> str:
     """The behaviour-cloned checkpoints: training record and success, real and in each twin."""
     rates = {(d["policy"], d["checkpoint"]): {} for d in doc.get("training", [])}
@@ -177,7 +198,7 @@ def write_study_report(out: Path, doc: dict, frames: bool = True,
         write_report(store, twin_run_id(variant), out / "reports" / f"{variant}.html", real_run_id=REAL)
     stages = "".join(f"<tr><td>{_e(k)}</td><td>{v:.0f} s</td></tr>" for k, v in doc["stage_seconds"].items())
     body = [f"<h1>twinbench study — {_e(doc['task'])} ({_e(doc['size'])})</h1>",
-            _table_section(doc), _scatter_section(doc)]
+            _table_section(doc), _scatter_section(doc), _states_section(doc)]
     if doc.get("training"):
         body.append(_training_section(doc))
     body.append(_camera_section(doc))
