@@ -215,9 +215,7 @@ def variant_metrics(store: ResultsStore, variant: str) -> dict:
     """Per-policy success rates in the twin `variant` and in the real workcell, Pearson r (Fisher-z
     interval) and MMRV (bootstrap interval) over the policies both have, from the store; the same rates per
     grid state with r over the states ("states"); and the replays' confusion matrix."""
-    row = _agreement(variant, _outcomes(store, twin_run_id(variant), "sim"), _outcomes(store, REAL, "real"))
-    row["states"] = _state_agreement(_outcomes(store, twin_run_id(variant), "sim", by="state"),
-                                     _outcomes(store, REAL, "real", by="state"))
+    row = _scored(store, variant, twin_run_id(variant))
     from twinbench.evaluation.replay import replay_confusion
 
     c = replay_confusion(store, replay_run_id(variant), by="task")
@@ -231,11 +229,13 @@ def real_again_metrics(store: ResultsStore) -> dict | None:
     """The second real evaluation (`REAL_AGAIN`) against the first, as `variant_metrics` scores a twin (no
     replays); None when the store has none. A twin that matched the real workcell's success rates exactly
     would score about this, given the episodes' sampling noise: at few episodes per policy, r well below 1."""
-    again = _outcomes(store, REAL_AGAIN, "sim")
-    if not again:
-        return None
-    row = _agreement("real again", again, _outcomes(store, REAL, "real"))
-    row["states"] = _state_agreement(_outcomes(store, REAL_AGAIN, "sim", by="state"),
+    return _scored(store, "real again", REAL_AGAIN) if _outcomes(store, REAL_AGAIN, "sim") else None
+
+
+def _scored(store: ResultsStore, label: str, run_id: str) -> dict:
+    """Run `run_id` (domain "sim") against the real rollouts: per policy (`_agreement`) and per grid state."""
+    row = _agreement(label, _outcomes(store, run_id, "sim"), _outcomes(store, REAL, "real"))
+    row["states"] = _state_agreement(_outcomes(store, run_id, "sim", by="state"),
                                      _outcomes(store, REAL, "real", by="state"))
     return row
 
