@@ -200,22 +200,23 @@ def replay_in_twin(task: str, store: ResultsStore, results: Path, variant: str, 
     log(f"{run_id}: {len(pairs)} real rollouts replayed, outcomes agree in {agree}")
 
 
-def _outcomes(store: ResultsStore, run_id: str, domain: str, by: str = "policy") -> dict:
-    """The run's successes (0/1, episodes that ran without error) per (policy, checkpoint), or per grid
-    state with by="state"."""
-    out: dict = {}
+def _outcomes(store: ResultsStore, run_id: str, domain: str) -> tuple[dict, dict]:
+    """The run's successes (0/1, episodes that ran without error) per (policy, checkpoint) and per grid
+    state."""
+    by_policy: dict = {}
+    by_state: dict = {}
     for r in store.episodes(run_id, domain=domain):
         if r.status == "ok":
-            key = (r.policy, r.checkpoint) if by == "policy" else r.init_state
-            out.setdefault(key, []).append(int(r.success))
-    return out
+            by_policy.setdefault((r.policy, r.checkpoint), []).append(int(r.success))
+            by_state.setdefault(r.init_state, []).append(int(r.success))
+    return by_policy, by_state
 
 
 def variant_metrics(store: ResultsStore, variant: str) -> dict:
     """Per-policy success rates in the twin `variant` and in the real workcell, Pearson r (Fisher-z
     interval) and MMRV (bootstrap interval) over the policies both have, from the store; the same rates per
     grid state with r over the states ("states"); and the replays' confusion matrix."""
-    row = _scored(store, variant, twin_run_id(variant))
+    row = _scored(store, variant, _outcomes(store, twin_run_id(variant), "sim"))
     from twinbench.evaluation.replay import replay_confusion
 
     c = replay_confusion(store, replay_run_id(variant), by="task")
@@ -229,14 +230,15 @@ def real_again_metrics(store: ResultsStore) -> dict | None:
     """The second real evaluation (`REAL_AGAIN`) against the first, as `variant_metrics` scores a twin (no
     replays); None when the store has none. A twin that matched the real workcell's success rates exactly
     would score about this, given the episodes' sampling noise: at few episodes per policy, r well below 1."""
-    return _scored(store, "real again", REAL_AGAIN) if _outcomes(store, REAL_AGAIN, "sim") else None
+    again = _outcomes(store, REAL_AGAIN, "sim")
+    return _scored(store, "real again", again) if again[0] else None
 
 
-def _scored(store: ResultsStore, label: str, run_id: str) -> dict:
-    """Run `run_id` (domain "sim") against the real rollouts: per policy (`_agreement`) and per grid state."""
-    row = _agreement(label, _outcomes(store, run_id, "sim"), _outcomes(store, REAL, "real"))
-    row["states"] = _state_agreement(_outcomes(store, run_id, "sim", by="state"),
-                                     _outcomes(store, REAL, "real", by="state"))
+def _scored(store: ResultsStore, label: str, outcomes: tuple[dict, dict]) -> dict:
+    """A run's `_outcomes` against the real rollouts': per policy (`_agreement`) and per grid state."""
+    real, real_states = _outcomes(store, REAL, "real")
+    row = _agreement(label, outcomes[0], real)
+    row["states"] = _state_agreement(outcomes[1], real_states)
     return row
 
 
