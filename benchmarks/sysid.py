@@ -13,7 +13,9 @@ Prints `name value unit` lines per case and the spread:
   region_identifiability``: log-Y standard deviation from the tracks' Fisher information under
   ``REGION_STD``; NaN, left out of the spread, where fewer than 3 regions are constrained or their truth
   is one value);
-- ground friction error where the motion slides, restitution error where it hits the ground;
+- ground friction error where the motion slides, restitution error where it hits the ground, how many
+  within 0.15, and the same over the cases whose fit calls the value constrained by the motion
+  (``SysIdResult.identifiability``: what a user's report says; elsewhere the value is a guess);
 - the stage kept (the lowest tracking error on the selection frames) and the stiffness guess over the
   truth's geometric mean;
 - median and worst of each over the family, and the count of diverged cases.
@@ -93,6 +95,8 @@ def run_case(i: int, seed: int) -> dict:
            "guess_Y_ratio": (res.guesses.get("spring_Y", {}).get("value") or math.nan)
            / math.exp(float(np.mean(truth["log_y"][:n]))),
            "diverged": any(e.diverged for e in res.evals.values())}
+    for name in ("ground_friction", "ground_restitution"):  # whether the fit calls it constrained
+        out[f"{name}_constrained"] = bool(res.identifiability.get(name, {}).get("constrained"))
     if truth["slides"]:
         out["friction_error"] = abs(res.params.ground_friction - truth["params"].ground_friction)
     if truth["impacts"]:
@@ -170,7 +174,8 @@ def _print_case(r: dict) -> None:
     if "error" in r:
         print(f"sysid_case_{r['case']}_failed 1 count  # {r['error']}", flush=True)
         return
-    extra = "".join(f" {k} {r[k]:.3f}" for k in ("friction_error", "restitution_error") if k in r)
+    extra = "".join(f" {k} {r[k]:.3f}{'' if r[f'ground_{k[:-6]}_constrained'] else ' (not constrained)'}"
+                    for k in ("friction_error", "restitution_error") if k in r)
     print(f"sysid_case_{r['case']} val_mm {1e3 * r['val_initial']:.2f}/{1e3 * r['val_stage1']:.2f}/"
           f"{1e3 * r['val_final']:.2f} floor_mm {1e3 * r['floor']:.2f} "
           f"ratio {r['val_final'] / r['floor']:.2f} spearman {r['spearman']:.3f} ({r['regions']} regions; "
@@ -232,12 +237,16 @@ def main() -> None:
     _spread("spearman_constrained", [r["spearman_constrained"] for r in ok], "ratio")
     ranked = sum(math.isfinite(r["spearman_constrained"]) for r in ok)
     print(f"sysid_family_spearman_constrained_cases {ranked} count")
-    fr = [r["friction_error"] for r in ok if "friction_error" in r]
-    re = [r["restitution_error"] for r in ok if "restitution_error" in r]
-    print(f"sysid_family_sliding_cases {len(fr)} count")
-    _spread("friction_error", fr, "abs")
-    print(f"sysid_family_impact_cases {len(re)} count")
-    _spread("restitution_error", re, "abs")
+    for key, where in (("friction", "sliding"), ("restitution", "impact")):
+        errs = [r[f"{key}_error"] for r in ok if f"{key}_error" in r]
+        print(f"sysid_family_{where}_cases {len(errs)} count")
+        _spread(f"{key}_error", errs, "abs")
+        print(f"sysid_family_{key}_within_0.15 {sum(e <= 0.15 for e in errs)} count")
+        # the cases whose fit calls the value constrained by the motion (SysIdResult.identifiability)
+        con = [r[f"{key}_error"] for r in ok if f"{key}_error" in r and r[f"ground_{key}_constrained"]]
+        print(f"sysid_family_{where}_cases_constrained {len(con)} count")
+        _spread(f"{key}_error_constrained", con, "abs")
+        print(f"sysid_family_{key}_within_0.15_constrained {sum(e <= 0.15 for e in con)} count")
     _spread("seconds", [r["seconds"] for r in ok], "s")
     kept = [r["kept"] for r in ok]
     print("sysid_family_kept " + ", ".join(f"{k} {kept.count(k)}" for k in sorted(set(kept))) + " count")
