@@ -174,8 +174,11 @@ def _print_case(r: dict) -> None:
     if "error" in r:
         print(f"sysid_case_{r['case']}_failed 1 count  # {r['error']}", flush=True)
         return
-    extra = "".join(f" {k} {r[k]:.3f}{'' if r[f'ground_{k[:-6]}_constrained'] else ' (not constrained)'}"
-                    for k in ("friction_error", "restitution_error") if k in r)
+    extra = ""
+    for k in ("friction", "restitution"):
+        if f"{k}_error" in r:
+            loose = "" if r[f"ground_{k}_constrained"] else " (not constrained)"
+            extra += f" {k}_error {r[f'{k}_error']:.3f}{loose}"
     print(f"sysid_case_{r['case']} val_mm {1e3 * r['val_initial']:.2f}/{1e3 * r['val_stage1']:.2f}/"
           f"{1e3 * r['val_final']:.2f} floor_mm {1e3 * r['floor']:.2f} "
           f"ratio {r['val_final'] / r['floor']:.2f} spearman {r['spearman']:.3f} ({r['regions']} regions; "
