@@ -55,7 +55,7 @@ def _states_section(doc: dict) -> str:
     rows = [row for row in table_rows(doc) if row.get("states", {}).get("rates")]
     if not rows:
         return ""
-    real = {d["init_state"]: d for d in rows[0]["states"]["rates"]}
+    real = {d["init_state"]: d for row in rows for d in row["states"]["rates"]}  # every row's states
     cols = {row["variant"]: {d["init_state"]: d["sim"] for d in row["states"]["rates"]} for row in rows}
     body = [[str(k), f"{real[k]['real']:.2f} ({real[k]['n_real']})",
              *[_num(cols[v].get(k), ".2f") for v in cols]] for k in sorted(real)]
