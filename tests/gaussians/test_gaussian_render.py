@@ -127,10 +127,11 @@ def test_single_isotropic_gaussian_peak_and_width():
 
 @pytest.mark.parametrize("seed", range(4))
 def test_single_extreme_ellipses_match_reference_per_pixel(ref_render, seed):
-    """The rasteriser steps o exp(-d^2/2) along a row by products (two exp per row): on one Gaussian at a
-    time (needles across the image, 45-degree slivers, sub-pixel dots at the low-pass limit, discs wider
-    than a tile) every pixel stays within 1e-4 of the float64 reference (float32 projection alone differs
-    by ~3e-5), but for pixels at the alpha >= 1/255 cut, where either side may round the other way."""
+    """The rasteriser evaluates o exp(-d^2/2) at every pixel of a footprint row at once (a vectorised
+    polynomial exp): on one Gaussian at a time (needles across the image, 45-degree slivers, sub-pixel dots
+    at the low-pass limit, discs wider than a tile) every pixel stays within 1e-4 of the float64 reference
+    (float32 projection alone differs by ~3e-5), but for pixels at the alpha >= 1/255 cut, where either side
+    may round the other way."""
     rng = np.random.default_rng(seed)
     cam = _cam(width=96, height=80, fx=90.0)
     for k in range(12):
@@ -147,6 +148,23 @@ def test_single_extreme_ellipses_match_reference_per_pixel(ref_render, seed):
         assert np.abs(out.alpha - alpha)[~cut].max() < 1e-4, k
         assert np.abs(out.rgb - rgb)[~cut].max() < 1e-4, k
         assert cut.sum() <= 0.01 * cut.size, k
+
+
+def test_raster_module_builds_for_cuda(tmp_path):
+    """The CPU tile kernel's row step is native C++ (`_composite_row`), and Warp builds a module's kernels
+    for every device it runs on: the module must also compile for CUDA. Checked with Warp's NVRTC, which
+    needs no GPU, so that a machine without one catches a snippet CUDA would refuse."""
+    import warp as wp
+    from warp._src import context  # NVRTC's architectures have no public accessor
+
+    from twinbench.gaussians import warp_raster
+
+    wp.init()
+    archs = sorted(getattr(context.runtime, "nvrtc_supported_archs", ()))
+    if not archs:
+        pytest.skip("this Warp build has no NVRTC")
+    paths = wp.compile_aot_module(warp_raster, arch=80 if 80 in archs else archs[-1], module_dir=tmp_path)
+    assert paths and all(p.stat().st_size > 0 for p in paths)
 
 
 def _render_in_child(queue, cloud, cam) -> None:
