@@ -747,6 +747,9 @@ def _project(parts: list[DeviceGaussians], cam: Camera, background, threads: int
     return ws, item, views
 
 
+_SPLIT_PAIRS = 100_000
+
+
 class _Bins:
     """Stage 2-3 of a view on the host-sort path: its (tile, record) pairs in (tile, depth, record index)
     order, the records copied into pair order, and each tile's [start, end) in them."""
@@ -773,7 +776,9 @@ class _Bins:
             wp.array(offsets.astype(np.int32), dtype=wp.int32, device=device),
             ws.rect, ws.n_tiles, views,
         ]  # fmt: skip
-        _launch_split(_emit_pairs, len(order), emit_in, [keys, values], device, threads)
+        # a thread per part only where the pairs are many (below ~1e5 two threads cost more than one)
+        split = threads if total >= _SPLIT_PAIRS else 1
+        _launch_split(_emit_pairs, len(order), emit_in, [keys, values], device, split)
         tile_of_pair = keys.numpy()[:total].astype(np.uint16 if n_tile_total < 65536 else np.int32)
         perm = np.argsort(tile_of_pair, kind="stable")
         sorted_values = wp.array(values.numpy()[:total][perm], dtype=wp.int32, device=device)
@@ -782,7 +787,7 @@ class _Bins:
         self.ranges = wp.array(self.ranges_np, dtype=wp.vec2i, device=device)
         # records copied into pair order, so the rasteriser streams them instead of chasing random ids
         self.records = wp.empty(max(total, 1), dtype=vec16, device=device)
-        _launch_split(_gather_records, total, [sorted_values, ws.record], [self.records], device, threads)
+        _launch_split(_gather_records, total, [sorted_values, ws.record], [self.records], device, split)
 
 
 def _raster(tiles: np.ndarray, first: _Bins, second: _Bins | None, views, cam: Camera, image: _Image,
@@ -1064,10 +1069,10 @@ def render_views(views: list[tuple[GaussianCloud | DeviceGaussians | SplitGaussi
     """The "warp" backend (see render.render_batch): host clouds uploaded once each; with a `cache`, the
     views of a SplitGaussians whose camera has not moved reuse the kept static work (RenderCache). On CUDA
     the full views run every stage once for all of them (`_render_warp_batch`), and the cached ones
-    likewise (`_render_kept_batch`); on CPU, with at least as
-    many full renders as threads, the views are dealt to the threads (each thread renders whole views,
-    every stage in parallel; the full renders first, then the cached ones, each thread taking the next
-    view when done), else each view in turn is split over the threads by Gaussians and tile rows."""
+    likewise (`_render_kept_batch`); on CPU, with at least as many views as threads, the views are dealt to
+    the threads (each thread renders whole views, every stage in parallel; the full renders first, then the
+    cached ones, each thread taking the next view when done), else each view in turn is split over the
+    threads by Gaussians and tiles."""
     uploaded: dict[int, DeviceGaussians | SplitGaussians] = {}
     jobs: list[tuple[DeviceGaussians | SplitGaussians, Camera]] = []
     for cloud, cam in views:
@@ -1104,9 +1109,9 @@ def render_views(views: list[tuple[GaussianCloud | DeviceGaussians | SplitGaussi
             for i, out in zip(cached, _render_kept_batch(items, background), strict=True):
                 outs[i] = out
         return outs
-    if threads > 1 and len(full) >= threads:
-        # as many full renders as threads: whole views per thread (every stage runs in parallel, not only
-        # kernels); fewer (e.g. one world's moving camera beside a cached one) would leave threads idle
+    if threads > 1 and len(jobs) >= threads:
+        # as many views as threads: whole views per thread (every stage runs in parallel, not only kernels;
+        # one world's moving camera beside its cached one: 11.9 against 13.3 ms split view by view)
         wp.load_module(device=jobs[0][0].device)
         queue = iter(full + [i for i in range(len(jobs)) if kept[i] is not None])
         lock = threading.Lock()
