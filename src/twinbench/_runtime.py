@@ -21,7 +21,8 @@ def quiet_warp() -> None:
 
 
 def cpu_cores() -> int:
-    """CPU cores the physics may use: $TWINBENCH_CPU_THREADS, else the cores this process may run on."""
+    """CPU cores the physics and rendering may use: $TWINBENCH_CPU_THREADS, else the cores this process may
+    run on."""
     env = os.environ.get(CPU_THREADS_ENV)
     if env:
         try:

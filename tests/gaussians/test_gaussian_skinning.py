@@ -255,3 +255,39 @@ def test_label_rigid_copies_in_one_launch_equal_each_copy_alone(make_cloud):
         np.testing.assert_array_equal(out.sh.numpy()[first: first + 90, :9], alone[c][2])
     with pytest.raises(ValueError, match="transforms"):
         poser.update_many(sets[0], out, [0])
+
+
+def test_posing_split_over_threads_equals_one_thread(make_cloud, monkeypatch):
+    """Large poses split their launch over the render threads (`TWINBENCH_CPU_THREADS` of them, at most
+    8); every Gaussian is posed alone, so the split result equals one thread's bit for bit, for rigid
+    labels and LBS, and both copies of a two-copy pose land where their starts say."""
+    import warp as wp
+
+    from twinbench.gaussians import skinning
+    from twinbench.gaussians.cloud import DeviceGaussians
+    from twinbench.gaussians.threads import default_threads
+
+    monkeypatch.setenv("TWINBENCH_CPU_THREADS", "3")
+    assert default_threads() == 3
+    monkeypatch.setenv("TWINBENCH_CPU_THREADS", "64")
+    assert default_threads() == 8
+    cloud = make_cloud(301, degree=3, seed=5, spread=0.1)
+    poser = LabelRigidPoser(cloud, np.arange(301) % 4, 4)
+    rng = np.random.default_rng(5)
+    t = np.tile(np.eye(4), (2, 4, 1, 1))
+    t[..., :3, :3] = Rotation.random(8, random_state=6).as_matrix().reshape(2, 4, 3, 3)
+    t[..., :3, 3] = rng.normal(0, 0.1, (2, 4, 3))
+    particles, gauss, quats = _blob(5, n_particles=60, n_gauss=301)
+    sk = LBSSkinner(bind(gauss, particles), gauss, quats)
+    moved = np.concatenate([particles, particles + rng.normal(0, 0.01, particles.shape)]).astype(np.float32)
+    results = []
+    for split_from in (10**9, 1):  # one thread, then every pose split
+        monkeypatch.setattr(skinning, "_SPLIT_GAUSSIANS", split_from)
+        out = DeviceGaussians.concatenate([make_cloud(602, degree=3, seed=7).to_device("cpu")])
+        poser.update_many(t, out, [301, 0])
+        means, q = wp.zeros(602, dtype=wp.vec3), wp.zeros(602, dtype=wp.vec4)
+        sk.update_many(wp.array(moved, dtype=wp.vec3), [0, 60], means, q, [0, 301])
+        results.append([a.numpy() for a in (out.means, out.quats, out.sh, means, q)])
+    for one, split in zip(*results, strict=True):
+        np.testing.assert_array_equal(split, one)
+    np.testing.assert_array_equal(results[0][0][301:], poser.update(t[0]).means.numpy())

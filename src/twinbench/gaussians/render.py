@@ -9,7 +9,6 @@ warp. A backend is a function ``fn(views, background, device, threads) -> list[R
 
 from __future__ import annotations
 
-import os
 from collections.abc import Callable, Sequence
 
 import numpy as np
@@ -20,6 +19,7 @@ from twinbench.gaussians.camera import Camera
 from twinbench.gaussians.cloud import DeviceGaussians, GaussianCloud, SplitGaussians
 from twinbench.gaussians.gsplat_backend import gsplat_available
 from twinbench.gaussians.render_rules import RenderOutput
+from twinbench.gaussians.threads import default_threads
 from twinbench.gaussians.warp_raster import RenderCache
 
 Backend = Callable[[list, np.ndarray, str, int], list[RenderOutput]]
@@ -59,8 +59,8 @@ def render(
     backend: "warp" (CPU or CUDA), "gsplat" (CUDA, extra `gsplat`), "reference" (NumPy, slow), another
     registered one (`backends()`), or "auto" (gsplat on CUDA when installed, else warp). device defaults
     to the DeviceGaussians' device, else "cpu". On CPU, work is split over `threads` Python threads
-    (default: the core count, at most 8; Warp kernels release the GIL): cameras across threads when there
-    are several, else Gaussians and tile rows.
+    (default: the cores this process may use, $TWINBENCH_CPU_THREADS if set, at most 8; Warp kernels
+    release the GIL): cameras across threads when there are several, else Gaussians and tiles.
     """
     single = isinstance(cameras, Camera)
     cams = [cameras] if single else list(cameras)
@@ -108,7 +108,7 @@ def render_batch(
         device = str(first.device) if isinstance(first, DeviceGaussians | SplitGaussians) else "cpu"
     if backend == "auto":
         backend = "gsplat" if (device.startswith("cuda") and gsplat_available()) else "warp"
-    threads = max(1, min(8, os.cpu_count() or 1) if threads is None else int(threads))
+    threads = default_threads() if threads is None else max(1, int(threads))
     fn = _BACKENDS[backend]
     if fn is warp_raster.render_views:
         return fn(views, bg, device, threads, cache=cache)

@@ -18,8 +18,10 @@ import warp as wp
 
 from twinbench.gaussians.cloud import DeviceGaussians, GaussianCloud
 from twinbench.gaussians.sh import sh_degree, sh_rotation_matrices
+from twinbench.gaussians.threads import default_threads, launch_split
 
 _EPS_REL = 1e-5
+_SPLIT_GAUSSIANS = 10_000  # posing splits over the threads from this many (below, one thread is faster)
 
 wp.set_module_options({"enable_backward": False})
 
@@ -149,11 +151,12 @@ def _skin(
     cur_starts: wp.array(dtype=int),
     rots: wp.array(dtype=wp.mat33),
     out_starts: wp.array(dtype=int),
+    start: int,
     out_means: wp.array(dtype=wp.vec3),
     out_quats: wp.array(dtype=wp.vec4),
 ):
-    """Gaussian g of copy c (thread c * N + g) into out_*[out_starts[c] + g]."""
-    i = wp.tid()
+    """Gaussian g of copy c (thread start + t = c * N + g) into out_*[out_starts[c] + g]."""
+    i = wp.tid() + start
     num = rest_means.shape[0]
     c = i // num
     g = i - c * num
@@ -184,13 +187,14 @@ def _rigid_by_label(
     trans: wp.array(dtype=wp.vec3),
     sh_mats: wp.array2d(dtype=wp.float32),
     out_starts: wp.array(dtype=int),
+    start: int,
     out_means: wp.array(dtype=wp.vec3),
     out_quats: wp.array(dtype=wp.vec4),
     out_sh: wp.array2d(dtype=wp.vec3),
 ):
-    """Gaussian i of copy c (thread c * N + i) moved by the copy's transform of its label, into
-    out_*[out_starts[c] + i]."""
-    t = wp.tid()
+    """Gaussian i of copy c (thread start + t = c * N + i) moved by the copy's transform of its label,
+    into out_*[out_starts[c] + i]."""
+    t = wp.tid() + start
     num = rest_means.shape[0]
     c = t // num
     i = t - c * num
@@ -324,23 +328,11 @@ class LabelRigidPoser:
                 np.concatenate([m.ravel() for m in sh_rotation_matrices(r, self.degree)[1:]]) for r in rots
             ])
             self._sh_mats.assign(mats.astype(np.float32))
-        wp.launch(
-            _rigid_by_label,
-            dim=copies * n,
-            inputs=[
-                self.rest.means,
-                self.rest.quats,
-                self.rest.sh,
-                self._labels,
-                self.num_labels,
-                self._rots,
-                self._trans,
-                self._sh_mats,
-                first,
-            ],
-            outputs=[out.means, out.quats, out.sh],
-            device=self.device,
-        )
+        inputs = [self.rest.means, self.rest.quats, self.rest.sh, self._labels, self.num_labels, self._rots,
+                  self._trans, self._sh_mats, first]  # fmt: skip
+        threads = default_threads() if copies * n >= _SPLIT_GAUSSIANS else 1
+        outputs = [out.means, out.quats, out.sh]
+        launch_split(_rigid_by_label, copies * n, inputs, outputs, self.device, threads)
         return out
 
 
@@ -421,23 +413,10 @@ class LBSSkinner:
             outputs=[self.bone_rotations],
             device=self.device,
         )
-        wp.launch(
-            _skin,
-            dim=copies * n,
-            inputs=[
-                self._rest_means,
-                self._rest_quats,
-                self._indices,
-                self._weights,
-                self._rest,
-                particles,
-                cur,
-                self.bone_rotations,
-                out,
-            ],
-            outputs=[out_means, out_quats],
-            device=self.device,
-        )
+        inputs = [self._rest_means, self._rest_quats, self._indices, self._weights, self._rest, particles,
+                  cur, self.bone_rotations, out]  # fmt: skip
+        threads = default_threads() if copies * n >= _SPLIT_GAUSSIANS else 1
+        launch_split(_skin, copies * n, inputs, [out_means, out_quats], self.device, threads)
         return out_means, out_quats
 
 

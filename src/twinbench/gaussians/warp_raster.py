@@ -36,10 +36,8 @@ two cameras, one world, H100: 3.4 ms cached, 3.2 ms in full), so twins keep it o
 
 from __future__ import annotations
 
-import os
 import threading
 from collections import OrderedDict
-from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 import warp as wp
@@ -47,6 +45,7 @@ import warp as wp
 from twinbench.gaussians.camera import Camera
 from twinbench.gaussians.cloud import DeviceGaussians, GaussianCloud, SplitGaussians
 from twinbench.gaussians.render_rules import ALPHA_MAX, ALPHA_MIN, LOW_PASS, NEAR, T_MIN, TILE, RenderOutput
+from twinbench.gaussians.threads import launch_split, run_threads
 
 wp.set_module_options({"enable_backward": False})
 
@@ -660,73 +659,6 @@ class _Image:
                             alpha=self.t.numpy().reshape(h, w))
 
 
-_POOL_LOCK = threading.Lock()
-_POOL: ThreadPoolExecutor | None = None  # the render threads, started once (a thread start costs ~0.1 ms)
-_IN_POOL = threading.local()
-
-
-def _pool_thread_init() -> None:
-    _IN_POOL.active = True
-
-
-def _forget_pool() -> None:
-    """In a forked child: the parent's pool threads do not exist there (a task sent to them would never
-    run), and its lock may have been held at the fork; start afresh."""
-    global _POOL, _POOL_LOCK
-    _POOL_LOCK = threading.Lock()
-    _POOL = None
-
-
-if hasattr(os, "register_at_fork"):
-    os.register_at_fork(after_in_child=_forget_pool)
-
-
-def _run_threads(fns) -> None:
-    """Call each function, the first in this thread and the others in the module's worker threads (in
-    turn, in this thread, when called from one of them: no task waits on a queued task); re-raise the
-    first error."""
-    if not fns:
-        return
-    if len(fns) == 1 or getattr(_IN_POOL, "active", False):
-        for fn in fns:
-            fn()
-        return
-    global _POOL
-    with _POOL_LOCK:
-        if _POOL is None:
-            _POOL = ThreadPoolExecutor(8, "twinbench-render", initializer=_pool_thread_init)
-        pool = _POOL
-    futures = [pool.submit(fn) for fn in fns[1:]]
-    error: BaseException | None = None
-    try:
-        fns[0]()
-    except BaseException as exc:  # re-raised once the workers are done with the shared buffers
-        error = exc
-    for fut in futures:
-        exc = fut.exception()
-        error = error or exc
-    if error is not None:
-        raise error
-
-
-def _launch_split(kernel, dim: int, inputs: list, outputs: list, device, threads: int, start: int = 0):
-    """Launch `kernel` over [start, start + dim) in `threads` contiguous chunks (its last input is the
-    chunk start); on CPU each chunk runs in its own Python thread (Warp releases the GIL)."""
-    parts = threads if (device.is_cpu and threads > 1) else 1
-    cut = np.linspace(start, start + dim, parts + 1).astype(int)
-    _run_threads(
-        [
-            (
-                lambda lo=lo, hi=hi: wp.launch(
-                    kernel, dim=hi - lo, inputs=inputs + [int(lo)], outputs=outputs, device=device
-                )
-            )
-            for lo, hi in zip(cut[:-1], cut[1:], strict=True)
-            if hi > lo
-        ]
-    )
-
-
 def _parts(g) -> list[DeviceGaussians]:
     return [g.static, g.moving] if isinstance(g, SplitGaussians) else [g]
 
@@ -742,7 +674,7 @@ def _project(parts: list[DeviceGaussians], cam: Camera, background, threads: int
         views = vw if views is None else views
         pre_in = [p.means, p.quats, p.scales, p.opacities, p.sh, p.sh.shape[1], vw, NEAR]
         outs = [ws.record, ws.depth, ws.rect, ws.n_tiles]
-        _launch_split(_preprocess, len(p), pre_in, outs, device, threads, start=item)
+        launch_split(_preprocess, len(p), pre_in, outs, device, threads, start=item)
         item += len(p)
     return ws, item, views
 
@@ -778,7 +710,7 @@ class _Bins:
         ]  # fmt: skip
         # a thread per part only where the pairs are many (below ~1e5 two threads cost more than one)
         split = threads if total >= _SPLIT_PAIRS else 1
-        _launch_split(_emit_pairs, len(order), emit_in, [keys, values], device, split)
+        launch_split(_emit_pairs, len(order), emit_in, [keys, values], device, split)
         tile_of_pair = keys.numpy()[:total].astype(np.uint16 if n_tile_total < 65536 else np.int32)
         perm = np.argsort(tile_of_pair, kind="stable")
         sorted_values = wp.array(values.numpy()[:total][perm], dtype=wp.int32, device=device)
@@ -787,7 +719,7 @@ class _Bins:
         self.ranges = wp.array(self.ranges_np, dtype=wp.vec2i, device=device)
         # records copied into pair order, so the rasteriser streams them instead of chasing random ids
         self.records = wp.empty(max(total, 1), dtype=vec16, device=device)
-        _launch_split(_gather_records, total, [sorted_values, ws.record], [self.records], device, split)
+        launch_split(_gather_records, total, [sorted_values, ws.record], [self.records], device, split)
 
 
 def _raster(tiles: np.ndarray, first: _Bins, second: _Bins | None, views, cam: Camera, image: _Image,
@@ -805,7 +737,7 @@ def _raster(tiles: np.ndarray, first: _Bins, second: _Bins | None, views, cam: C
     raster_in = [first.ranges, first.records, b_ranges, b_records, views]
     row_done = wp.empty(_tile_count(cam) * 16, dtype=wp.int32, device=device)
     raster_out = [image.rgb, image.depth, image.t, row_done]
-    _run_threads(
+    run_threads(
         [
             (
                 lambda tl=tl: wp.launch(
@@ -1124,7 +1056,7 @@ def render_views(views: list[tuple[GaussianCloud | DeviceGaussians | SplitGaussi
                     return
                 one(i, 1)
 
-        _run_threads([work] * min(threads, len(jobs)))
+        run_threads([work] * min(threads, len(jobs)))
     else:
         for i in range(len(jobs)):
             one(i, threads)
