@@ -146,26 +146,28 @@ def _view_of(views: wp.array(dtype=_View), k: int, field: int):
     return lo
 
 
-@wp.kernel
-def _preprocess(
+_D2MAX_BOUND = 11.0827  # > 2 ln 255, the largest d2max (opacity 1)
+_CHUNK = 32  # Gaussians a CPU projection thread takes in turn (its view looked up once)
+
+
+@wp.func
+def _project_one(
+    out: int,
+    vw: _View,
     means: wp.array(dtype=wp.vec3),
     quats: wp.array(dtype=wp.vec4),
     scales: wp.array(dtype=wp.vec3),
     opacities: wp.array(dtype=wp.float32),
     sh: wp.array2d(dtype=wp.vec3),
     sh_k: int,
-    views: wp.array(dtype=_View),
     near: float,
-    offset: int,
     record: wp.array(dtype=vec16),
     depth: wp.array(dtype=wp.float32),
     rect: wp.array(dtype=wp.vec4i),
     n_tiles: wp.array(dtype=wp.int32),
 ):
-    """Record `out` = offset + thread: Gaussian i of its view's cloud seen by that view -> packed record,
-    depth, tile rectangle, tile count."""
-    out = wp.tid() + offset
-    vw = views[_view_of(views, out, 0)]
+    """Record `out`: Gaussian vw.src + out - vw.item of the cloud seen by view `vw` -> packed record,
+    depth, tile rectangle, tile count (0 and depth 3e38 when culled)."""
     i = vw.src + out - vw.item
     n_tiles[out] = 0
     depth[out] = 3.0e38
@@ -181,9 +183,14 @@ def _preprocess(
     tyz = wp.clamp(p[1] / z, -vw.lim[2], vw.lim[3])
     smax = wp.max(s[0], wp.max(s[1], s[2]))
     jf2 = (vw.fx * vw.fx * (1.0 + txz * txz) + vw.fy * vw.fy * (1.0 + tyz * tyz)) / (z * z)
-    r = wp.sqrt(2.0 * wp.log(o / ALPHA_MIN) * (jf2 * smax * smax + LOW_PASS)) + 1.0
     uc = vw.fx * p[0] / z + vw.cx
     vc = vw.fy * p[1] / z + vw.cy
+    # most culled Gaussians go by a first test without log or sqrt: d2max <= 2 ln 255 (o <= 1) and
+    # (sqrt(A) + 1)^2 <= 2 A + 2
+    off = wp.max(wp.max(-uc, uc - float(vw.width)), wp.max(-vc, vc - float(vw.height)))
+    if o <= 1.0 and off > 0.0 and off * off > 2.0 * _D2MAX_BOUND * (jf2 * smax * smax + LOW_PASS) + 2.0:
+        return
+    r = wp.sqrt(2.0 * wp.log(o / ALPHA_MIN) * (jf2 * smax * smax + LOW_PASS)) + 1.0
     if uc + r < 0.0 or vc + r < 0.0 or uc - r > float(vw.width) or vc - r > float(vw.height):
         return
     q = quats[i]
@@ -239,6 +246,42 @@ def _preprocess(
     depth[out] = z
     rect[out] = wp.vec4i(tx0, ty0, tx1, ty1)
     n_tiles[out] = (tx1 - tx0 + 1) * (ty1 - ty0 + 1)
+
+
+@wp.kernel
+def _preprocess(
+    means: wp.array(dtype=wp.vec3),
+    quats: wp.array(dtype=wp.vec4),
+    scales: wp.array(dtype=wp.vec3),
+    opacities: wp.array(dtype=wp.float32),
+    sh: wp.array2d(dtype=wp.vec3),
+    sh_k: int,
+    views: wp.array(dtype=_View),
+    near: float,
+    chunk: int,
+    offset: int,
+    end: int,
+    chunk0: int,
+    record: wp.array(dtype=vec16),
+    depth: wp.array(dtype=wp.float32),
+    rect: wp.array(dtype=wp.vec4i),
+    n_tiles: wp.array(dtype=wp.int32),
+):
+    """Records [offset + chunk t', + chunk) below `end` (t' = chunk0 + thread), each seen by its view: one
+    thread per `chunk` records (_CHUNK on CPU, where a thread per record cost more than its culled
+    records' own work; 1 on CUDA), the view looked up once when the chunk lies in one view."""
+    first = offset + (wp.tid() + chunk0) * chunk
+    last = wp.min(first + chunk, end)
+    k = _view_of(views, first, 0)
+    vw = views[k]
+    if k == _view_of(views, last - 1, 0):
+        for out in range(first, last):
+            _project_one(out, vw, means, quats, scales, opacities, sh, sh_k, near, record, depth, rect,
+                         n_tiles)
+    else:
+        for out in range(first, last):
+            _project_one(out, views[_view_of(views, out, 0)], means, quats, scales, opacities, sh, sh_k, near,
+                         record, depth, rect, n_tiles)
 
 
 @wp.kernel
@@ -672,9 +715,11 @@ def _project(parts: list[DeviceGaussians], cam: Camera, background, threads: int
     for p in parts:
         vw = wp.array([_view(cam, background, 0, item)], dtype=_View, device=device)
         views = vw if views is None else views
-        pre_in = [p.means, p.quats, p.scales, p.opacities, p.sh, p.sh.shape[1], vw, NEAR]
+        chunk = _CHUNK if device.is_cpu else 1
+        pre_in = [p.means, p.quats, p.scales, p.opacities, p.sh, p.sh.shape[1], vw, NEAR, chunk, item,
+                  item + len(p)]
         outs = [ws.record, ws.depth, ws.rect, ws.n_tiles]
-        launch_split(_preprocess, len(p), pre_in, outs, device, threads, start=item)
+        launch_split(_preprocess, (len(p) + chunk - 1) // chunk, pre_in, outs, device, threads)
         item += len(p)
     return ws, item, views
 
@@ -897,9 +942,10 @@ class _Batch:
         n = item
         ws = _Workspace(n, device)
         g = cloud
-        inputs = [g.means, g.quats, g.scales, g.opacities, g.sh, g.sh.shape[1], vw, NEAR, 0]
-        wp.launch(_preprocess, dim=n, inputs=inputs, outputs=[ws.record, ws.depth, ws.rect, ws.n_tiles],
-                  device=device)
+        chunk = _CHUNK if device.is_cpu else 1
+        inputs = [g.means, g.quats, g.scales, g.opacities, g.sh, g.sh.shape[1], vw, NEAR, chunk, 0, n, 0]
+        wp.launch(_preprocess, dim=(n + chunk - 1) // chunk, inputs=inputs,
+                  outputs=[ws.record, ws.depth, ws.rect, ws.n_tiles], device=device)
         total = 0
         if n:  # (no Gaussians, e.g. a cached view with nothing moving: no sorts)
             dkeys = wp.empty(2 * n, dtype=wp.float32, device=device)
