@@ -83,3 +83,73 @@ def launch_split(kernel, dim: int, inputs: list, outputs: list, device, threads:
             if hi > lo
         ]
     )
+
+
+class WorkBoard:
+    """Work of several owners shared with threads that have none of their own left: an owner `share`s a
+    list of tasks (callables) and runs them itself, taking the next one each time, while threads done
+    with their own work take them too (`help` until every owner has `finish`ed). Each task runs once;
+    `share` returns when all of its tasks have run and re-raises the first error one raised."""
+
+    def __init__(self, owners: int) -> None:
+        self._cond = threading.Condition()
+        self._open = int(owners)  # owners that may still share work
+        self._queues: list[_Shared] = []
+
+    def share(self, tasks: list) -> None:
+        shared = _Shared(tasks)
+        with self._cond:
+            self._queues.append(shared)
+            self._cond.notify_all()
+        while (task := self._take(shared)) is not None:
+            self._run(shared, task)
+        with self._cond:
+            while shared.running:
+                self._cond.wait()
+            self._queues.remove(shared)
+        if shared.error is not None:
+            raise shared.error
+
+    def finish(self) -> None:
+        """An owner has no more work to share (call it once per owner, also after an error)."""
+        with self._cond:
+            self._open -= 1
+            self._cond.notify_all()
+
+    def help(self) -> None:
+        """Run other owners' shared tasks until every owner has finished."""
+        while True:
+            with self._cond:
+                while True:
+                    found = next(((q, q.tasks.pop()) for q in self._queues if q.tasks), None)
+                    if found is not None or self._open <= 0:
+                        break
+                    self._cond.wait()
+                if found is None:
+                    return
+                found[0].running += 1
+            self._run(*found)
+
+    def _take(self, shared: _Shared):
+        with self._cond:
+            if not shared.tasks:
+                return None
+            shared.running += 1
+            return shared.tasks.pop()
+
+    def _run(self, shared: _Shared, task) -> None:
+        try:
+            task()
+        except BaseException as exc:  # noqa: BLE001 - re-raised by the task's owner
+            shared.error = shared.error or exc
+        finally:
+            with self._cond:
+                shared.running -= 1
+                self._cond.notify_all()
+
+
+class _Shared:
+    def __init__(self, tasks: list) -> None:
+        self.tasks = list(reversed(tasks))  # popped from the end: in the given order
+        self.running = 0
+        self.error: BaseException | None = None

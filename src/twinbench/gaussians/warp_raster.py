@@ -45,7 +45,7 @@ import warp as wp
 from twinbench.gaussians.camera import Camera
 from twinbench.gaussians.cloud import DeviceGaussians, GaussianCloud, SplitGaussians
 from twinbench.gaussians.render_rules import ALPHA_MAX, ALPHA_MIN, LOW_PASS, NEAR, T_MIN, TILE, RenderOutput
-from twinbench.gaussians.threads import launch_split, run_threads
+from twinbench.gaussians.threads import WorkBoard, launch_split, run_threads
 
 wp.set_module_options({"enable_backward": False})
 
@@ -725,6 +725,7 @@ def _project(parts: list[DeviceGaussians], cam: Camera, background, threads: int
 
 
 _SPLIT_PAIRS = 100_000
+_SHARED_TILES = 24  # tiles a shared raster task takes (a launch costs ~0.05 ms)
 
 
 class _Bins:
@@ -768,12 +769,16 @@ class _Bins:
 
 
 def _raster(tiles: np.ndarray, first: _Bins, second: _Bins | None, views, cam: Camera, image: _Image,
-            threads: int) -> None:
+            threads: int, board: WorkBoard | None = None) -> None:
     """Stage 4: rasterise the given tiles of one view into `image`, merging `second`'s lists into
-    `first`'s by depth (CPU: the tiles dealt to the threads in turn, for load balance)."""
+    `first`'s by depth (CPU: the tiles dealt to the threads in turn, for load balance; with a `board`,
+    in runs of _SHARED_TILES tiles that threads done with their own views help with)."""
     device = image.rgb.device
-    parts = threads if (device.is_cpu and threads > 1) else 1
-    lists = [tiles[k::parts] for k in range(parts)]
+    if board is not None and device.is_cpu:
+        lists = [tiles[k : k + _SHARED_TILES] for k in range(0, len(tiles), _SHARED_TILES)]
+    else:
+        parts = threads if (device.is_cpu and threads > 1) else 1
+        lists = [tiles[k::parts] for k in range(parts)]
     lists = [wp.array(tl.astype(np.int32), dtype=wp.int32, device=device) for tl in lists if len(tl)]
     if second is None:
         b_ranges, b_records = wp.empty(0, dtype=wp.vec2i, device=device), first.records
@@ -782,26 +787,26 @@ def _raster(tiles: np.ndarray, first: _Bins, second: _Bins | None, views, cam: C
     raster_in = [first.ranges, first.records, b_ranges, b_records, views]
     row_done = wp.empty(_tile_count(cam) * 16, dtype=wp.int32, device=device)
     raster_out = [image.rgb, image.depth, image.t, row_done]
-    run_threads(
-        [
-            (
-                lambda tl=tl: wp.launch(
-                    _rasterise, dim=len(tl), inputs=[tl] + raster_in,
-                    outputs=raster_out + [wp.empty(len(tl) * _TILE_ACC, dtype=wp.float32, device=device)],
-                    device=device,
-                )
+    tasks = [
+        (
+            lambda tl=tl: wp.launch(
+                _rasterise, dim=len(tl), inputs=[tl] + raster_in,
+                outputs=raster_out + [wp.empty(len(tl) * _TILE_ACC, dtype=wp.float32, device=device)],
+                device=device,
             )
-            for tl in lists
-        ]
-    )
+        )
+        for tl in lists
+    ]
+    board.share(tasks) if board is not None and device.is_cpu else run_threads(tasks)
 
 
 def _render_warp_one(
     g: DeviceGaussians | SplitGaussians, cam: Camera, background: np.ndarray, threads: int,
-    host_sort: bool | None = None,
+    host_sort: bool | None = None, board: WorkBoard | None = None,
 ) -> RenderOutput:
     """One camera, every Gaussian. host_sort (default: on CPU) sorts the pairs with NumPy, else it is a
-    batch of one view (Warp's radix sorts: the CUDA path; the tests also run it on CPU)."""
+    batch of one view (Warp's radix sorts: the CUDA path; the tests also run it on CPU). `board`: see
+    `_raster`."""
     parts = _parts(g)
     device = parts[0].device
     if not (device.is_cpu if host_sort is None else host_sort):
@@ -811,7 +816,7 @@ def _render_warp_one(
     ws, n, views = _project(parts, cam, background, threads)
     bins = _Bins(ws, n, views, cam, threads)
     image = _Image(cam.width * cam.height, device)
-    _raster(np.arange(_tile_count(cam)), bins, None, views, cam, image, threads)
+    _raster(np.arange(_tile_count(cam)), bins, None, views, cam, image, threads, board)
     return image.output(cam.height, cam.width)
 
 
@@ -835,10 +840,12 @@ class _Kept:
             _raster(np.arange(_tile_count(cam)), self.bins, None, views, cam, self.image, threads)
 
 
-def _render_kept(kept: _Kept, moving: DeviceGaussians, cam: Camera, background, threads: int) -> RenderOutput:
+def _render_kept(kept: _Kept, moving: DeviceGaussians, cam: Camera, background, threads: int,
+                 board: WorkBoard | None = None) -> RenderOutput:
     """A view of [static | moving] from the kept static work: only the moving Gaussians are projected and
     binned; the tiles they reach are rasterised with their lists merged into the kept ones by depth, every
-    other tile is the kept static image. Equals `_render_warp_one` of the whole cloud, bit for bit."""
+    other tile is the kept static image. Equals `_render_warp_one` of the whole cloud, bit for bit.
+    `board`: see `_raster`."""
     image = _Image(0, moving.device, like=kept.image)
     if len(moving):
         if moving.device.is_cpu and threads > 1:
@@ -847,7 +854,7 @@ def _render_kept(kept: _Kept, moving: DeviceGaussians, cam: Camera, background, 
         bins = _Bins(ws, n, views, cam, threads)
         dirty = np.flatnonzero(bins.ranges_np[:, 1] > bins.ranges_np[:, 0])
         if len(dirty):
-            _raster(dirty, kept.bins, bins, views, cam, image, threads)
+            _raster(dirty, kept.bins, bins, views, cam, image, threads, board)
     return image.output(cam.height, cam.width)
 
 
@@ -1068,12 +1075,12 @@ def render_views(views: list[tuple[GaussianCloud | DeviceGaussians | SplitGaussi
     ]  # fmt: skip
     outs: list = [None] * len(jobs)
 
-    def one(i: int, th: int) -> None:
+    def one(i: int, th: int, board: WorkBoard | None = None) -> None:
         g, cam = jobs[i]
         if kept[i] is None:
-            outs[i] = _render_warp_one(g, cam, background, th)
+            outs[i] = _render_warp_one(g, cam, background, th, board=board)
         else:
-            outs[i] = _render_kept(kept[i], g.moving, cam, background, th)
+            outs[i] = _render_kept(kept[i], g.moving, cam, background, th, board=board)
 
     full = [i for i in range(len(jobs)) if kept[i] is None]
     if not jobs[0][0].device.is_cpu:  # one launch per stage for the full views, one for the cached ones
@@ -1093,16 +1100,24 @@ def render_views(views: list[tuple[GaussianCloud | DeviceGaussians | SplitGaussi
         wp.load_module(device=jobs[0][0].device)
         queue = iter(full + [i for i in range(len(jobs)) if kept[i] is not None])
         lock = threading.Lock()
+        workers = min(threads, len(jobs))
+        # a thread out of views helps rasterise the others' (one world: the wrist's full render beside
+        # the front's cached one)
+        board = WorkBoard(workers)
 
         def work():
-            while True:
-                with lock:
-                    i = next(queue, None)
-                if i is None:
-                    return
-                one(i, 1)
+            try:
+                while True:
+                    with lock:
+                        i = next(queue, None)
+                    if i is None:
+                        break
+                    one(i, 1, board)
+            finally:
+                board.finish()
+            board.help()
 
-        run_threads([work] * min(threads, len(jobs)))
+        run_threads([work] * workers)
     else:
         for i in range(len(jobs)):
             one(i, threads)
