@@ -63,10 +63,13 @@ class Outline:
         """Whether object-frame points lie inside the prism, boundary included (within `tol`): (N, 3)
         points, or (N, 2) for the footprint alone."""
         p = np.asarray(points, dtype=np.float64)
-        inside = self._in_polygon(p[:, :2])
-        # the boundary test only where it can change the answer: outside, within tol of the bounding box
+        # only points within tol of the bounding box can be inside or on the boundary
         lo, hi = self.polygon.min(0) - tol, self.polygon.max(0) + tol
-        near = np.flatnonzero(~inside & np.all((p[:, :2] >= lo) & (p[:, :2] <= hi), axis=1))
+        boxed = np.flatnonzero(np.all((p[:, :2] >= lo) & (p[:, :2] <= hi), axis=1))
+        inside = np.zeros(len(p), dtype=bool)
+        inside[boxed] = self._in_polygon(p[boxed, :2])
+        # the boundary test only where it can change the answer: outside, within tol of the bounding box
+        near = boxed[~inside[boxed]]
         inside[near] = self._boundary_distance(p[near, :2]) <= tol
         if p.shape[1] == 3:
             inside &= (p[:, 2] >= -tol) & (p[:, 2] <= self.height + tol)
