@@ -8,20 +8,20 @@ culled. A Gaussian's footprint is the bounding box of the ellipse where alpha >=
 The Jacobian clamps x/z, y/z to 0.3 tan(fov/2) beyond the image (as gsplat does); SH colours are
 max(0, 0.5 + sum c_k Y_k(d)) with d the unit direction from the camera centre; rgb is clipped to [0, 1].
 
-Pipeline: project (packed 64-byte record per Gaussian; a Gaussian whose footprint bound misses the image
-is culled before its covariance is formed) -> stable depth sort (equal depths in index order) ->
-(tile, Gaussian) pairs in depth order -> stable sort by tile -> records gathered into pair order -> one
-thread per tile walks its Gaussians front to back; for each row of a Gaussian's footprint in the tile, the
-row's 16 pixels are composited at once by native code the compiler vectorises (`_composite_row`: o
-exp(-d^2/2) at each pixel, exp within 2 ulp of expf; stopped pixels masked) into the tile's own
-accumulators, written to the image once at the end; rows whose footprint pixels have all stopped
+Pipeline: project (packed 64-byte record per Gaussian; a Gaussian whose footprint bound misses the image is
+culled before its covariance is formed; a CPU thread takes 32 Gaussians) -> stable depth sort (equal depths
+in index order) -> (tile, Gaussian) pairs in depth order -> stable sort by tile -> records gathered into
+pair order -> one thread per tile walks its Gaussians front to back; for each row of a Gaussian's footprint
+in the tile, the row's 16 pixels are composited at once by native code the compiler vectorises
+(`_composite_row`: o exp(-d^2/2) at each pixel, exp within 2 ulp of expf; stopped pixels masked) into the
+tile's own accumulators, written to the image once at the end; rows whose footprint pixels have all stopped
 (per-row bitmasks), Gaussians whose rows have all stopped and the tile once every pixel has stopped are
-skipped. CPU threads come from one pool, started once. On CPU the
-pair sorts run in NumPy; on CUDA (`_render_warp_batch`) they are Warp radix sorts (the same order), a
-batch of views (every camera of every world) runs each stage once for all of them, and the last stage is
-one thread per pixel walking its tile's list with o exp(-d^2/2) at the pixel (`_rasterise_pixels`: a
-tile per thread leaves a GPU idle; 240x240 images have 225 tiles): CUDA images agree with CPU ones
-within a level (alpha within a few ulp), not bit for bit.
+skipped. CPU threads come from one pool, started once (gaussians/threads.py); a thread out of views helps
+rasterise the others' tiles (WorkBoard). On CPU the pair sorts run in NumPy; on CUDA (`_render_warp_batch`)
+they are Warp radix sorts (the same order), a batch of views (every camera of every world) runs each stage
+once for all of them, and the last stage is one thread per pixel walking its tile's list with o exp(-d^2/2)
+at the pixel (`_rasterise_pixels`: a tile per thread leaves a GPU idle; 240x240 images have 225 tiles): CUDA
+images agree with CPU ones within a level (alpha within a few ulp), not bit for bit.
 
 Static/moving split (`RenderCache`, `SplitGaussians(static, moving)`): for a camera that has not moved,
 the static part's records, (tile, depth)-ordered pair lists and the image it makes alone are kept (on the
