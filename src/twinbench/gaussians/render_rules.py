@@ -30,4 +30,7 @@ class RenderOutput:
 
     def rgb_uint8(self) -> np.ndarray:
         """rgb as H x W x 3 uint8 (rounded)."""
-        return np.clip(np.rint(self.rgb * 255.0), 0, 255).astype(np.uint8)
+        scaled = self.rgb * np.float32(255.0)  # one temporary, rounded and clipped in place
+        np.rint(scaled, out=scaled)
+        np.clip(scaled, 0, 255, out=scaled)
+        return scaled.astype(np.uint8)
