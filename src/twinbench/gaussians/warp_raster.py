@@ -774,7 +774,8 @@ def _raster(tiles: np.ndarray, first: _Bins, second: _Bins | None, views, cam: C
     `first`'s by depth (CPU: the tiles dealt to the threads in turn, for load balance; with a `board`,
     in runs of _SHARED_TILES tiles that threads done with their own views help with)."""
     device = image.rgb.device
-    if board is not None and device.is_cpu:
+    shared = board is not None and device.is_cpu
+    if shared:
         lists = [tiles[k : k + _SHARED_TILES] for k in range(0, len(tiles), _SHARED_TILES)]
     else:
         parts = threads if (device.is_cpu and threads > 1) else 1
@@ -797,7 +798,10 @@ def _raster(tiles: np.ndarray, first: _Bins, second: _Bins | None, views, cam: C
         )
         for tl in lists
     ]
-    board.share(tasks) if board is not None and device.is_cpu else run_threads(tasks)
+    if shared:
+        board.share(tasks)
+    else:
+        run_threads(tasks)
 
 
 def _render_warp_one(
