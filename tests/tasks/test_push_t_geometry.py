@@ -149,3 +149,38 @@ def test_outline_contains_its_boundary_within_tol_and_nothing_beyond():
     assert not outline.contains(mid + 1e-3 * normal, tol=1e-6).any()
     assert outline.contains(mid + 1e-7 * normal, tol=1e-6).all()
     assert outline.contains(mid - 1e-3 * normal, tol=1e-9).all()
+
+
+def test_outline_contains_a_slanted_concave_polygon_as_brute_force_does():
+    """A star (slanted edges, concave corners, a horizontal edge): `contains` against a per-point reference
+    (ray crossing over every edge, distance to every edge), on random points and points within and beyond
+    `tol` of the edges."""
+    from twinbench.twin.shapes import Outline
+
+    k = np.arange(10)
+    radius = np.where(k % 2 == 0, 0.05, 0.02)
+    star = np.c_[radius * np.cos(k * np.pi / 5), radius * np.sin(k * np.pi / 5)]
+    star = np.r_[star[:3], [[0.0, star[2, 1]]], star[3:]]  # a horizontal edge
+    outline = Outline(star, 0.02)
+    rng = np.random.default_rng(3)
+    a, b = star, np.roll(star, -1, axis=0)
+    t = rng.uniform(0, 1, (400, 1))
+    edge = rng.integers(0, len(a), 400)
+    e = b[edge] - a[edge]
+    normal = np.c_[e[:, 1], -e[:, 0]] / np.linalg.norm(e, axis=1, keepdims=True)
+    off = rng.choice([-2e-6, -5e-7, 5e-7, 2e-6], (400, 1))
+    pts = np.r_[rng.uniform(-0.06, 0.06, (3000, 2)), a[edge] + t * e + off * normal]
+    tol = 1e-6
+
+    def reference(p):
+        crossings, dist = 0, np.inf
+        for pa, pb in zip(a, b, strict=True):
+            if (pa[1] > p[1]) != (pb[1] > p[1]):
+                crossings += p[0] < pa[0] + (p[1] - pa[1]) * (pb[0] - pa[0]) / (pb[1] - pa[1])
+            s = np.clip(np.dot(p - pa, pb - pa) / np.dot(pb - pa, pb - pa), 0.0, 1.0)
+            dist = min(dist, np.linalg.norm(pa + s * (pb - pa) - p))
+        return crossings % 2 == 1 or dist <= tol
+
+    expected = np.array([reference(p) for p in pts])
+    np.testing.assert_array_equal(outline.contains(pts, tol=tol), expected)
+    assert expected[3000:].sum() == np.count_nonzero(off < 1e-6)  # inside or within tol: the first three

@@ -70,7 +70,7 @@ class Outline:
         inside[boxed] = self._in_polygon(p[boxed, :2])
         # the boundary test only where it can change the answer: outside, within tol of the bounding box
         near = boxed[~inside[boxed]]
-        inside[near] = self._boundary_distance(p[near, :2]) <= tol
+        inside[near] = self._within(p[near, :2], tol)
         if p.shape[1] == 3:
             inside &= (p[:, 2] >= -tol) & (p[:, 2] <= self.height + tol)
         return inside
@@ -95,11 +95,12 @@ class Outline:
     def _in_polygon(self, p: np.ndarray) -> np.ndarray:
         """Even-odd rule: (N,) whether the (N, 2) points are strictly inside (boundary: either)."""
         a, b = self._edges()
+        slanted = a[:, 1] != b[:, 1]  # a horizontal edge never straddles a point's ray
+        a, b = a[slanted], b[slanted]
         px, py = p[:, :1], p[:, 1:2]
         straddle = (a[:, 1] > py) != (b[:, 1] > py)
-        with np.errstate(divide="ignore", invalid="ignore"):
-            x_cross = a[:, 0] + (py - a[:, 1]) * (b[:, 0] - a[:, 0]) / (b[:, 1] - a[:, 1])
-        return np.sum(straddle & (px < x_cross), axis=1) % 2 == 1
+        x_cross = a[:, 0] + (py - a[:, 1]) * (b[:, 0] - a[:, 0]) / (b[:, 1] - a[:, 1])
+        return np.count_nonzero(straddle & (px < x_cross), axis=1) % 2 == 1
 
     def _closest_on_edges(self, p: np.ndarray) -> np.ndarray:
         """(N, K, 2): the closest point of each edge to each point."""
@@ -108,8 +109,18 @@ class Outline:
         t = np.einsum("nkd,kd->nk", p[:, None, :] - a, e) / np.sum(e * e, axis=1)
         return a + np.clip(t, 0.0, 1.0)[..., None] * e
 
-    def _boundary_distance(self, p: np.ndarray) -> np.ndarray:
-        return np.min(np.linalg.norm(self._closest_on_edges(p) - p[:, None, :], axis=2), axis=1)
+    def _within(self, p: np.ndarray, tol: float) -> np.ndarray:
+        """(N,) whether the (N, 2) points lie within `tol` of the boundary: the distance computed only for
+        the points inside some edge's bounding box widened by `tol` (no other point can be that close)."""
+        a, b = self._edges()
+        lo, hi = np.minimum(a, b) - tol, np.maximum(a, b) + tol
+        x, y = p[:, :1], p[:, 1:2]
+        boxed = (x >= lo[:, 0]) & (x <= hi[:, 0]) & (y >= lo[:, 1]) & (y <= hi[:, 1])
+        rows = np.flatnonzero(np.any(boxed, axis=1))
+        out = np.zeros(len(p), dtype=bool)
+        q = p[rows]
+        out[rows] = np.min(np.linalg.norm(self._closest_on_edges(q) - q[:, None, :], axis=2), axis=1) <= tol
+        return out
 
 
 @dataclass(frozen=True)
