@@ -73,7 +73,7 @@ def bench(task: str, preset: str, device: str, steps: int, warmup: int = 5, core
         print(f"{tag}_split_frames {int(twin.solver.executor.name == 'split')} bool")
 
 
-def bench_worlds(device: str, counts: list[int], steps: int, render_steps: int = 3) -> None:
+def bench_worlds(device: str, counts: list[int], steps: int, render_steps: int) -> None:
     for n in counts:
         envs = TwinVectorEnv("push-t", n, preset="fast", device=device)
         obs, _ = envs.reset(seed=0, options={"init_state": [i % 16 for i in range(n)]})
@@ -129,6 +129,8 @@ def main() -> None:
     parser.add_argument("--presets", nargs="+", default=["fast", "reference"])
     parser.add_argument("--tasks", nargs="+", default=list(TASKS), choices=list(TASKS))
     parser.add_argument("--worlds", nargs="*", type=int, default=[1, 4, 16, 64])
+    parser.add_argument("--world-steps", type=int, default=10,
+                        help="timed many-world steps with the render cache on (and as many off) per count")
     args = parser.parse_args()
     quiet_warp()  # no per-module load lines
     devices = ["cpu"] + (["cuda:0"] if wp.get_cuda_device_count() > 0 else [])
@@ -141,7 +143,7 @@ def main() -> None:
                         bench(task, preset, device, steps, cores=cores)
                 else:
                     bench(task, preset, device, steps)
-        bench_worlds(device, args.worlds, args.steps)
+        bench_worlds(device, args.worlds, args.steps, args.world_steps)
 
 
 if __name__ == "__main__":
