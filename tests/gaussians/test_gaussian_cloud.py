@@ -173,3 +173,20 @@ def test_camera_look_at_projection_and_inverse():
         Camera(100, 100, 5, 5, 10, 10, np.diag([1.0, 1.0, -1.0, 1.0]))
     with pytest.raises(ValueError, match="fx"):
         Camera(0, 100, 5, 5, 10, 10)
+
+
+def test_spatially_sorted_is_a_permutation_that_groups_neighbours(make_cloud):
+    """Morton order: the same Gaussians (every field moved together), and runs of 32 consecutive ones
+    about as tight in space as a grid cell of 32 (0.8 of a 2 m box's 3.3 in a random order)."""
+    cloud = make_cloud(4096, degree=1, seed=3, spread=1.0)
+    out = cloud.spatially_sorted()
+    order = np.lexsort(cloud.means.T)
+    back = np.lexsort(out.means.T)
+    for field in ("means", "quats", "log_scales", "logit_opacities", "sh"):
+        np.testing.assert_array_equal(getattr(out, field)[back], getattr(cloud, field)[order])
+
+    def run_extent(c):
+        m = c.means.reshape(-1, 32, 3)
+        return np.median(np.linalg.norm(m.max(axis=1) - m.min(axis=1), axis=1))
+
+    assert run_extent(out) < 0.3 * run_extent(cloud)

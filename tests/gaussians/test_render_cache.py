@@ -255,3 +255,45 @@ def test_cuda_path_run_on_cpu_cached_batch_equals_full_batch(make_cloud, ref_ren
     nothing = twins.subset(np.arange(0)).to_device("cpu")
     still = _render_kept_batch([(kept[1], nothing, cams[1])], bg32, per_pixel=True)[0]
     _assert_same(still, _render_warp_batch([(s_dev, cams[1])], bg32, per_pixel=True)[0])
+
+
+def test_moving_cameras_cull_the_static_part_a_chunk_at_a_time(make_cloud):
+    """A moving camera's full renders of a SplitGaussians with a cache cull the static part by chunks of
+    Gaussians in spatial order (`RenderCache.balls`): close-ups, views across the near plane and views
+    whose footprints reach in from beyond the image sides equal full renders of the concatenation bit for
+    bit, and a close-up does cull most chunks whole."""
+    import warp as wp
+
+    from twinbench.gaussians import warp_raster as wr
+
+    static = make_cloud(4000, degree=1, anisotropic=True, seed=5, spread=1.5, log_scale=(-4.5, -1.5))
+    static = static.spatially_sorted()
+    moving = make_cloud(60, seed=6, spread=0.05)
+    s_dev, m_dev = static.to_device("cpu"), moving.to_device("cpu")
+    bg = (0.2, 0.1, 0.0)
+    poses = [((0.3, 0.2, 0.25), (0.0, 0.0, 0.0), 90.0), ((0.05, 0.02, 0.0), (1.0, 0.3, 0.1), 60.0),
+             ((2.5, 0.0, 0.0), (0.0, 0.0, 0.0), 120.0), ((1.4, 1.4, 1.4), (-1.0, -1.0, -1.0), 40.0),
+             ((0.0, 0.0, 1.55), (0.0, 0.01, -1.0), 80.0)]  # fmt: skip
+    for threads in (1, 2):
+        cache = RenderCache()
+        for eye, target, fx in poses:
+            cam = Camera.look_at(eye, target, fx=fx, width=64, height=48)
+            got = render_batch([(SplitGaussians(s_dev, m_dev), cam)], background=bg, backend="warp",
+                               threads=threads, cache=cache)[0]  # fmt: skip
+            _assert_same(got, _full(static, moving, cam, bg))
+        assert cache.builds == 0 and len(cache._balls) == 1  # every view a full render, the bounds made once
+
+    @wp.kernel
+    def outside(views: wp.array(dtype=wr._View), balls: wp.array(dtype=wp.vec4),
+                scale: wp.array(dtype=wp.float32), out: wp.array(dtype=wp.int32)):
+        c = wp.tid()
+        if wr._chunk_outside(views[0], balls[c], scale[c], wr.NEAR):
+            out[c] = 1
+
+    dense = make_cloud(30000, seed=7, spread=1.5, log_scale=(-5.5, -4.5)).spatially_sorted().to_device("cpu")
+    balls = RenderCache().balls(dense)
+    close = Camera.look_at(*poses[0][:2], fx=poses[0][2], width=64, height=48)
+    out = wp.zeros(balls.balls.shape[0], dtype=wp.int32, device="cpu")
+    wp.launch(outside, dim=len(out), inputs=[wp.array([wr._view(close, bg)], dtype=wr._View, device="cpu"),
+                                             balls.balls, balls.scale], outputs=[out], device="cpu")
+    assert out.numpy().mean() > 0.4  # (0.47: behind the camera, beyond the sides)

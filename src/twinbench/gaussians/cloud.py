@@ -104,6 +104,21 @@ class GaussianCloud:
             np.concatenate(sh),
         )
 
+    def spatially_sorted(self) -> GaussianCloud:
+        """The same Gaussians in Morton (z-order) order of their means on a 1024^3 grid over their bounding
+        box, ties in index order: neighbours in space become neighbours in the arrays, so a renderer can
+        cull runs of them at once (the warp backend's projection does, for the static part of a
+        SplitGaussians kept in a RenderCache)."""
+        if len(self) == 0:
+            return self
+        lo, hi = self.means.min(axis=0), self.means.max(axis=0)
+        cell = np.clip((self.means - lo) / np.maximum(hi - lo, 1e-12) * 1024, 0, 1023).astype(np.uint64)
+        code = np.zeros(len(self), dtype=np.uint64)
+        for bit in range(10):
+            for axis in range(3):
+                code |= ((cell[:, axis] >> np.uint64(bit)) & np.uint64(1)) << np.uint64(3 * bit + axis)
+        return self.subset(np.argsort(code, kind="stable"))
+
     def subset(self, index: np.ndarray | slice | Sequence[int]) -> GaussianCloud:
         """Gaussians selected by an integer index array, a slice or a boolean mask of length N."""
         if isinstance(index, slice):

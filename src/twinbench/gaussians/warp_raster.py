@@ -9,7 +9,9 @@ The Jacobian clamps x/z, y/z to 0.3 tan(fov/2) beyond the image (as gsplat does)
 max(0, 0.5 + sum c_k Y_k(d)) with d the unit direction from the camera centre; rgb is clipped to [0, 1].
 
 Pipeline: project (packed 64-byte record per Gaussian; a Gaussian whose footprint bound misses the image is
-culled before its covariance is formed; a CPU thread takes 32 Gaussians) -> stable depth sort (equal depths
+culled before its covariance is formed; a CPU thread takes 32 Gaussians, and where the cloud is a
+RenderCache's static part, culls all 32 at once when a ball around them lies beyond the near plane or an
+image side widened by their footprint bound) -> stable depth sort (equal depths
 in index order) -> (tile, Gaussian) pairs in depth order -> stable sort by tile -> records gathered into
 pair order -> one thread per tile walks its Gaussians front to back; for each row of a Gaussian's footprint
 in the tile, the row's 16 pixels are composited at once by native code the compiler vectorises
@@ -248,6 +250,39 @@ def _project_one(
     n_tiles[out] = (tx1 - tx0 + 1) * (ty1 - ty0 + 1)
 
 
+@wp.func
+def _chunk_outside(vw: _View, ball: wp.vec4, smax: float, near: float):
+    """Whether `_project_one` culls every Gaussian of a chunk whose centres lie in `ball` (centre, radius)
+    and whose scales are at most `smax` in magnitude, opacities at most 1 (smax < 0: unknown, keep it):
+    the ball lies wholly before the near plane, or wholly beyond an image side widened by a footprint
+    bound that holds for all of them (smax at the ball's nearest depth, the Jacobian's clamp, d2max <= 2 ln
+    255) plus a pixel of slack over the per-Gaussian test's own."""
+    if smax < 0.0:
+        return False
+    rho = ball[3]
+    p = vw.rot_wc * wp.vec3(ball[0], ball[1], ball[2]) + vw.t_wc
+    if p[2] + rho + 1.0e-5 < near:
+        return True
+    zmin = p[2] - rho
+    if zmin < near:
+        return False
+    lx = wp.max(vw.lim[0], vw.lim[1])
+    ly = wp.max(vw.lim[2], vw.lim[3])
+    jf2 = (vw.fx * vw.fx * (1.0 + lx * lx) + vw.fy * vw.fy * (1.0 + ly * ly)) / (zmin * zmin)
+    r = wp.sqrt(_D2MAX_BOUND * (jf2 * smax * smax + LOW_PASS)) + 2.0
+    # u < -r: fx x + (cx + r) z < 0; u > width + r: fx x - (width + r - cx) z > 0; v likewise
+    kl = vw.cx + r
+    kr = float(vw.width) + r - vw.cx
+    kt = vw.cy + r
+    kb = float(vw.height) + r - vw.cy
+    return (
+        vw.fx * p[0] + kl * p[2] < -rho * wp.sqrt(vw.fx * vw.fx + kl * kl)
+        or vw.fx * p[0] - kr * p[2] > rho * wp.sqrt(vw.fx * vw.fx + kr * kr)
+        or vw.fy * p[1] + kt * p[2] < -rho * wp.sqrt(vw.fy * vw.fy + kt * kt)
+        or vw.fy * p[1] - kb * p[2] > rho * wp.sqrt(vw.fy * vw.fy + kb * kb)
+    )
+
+
 @wp.kernel
 def _preprocess(
     means: wp.array(dtype=wp.vec3),
@@ -261,6 +296,8 @@ def _preprocess(
     chunk: int,
     offset: int,
     end: int,
+    balls: wp.array(dtype=wp.vec4),
+    ball_scale: wp.array(dtype=wp.float32),
     chunk0: int,
     record: wp.array(dtype=vec16),
     depth: wp.array(dtype=wp.float32),
@@ -269,12 +306,20 @@ def _preprocess(
 ):
     """Records [offset + chunk t', + chunk) below `end` (t' = chunk0 + thread), each seen by its view: one
     thread per `chunk` records (_CHUNK on CPU, where a thread per record cost more than its culled
-    records' own work; 1 on CUDA), the view looked up once when the chunk lies in one view."""
-    first = offset + (wp.tid() + chunk0) * chunk
+    records' own work; 1 on CUDA), the view looked up once when the chunk lies in one view. With `balls`
+    (one per chunk of the part, and its largest scale: see _ChunkBalls), a chunk `_chunk_outside` the
+    view is culled whole."""
+    c = wp.tid() + chunk0
+    first = offset + c * chunk
     last = wp.min(first + chunk, end)
     k = _view_of(views, first, 0)
     vw = views[k]
     if k == _view_of(views, last - 1, 0):
+        if c < balls.shape[0] and _chunk_outside(vw, balls[c], ball_scale[c], near):
+            for out in range(first, last):
+                n_tiles[out] = 0
+                depth[out] = 3.0e38
+            return
         for out in range(first, last):
             _project_one(out, vw, means, quats, scales, opacities, sh, sh_k, near, record, depth, rect,
                          n_tiles)
@@ -702,22 +747,48 @@ class _Image:
                             alpha=self.t.numpy().reshape(h, w))
 
 
+class _ChunkBalls:
+    """Per chunk of _CHUNK Gaussians of a cloud that stays put: a ball holding their centres (the centre
+    of their bounding box, half its diagonal, widened for rounding) and their largest scale magnitude (-1
+    where an opacity exceeds 1, which the chunk test does not bound). Clouds in spatial order
+    (`GaussianCloud.spatially_sorted`) have small balls, most of them wholly outside a close-up view."""
+
+    def __init__(self, g: DeviceGaussians | None, device=None) -> None:
+        device = g.device if g is not None else device
+        if g is None or len(g) == 0:  # no chunk bounds: every chunk culled Gaussian by Gaussian
+            self.balls = wp.empty(0, dtype=wp.vec4, device=device)
+            self.scale = wp.empty(0, dtype=wp.float32, device=device)
+            return
+        starts = np.arange(0, len(g), _CHUNK)
+        means = g.means.numpy().astype(np.float64)
+        lo, hi = np.minimum.reduceat(means, starts), np.maximum.reduceat(means, starts)
+        radius = 0.5 * np.linalg.norm(hi - lo, axis=1) * (1.0 + 1e-6) + 1e-6
+        scale = np.maximum.reduceat(np.abs(g.scales.numpy()).max(axis=1), starts)
+        scale = np.where(np.maximum.reduceat(g.opacities.numpy(), starts) <= 1.0, scale, -1.0)
+        self.balls = wp.array(np.c_[0.5 * (lo + hi), radius].astype(np.float32), dtype=wp.vec4, device=device)
+        self.scale = wp.array(scale.astype(np.float32), dtype=wp.float32, device=device)
+
+
 def _parts(g) -> list[DeviceGaussians]:
     return [g.static, g.moving] if isinstance(g, SplitGaussians) else [g]
 
 
-def _project(parts: list[DeviceGaussians], cam: Camera, background, threads: int):
+def _project(parts: list[DeviceGaussians], cam: Camera, background, threads: int,
+             balls: list[_ChunkBalls | None] | None = None):
     """Stage 1: a record per Gaussian of `parts` (one part after another: their concatenation) as seen by
-    `cam` (packed record, depth, tile rectangle, tile count) -> (workspace, the view's kernel array)."""
+    `cam` (packed record, depth, tile rectangle, tile count) -> (workspace, the view's kernel array).
+    `balls`: per part, its chunks' bounds (CPU; None: cull Gaussian by Gaussian)."""
     device = parts[0].device
     ws = _Workspace(sum(len(p) for p in parts), device)
     views, item = None, 0
-    for p in parts:
+    for k, p in enumerate(parts):
         vw = wp.array([_view(cam, background, 0, item)], dtype=_View, device=device)
         views = vw if views is None else views
         chunk = _CHUNK if device.is_cpu else 1
+        b = balls[k] if balls is not None and chunk == _CHUNK else None
+        b = b or _ChunkBalls(None, device)
         pre_in = [p.means, p.quats, p.scales, p.opacities, p.sh, p.sh.shape[1], vw, NEAR, chunk, item,
-                  item + len(p)]
+                  item + len(p), b.balls, b.scale]
         outs = [ws.record, ws.depth, ws.rect, ws.n_tiles]
         launch_split(_preprocess, (len(p) + chunk - 1) // chunk, pre_in, outs, device, threads)
         item += len(p)
@@ -806,18 +877,18 @@ def _raster(tiles: np.ndarray, first: _Bins, second: _Bins | None, views, cam: C
 
 def _render_warp_one(
     g: DeviceGaussians | SplitGaussians, cam: Camera, background: np.ndarray, threads: int,
-    host_sort: bool | None = None, board: WorkBoard | None = None,
+    host_sort: bool | None = None, board: WorkBoard | None = None, static_balls: _ChunkBalls | None = None,
 ) -> RenderOutput:
     """One camera, every Gaussian. host_sort (default: on CPU) sorts the pairs with NumPy, else it is a
     batch of one view (Warp's radix sorts: the CUDA path; the tests also run it on CPU). `board`: see
-    `_raster`."""
+    `_raster`. `static_balls`: the chunk bounds of a SplitGaussians' static part (RenderCache.balls)."""
     parts = _parts(g)
     device = parts[0].device
     if not (device.is_cpu if host_sort is None else host_sort):
         return _render_warp_batch([(_whole(g), cam)], background)[0]
     if device.is_cpu and threads > 1:
         wp.load_module(device=device)  # compile once, not concurrently in the worker threads
-    ws, n, views = _project(parts, cam, background, threads)
+    ws, n, views = _project(parts, cam, background, threads, [static_balls, None])
     bins = _Bins(ws, n, views, cam, threads)
     image = _Image(cam.width * cam.height, device)
     _raster(np.arange(_tile_count(cam)), bins, None, views, cam, image, threads, board)
@@ -871,7 +942,9 @@ class RenderCache:
     static Gaussians' records, their (tile, depth)-ordered pair lists and the image they make alone, on
     the render's device; that render and later ones of that camera project only the moving Gaussians (see
     `_render_kept`). A camera that moves (a new key every render) never builds an entry: it gets full
-    renders. Images equal full renders bit for bit. The static cloud is known by its arrays' addresses: a
+    renders, whose projection culls the static Gaussians 32 at a time where a ball around them misses the
+    view (`balls`: kept per static cloud; a cloud in spatial order, `GaussianCloud.spatially_sorted`, has
+    small balls). Images equal full renders bit for bit. The static cloud is known by its arrays' addresses: a
     different cloud makes new entries, but after writing into a kept static cloud's arrays call `clear()`.
     Entries (at most `max_entries`, least recently used dropped) may be shared by many worlds' views."""
 
@@ -879,6 +952,7 @@ class RenderCache:
         self.max_entries = int(max_entries)
         self._kept: OrderedDict[tuple, _Kept] = OrderedDict()
         self._seen: OrderedDict[tuple, None] = OrderedDict()
+        self._balls: OrderedDict[tuple, _ChunkBalls] = OrderedDict()
         self._lock = threading.Lock()  # renders from several threads may share a cache
         self.builds = self.hits = self.misses = 0  # counters, for tests and benchmarks
 
@@ -886,15 +960,31 @@ class RenderCache:
         with self._lock:
             self._kept.clear()
             self._seen.clear()
+            self._balls.clear()
+
+    def balls(self, static: DeviceGaussians) -> _ChunkBalls:
+        """The static cloud's chunk bounds, for the full renders of moving cameras (computed once)."""
+        key = self._arrays(static)
+        with self._lock:
+            out = self._balls.get(key)
+            if out is None:
+                out = self._balls[key] = _ChunkBalls(static)
+                while len(self._balls) > self.max_entries:
+                    self._balls.popitem(last=False)
+            return out
+
+    @staticmethod
+    def _arrays(static: DeviceGaussians) -> tuple:
+        return str(static.device), tuple((a.ptr, a.shape) for a in (static.means, static.quats, static.scales,
+                                                                     static.opacities, static.sh))
 
     @staticmethod
     def _key(static: DeviceGaussians, cam: Camera, background) -> tuple:
-        arrays = tuple((a.ptr, a.shape) for a in (static.means, static.quats, static.scales, static.opacities,
-                                                   static.sh))  # fmt: skip
+        arrays = RenderCache._arrays(static)
         intr = np.array([cam.fx, cam.fy, cam.cx, cam.cy, cam.width, cam.height], np.float64)
         pose = np.asarray(cam.cam_to_world, np.float64)
         bg = np.asarray(background, np.float32)
-        return str(static.device), arrays, intr.tobytes(), pose.tobytes(), bg.tobytes()
+        return arrays, intr.tobytes(), pose.tobytes(), bg.tobytes()
 
     def lookup(self, static: DeviceGaussians, cam: Camera, background, threads: int) -> _Kept | None:
         """The kept work for this view, built on the second request of its key; None: render in full."""
@@ -954,7 +1044,9 @@ class _Batch:
         ws = _Workspace(n, device)
         g = cloud
         chunk = _CHUNK if device.is_cpu else 1
-        inputs = [g.means, g.quats, g.scales, g.opacities, g.sh, g.sh.shape[1], vw, NEAR, chunk, 0, n, 0]
+        none = _ChunkBalls(None, device)
+        inputs = [g.means, g.quats, g.scales, g.opacities, g.sh, g.sh.shape[1], vw, NEAR, chunk, 0, n,
+                  none.balls, none.scale, 0]
         wp.launch(_preprocess, dim=(n + chunk - 1) // chunk, inputs=inputs,
                   outputs=[ws.record, ws.depth, ws.rect, ws.n_tiles], device=device)
         total = 0
@@ -1078,11 +1170,16 @@ def render_views(views: list[tuple[GaussianCloud | DeviceGaussians | SplitGaussi
         for g, cam in jobs
     ]  # fmt: skip
     outs: list = [None] * len(jobs)
+    balls = {
+        id(g): cache.balls(g.static)
+        for (g, _), k in zip(jobs, kept, strict=True)
+        if k is None and cache is not None and isinstance(g, SplitGaussians) and g.device.is_cpu
+    }  # fmt: skip
 
     def one(i: int, th: int, board: WorkBoard | None = None) -> None:
         g, cam = jobs[i]
         if kept[i] is None:
-            outs[i] = _render_warp_one(g, cam, background, th, board=board)
+            outs[i] = _render_warp_one(g, cam, background, th, board=board, static_balls=balls.get(id(g)))
         else:
             outs[i] = _render_kept(kept[i], g.moving, cam, background, th, board=board)
 

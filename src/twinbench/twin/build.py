@@ -212,7 +212,9 @@ class Twin:
         self._latch = self.robot.gripper_joint is not None and len(self._tool_mesh) == 2
 
         # Gaussians: [background | robot | objects... | colliders...] in one buffer per state.
-        static = [g for g in [with_color_map(spec.background, spec.background_color_map)] if g is not None]
+        # (the background in spatial order: the renderer culls runs of it at once, see RenderCache.balls)
+        background = with_color_map(spec.background, spec.background_color_map)
+        static = [] if background is None else [background.spatially_sorted()]
         self.robot_gaussians = _robot_gaussians(spec.robot, self.robot)
         parts = static + [self.robot_gaussians.local]
         n_static = sum(len(g) for g in static)
