@@ -38,6 +38,7 @@ two cameras, one world, H100: 3.4 ms cached, 3.2 ms in full), so twins keep it o
 
 from __future__ import annotations
 
+import functools
 import threading
 from collections import OrderedDict
 
@@ -769,6 +770,17 @@ class _ChunkBalls:
         self.scale = wp.array(scale.astype(np.float32), dtype=wp.float32, device=device)
 
 
+@functools.lru_cache(maxsize=8)
+def _no_balls(device: str) -> _ChunkBalls:
+    return _ChunkBalls(None, device)
+
+
+def _from_host(a: np.ndarray, dtype, device) -> wp.array:
+    """A host array as a kernel argument: on CPU the same memory (the Warp array holds a reference), else
+    a device copy."""
+    return wp.array(np.ascontiguousarray(a), dtype=dtype, device=device, copy=not device.is_cpu)
+
+
 def _parts(g) -> list[DeviceGaussians]:
     return [g.static, g.moving] if isinstance(g, SplitGaussians) else [g]
 
@@ -786,7 +798,7 @@ def _project(parts: list[DeviceGaussians], cam: Camera, background, threads: int
         views = vw if views is None else views
         chunk = _CHUNK if device.is_cpu else 1
         b = balls[k] if balls is not None and chunk == _CHUNK else None
-        b = b or _ChunkBalls(None, device)
+        b = b or _no_balls(str(device))
         pre_in = [p.means, p.quats, p.scales, p.opacities, p.sh, p.sh.shape[1], vw, NEAR, chunk, item,
                   item + len(p), b.balls, b.scale]
         outs = [ws.record, ws.depth, ws.rect, ws.n_tiles]
@@ -821,8 +833,8 @@ class _Bins:
         keys = wp.empty(max(total, 1), dtype=wp.int32, device=device)
         values = wp.empty(max(total, 1), dtype=wp.int32, device=device)
         emit_in = [
-            wp.array(order, dtype=wp.int32, device=device),
-            wp.array(offsets.astype(np.int32), dtype=wp.int32, device=device),
+            _from_host(order, wp.int32, device),
+            _from_host(offsets.astype(np.int32), wp.int32, device),
             ws.rect, ws.n_tiles, views,
         ]  # fmt: skip
         # a thread per part only where the pairs are many (below ~1e5 two threads cost more than one)
@@ -830,10 +842,10 @@ class _Bins:
         launch_split(_emit_pairs, len(order), emit_in, [keys, values], device, split)
         tile_of_pair = keys.numpy()[:total].astype(np.uint16 if n_tile_total < 65536 else np.int32)
         perm = np.argsort(tile_of_pair, kind="stable")
-        sorted_values = wp.array(values.numpy()[:total][perm], dtype=wp.int32, device=device)
+        sorted_values = _from_host(values.numpy()[:total][perm], wp.int32, device)
         bounds = np.searchsorted(tile_of_pair[perm], np.arange(n_tile_total + 1))
         self.ranges_np = np.stack([bounds[:-1], bounds[1:]], axis=1).astype(np.int32)
-        self.ranges = wp.array(self.ranges_np, dtype=wp.vec2i, device=device)
+        self.ranges = _from_host(self.ranges_np, wp.vec2i, device)
         # records copied into pair order, so the rasteriser streams them instead of chasing random ids
         self.records = wp.empty(max(total, 1), dtype=vec16, device=device)
         launch_split(_gather_records, total, [sorted_values, ws.record], [self.records], device, split)
@@ -851,7 +863,7 @@ def _raster(tiles: np.ndarray, first: _Bins, second: _Bins | None, views, cam: C
     else:
         parts = threads if (device.is_cpu and threads > 1) else 1
         lists = [tiles[k::parts] for k in range(parts)]
-    lists = [wp.array(tl.astype(np.int32), dtype=wp.int32, device=device) for tl in lists if len(tl)]
+    lists = [_from_host(tl.astype(np.int32), wp.int32, device) for tl in lists if len(tl)]
     if second is None:
         b_ranges, b_records = wp.empty(0, dtype=wp.vec2i, device=device), first.records
     else:
@@ -1044,7 +1056,7 @@ class _Batch:
         ws = _Workspace(n, device)
         g = cloud
         chunk = _CHUNK if device.is_cpu else 1
-        none = _ChunkBalls(None, device)
+        none = _no_balls(str(device))
         inputs = [g.means, g.quats, g.scales, g.opacities, g.sh, g.sh.shape[1], vw, NEAR, chunk, 0, n,
                   none.balls, none.scale, 0]
         wp.launch(_preprocess, dim=(n + chunk - 1) // chunk, inputs=inputs,
