@@ -19,11 +19,12 @@ in the tile, the row's 16 pixels are composited at once by native code the compi
 tile's own accumulators, written to the image once at the end; rows whose footprint pixels have all stopped
 (per-row bitmasks), Gaussians whose rows have all stopped and the tile once every pixel has stopped are
 skipped. CPU threads come from one pool, started once (gaussians/threads.py); a thread out of views helps
-rasterise the others' tiles (WorkBoard). On CPU the pair sorts run in NumPy; on CUDA (`_render_warp_batch`)
-they are Warp radix sorts (the same order), a batch of views (every camera of every world) runs each stage
-once for all of them, and the last stage is one thread per pixel walking its tile's list with o exp(-d^2/2)
-at the pixel (`_rasterise_pixels`: a tile per thread leaves a GPU idle; 240x240 images have 225 tiles): CUDA
-images agree with CPU ones within a level (alpha within a few ulp), not bit for bit.
+rasterise the last views' tiles (WorkBoard; the views before them rasterise in one launch each). On CPU
+the pair sorts run in NumPy; on CUDA (`_render_warp_batch`) they are Warp radix sorts (the same order), a
+batch of views (every camera of every world) runs each stage once for all of them, and the last stage is
+one thread per pixel walking its tile's list with o exp(-d^2/2) at the pixel (`_rasterise_pixels`: a tile
+per thread leaves a GPU idle; 240x240 images have 225 tiles): CUDA images agree with CPU ones within a
+level (alpha within a few ulp), not bit for bit.
 
 Static/moving split (`RenderCache`, `SplitGaussians(static, moving)`): for a camera that has not moved,
 the static part's records, (tile, depth)-ordered pair lists and the image it makes alone are kept (on the
