@@ -71,6 +71,10 @@ def launch_split(kernel, dim: int, inputs: list, outputs: list, device, threads:
     """Launch `kernel` over [start, start + dim) in `threads` contiguous chunks (its last input is the
     chunk start); on CPU each chunk runs in its own thread, on other devices it is one launch."""
     parts = threads if (device.is_cpu and threads > 1) else 1
+    if parts == 1:
+        if dim > 0:
+            wp.launch(kernel, dim=dim, inputs=inputs + [int(start)], outputs=outputs, device=device)
+        return
     cut = np.linspace(start, start + dim, parts + 1).astype(int)
     run_threads(
         [
