@@ -220,6 +220,14 @@ def _rigid_by_label(
         band += 1
 
 
+def _upload(dst: wp.array, values: np.ndarray) -> None:
+    """Host values into a float32 Warp array of the same shape (on CPU written in place, no temporary)."""
+    if dst.device.is_cpu:
+        dst.numpy()[...] = values.reshape(dst.numpy().shape)
+    else:
+        dst.assign(np.ascontiguousarray(values, dtype=np.float32))
+
+
 def _starts(starts, count: int, what: int, device) -> wp.array:
     """Checked first indices of `len(starts)` copies of `count` items in an array of `what` items, as a
     device array (cached: a twin passes the same starts every step)."""
@@ -307,9 +315,8 @@ class LabelRigidPoser:
                 f"got {t.shape}"
             )
         rots = t[..., :3, :3].reshape(-1, 3, 3)
-        if not np.allclose(rots @ rots.transpose(0, 2, 1), np.eye(3), atol=1e-5) or np.any(
-            np.linalg.det(rots) < 0
-        ):
+        ortho = np.abs(rots @ rots.transpose(0, 2, 1) - np.eye(3)) <= 1e-5 + 1e-5 * np.eye(3)  # np.allclose's
+        if not ortho.all() or np.any(np.linalg.det(rots) < 0):
             raise ValueError("LabelRigidPoser.update: every transform's 3x3 block must be a rotation")
         n = len(self.rest)
         self._check_out(out, exact=False)
@@ -321,13 +328,13 @@ class LabelRigidPoser:
             self._trans = wp.empty(rots.shape[0], dtype=wp.vec3, device=self.device)
             self._sh_mats = wp.zeros((rots.shape[0], self._sh_mats.shape[1]), dtype=wp.float32,
                                      device=self.device)
-        self._rots.assign(rots.astype(np.float32))
-        self._trans.assign(t[..., :3, 3].reshape(-1, 3).astype(np.float32))
+        _upload(self._rots, rots)
+        _upload(self._trans, t[..., :3, 3].reshape(-1, 3))
         if self.degree > 0:
             mats = np.stack([
                 np.concatenate([m.ravel() for m in sh_rotation_matrices(r, self.degree)[1:]]) for r in rots
             ])
-            self._sh_mats.assign(mats.astype(np.float32))
+            _upload(self._sh_mats, mats)
         inputs = [self.rest.means, self.rest.quats, self.rest.sh, self._labels, self.num_labels, self._rots,
                   self._trans, self._sh_mats, first]  # fmt: skip
         threads = default_threads() if copies * n >= _SPLIT_GAUSSIANS else 1
