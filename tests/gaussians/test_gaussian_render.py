@@ -325,3 +325,32 @@ def test_render_batch_on_cuda_matches_cpu(make_cloud):
     for a, b in zip(cpu, gpu, strict=True):
         assert np.abs(a.rgb - b.rgb).max() < 1e-4
         assert np.abs(a.alpha - b.alpha).max() < 1e-4
+
+
+def test_kernel_views_hold_each_camera_and_slot():
+    """The warp renderer's per-view structs, written word by word into the array's memory, read back field
+    by field as each camera's pose, intrinsics, Jacobian clamp and the batch's first slots."""
+    from twinbench.gaussians import warp_raster as wr
+
+    rng = np.random.default_rng(4)
+    specs = []
+    for _ in range(5):
+        cam = Camera.look_at(rng.normal(size=3) + 3.0, rng.normal(size=3), fx=float(rng.uniform(50, 500)),
+                             fy=float(rng.uniform(50, 500)), cx=float(rng.uniform(0, 300)),
+                             cy=float(rng.uniform(0, 200)), width=int(rng.integers(10, 900)),
+                             height=int(rng.integers(10, 600)))  # fmt: skip
+        specs.append((cam, rng.uniform(0, 1, 3), *rng.integers(0, 10**6, 4).tolist()))
+    got = wr._views(specs, "cpu").numpy()
+    for row, (cam, bg, src, item, tile, pixel) in zip(got, specs, strict=True):
+        w2c = cam.world_to_cam.astype(np.float32)
+        np.testing.assert_array_equal(row["rot_wc"], w2c[:3, :3])
+        np.testing.assert_array_equal(row["t_wc"], w2c[:3, 3])
+        np.testing.assert_array_equal(row["cam_pos"], cam.position.astype(np.float32))
+        intrinsics = np.float32([cam.fx, cam.fy, cam.cx, cam.cy])
+        assert (row["fx"], row["fy"], row["cx"], row["cy"]) == tuple(intrinsics)
+        assert (row["width"], row["height"], row["tiles_x"]) == (cam.width, cam.height, -(-cam.width // 16))
+        assert (row["src"], row["item"], row["tile"], row["pixel"]) == (src, item, tile, pixel)
+        tan_x = 0.5 * cam.width / cam.fx
+        np.testing.assert_allclose(row["lim"][:2], [cam.cx / cam.fx + 0.3 * tan_x,
+                                                    (cam.width - cam.cx) / cam.fx + 0.3 * tan_x], rtol=1e-6)
+        np.testing.assert_array_equal(row["background"], np.float32(bg))

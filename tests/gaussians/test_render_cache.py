@@ -294,6 +294,6 @@ def test_moving_cameras_cull_the_static_part_a_chunk_at_a_time(make_cloud):
     balls = RenderCache().balls(dense)
     close = Camera.look_at(*poses[0][:2], fx=poses[0][2], width=64, height=48)
     out = wp.zeros(balls.balls.shape[0], dtype=wp.int32, device="cpu")
-    wp.launch(outside, dim=len(out), inputs=[wp.array([wr._view(close, bg)], dtype=wr._View, device="cpu"),
-                                             balls.balls, balls.scale], outputs=[out], device="cpu")
+    wp.launch(outside, dim=len(out), inputs=[wr._views([(close, bg, 0, 0, 0, 0)], "cpu"), balls.balls,
+                                             balls.scale], outputs=[out], device="cpu")
     assert out.numpy().mean() > 0.4  # (0.47: behind the camera, beyond the sides)
