@@ -180,10 +180,9 @@ def main() -> None:
     for device in devices:
         if device != "cpu":
             continue  # chunk culling is the CPU projection's (on CUDA a thread per Gaussian)
-        static = cloud.spatially_sorted().to_device(device)
-        tool = surface_scene(500, seed=1).to_device(device)
-        whole = GaussianCloud.concatenate([cloud.spatially_sorted(), surface_scene(500, seed=1)])
-        whole = whole.to_device(device)
+        sorted_cloud, tool_cloud = cloud.spatially_sorted(), surface_scene(500, seed=1)
+        static, tool = sorted_cloud.to_device(device), tool_cloud.to_device(device)
+        whole = GaussianCloud.concatenate([sorted_cloud, tool_cloud]).to_device(device)
         cache, frames = RenderCache(), iter(range(10**6))
 
         def closeup(frames=frames) -> Camera:

@@ -257,7 +257,7 @@ def test_cuda_path_run_on_cpu_cached_batch_equals_full_batch(make_cloud, ref_ren
     _assert_same(still, _render_warp_batch([(s_dev, cams[1])], bg32, per_pixel=True)[0])
 
 
-def test_moving_cameras_cull_the_static_part_a_chunk_at_a_time(make_cloud):
+def test_moving_cameras_cull_the_static_part_a_chunk_at_a_time(make_cloud, monkeypatch):
     """A moving camera's full renders of a SplitGaussians with a cache cull the static part by chunks of
     Gaussians in spatial order (`RenderCache.balls`): close-ups, views across the near plane and views
     whose footprints reach in from beyond the image sides equal full renders of the concatenation bit for
@@ -271,6 +271,15 @@ def test_moving_cameras_cull_the_static_part_a_chunk_at_a_time(make_cloud):
     moving = make_cloud(60, seed=6, spread=0.05)
     s_dev, m_dev = static.to_device("cpu"), moving.to_device("cpu")
     bg = (0.2, 0.1, 0.0)
+    passed = []  # the chunk bounds each projection of [static, moving] got, per part
+    project = wr._project
+
+    def spy(parts, cam, background, threads, balls=None):
+        if len(parts) == 2:
+            passed.append(balls)
+        return project(parts, cam, background, threads, balls)
+
+    monkeypatch.setattr(wr, "_project", spy)
     poses = [((0.3, 0.2, 0.25), (0.0, 0.0, 0.0), 90.0), ((0.05, 0.02, 0.0), (1.0, 0.3, 0.1), 60.0),
              ((2.5, 0.0, 0.0), (0.0, 0.0, 0.0), 120.0), ((1.4, 1.4, 1.4), (-1.0, -1.0, -1.0), 40.0),
              ((0.0, 0.0, 1.55), (0.0, 0.01, -1.0), 80.0)]  # fmt: skip
@@ -282,6 +291,11 @@ def test_moving_cameras_cull_the_static_part_a_chunk_at_a_time(make_cloud):
                                threads=threads, cache=cache)[0]  # fmt: skip
             _assert_same(got, _full(static, moving, cam, bg))
         assert cache.builds == 0 and len(cache._balls) == 1  # every view a full render, the bounds made once
+    # each full render's static part was projected with the kept bounds (the moving part without)
+    kept = cache.balls(s_dev)
+    assert len(passed) == 2 * len(poses) and all(b is not None and b[0] is not None and b[1] is None
+                                                 for b in passed)
+    assert passed[-1][0] is kept and len(kept.balls) == -(-len(static) // 32)
 
     @wp.kernel
     def outside(views: wp.array(dtype=wr._View), balls: wp.array(dtype=wp.vec4),

@@ -223,7 +223,8 @@ def _rigid_by_label(
 def _upload(dst: wp.array, values: np.ndarray) -> None:
     """Host values into a float32 Warp array of the same shape (on CPU written in place, no temporary)."""
     if dst.device.is_cpu:
-        dst.numpy()[...] = values.reshape(dst.numpy().shape)
+        view = dst.numpy()
+        view[...] = values.reshape(view.shape)
     else:
         dst.assign(np.ascontiguousarray(values, dtype=np.float32))
 
