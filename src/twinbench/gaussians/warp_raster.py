@@ -451,6 +451,11 @@ def _merge_next(record: wp.array(dtype=vec16), na: int, ea: int, record_b: wp.ar
 # negated, as the kernel's other stopped pixels). `acc` holds a tile's accumulators, a row every _ROW
 # floats: transmittance, depth, r, g, b (16 each). Returns the bits of the pixels that stopped, and
 # their count from bit 16. Pure C++: it also compiles for CUDA (tests/gaussians checks with NVRTC).
+# The exponent is floored at _EXP_FLOOR: below it alpha < ALPHA_MIN whatever the opacity (<= 1), so the
+# floor changes no pixel, and o exp(floor) with o >= ALPHA_MIN (lower opacities are culled) stays a
+# normal float. Without it the pixels far from a footprint's centre made subnormal alphas and products
+# (e.g. exp(-87) o), which Intel cores compute in microcode: the tile step ran 2.3x slower there.
+_EXP_FLOOR = -60.0
 _ROW_SNIPPET = """
 float* acc_row = acc.data + offset;
 int stopped = 0;
@@ -459,7 +464,7 @@ for (int j = 0; j < 16; ++j) {
     float dx = ((float)(x0 + j) + 0.5f) - u;
     float d2 = ca * dx * dx + 2.0f * cbc * dx * dy + cc * dy * dy;
     float e = -0.5f * d2;
-    e = e > -87.0f ? e : -87.0f;
+    e = e > EXP_FLOORf ? e : EXP_FLOORf;
     float n = rintf(e * 1.44269504088896341f);
     float r = fmaf(n, -0.693359375f, e);
     r = fmaf(n, 2.12194440e-4f, r);
@@ -490,7 +495,7 @@ for (int j = 0; j < 16; ++j) {
     count += stop ? 1 : 0;
 }
 return stopped | (count << 16);
-"""
+""".replace("EXP_FLOOR", repr(_EXP_FLOOR))
 _ROW = 80  # floats a tile row takes in the accumulators
 _TILE_ACC = 16 * _ROW
 
