@@ -219,3 +219,23 @@ def test_contact_meshes_are_closed_for_signed_distance(arm, pusher_arm):
             assert mesh.volume > 0, link
     fx, fy, fz = 0.02, 0.01, 0.06
     assert arm.collision_meshes["left_finger"].volume == pytest.approx(fx * fy * fz, rel=1e-6)
+
+
+def test_fixed_links_are_those_no_joint_moves(tmp_path):
+    """`fixed_links`: the root and links fixed to it by fixed joints only; a fixed joint below a moving one
+    moves with it. Checked against FK: exactly the fixed links keep their pose over random q."""
+    urdf = tmp_path / "chain.urdf"
+    link = '<link name="{}"/>'
+    joint = ('<joint name="{0}" type="{1}"><parent link="{2}"/><child link="{3}"/>'
+             '<origin xyz="0.1 0 0.2" rpy="0.3 0 0"/><axis xyz="0 0 1"/>'
+             '<limit lower="-1" upper="1" effort="1" velocity="1"/></joint>')
+    links = "".join(link.format(n) for n in ("base", "pedestal", "arm", "tool", "cam"))
+    joints = [("j0", "fixed", "base", "pedestal"), ("j1", "revolute", "pedestal", "arm"),
+              ("j2", "fixed", "arm", "tool"), ("j3", "fixed", "base", "cam")]
+    urdf.write_text('<robot name="chain">' + links + "".join(joint.format(*j) for j in joints) + "</robot>")
+    m = load_robot(urdf, load_meshes=False)
+    fixed = dict(zip(m.link_names, m.fixed_links, strict=True))
+    assert fixed == {"base": True, "pedestal": True, "arm": False, "tool": False, "cam": True}
+    poses = m.fk(np.random.default_rng(0).uniform(-1, 1, size=(6, m.n_q)))
+    moved = np.abs(poses - poses[:1]).max(axis=(0, 2, 3)) > 1e-9
+    np.testing.assert_array_equal(moved, ~m.fixed_links)

@@ -263,3 +263,28 @@ def test_colliders_are_placed_per_episode_with_their_gaussians():
             colliders=(ColliderSpec("cube", box.vertices, box.faces),),
             cameras=spec.cameras,
         )
+
+
+def test_fixed_link_gaussians_are_stored_posed_and_rendered_as_static(setup):
+    """The robot's Gaussians on links no joint moves (the base) are posed once, at build: they sit in the
+    buffer as posing would put them at any q, the poser leaves them alone, and renders count them with the
+    static scene (the render cache keeps them; cached renders still equal full ones)."""
+    twin, state = setup
+    rg = twin.robot_gaussians
+    n_base = int(twin.robot.fixed_links[rg.link_index].sum())
+    assert n_base == int((rg.link_index == 0).sum()) > 0
+    assert twin._robot_range == (1 + n_base, len(rg) - n_base)  # after the one background Gaussian
+    twin.reset(state, None, {"block": planar_pose(0.5, 0.1, 0.3), "soft": planar_pose(0.3, -0.2, 0.0)})
+    start = twin.ee_state(state)
+    cache = twin.render_cache
+    for k in range(3):
+        twin.step(state, np.array([start[0] + 0.02 * (k + 1), start[1]]))
+        seg = _segments(twin, state)
+        np.testing.assert_array_equal(seg["robot"], twin.robot_gaussians.posed(state.robot.q).means)
+        cached = twin.render(state)
+        twin.render_cache = None
+        full = twin.render(state)
+        twin.render_cache = cache
+        for name in full:
+            np.testing.assert_array_equal(cached[name].rgb, full[name].rgb)
+    assert cache.hits >= 1

@@ -126,6 +126,16 @@ class RobotModel:
     def n_links(self) -> int:
         return len(self.link_names)
 
+    @property
+    def fixed_links(self) -> np.ndarray:
+        """(n_links,) bool: the links whose world pose does not depend on q (the root and the links fixed
+        to it by fixed joints only)."""
+        fixed = np.zeros(self.n_links, dtype=bool)
+        fixed[0] = True
+        for k in range(len(self.joints)):  # tree order: a parent is decided before its children
+            fixed[self._child[k]] = self._source[k] is None and fixed[self._parent[k]]
+        return fixed
+
     def link_index(self, link: str) -> int:
         if link not in self._link_index:
             raise KeyError(f"unknown link {link!r}; links: {self.link_names}")

@@ -211,14 +211,21 @@ class Twin:
         self._mw = self.model.meshes_per_world
         self._latch = self.robot.gripper_joint is not None and len(self._tool_mesh) == 2
 
-        # Gaussians: [background | robot | objects... | colliders...] in one buffer per state.
-        # (the background in spatial order: the renderer culls runs of it at once, see RenderCache.balls)
+        # Gaussians: [background | robot | objects... | colliders...] in one buffer per state (the background
+        # in spatial order: the renderer culls runs of it at once, see RenderCache.balls)
         background = with_color_map(spec.background, spec.background_color_map)
         static = [] if background is None else [background.spatially_sorted()]
         self.robot_gaussians = _robot_gaussians(spec.robot, self.robot)
-        parts = static + [self.robot_gaussians.local]
-        n_static = sum(len(g) for g in static)
-        offset = n_static + len(self.robot_gaussians)
+        # the robot's Gaussians on links that never move (the base; sorted by link, so first) are stored
+        # posed, once: they join the static scene, and the poser moves only the rest
+        rg = self.robot_gaussians
+        on_fixed = self.robot.fixed_links[rg.link_index]
+        n_fixed = len(rg) if on_fixed.all() else int(np.argmin(on_fixed))
+        fixed = rg.posed(self.robot.home_q).subset(slice(0, n_fixed))
+        moving_robot = rg.local.subset(slice(n_fixed, len(rg)))
+        parts = static + [fixed, moving_robot]
+        n_static = sum(len(g) for g in static) + n_fixed
+        offset = n_static + len(moving_robot)
         self._objects: dict[str, _ObjectSlot] = {}
         self._posers: dict[str, LabelRigidPoser | LBSSkinner] = {}
         for obj, p_start in slots:
@@ -250,12 +257,13 @@ class Twin:
                 self._posers[col.name] = LabelRigidPoser(rest, np.zeros(len(rest), np.int32), 1, device)
                 offset += len(rest)
         self._rest_gaussians = GaussianCloud.concatenate(parts)
-        self._robot_range = (n_static, len(self.robot_gaussians))
-        self._robot_poser = self.robot_gaussians.device_poser(device)
+        self._robot_range = (n_static, len(moving_robot))  # the robot's moving Gaussians
+        self._robot_poser = None if not len(moving_robot) else \
+            LabelRigidPoser(moving_robot, rg.link_index[n_fixed:], self.robot.n_links, device)
         # the static scene's per-camera render work, kept while a camera does not move (None: full renders;
         # the default on CUDA, where a full render of a batch costs about what a cached one does)
         self.render_cache: RenderCache | None = RenderCache() if wp.get_device(device).is_cpu else None
-        self._static_gaussians: DeviceGaussians | None = None  # the background, shared by every world
+        self._static_gaussians: DeviceGaussians | None = None  # background + fixed links, every world's
 
     # ------------------------------------------------------------------ state
     @property
@@ -491,7 +499,8 @@ class Twin:
         first = np.array([state.world * n for state in states])
         g = posed.all
         q = np.stack([state.robot.q for state in states])
-        self._robot_poser.update_many(self.robot.fk(q), g, first + self._robot_range[0])
+        if self._robot_poser is not None:
+            self._robot_poser.update_many(self.robot.fk(q), g, first + self._robot_range[0])
         for name, poser in self._posers.items():
             if name in self._colliders:
                 poses = np.stack([state.collider_poses[name] for state in states])[:, None]
@@ -528,7 +537,7 @@ class Twin:
             return []
         posed = self.pose_worlds(states)
         n_static, n_moving = self._robot_range[0], len(self._rest_gaussians) - self._robot_range[0]
-        if self.render_cache is not None and n_static:  # [background | the rest]: see RenderCache
+        if self.render_cache is not None and n_static:  # [background, fixed links | the rest]: RenderCache
             if self._static_gaussians is None:
                 static = self._rest_gaussians.subset(slice(0, n_static))
                 self._static_gaussians = static.to_device(self.device)
