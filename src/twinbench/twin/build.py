@@ -216,8 +216,8 @@ class Twin:
         background = with_color_map(spec.background, spec.background_color_map)
         static = [] if background is None else [background.spatially_sorted()]
         self.robot_gaussians = _robot_gaussians(spec.robot, self.robot)
-        # the robot's Gaussians on links that never move (the base; sorted by link, so first) are stored
-        # posed, once: they join the static scene, and the poser moves only the rest
+        # the leading run of robot Gaussians (sorted by link, root first) on links that never move (the base)
+        # is stored posed, once: it joins the static scene, and the poser moves only the rest
         rg = self.robot_gaussians
         on_fixed = self.robot.fixed_links[rg.link_index]
         n_fixed = len(rg) if on_fixed.all() else int(np.argmin(on_fixed))
