@@ -165,7 +165,7 @@ def test_row_exponent_floor_changes_no_pixel_and_keeps_alphas_normal():
 
 
 def test_raster_module_builds_for_cuda(tmp_path):
-    """The CPU tile kernel's row step is native C++ (`_composite_row`), and Warp builds a module's kernels
+    """The CPU tile kernel's row steps are native C++ (`_composite_rows`), and Warp builds a module's kernels
     for every device it runs on: the module must also compile for CUDA. Checked with Warp's NVRTC, which
     needs no GPU, so that a machine without one catches a snippet CUDA would refuse."""
     import warp as wp
