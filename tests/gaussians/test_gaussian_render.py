@@ -49,6 +49,21 @@ def test_many_tiles_and_tile_boundaries(make_cloud, ref_render):
     _assert_matches(out, ref_render(cloud, cam, (1.0, 1.0, 1.0)))
 
 
+def test_stages_split_over_threads_equal_one_thread(make_cloud, monkeypatch):
+    """Projection and pair emission split over the threads only from _SPLIT_PROJECT Gaussians and
+    _SPLIT_PAIRS pairs (a hand-off costs more below); split from one, a render equals one thread's."""
+    from twinbench.gaussians import warp_raster
+
+    cloud = make_cloud(600, degree=2, anisotropic=True, seed=22, spread=0.4, log_scale=(-4.5, -2.3))
+    cam = _cam(width=157, height=121, fx=120.0)
+    one = render(cloud, cam, threads=1)
+    monkeypatch.setattr(warp_raster, "_SPLIT_PROJECT", 1)
+    monkeypatch.setattr(warp_raster, "_SPLIT_PAIRS", 1)
+    split = render(cloud, cam, threads=2)
+    for a, b in ((one.rgb, split.rgb), (one.depth, split.depth), (one.alpha, split.alpha)):
+        np.testing.assert_array_equal(b, a)
+
+
 def test_radix_sort_path_matches_bruteforce_reference_on_cpu(make_cloud, ref_render):
     """The CUDA pipeline's pair sort (Warp radix sorts, scan, tile-range kernel) run on CPU."""
     from twinbench.gaussians.warp_raster import _render_warp_one

@@ -282,7 +282,8 @@ def test_posing_split_over_threads_equals_one_thread(make_cloud, monkeypatch):
     moved = np.concatenate([particles, particles + rng.normal(0, 0.01, particles.shape)]).astype(np.float32)
     results = []
     for split_from in (10**9, 1):  # one thread, then every pose split
-        monkeypatch.setattr(skinning, "_SPLIT_GAUSSIANS", split_from)
+        monkeypatch.setattr(skinning, "_SPLIT_RIGID", split_from)
+        monkeypatch.setattr(skinning, "_SPLIT_SKIN", split_from)
         out = DeviceGaussians.concatenate([make_cloud(602, degree=3, seed=7).to_device("cpu")])
         poser.update_many(t, out, [301, 0])
         means, q = wp.zeros(602, dtype=wp.vec3), wp.zeros(602, dtype=wp.vec4)

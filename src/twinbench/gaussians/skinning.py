@@ -21,7 +21,10 @@ from twinbench.gaussians.sh import sh_degree, sh_rotation_matrices
 from twinbench.gaussians.threads import default_threads, launch_split
 
 _EPS_REL = 1e-5
-_SPLIT_GAUSSIANS = 10_000  # posing splits over the threads from this many (below, one thread is faster)
+# posing splits over the threads from this many Gaussians (below, one thread is faster: a hand-off to
+# another thread costs 0.1-0.3 ms on a 2-core KVM host; a rigid pose ~30 ns a Gaussian, LBS ~110)
+_SPLIT_RIGID = 40_000
+_SPLIT_SKIN = 10_000
 
 wp.set_module_options({"enable_backward": False})
 
@@ -338,7 +341,7 @@ class LabelRigidPoser:
             _upload(self._sh_mats, mats)
         inputs = [self.rest.means, self.rest.quats, self.rest.sh, self._labels, self.num_labels, self._rots,
                   self._trans, self._sh_mats, first]  # fmt: skip
-        threads = default_threads() if copies * n >= _SPLIT_GAUSSIANS else 1
+        threads = default_threads() if copies * n >= _SPLIT_RIGID else 1
         outputs = [out.means, out.quats, out.sh]
         launch_split(_rigid_by_label, copies * n, inputs, outputs, self.device, threads)
         return out
@@ -423,7 +426,7 @@ class LBSSkinner:
         )
         inputs = [self._rest_means, self._rest_quats, self._indices, self._weights, self._rest, particles,
                   cur, self.bone_rotations, out]  # fmt: skip
-        threads = default_threads() if copies * n >= _SPLIT_GAUSSIANS else 1
+        threads = default_threads() if copies * n >= _SPLIT_SKIN else 1
         launch_split(_skin, copies * n, inputs, [out_means, out_quats], self.device, threads)
         return out_means, out_quats
 
