@@ -180,6 +180,13 @@ def _skin(
 
 
 @wp.kernel
+def _label_quats(rots: wp.array(dtype=wp.mat33), out: wp.array(dtype=wp.quat)):
+    """Each label's rotation as a quaternion (xyzw), once per pose rather than once per Gaussian."""
+    k = wp.tid()
+    out[k] = wp.quat_from_matrix(rots[k])
+
+
+@wp.kernel
 def _rigid_by_label(
     rest_means: wp.array(dtype=wp.vec3),
     rest_quats: wp.array(dtype=wp.vec4),
@@ -187,6 +194,7 @@ def _rigid_by_label(
     labels: wp.array(dtype=wp.int32),
     num_labels: int,
     rots: wp.array(dtype=wp.mat33),
+    rot_quats: wp.array(dtype=wp.quat),
     trans: wp.array(dtype=wp.vec3),
     sh_mats: wp.array2d(dtype=wp.float32),
     out_starts: wp.array(dtype=int),
@@ -195,17 +203,18 @@ def _rigid_by_label(
     out_quats: wp.array(dtype=wp.vec4),
     out_sh: wp.array2d(dtype=wp.vec3),
 ):
-    """Gaussian i of copy c (thread start + t = c * N + i) moved by the copy's transform of its label,
-    into out_*[out_starts[c] + i]."""
+    """Gaussian i of copy c (thread start + t = c * N + i) moved by the copy's transform of its label
+    (`rot_quats`: the rotations as quaternions, `_label_quats`), into out_*[out_starts[c] + i]."""
     t = wp.tid() + start
     num = rest_means.shape[0]
     c = t // num
     i = t - c * num
     lab = c * num_labels + labels[i]
     o = out_starts[c] + i
-    r = rots[lab]
-    out_means[o] = r * rest_means[i] + trans[lab]
-    out_quats[o] = _rotate_quat_wxyz(r, rest_quats[i])
+    out_means[o] = rots[lab] * rest_means[i] + trans[lab]
+    q = rest_quats[i]
+    qn = rot_quats[lab] * wp.quat(q[1], q[2], q[3], q[0])  # as _rotate_quat_wxyz, the same floats
+    out_quats[o] = wp.vec4(qn[3], qn[0], qn[1], qn[2])
     out_sh[o, 0] = rest_sh[i, 0]
     # band l occupies coefficients l^2 .. (l+1)^2 - 1; its (2l+1)^2 matrix entries follow the previous bands'
     k = rest_sh.shape[1]
@@ -287,6 +296,7 @@ class LabelRigidPoser:
         self.posed = self._check_out(out)
         width = max(1, sum((2 * b + 1) ** 2 for b in range(1, self.degree + 1)))
         self._rots = wp.empty(self.num_labels, dtype=wp.mat33, device=self.device)
+        self._rot_quats = wp.empty(self.num_labels, dtype=wp.quat, device=self.device)
         self._trans = wp.empty(self.num_labels, dtype=wp.vec3, device=self.device)
         self._sh_mats = wp.zeros((self.num_labels, width), dtype=wp.float32, device=self.device)
 
@@ -329,6 +339,7 @@ class LabelRigidPoser:
             raise ValueError(f"LabelRigidPoser.update: {copies} transforms sets but {first.shape[0]} starts")
         if self._rots.shape[0] != rots.shape[0]:
             self._rots = wp.empty(rots.shape[0], dtype=wp.mat33, device=self.device)
+            self._rot_quats = wp.empty(rots.shape[0], dtype=wp.quat, device=self.device)
             self._trans = wp.empty(rots.shape[0], dtype=wp.vec3, device=self.device)
             self._sh_mats = wp.zeros((rots.shape[0], self._sh_mats.shape[1]), dtype=wp.float32,
                                      device=self.device)
@@ -339,8 +350,10 @@ class LabelRigidPoser:
                 np.concatenate([m.ravel() for m in sh_rotation_matrices(r, self.degree)[1:]]) for r in rots
             ])
             _upload(self._sh_mats, mats)
+        wp.launch(_label_quats, dim=rots.shape[0], inputs=[self._rots], outputs=[self._rot_quats],
+                  device=self.device)
         inputs = [self.rest.means, self.rest.quats, self.rest.sh, self._labels, self.num_labels, self._rots,
-                  self._trans, self._sh_mats, first]  # fmt: skip
+                  self._rot_quats, self._trans, self._sh_mats, first]  # fmt: skip
         threads = default_threads() if copies * n >= _SPLIT_RIGID else 1
         outputs = [out.means, out.quats, out.sh]
         launch_split(_rigid_by_label, copies * n, inputs, outputs, self.device, threads)
