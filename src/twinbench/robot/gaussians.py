@@ -76,9 +76,12 @@ class RobotGaussians:
         g = LabelRigidPoser(cloud, link_index, model.n_links).update(invert_pose(model.fk(q)))
         return cls(model, _host_cloud(g, cloud), link_index)
 
-    def device_poser(self, device: str = "cpu", out: DeviceGaussians | None = None) -> LabelRigidPoser:
-        """A poser of these Gaussians on `device`; `poser.update(model.fk(q))` poses them (into `out`)."""
-        return LabelRigidPoser(self.local, self.link_index, self.model.n_links, device, out=out)
+    def device_poser(self, device: str = "cpu", out: DeviceGaussians | None = None,
+                     first: int = 0) -> LabelRigidPoser:
+        """A poser of these Gaussians from index `first` on (e.g. past those on links that never move) on
+        `device`; `poser.update(model.fk(q))` poses them (into `out`)."""
+        part = self.local if first == 0 else self.local.subset(slice(first, len(self)))
+        return LabelRigidPoser(part, self.link_index[first:], self.model.n_links, device, out=out)
 
     def posed(self, q: np.ndarray) -> GaussianCloud:
         """World-frame Gaussians at configuration q: each moved rigidly by its link's FK pose."""

@@ -258,8 +258,7 @@ class Twin:
                 offset += len(rest)
         self._rest_gaussians = GaussianCloud.concatenate(parts)
         self._robot_range = (n_static, len(moving_robot))  # the robot's moving Gaussians
-        self._robot_poser = None if not len(moving_robot) else \
-            LabelRigidPoser(moving_robot, rg.link_index[n_fixed:], self.robot.n_links, device)
+        self._robot_poser = rg.device_poser(device, first=n_fixed) if len(moving_robot) else None
         # the static scene's per-camera render work, kept while a camera does not move (None: full renders;
         # the default on CUDA, where a full render of a batch costs about what a cached one does)
         self.render_cache: RenderCache | None = RenderCache() if wp.get_device(device).is_cpu else None
