@@ -65,6 +65,22 @@ def test_batched_fk_equals_single(arm):
         np.testing.assert_allclose(batch[i], arm.fk(qs[i]), atol=1e-14)
 
 
+def test_remembered_fk_is_fresh_and_owned_by_the_caller(arm):
+    """fk remembers recent configurations: a remembered answer equals a fresh computation, a caller that
+    edits its result does not change later answers, and a new configuration is computed anew."""
+    rng = np.random.default_rng(1)
+    qs = rng.uniform(arm.lower.clip(-3, 3), arm.upper.clip(-3, 3), size=(4, arm.n_q))
+    fresh = arm._fk(qs)[0]
+    first = arm.fk(qs)
+    first[:] = 0.0  # the caller's copy
+    for i in range(4):
+        np.testing.assert_array_equal(arm.fk(qs[i]), fresh[i])
+    np.testing.assert_array_equal(arm.fk(qs[[2, 0]]), fresh[[2, 0]])
+    moved = qs[1] + 1e-3
+    np.testing.assert_array_equal(arm.fk(moved), arm._fk(moved[None])[0][0])
+    assert not np.array_equal(arm.fk(moved), fresh[1])
+
+
 def test_jacobian_matches_finite_differences(arm):
     rng = np.random.default_rng(1)
     q = rng.uniform(-1.0, 1.0, size=arm.n_q)

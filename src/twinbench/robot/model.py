@@ -25,6 +25,9 @@ class URDFError(InputError):
     """A URDF that cannot be turned into a RobotModel (message names the file and the fix)."""
 
 
+_FK_MEMO = 256  # configurations RobotModel.fk remembers (a step of 64 worlds asks for a few per world)
+
+
 @dataclass(frozen=True)
 class JointSpec:
     """One URDF joint. `q_index` is its slot in q (None for fixed and mimic joints)."""
@@ -116,6 +119,7 @@ class RobotModel:
         self._arm_joint_rows = np.array([self.joints.index(j) for j in chain], dtype=np.int64)
         self._arm_prismatic = np.array([j.type == "prismatic" for j in chain])
         self._arm_axes = np.array([j.axis for j in chain], dtype=np.float64).reshape(-1, 3)  # joint frames
+        self._fk_memo: dict[bytes, np.ndarray] = {}  # fk's link poses of recent configurations
 
     # ----------------------------------------------------------------- basic facts
     @property
@@ -212,9 +216,22 @@ class RobotModel:
         return links, frames
 
     def fk(self, q: np.ndarray) -> np.ndarray:
-        """World poses of every link: q (n_q,) -> (n_links, 4, 4); q (B, n_q) -> (B, n_links, 4, 4)."""
+        """World poses of every link: q (n_q,) -> (n_links, 4, 4); q (B, n_q) -> (B, n_links, 4, 4).
+
+        The poses of the last few hundred configurations are remembered (an env step asks for the same q
+        for posing the Gaussians, the wrist camera and the observation); callers get their own copy."""
         q = self.check_q(q)
-        links, _ = self._fk(np.atleast_2d(q))
+        rows = np.atleast_2d(q)
+        keys = [r.tobytes() for r in rows]
+        memo = self._fk_memo
+        known = [memo.get(k) for k in keys]
+        if all(t is not None for t in known):
+            links = np.stack(known)
+        else:
+            links, _ = self._fk(rows)
+            if len(memo) + len(keys) > _FK_MEMO:
+                memo.clear()
+            memo.update(zip(keys, links.copy(), strict=True))
         return links[0] if q.ndim == 1 else links
 
     def link_pose(self, q: np.ndarray, link: str) -> np.ndarray:
