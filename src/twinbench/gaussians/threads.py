@@ -96,6 +96,7 @@ class WorkBoard:
     `share` returns when all of its tasks have run and re-raises the first error one raised."""
 
     def __init__(self, owners: int) -> None:
+        self.owners = int(owners)
         self._cond = threading.Condition()
         self._open = int(owners)  # owners that may still share work
         self._queues: list[_Shared] = []

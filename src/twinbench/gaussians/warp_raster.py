@@ -538,9 +538,26 @@ def _composite_rows(acc: wp.array(dtype=wp.float32), offset: int, row_done: wp.a
                     t_min: float) -> int: ...
 
 
+_CLAIM_SNIPPET = """
+#if defined(__CUDA_ARCH__)
+return atomicAdd((int*)counter.data, 1);
+#else
+return __atomic_fetch_add((int*)counter.data, 1, __ATOMIC_RELAXED);
+#endif
+"""
+
+
+@wp.func_native(_CLAIM_SNIPPET)
+def _claim(counter: wp.array(dtype=wp.int32)) -> int:
+    """The counter's value before adding 1, atomically (Warp's own atomic_add is a plain add on CPU,
+    whose kernels it runs on one thread)."""
+    ...
+
+
 @wp.kernel
 def _rasterise(
     tile_list: wp.array(dtype=wp.int32),
+    claim: wp.array(dtype=wp.int32),
     ranges: wp.array(dtype=wp.vec2i),
     record: wp.array(dtype=vec16),
     ranges_b: wp.array(dtype=wp.vec2i),
@@ -560,12 +577,19 @@ def _rasterise(
     the order of a full render of [static | moving] (by depth, then index). With a second list the output
     arrays come holding the first list's own image, and only the pixels some record of the second list's spans
     reaches are composited again: every other pixel sees exactly the first list's Gaussians, so its kept value
-    is already the merged render's."""
+    is already the merged render's. With a `claim` counter (CPU), several threads launch the kernel over the
+    same `tile_list` and each thread index takes the next unclaimed tile (none left: it returns), so the
+    threads share a view's tiles in one launch each, whatever the tiles cost."""
     slot = wp.tid()
+    base = slot * _TILE_ACC
+    if claim.shape[0] > 0:  # one CPU thread runs this launch's indices in turn: one tile's accumulators
+        slot = _claim(claim)
+        if slot >= tile_list.shape[0]:
+            return
+        base = 0
     tile = slot
     if tile_list.shape[0] > 0:
         tile = tile_list[slot]
-    base = slot * _TILE_ACC
     vw = views[_view_of(views, tile, 1)]
     local = tile - vw.tile
     x0 = (local % vw.tiles_x) * 16
@@ -864,7 +888,6 @@ _SPLIT_PAIRS = 100_000
 # a part's projection splits over the threads from this many Gaussians: below, handing half to another
 # thread (0.1-0.3 ms on a 2-core KVM host) costs more than it saves (push-T's 20,724 moving Gaussians)
 _SPLIT_PROJECT = 40_000
-_SHARED_TILES = 24  # tiles a shared raster task takes (a launch costs ~0.05 ms)
 
 
 class _Bins:
@@ -910,37 +933,31 @@ class _Bins:
 def _raster(tiles: np.ndarray, first: _Bins, second: _Bins | None, views, cam: Camera, image: _Image,
             threads: int, board: WorkBoard | None = None) -> None:
     """Stage 4: rasterise the given tiles of one view into `image`, merging `second`'s lists into
-    `first`'s by depth (CPU: the tiles dealt to the threads in turn, for load balance; with a `board`,
-    in runs of _SHARED_TILES tiles that threads done with their own views help with)."""
+    `first`'s by depth. On CPU with threads, each thread launches the kernel over all the tiles and takes
+    the next unclaimed one in turn (load balance at tile grain, a launch per thread); with a `board`,
+    threads done with their own views launch it too."""
     device = image.rgb.device
     shared = board is not None and device.is_cpu
-    if shared:
-        lists = [tiles[k : k + _SHARED_TILES] for k in range(0, len(tiles), _SHARED_TILES)]
-    else:
-        parts = threads if (device.is_cpu and threads > 1) else 1
-        lists = [tiles[k::parts] for k in range(parts)]
-    lists = [_from_host(tl.astype(np.int32), wp.int32, device) for tl in lists if len(tl)]
+    parts = (board.owners if shared else threads) if device.is_cpu else 1
+    tile_list = _from_host(tiles.astype(np.int32), wp.int32, device)
+    claim = wp.zeros(1 if parts > 1 else 0, dtype=wp.int32, device=device)
     if second is None:
         b_ranges, b_records = wp.empty(0, dtype=wp.vec2i, device=device), first.records
     else:
         b_ranges, b_records = second.ranges, second.records
-    raster_in = [first.ranges, first.records, b_ranges, b_records, views]
+    inputs = [tile_list, claim, first.ranges, first.records, b_ranges, b_records, views]
     row_done = wp.empty(_tile_count(cam) * 16, dtype=wp.int32, device=device)
-    raster_out = [image.rgb, image.depth, image.t, row_done]
-    tasks = [
-        (
-            lambda tl=tl: wp.launch(
-                _rasterise, dim=len(tl), inputs=[tl] + raster_in,
-                outputs=raster_out + [wp.empty(len(tl) * _TILE_ACC, dtype=wp.float32, device=device)],
-                device=device,
-            )
-        )
-        for tl in lists
-    ]
-    if shared:
-        board.share(tasks)
+    outputs = [image.rgb, image.depth, image.t, row_done]
+    acc = (1 if parts > 1 else len(tiles)) * _TILE_ACC  # claiming: one thread, a tile at a time, a launch
+
+    def task() -> None:
+        wp.launch(_rasterise, dim=len(tiles), inputs=inputs,
+                  outputs=outputs + [wp.empty(acc, dtype=wp.float32, device=device)], device=device)
+
+    if shared and parts > 1:
+        board.share([task] * parts)
     else:
-        run_threads(tasks)
+        run_threads([task] * parts)
 
 
 def _render_warp_one(
@@ -1156,8 +1173,8 @@ class _Batch:
         else:
             row_done = wp.empty(self.tiles * 16, dtype=wp.int32, device=device)
             wp.launch(_rasterise, dim=self.tiles,
-                      inputs=[wp.empty(0, dtype=wp.int32, device=device), ranges, records, ranges_b,
-                              self.records, self.views],
+                      inputs=[wp.empty(0, dtype=wp.int32, device=device), wp.empty(0, dtype=wp.int32,
+                              device=device), ranges, records, ranges_b, self.records, self.views],
                       outputs=[image.rgb, image.depth, image.t, row_done,
                                wp.empty(self.tiles * _TILE_ACC, dtype=wp.float32, device=device)],
                       device=device)  # fmt: skip
@@ -1272,8 +1289,8 @@ def render_views(views: list[tuple[GaussianCloud | DeviceGaussians | SplitGaussi
         lock = threading.Lock()
         workers = min(threads, len(jobs))
         # a thread out of views helps rasterise the others' (one world: the wrist's full render beside
-        # the front's cached one); only the last views share their tiles, the others rasterise in one
-        # launch (a shared run of tiles is a launch of its own)
+        # the front's cached one) by launching their tile kernel too (the tiles are claimed one at a
+        # time); only the last views share their tiles, the others rasterise on their own thread
         board = WorkBoard(workers)
 
         def work():
