@@ -24,7 +24,7 @@ class Outline:
     height: float
 
     def __post_init__(self) -> None:
-        p = np.asarray(self.polygon, dtype=np.float64)
+        p = np.array(self.polygon, dtype=np.float64)  # an own, read-only copy: its edges are kept below
         if p.ndim != 2 or p.shape[1] != 2 or len(p) < 3 or not np.all(np.isfinite(p)):
             raise ValueError(
                 f"outline.polygon: expected a finite (K, 2) array with K >= 3, got shape {p.shape}"
@@ -32,15 +32,19 @@ class Outline:
         h = float(self.height)
         if not (np.isfinite(h) and h > 0):
             raise ValueError(f"outline.height: expected a finite number > 0, got {self.height!r}")
+        p.flags.writeable = False
         object.__setattr__(self, "polygon", p)
         object.__setattr__(self, "height", h)
+        a, b = p, np.roll(p, -1, axis=0)
+        object.__setattr__(self, "_ends", (a, b))  # every edge's two ends
+        slanted = a[:, 1] != b[:, 1]  # a horizontal edge never straddles a point's ray
+        object.__setattr__(self, "_slanted", (a[slanted], b[slanted]))
         if not self.area > 0:
             raise ValueError("outline.polygon: the vertices must go counter-clockwise (seen from +z) and "
                              "enclose a positive area")
 
     def _edges(self) -> tuple[np.ndarray, np.ndarray]:
-        a = self.polygon
-        return a, np.roll(a, -1, axis=0)
+        return self._ends
 
     @property
     def area(self) -> float:
@@ -94,9 +98,7 @@ class Outline:
 
     def _in_polygon(self, p: np.ndarray) -> np.ndarray:
         """Even-odd rule: (N,) whether the (N, 2) points are strictly inside (boundary: either)."""
-        a, b = self._edges()
-        slanted = a[:, 1] != b[:, 1]  # a horizontal edge never straddles a point's ray
-        a, b = a[slanted], b[slanted]
+        a, b = self._slanted
         px, py = p[:, :1], p[:, 1:2]
         straddle = (a[:, 1] > py) != (b[:, 1] > py)
         x_cross = a[:, 0] + (py - a[:, 1]) * (b[:, 0] - a[:, 0]) / (b[:, 1] - a[:, 1])
