@@ -24,6 +24,7 @@ _EPS_REL = 1e-5
 # posing splits over the threads from this many Gaussians (below, one thread is faster: a hand-off to
 # another thread costs 0.1-0.3 ms on a 2-core KVM host; a rigid pose ~30 ns a Gaussian, LBS ~110)
 _SPLIT_RIGID = 40_000
+_RIGID_CHUNK = 32  # Gaussians a CPU thread of the rigid poser takes in turn
 _SPLIT_SKIN = 10_000
 
 wp.set_module_options({"enable_backward": False})
@@ -198,38 +199,45 @@ def _rigid_by_label(
     trans: wp.array(dtype=wp.vec3),
     sh_mats: wp.array2d(dtype=wp.float32),
     out_starts: wp.array(dtype=int),
+    chunk: int,
     start: int,
     out_means: wp.array(dtype=wp.vec3),
     out_quats: wp.array(dtype=wp.vec4),
     out_sh: wp.array2d(dtype=wp.vec3),
 ):
-    """Gaussian i of copy c (thread start + t = c * N + i) moved by the copy's transform of its label
-    (`rot_quats`: the rotations as quaternions, `_label_quats`), into out_*[out_starts[c] + i]."""
-    t = wp.tid() + start
+    """Chunk t of copy c (thread start + tid = c * ceil(N / chunk) + t): its Gaussians i moved by the copy's
+    transform of their label (`rot_quats`: the rotations as quaternions, `_label_quats`), into
+    out_*[out_starts[c] + i]. A thread takes `chunk` Gaussians (on CPU a thread each cost more than the
+    transform)."""
     num = rest_means.shape[0]
-    c = t // num
-    i = t - c * num
-    lab = c * num_labels + labels[i]
-    o = out_starts[c] + i
-    out_means[o] = rots[lab] * rest_means[i] + trans[lab]
-    q = rest_quats[i]
-    qn = rot_quats[lab] * wp.quat(q[1], q[2], q[3], q[0])  # as _rotate_quat_wxyz, the same floats
-    out_quats[o] = wp.vec4(qn[3], qn[0], qn[1], qn[2])
-    out_sh[o, 0] = rest_sh[i, 0]
-    # band l occupies coefficients l^2 .. (l+1)^2 - 1; its (2l+1)^2 matrix entries follow the previous bands'
+    per_copy = (num + chunk - 1) // chunk
+    t = wp.tid() + start
+    c = t // per_copy
+    i0 = (t - c * per_copy) * chunk
+    base = out_starts[c]
     k = rest_sh.shape[1]
-    moff = int(0)  # noqa: UP018 (a Warp dynamic variable)
-    band = int(1)  # noqa: UP018
-    while band * band < k:
-        size = 2 * band + 1
-        first = band * band
-        for a in range(size):
-            acc = wp.vec3()
-            for b in range(size):
-                acc += sh_mats[lab, moff + a * size + b] * rest_sh[i, first + b]
-            out_sh[o, first + a] = acc
-        moff += size * size
-        band += 1
+    for i in range(i0, wp.min(i0 + chunk, num)):
+        lab = c * num_labels + labels[i]
+        o = base + i
+        out_means[o] = rots[lab] * rest_means[i] + trans[lab]
+        q = rest_quats[i]
+        qn = rot_quats[lab] * wp.quat(q[1], q[2], q[3], q[0])  # as _rotate_quat_wxyz, the same floats
+        out_quats[o] = wp.vec4(qn[3], qn[0], qn[1], qn[2])
+        out_sh[o, 0] = rest_sh[i, 0]
+        # band l occupies coefficients l^2 .. (l+1)^2 - 1; its (2l+1)^2 matrix entries follow the previous
+        # bands'
+        moff = int(0)  # noqa: UP018 (a Warp dynamic variable)
+        band = int(1)  # noqa: UP018
+        while band * band < k:
+            size = 2 * band + 1
+            first = band * band
+            for a in range(size):
+                acc = wp.vec3()
+                for b in range(size):
+                    acc += sh_mats[lab, moff + a * size + b] * rest_sh[i, first + b]
+                out_sh[o, first + a] = acc
+            moff += size * size
+            band += 1
 
 
 def _upload(dst: wp.array, values: np.ndarray) -> None:
@@ -352,11 +360,13 @@ class LabelRigidPoser:
             _upload(self._sh_mats, mats)
         wp.launch(_label_quats, dim=rots.shape[0], inputs=[self._rots], outputs=[self._rot_quats],
                   device=self.device)
+        chunk = _RIGID_CHUNK if self.device.is_cpu else 1
         inputs = [self.rest.means, self.rest.quats, self.rest.sh, self._labels, self.num_labels, self._rots,
-                  self._rot_quats, self._trans, self._sh_mats, first]  # fmt: skip
+                  self._rot_quats, self._trans, self._sh_mats, first, chunk]  # fmt: skip
         threads = default_threads() if copies * n >= _SPLIT_RIGID else 1
         outputs = [out.means, out.quats, out.sh]
-        launch_split(_rigid_by_label, copies * n, inputs, outputs, self.device, threads)
+        chunks = copies * ((n + chunk - 1) // chunk)
+        launch_split(_rigid_by_label, chunks, inputs, outputs, self.device, threads)
         return out
 
 
