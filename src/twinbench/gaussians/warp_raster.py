@@ -398,10 +398,14 @@ def _tile_ranges(keys: wp.array(dtype=wp.int32), count: int, ranges: wp.array(dt
 
 @wp.kernel
 def _gather_records(
-    values: wp.array(dtype=wp.int32), record: wp.array(dtype=vec16), start: int, out: wp.array(dtype=vec16)
+    values: wp.array(dtype=wp.int32), record: wp.array(dtype=vec16), chunk: int, total: int, start: int,
+    out: wp.array(dtype=vec16),
 ):
-    n = wp.tid() + start
-    out[n] = record[values[n]]
+    """Pairs [chunk t, chunk (t + 1)) of `total` (t = tid + start) get their records copied into pair
+    order (a CPU thread copies a chunk: a thread each cost more than the copy)."""
+    n0 = (wp.tid() + start) * chunk
+    for n in range(n0, wp.min(n0 + chunk, total)):
+        out[n] = record[values[n]]
 
 
 @wp.func
@@ -927,7 +931,9 @@ class _Bins:
         self.ranges = _from_host(self.ranges_np, wp.vec2i, device)
         # records copied into pair order, so the rasteriser streams them instead of chasing random ids
         self.records = wp.empty(max(total, 1), dtype=vec16, device=device)
-        launch_split(_gather_records, total, [sorted_values, ws.record], [self.records], device, split)
+        chunk = _CHUNK if device.is_cpu else 1
+        launch_split(_gather_records, (total + chunk - 1) // chunk, [sorted_values, ws.record, chunk, total],
+                     [self.records], device, split)
 
 
 def _raster(tiles: np.ndarray, first: _Bins, second: _Bins | None, views, cam: Camera, image: _Image,
@@ -1156,8 +1162,8 @@ class _Batch:
                       outputs=[keys, values], device=device)
             wp.utils.radix_sort_pairs(keys, values, total)
             wp.launch(_tile_ranges, dim=total, inputs=[keys, total], outputs=[self.ranges], device=device)
-            wp.launch(_gather_records, dim=total, inputs=[values, ws.record, 0], outputs=[self.records],
-                      device=device)
+            wp.launch(_gather_records, dim=total, inputs=[values, ws.record, 1, total, 0],
+                      outputs=[self.records], device=device)
 
     def raster(self, image: _Image, ranges, records, per_pixel: bool) -> list[RenderOutput]:
         """Rasterise every tile of the batch into `image`: the batch's own lists (a full render), or, with
