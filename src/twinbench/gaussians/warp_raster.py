@@ -339,24 +339,26 @@ def _emit_pairs(
     rect: wp.array(dtype=wp.vec4i),
     n_tiles: wp.array(dtype=wp.int32),
     views: wp.array(dtype=_View),
+    chunk: int,
     start: int,
     keys: wp.array(dtype=wp.int32),
     values: wp.array(dtype=wp.int32),
 ):
-    """Pair r of the depth-ordered list writes (tile id, record id) for each tile its box touches; tile
-    ids count the views' tiles one view after another."""
-    r = wp.tid() + start
-    g = order[r]
-    if n_tiles[g] == 0:
-        return
-    vw = views[_view_of(views, g, 0)]
-    n = offsets[r] - n_tiles[g]
-    rc = rect[g]
-    for ty in range(rc[1], rc[3] + 1):
-        for tx in range(rc[0], rc[2] + 1):
-            keys[n] = vw.tile + ty * vw.tiles_x + tx
-            values[n] = g
-            n += 1
+    """Entries [chunk t, chunk (t + 1)) of the depth-ordered list (t = tid + start; a CPU thread takes a
+    chunk) write (tile id, record id) for each tile their box touches; tile ids count the views' tiles one
+    view after another."""
+    r0 = (wp.tid() + start) * chunk
+    for r in range(r0, wp.min(r0 + chunk, order.shape[0])):
+        g = order[r]
+        if n_tiles[g] > 0:
+            vw = views[_view_of(views, g, 0)]
+            n = offsets[r] - n_tiles[g]
+            rc = rect[g]
+            for ty in range(rc[1], rc[3] + 1):
+                for tx in range(rc[0], rc[2] + 1):
+                    keys[n] = vw.tile + ty * vw.tiles_x + tx
+                    values[n] = g
+                    n += 1
 
 
 @wp.kernel
@@ -889,6 +891,7 @@ def _project(parts: list[DeviceGaussians], cam: Camera, background, threads: int
 
 
 _SPLIT_PAIRS = 100_000
+_PAIR_CHUNK = 32  # entries (emitting their pairs) or pairs (gathering records) a CPU thread takes in turn
 # a part's projection splits over the threads from this many Gaussians: below, handing half to another
 # thread (0.1-0.3 ms on a 2-core KVM host) costs more than it saves (push-T's 20,724 moving Gaussians)
 _SPLIT_PROJECT = 40_000
@@ -922,7 +925,9 @@ class _Bins:
         ]  # fmt: skip
         # a thread per part only where the pairs are many (below ~1e5 two threads cost more than one)
         split = threads if total >= _SPLIT_PAIRS else 1
-        launch_split(_emit_pairs, len(order), emit_in, [keys, values], device, split)
+        chunk = _PAIR_CHUNK if device.is_cpu else 1
+        chunks = (len(order) + chunk - 1) // chunk
+        launch_split(_emit_pairs, chunks, emit_in + [chunk], [keys, values], device, split)
         tile_of_pair = keys.numpy()[:total].astype(np.uint16 if n_tile_total < 65536 else np.int32)
         perm = np.argsort(tile_of_pair, kind="stable")
         sorted_values = _from_host(values.numpy()[:total][perm], wp.int32, device)
@@ -931,7 +936,6 @@ class _Bins:
         self.ranges = _from_host(self.ranges_np, wp.vec2i, device)
         # records copied into pair order, so the rasteriser streams them instead of chasing random ids
         self.records = wp.empty(max(total, 1), dtype=vec16, device=device)
-        chunk = _CHUNK if device.is_cpu else 1
         launch_split(_gather_records, (total + chunk - 1) // chunk, [sorted_values, ws.record, chunk, total],
                      [self.records], device, split)
 
@@ -1158,7 +1162,7 @@ class _Batch:
         self.ranges = wp.zeros(tile, dtype=wp.vec2i, device=device)
         self.records = wp.empty(max(total, 1), dtype=vec16, device=device)
         if total:
-            wp.launch(_emit_pairs, dim=n, inputs=[order, offsets, ws.rect, ws.n_tiles, vw, 0],
+            wp.launch(_emit_pairs, dim=n, inputs=[order, offsets, ws.rect, ws.n_tiles, vw, 1, 0],
                       outputs=[keys, values], device=device)
             wp.utils.radix_sort_pairs(keys, values, total)
             wp.launch(_tile_ranges, dim=total, inputs=[keys, total], outputs=[self.ranges], device=device)
