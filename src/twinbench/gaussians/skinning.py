@@ -22,7 +22,7 @@ from twinbench.gaussians.threads import default_threads, launch_split
 
 _EPS_REL = 1e-5
 # posing splits over the threads from this many Gaussians (below, one thread is faster: a hand-off to
-# another thread costs 0.1-0.3 ms on a 2-core KVM host; a rigid pose ~30 ns a Gaussian, LBS ~110)
+# another thread costs 0.1-0.3 ms on a 2-core KVM host; a rigid pose ~20 ns a Gaussian, LBS ~110)
 _SPLIT_RIGID = 40_000
 _RIGID_CHUNK = 32  # Gaussians a CPU thread of the rigid poser takes in turn
 _SPLIT_SKIN = 10_000
