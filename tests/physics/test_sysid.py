@@ -349,6 +349,33 @@ def test_a_motion_that_strains_nothing_constrains_no_stiffness_region():
     assert np.array_equal(model.log_y_np, truth["log_y"].astype(np.float32))  # left as it was
 
 
+def test_stage3_scores_a_grid_of_control_attachments_at_its_start():
+    """The held-out family's irregular lift (the hand holds 6 particles within 1.5 cm of it): from PhysTwin's
+    default attachment (4 cm / 50 neighbours: most of the small blob), the grid of attachments is scored
+    at the start's other values before CMA-ES, each clipped to the search range, and one of them fits the
+    lift better than the start, so the search starts there."""
+    from twinbench.construct.sysid_family import family_case
+    from twinbench.physics.sysid import ATTACHMENTS, stable_substeps, stage1_cma
+
+    data, truth = family_case(7, 1)
+    assert truth["interaction"] == "lift" and data.num_controls
+    start = replace(truth["params"], spring_Y=float(np.exp(np.median(truth["log_y"]))), control_radius=0.04,
+                    control_max_neighbors=50)
+    n_sub = stable_substeps(build_model(data, start, SimParams()), start.spring_Y, start.dashpot_damping,
+                            data.fps)
+    base = SimParams(dt=1.0 / (data.fps * n_sub), substeps=n_sub)
+    search = ("control_radius", "control_max_neighbors", "drag_damping")
+    cfg = CMAConfig(budget=len(ATTACHMENTS), search=search, ranges=("control_max_neighbors=12:80",))
+    best, history = stage1_cma(data, base, start, cfg, log=lambda _m: None, variants=ATTACHMENTS,
+                               stage="stage 3")
+    scored = [(r["params"]["control_radius"], r["params"]["control_max_neighbors"]) for r in history[1:]]
+    grid = [(a["control_radius"], max(a["control_max_neighbors"], 12)) for a in ATTACHMENTS]
+    assert scored == [a for a in grid if a != (0.04, 50)]  # the start itself is not scored again
+    assert all(row["params"]["drag_damping"] == start.drag_damping for row in history)  # only the attachment
+    assert history[-1]["best"] < 0.5 * history[0]["loss"]
+    assert best.control_max_neighbors < 50 and best.control_radius < 0.04
+
+
 def _ident(constrained: bool | None) -> dict:
     return {"spring_Y": {"best": 767.0, "low": 77.0, "high": 77879.0, "width": 0.75,
                          "samples": 29 if constrained is not None else 3, "constrained": bool(constrained)}}
