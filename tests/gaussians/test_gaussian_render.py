@@ -7,10 +7,12 @@ import os
 
 import numpy as np
 import pytest
+import warp as wp
 
 from twinbench.gaussians.camera import Camera
 from twinbench.gaussians.cloud import SH_C0, GaussianCloud
 from twinbench.gaussians.render import RenderOutput, gsplat_available, render
+from twinbench.gaussians.warp_raster import _claim
 
 
 def _cam(width=72, height=56, eye=(1.0, 0.25, 0.35), target=(0.0, 0.0, 0.0), fx=60.0, **kw) -> Camera:
@@ -62,6 +64,31 @@ def test_stages_split_over_threads_equal_one_thread(make_cloud, monkeypatch):
     split = render(cloud, cam, threads=2)
     for a, b in ((one.rgb, split.rgb), (one.depth, split.depth), (one.alpha, split.alpha)):
         np.testing.assert_array_equal(b, a)
+
+
+@wp.kernel
+def _take_slots(counter: wp.array(dtype=wp.int32), owner: int, taken: wp.array(dtype=wp.int32)):
+    slot = _claim(counter)
+    if slot < taken.shape[0]:
+        taken[slot] = taken[slot] + owner
+
+
+def test_tile_claims_are_atomic_across_threads():
+    """The CPU tile kernel's threads share a view by claiming tiles from one counter (`_claim`, a native
+    atomic add: Warp's own atomic_add is a plain add on CPU). Two threads claiming 2,000,000 slots at once
+    take every slot exactly once and count every claim (four rounds)."""
+    from twinbench.gaussians.threads import run_threads
+
+    n = 2_000_000
+    for _ in range(4):  # a race shows within a round or two; four keep a broken claim from slipping by
+        counter = wp.zeros(1, dtype=wp.int32, device="cpu")
+        taken = wp.zeros(n, dtype=wp.int32, device="cpu")
+        wp.launch(_take_slots, dim=0, inputs=[counter, 1], outputs=[taken], device="cpu")  # compile first
+        args = [([counter, owner], [taken]) for owner in (1, 2)]
+        run_threads([lambda a=a: wp.launch(_take_slots, dim=n, inputs=a[0], outputs=a[1], device="cpu")
+                     for a in args])
+        assert int(counter.numpy()[0]) == 2 * n
+        assert np.isin(taken.numpy(), (1, 2)).all()  # each slot taken once (two takers: 3; none: 0)
 
 
 def test_radix_sort_path_matches_bruteforce_reference_on_cpu(make_cloud, ref_render):
