@@ -708,9 +708,9 @@ def stage1_cma(data: SysIdData, base: SimParams, initial: GlobalParams, cfg: CMA
             objective(c)
             bar.advance(task)
         here = best[1]
-        for change in variants:
+        for change in (c for c in variants if set(c) <= set(names)):
             moved = replace(here, **{n: ranges[n].decode(ranges[n].encode(v)) for n, v in change.items()})
-            if set(change) <= set(names) and moved != here:
+            if moved != here:
                 objective(moved)
                 bar.advance(task)
         x0 = [ranges[n].encode(getattr(best[1], n)) for n in names]
