@@ -15,7 +15,10 @@ Prints `name value unit` lines per case and the spread:
   is one value);
 - ground friction error where the motion slides, restitution error where it hits the ground, how many
   within 0.15, and the same over the cases whose fit calls the value constrained by the motion
-  (``SysIdResult.identifiability``: what a user's report says; elsewhere the value is a guess);
+  (``SysIdResult.identifiability``: what a user's report says; elsewhere the value is a guess), and the
+  same over the cases whose true motion shows the value (``contact_effect``: 0.15 more or less of it
+  moves the noise-free motion by >= ``SHOWN_MM``; "slides" alone counts a motion where one particle
+  slips once);
 - the stage kept (the lowest tracking error on the selection frames) and the stiffness guess over the
   truth's geometric mean;
 - median and worst of each over the family, and the count of diverged cases.
@@ -45,6 +48,10 @@ from pathlib import Path
 
 import numpy as np
 
+SHOWN_MM = 0.5
+"""a contact value counts as shown by a case's motion where 0.15 more or less of it moves the noise-free
+motion by at least this RMS distance (half the tracks' per-axis noise; `contact_effect`)"""
+
 
 def _rank(fit: list[float], truth: list[float]) -> float:
     """Spearman correlation; NaN where the truth is one value (nothing to rank), 0 where the fit is."""
@@ -59,7 +66,7 @@ def run_case(i: int, seed: int) -> dict:
     from scipy.stats import spearmanr
 
     from twinbench._runtime import quiet_warp
-    from twinbench.construct.sysid_family import family_case
+    from twinbench.construct.sysid_family import contact_effect, family_case
     from twinbench.physics.sysid import FitConfig, identify
 
     quiet_warp()
@@ -101,6 +108,12 @@ def run_case(i: int, seed: int) -> dict:
         out["friction_error"] = abs(res.params.ground_friction - truth["params"].ground_friction)
     if truth["impacts"]:
         out["restitution_error"] = abs(res.params.ground_restitution - truth["params"].ground_restitution)
+    effect = contact_effect(data, truth, 0.15)  # how far +-0.15 of each contact value moves the true motion
+    for key in ("friction", "restitution"):
+        out[f"{key}_effect_mm"] = 1e3 * effect[key]
+        if out[f"{key}_effect_mm"] >= SHOWN_MM:
+            out[f"{key}_error_shown"] = abs(getattr(res.params, f"ground_{key}")
+                                            - getattr(truth["params"], f"ground_{key}"))
     return out
 
 
@@ -179,6 +192,7 @@ def _print_case(r: dict) -> None:
         if f"{k}_error" in r:
             loose = "" if r[f"ground_{k}_constrained"] else " (not constrained)"
             extra += f" {k}_error {r[f'{k}_error']:.3f}{loose}"
+        extra += f" {k}_effect {r[f'{k}_effect_mm']:.2f} mm"
     print(f"sysid_case_{r['case']} val_mm {1e3 * r['val_initial']:.2f}/{1e3 * r['val_stage1']:.2f}/"
           f"{1e3 * r['val_final']:.2f} floor_mm {1e3 * r['floor']:.2f} "
           f"ratio {r['val_final'] / r['floor']:.2f} spearman {r['spearman']:.3f} ({r['regions']} regions; "
@@ -250,6 +264,11 @@ def main() -> None:
         print(f"sysid_family_{where}_cases_constrained {len(con)} count")
         _spread(f"{key}_error_constrained", con, "abs")
         print(f"sysid_family_{key}_within_0.15_constrained {sum(e <= 0.15 for e in con)} count")
+        # the cases whose true motion shows the value (0.15 either way moves it by >= SHOWN_MM)
+        shown = [r[f"{key}_error_shown"] for r in ok if f"{key}_error_shown" in r]
+        print(f"sysid_family_{key}_shown_cases {len(shown)} count")
+        _spread(f"{key}_error_shown", shown, "abs")
+        print(f"sysid_family_{key}_within_0.15_shown {sum(e <= 0.15 for e in shown)} count")
     _spread("seconds", [r["seconds"] for r in ok], "s")
     kept = [r["kept"] for r in ok]
     print("sysid_family_kept " + ", ".join(f"{k} {kept.count(k)}" for k in sorted(set(kept))) + " count")

@@ -8,7 +8,7 @@ import math
 import numpy as np
 import pytest
 
-from twinbench.construct.sysid_family import INTERACTIONS, LAYOUTS, family_case
+from twinbench.construct.sysid_family import INTERACTIONS, LAYOUTS, contact_effect, family_case
 from twinbench.physics import SimParams
 from twinbench.physics.sysid import (
     AdamConfig,
@@ -47,6 +47,17 @@ def test_family_is_seeded_and_varied(family):
     np.testing.assert_array_equal(again.observed, family[5][0].observed)
     other, _ = family_case(5, seed=1)
     assert other.observed.shape != again.observed.shape or not np.allclose(other.observed, again.observed)
+
+
+def test_contact_effect_says_which_motions_show_friction_and_restitution(family):
+    """A drag moves with the ground's friction and hardly with its restitution; a drop of a sheet the other
+    way round (it falls straight: friction has nothing to act on); a smaller change moves it less."""
+    drag, drop = family[4], family[5]  # rope drag, cloth drop
+    assert (drag[1]["interaction"], drop[1]["interaction"]) == ("drag", "drop")
+    on_drag, on_drop = contact_effect(*drag), contact_effect(*drop)
+    assert on_drag["friction"] > 1e-3 and on_drag["restitution"] < 0.1e-3
+    assert on_drop["friction"] < 1e-5 and on_drop["restitution"] > 0.1e-3
+    assert contact_effect(*drag, delta=0.03)["friction"] < 0.5 * on_drag["friction"]
 
 
 def test_stable_substeps_scale_with_stiffness_and_keep_the_truth_finite():

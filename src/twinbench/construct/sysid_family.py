@@ -13,13 +13,14 @@ The truth says which motions slide (ground friction acts) and which hit the grou
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 
 import numpy as np
 
 from twinbench.construct.sysid_synthetic import simulated_tracks
 from twinbench.physics.model import ModelBuilder, lattice
 from twinbench.physics.params import SimParams
-from twinbench.physics.sysid import GlobalParams, stable_substeps
+from twinbench.physics.sysid import GlobalParams, rollout, stable_substeps
 from twinbench.physics.sysid_data import SysIdData
 
 LAYOUTS = ("rope", "cloth", "block", "irregular")
@@ -84,6 +85,41 @@ def _stiffness(pattern: str, centres: np.ndarray, base_Y: float, rng: np.random.
     return base_Y * factors[np.minimum((u * n).astype(int), n - 1)]
 
 
+def _truth_model(pts: np.ndarray, controls: np.ndarray, truth: GlobalParams, sim: SimParams,
+                 log_y: np.ndarray | None = None):
+    """The hidden object: `pts` joined by the truth's spring rule, held by the controls' points, simulated
+    with `sim`, stiffness `log_y` per spring (None: the builder's)."""
+    b = ModelBuilder(sim)
+    b.add_body(pts, radius=truth.spring_radius, max_neighbors=truth.spring_max_neighbors)
+    if controls.shape[1]:
+        b.add_control_points(controls[0], radius=truth.control_radius,
+                             max_neighbors=truth.control_max_neighbors)
+    model = b.finalize()
+    if log_y is not None:
+        model.set_spring_log_y(log_y)
+    return model
+
+
+def contact_effect(data: SysIdData, truth: dict, delta: float = 0.15) -> dict[str, float]:
+    """How much the motion of a family case says about the ground's contact values, from the hidden truth:
+    the RMS distance (m, over every particle and frame) between the noise-free motion and the same motion
+    with the ground friction (resp. restitution) `delta` lower and `delta` higher (clipped to the search
+    ranges, [0, 2] and [0, 1]), the larger of the two. Near 0 where the motion never slides (resp. never
+    hits the ground hard enough to bounce): there no fit can recover the value within `delta`."""
+    sim = truth["sim"]
+    out = {}
+    for name, hi in (("ground_friction", 2.0), ("ground_restitution", 1.0)):
+        value = getattr(sim, name)
+        moved = []
+        for v in (max(value - delta, 0.0), min(value + delta, hi)):
+            model = _truth_model(data.particles, data.controls, truth["params"], replace(sim, **{name: v}),
+                                 truth["log_y"])
+            xs = rollout(model, data.controls, len(data.controls) - 1)[0]
+            moved.append(float(np.sqrt(np.mean(np.sum((xs - truth["positions"]) ** 2, axis=2)))))
+        out[name.removeprefix("ground_")] = max(moved)
+    return out
+
+
 def family_case(i: int, seed: int = 0, *, frames: int = 30, validation_frames: int = 6, noise: float = 1e-3,
                 visible_fraction: float = 0.8) -> tuple[SysIdData, dict]:
     """Held-out case ``i`` of the family ``seed``. Returns (data, truth): truth holds "params"
@@ -103,12 +139,7 @@ def family_case(i: int, seed: int = 0, *, frames: int = 30, validation_frames: i
         control_max_neighbors=6, ground_restitution=float(rng.uniform(0.1, 0.6)),
         ground_friction=float(rng.uniform(0.3, 1.2)), drag_damping=float(rng.uniform(0.5, 3.0)),
         dashpot_damping=float(rng.uniform(10.0, 60.0)))
-    b = ModelBuilder(truth.sim_params(SimParams()))
-    b.add_body(pts, radius=radius, max_neighbors=30)
-    if controls.shape[1]:
-        b.add_control_points(controls[0], radius=truth.control_radius,
-                             max_neighbors=truth.control_max_neighbors)
-    model = b.finalize()
+    model = _truth_model(pts, controls, truth, truth.sim_params(SimParams()))  # the springs
     n_obj = model.num_object_springs
     sp = model.springs_np[:n_obj]
     y = _stiffness(pattern, 0.5 * (pts[sp[:, 0]] + pts[sp[:, 1]]), math.exp(rng.uniform(math.log(150.0),
@@ -118,13 +149,8 @@ def family_case(i: int, seed: int = 0, *, frames: int = 30, validation_frames: i
     log_y[:n_obj] = np.log(y)
     substeps = 2 * stable_substeps(model, float(y.max()), truth.dashpot_damping, 30.0)
     base = SimParams(dt=1.0 / (30.0 * substeps), substeps=substeps)
-    b = ModelBuilder(truth.sim_params(base))  # the same springs (deterministic rule), finer substeps
-    b.add_body(pts, radius=radius, max_neighbors=30)
-    if controls.shape[1]:
-        b.add_control_points(controls[0], radius=truth.control_radius,
-                             max_neighbors=truth.control_max_neighbors)
-    model = b.finalize()
-    model.set_spring_log_y(log_y)
+    # the same springs (deterministic rule), finer substeps
+    model = _truth_model(pts, controls, truth, truth.sim_params(base), log_y)
     tracked_idx = np.arange(len(pts))
     xs, observed, visibility, tracked, motion_valid = simulated_tracks(model, controls, frames, rng, noise,
                                                                        visible_fraction, tracked_idx)
