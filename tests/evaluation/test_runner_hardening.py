@@ -83,6 +83,30 @@ def test_worker_dying_in_an_episode_is_a_sim_error_and_the_run_goes_on(tmp_path)
     assert [r.status for r in again] == ["ok"] * 3 + ["sim_error"] * 3
 
 
+def test_a_script_without_a_main_guard_is_told_so_instead_of_running_again_in_its_workers(tmp_path):
+    # spawn's workers import the parent's script: unguarded, every worker would run the whole script
+    # (another evaluation, a study's stages) into the same files
+    script = tmp_path / "unguarded.py"
+    script.write_text(
+        "from twinbench.evaluation.runner import evaluate\n"
+        f"evaluate('point-reach', ['expert'], 2, 2, 'g', {str(tmp_path / 'r.sqlite')!r}, "
+        f"output_dir={str(tmp_path)!r})\n"
+        "print('the parent finished')\n")
+    proc = subprocess.run([sys.executable, str(script)], capture_output=True, text=True, env=ENV, timeout=120,
+                          cwd=tmp_path)
+    assert proc.returncode == 1 and "the parent finished" not in proc.stdout
+    assert "InputError: evaluate was called while a worker process imports your script" in proc.stderr
+    assert 'RuntimeError: a worker process exited (exit code 1) before it started' in proc.stderr
+    assert ResultsStore(tmp_path / "r.sqlite").episodes("g") == []  # nothing recorded as the episodes' fault
+    guarded = tmp_path / "guarded.py"
+    guarded.write_text("if __name__ == '__main__':\n" + "".join(
+        "    " + line + "\n" for line in script.read_text().splitlines()))
+    proc = subprocess.run([sys.executable, str(guarded)], capture_output=True, text=True, env=ENV, timeout=120,
+                          cwd=tmp_path)
+    assert proc.returncode == 0 and "the parent finished" in proc.stdout, proc.stderr
+    assert [e.status for e in ResultsStore(tmp_path / "r.sqlite").episodes("g")] == ["ok", "ok"]
+
+
 def test_a_bad_env_kwarg_is_one_input_error_not_a_crash(tmp_path):
     store = ResultsStore(tmp_path / "r.sqlite")
     with pytest.raises(InputError, match=r"--env-kwargs .*no_such_option"):

@@ -53,8 +53,8 @@ def _exit_reason(exitcode: int | None) -> str:
 
 
 def _worker_main(conn, cores: str = "1") -> None:
-    """A worker process: runs one EpisodeBatch at a time from `conn`, replies ("ok", records) or
-    ("error", exc).
+    """A worker process: says ("ready", None) once started, then runs one EpisodeBatch at a time from
+    `conn`, replies ("ok", records) or ("error", exc).
 
     Ignores SIGINT and SIGTERM (the parent decides: commit finished episodes, kill the rest) and exits
     as soon as the parent dies."""
@@ -66,6 +66,7 @@ def _worker_main(conn, cores: str = "1") -> None:
     watch_parent()
     quiet_warp()  # workers print no Warp banner or module-load lines either
     try:
+        conn.send(("ready", None))
         while True:
             try:
                 job = conn.recv()
@@ -94,6 +95,7 @@ class _Worker:
         self.process.start()
         child.close()
         self.job: EpisodeBatch | None = None
+        self.started = False  # said "ready": it got past importing the parent's script and twinbench
 
     def stop(self, graceful: bool) -> None:
         if graceful and self.job is None and self.process.is_alive():
@@ -144,6 +146,12 @@ def _run_pool(jobs: list[EpisodeBatch], workers: int, on_done) -> None:
                     reply = None
                 if reply is None:  # the process died inside the episode
                     w.process.join(timeout=5)
+                    if not w.started and (w.process.exitcode or 0) > 0:  # an error before it could start
+                        raise RuntimeError(
+                            f"a worker process exited ({_exit_reason(w.process.exitcode)}) before it "
+                            "started: its error is printed above. A script that runs episodes in worker "
+                            "processes must keep its code under `if __name__ == \"__main__\":` (each "
+                            "worker imports the script again)")
                     batch = w.job
                     w.job = None
                     w.stop(graceful=False)
@@ -151,8 +159,11 @@ def _run_pool(jobs: list[EpisodeBatch], workers: int, on_done) -> None:
                         on_done(crash_record(job, f"worker process died during the episode "
                                                   f"({_exit_reason(w.process.exitcode)})"))
                     continue  # replaced at the top of the loop
-                w.job = None
                 kind, value = reply
+                if kind == "ready":
+                    w.started = True
+                    continue
+                w.job = None
                 if kind == "error":
                     raise value
                 for rec in value:

@@ -386,8 +386,10 @@ def replay_episodes(task: str, episodes: list[RecordedEpisode], store: ResultsSt
     from twinbench.evaluation.rollout import EpisodeBatch, EpisodeJob, run_episode
     from twinbench.evaluation.runner import _check_counts, _twin_hash
     from twinbench.policies.base import OpenLoopPolicy
+    from twinbench._runtime import refuse_in_worker_import
     from twinbench.tasks import get_task
 
+    refuse_in_worker_import("replay_episodes")
     check_run_id(run_id)
     _check_counts(workers, 0)
     spec = get_task(task)

@@ -164,8 +164,10 @@ def evaluate(task: str, policies: Sequence[str], episodes: str | int = "grid", w
     too, unless `retry_errors`). On SIGINT raises `EvaluationInterrupted` after committing every
     finished episode. Writes `<output_dir>/eval/<run_id>/<policy>/eval_info.json` per policy.
     """
+    from twinbench._runtime import refuse_in_worker_import
     from twinbench.tasks import get_task
 
+    refuse_in_worker_import("evaluate")
     spec_task = get_task(task)
     if backend not in ("local", "ray"):
         raise ValueError(f"backend must be 'local' or 'ray', got {backend!r}")

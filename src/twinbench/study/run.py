@@ -50,6 +50,9 @@ def run_study(task: str, out: Path, size: str = "small", seed: int = 0, workers:
     from twinbench.study.reconstruct import VARIANTS, reconstruct
     from twinbench.study.report import write_study_report
 
+    from twinbench._runtime import refuse_in_worker_import
+
+    refuse_in_worker_import("run_study")
     study_size(size)  # a bad --size is refused before anything runs
     from twinbench.errors import InputError
     from twinbench.study.policies import LEVELS
