@@ -1,6 +1,5 @@
 """Process-level rules shared by commands, workers, helpers and plugins, written once: Warp's console
-output, how many CPU cores the physics may use, ending a child process when its parent dies, and refusing
-to start work inside a worker that is importing its parent's script."""
+output, how many CPU cores the physics may use, and ending a child process when its parent dies."""
 
 from __future__ import annotations
 
@@ -62,18 +61,3 @@ def watch_parent(poll_s: float = 0.5, exit_code: int = 75) -> None:
 
     threading.Thread(target=run, name="twinbench-parent-watchdog", daemon=True).start()
 
-
-def refuse_in_worker_import(what: str) -> None:
-    """Raise InputError when called while a worker process started with multiprocessing's "spawn" (the
-    evaluation's workers) imports the parent's main script: a script that starts workers without an
-    ``if __name__ == "__main__":`` guard runs its whole body again in every worker, which would redo (and
-    write over) the parent's work instead of running episodes."""
-    import multiprocessing as mp
-
-    if getattr(mp.current_process(), "_inheriting", False):  # set by spawn while it imports __main__
-        from twinbench.errors import InputError
-
-        raise InputError(
-            f"{what} was called while a worker process imports your script: worker processes (e.g. "
-            "workers=2) import the main script again, so put the script's code under "
-            "`if __name__ == \"__main__\":` (Python's multiprocessing rule for the spawn start method)")

@@ -92,8 +92,8 @@ def test_a_script_without_a_main_guard_is_told_so_instead_of_running_again_in_it
         f"evaluate('point-reach', ['expert'], 2, 2, 'g', {str(tmp_path / 'r.sqlite')!r}, "
         f"output_dir={str(tmp_path)!r})\n"
         "print('the parent finished')\n")
-    proc = subprocess.run([sys.executable, str(script)], capture_output=True, text=True, env=ENV, timeout=120,
-                          cwd=tmp_path)
+    proc = subprocess.run([sys.executable, str(script)], capture_output=True, text=True, env=ENV,
+                          timeout=120, cwd=tmp_path)
     assert proc.returncode == 1 and "the parent finished" not in proc.stdout
     assert "InputError: evaluate was called while a worker process imports your script" in proc.stderr
     assert 'RuntimeError: a worker process exited (exit code 1) before it started' in proc.stderr
@@ -101,8 +101,8 @@ def test_a_script_without_a_main_guard_is_told_so_instead_of_running_again_in_it
     guarded = tmp_path / "guarded.py"
     guarded.write_text("if __name__ == '__main__':\n" + "".join(
         "    " + line + "\n" for line in script.read_text().splitlines()))
-    proc = subprocess.run([sys.executable, str(guarded)], capture_output=True, text=True, env=ENV, timeout=120,
-                          cwd=tmp_path)
+    proc = subprocess.run([sys.executable, str(guarded)], capture_output=True, text=True, env=ENV,
+                          timeout=120, cwd=tmp_path)
     assert proc.returncode == 0 and "the parent finished" in proc.stdout, proc.stderr
     assert [e.status for e in ResultsStore(tmp_path / "r.sqlite").episodes("g")] == ["ok", "ok"]
 

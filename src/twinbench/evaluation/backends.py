@@ -14,6 +14,7 @@ import os
 import signal
 
 from twinbench._runtime import quiet_warp, share_cores, watch_parent
+from twinbench.errors import InputError
 from twinbench.evaluation.rollout import EpisodeBatch, close_cached_policies, crash_record, run_batch
 from twinbench.evaluation.video import error_text
 
@@ -41,6 +42,20 @@ class sigterm_as_interrupt:
     def __exit__(self, *exc) -> None:
         if self._old is not None:
             signal.signal(signal.SIGTERM, self._old)
+
+def refuse_in_worker_import(what: str) -> None:
+    """Raise InputError when called while a worker process started with multiprocessing's "spawn" (the
+    evaluation's workers) imports the parent's main script: a script that starts workers without an
+    ``if __name__ == "__main__":`` guard runs its whole body again in every worker, which would redo (and
+    write over) the parent's work instead of running episodes."""
+    import multiprocessing as mp
+
+    if getattr(mp.current_process(), "_inheriting", False):  # set by spawn while it imports __main__
+        raise InputError(
+            f"{what} was called while a worker process imports your script: worker processes (e.g. "
+            "workers=2) import the main script again, so put the script's code under "
+            "`if __name__ == \"__main__\":` (Python's multiprocessing rule for the spawn start method)")
+
 
 
 def _exit_reason(exitcode: int | None) -> str:

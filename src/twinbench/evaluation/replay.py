@@ -381,12 +381,11 @@ def replay_episodes(task: str, episodes: list[RecordedEpisode], store: ResultsSt
     replay run `run_id` already holds (status ok) are not replayed again: an interrupted replay resumes."""
     import tempfile
 
-    from twinbench.evaluation.backends import run_local
+    from twinbench.evaluation.backends import refuse_in_worker_import, run_local
     from twinbench.evaluation.grids import grid_info, map_index, read_index_map
     from twinbench.evaluation.rollout import EpisodeBatch, EpisodeJob, run_episode
     from twinbench.evaluation.runner import _check_counts, _twin_hash
     from twinbench.policies.base import OpenLoopPolicy
-    from twinbench._runtime import refuse_in_worker_import
     from twinbench.tasks import get_task
 
     refuse_in_worker_import("replay_episodes")

@@ -21,7 +21,13 @@ from pathlib import Path
 import numpy as np
 
 from twinbench.errors import InputError
-from twinbench.evaluation.backends import SigTerm, run_local, run_ray, sigterm_as_interrupt
+from twinbench.evaluation.backends import (
+    SigTerm,
+    refuse_in_worker_import,
+    run_local,
+    run_ray,
+    sigterm_as_interrupt,
+)
 from twinbench.evaluation.export import policy_folder, write_eval_infos
 from twinbench.evaluation.grids import grid_info
 from twinbench.evaluation.rollout import EpisodeBatch, EpisodeJob
@@ -164,7 +170,6 @@ def evaluate(task: str, policies: Sequence[str], episodes: str | int = "grid", w
     too, unless `retry_errors`). On SIGINT raises `EvaluationInterrupted` after committing every
     finished episode. Writes `<output_dir>/eval/<run_id>/<policy>/eval_info.json` per policy.
     """
-    from twinbench._runtime import refuse_in_worker_import
     from twinbench.tasks import get_task
 
     refuse_in_worker_import("evaluate")

@@ -37,6 +37,7 @@ def run_study(task: str, out: Path, size: str = "small", seed: int = 0, workers:
     """Every stage of a study of `task` into `out`; returns study.json's content. `bc`: also the CNN
     behaviour-cloning policies (study.bc; the torch extra); `bc_act` / `bc_dp`: those and LeRobot ACT /
     Diffusion Policy policies trained on the same demonstrations (the lerobot extra)."""
+    from twinbench.evaluation.backends import refuse_in_worker_import
     from twinbench.study.evaluate import (
         make_policies,
         run_evaluations,
@@ -49,8 +50,6 @@ def run_study(task: str, out: Path, size: str = "small", seed: int = 0, workers:
     from twinbench.study.real import make_real
     from twinbench.study.reconstruct import VARIANTS, reconstruct
     from twinbench.study.report import write_study_report
-
-    from twinbench._runtime import refuse_in_worker_import
 
     refuse_in_worker_import("run_study")
     study_size(size)  # a bad --size is refused before anything runs
