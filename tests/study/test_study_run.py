@@ -36,12 +36,13 @@ def test_tiny_study_end_to_end(tmp_path, monkeypatch):
     cell = get_task("push-t").task_cls().default_twin("fast")
     save_twin(cell, tmp_path / "twins" / "cell")
     twins = {"perfect": real / "world", "cell": tmp_path / "twins" / "cell"}
-    tiny = E.StudySize((0,), 3.0, 2, real_again=True)
+    tiny = E.StudySize((0,), 3.0, 2)  # without real_again, which the call below asks for (--real-again)
     monkeypatch.setattr(spec_module, "POLICY_KINDS", dict(spec_module.POLICY_KINDS))  # evaluate adds perceive
     policies = E.make_policies("push-t", real / "world", tmp_path / "policies", tiny, None,
                                names=("p0-clean", "p5-noise4cm", "p7-noise8cm"))
     assert len(policies) == 3 and (tmp_path / "policies" / "calibration.json").is_file()
-    E.run_evaluations("push-t", real / "world", twins, policies, tmp_path, tiny, workers=1)  # entry point
+    E.run_evaluations("push-t", real / "world", twins, policies, tmp_path, tiny, workers=1,  # entry point
+                      real_again=True)
     doc = E.write_study_json(tmp_path, "push-t", tiny, list(twins), {"evaluate": 1.0})
     assert json.loads((tmp_path / "study.json").read_text()) == doc
 

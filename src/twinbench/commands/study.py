@@ -74,6 +74,10 @@ class EvaluateConfig:
     retry_errors: bool = False
     """run again the episodes the store holds as errors (e.g. a worker process killed), not only the
     missing ones"""
+    real_again: bool = False
+    """also evaluate the real workcell a second time with other episode seeds (the yardstick for r and
+    MMRV: how well one real evaluation predicts another) at a size that leaves it out (small); medium and
+    full always do"""
 
 
 @dataclass(frozen=True)
@@ -97,6 +101,10 @@ class RunConfig:
     checkpoints (needs the lerobot extra: pip install 'twinbench[lerobot]')"""
     bc_dp: bool = False
     """--bc and also LeRobot Diffusion Policy policies trained on the same demonstrations (as --bc-act)"""
+    real_again: bool = False
+    """also evaluate the real workcell a second time with other episode seeds (the yardstick for r and
+    MMRV: how well one real evaluation predicts another) at a size that leaves it out (small); medium and
+    full always do"""
 
 
 StudyCommand = (
@@ -136,7 +144,7 @@ def _evaluate(cfg: EvaluateConfig) -> int:
         policies += make_bc_policies(cfg.task, real, cfg.out / "policies" / "bc", cfg.size, act=cfg.bc_act,
                                      dp=cfg.bc_dp)
     times = run_evaluations(cfg.task, real, twins, policies, cfg.out, cfg.size, cfg.workers,
-                            retry_errors=cfg.retry_errors)
+                            retry_errors=cfg.retry_errors, real_again=cfg.real_again or None)
     doc = write_study_json(cfg.out, cfg.task, cfg.size, list(twins), times,
                            {"policies": policies, "training": training_records(policies)})
     write_study_report(cfg.out, doc)
@@ -166,7 +174,7 @@ def main(cfg) -> int:
         from twinbench.study.run import run_study
 
         doc = run_study(cfg.task, cfg.out, cfg.size, cfg.seed, cfg.workers, bc=cfg.bc, bc_act=cfg.bc_act,
-                        bc_dp=cfg.bc_dp)
+                        bc_dp=cfg.bc_dp, real_again=cfg.real_again or None)
         print(format_table(doc))
         print("stage wall times: " + ", ".join(f"{k} {v:.0f} s" for k, v in doc["stage_seconds"].items()))
         print(f"wrote {cfg.out / 'study.json'} and {cfg.out / 'report.html'}")

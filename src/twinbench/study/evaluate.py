@@ -111,15 +111,17 @@ def _real_records(store: ResultsStore, task: str, recs) -> None:
 
 def run_evaluations(task: str, real_world: Path, twins: dict[str, Path], policies: list[str], out: Path,
                     size: str | StudySize = "small", workers: int = 1, log=print,
-                    retry_errors: bool = False) -> dict[str, float]:
-    """Every policy on the real workcell (a second time with other episode seeds where the size's
-    `real_again`) and on each twin (resumable: the runner skips finished episodes, and those that ended in
-    an error unless `retry_errors`), then the real rollouts replayed in each twin. Returns the wall time (s)
-    of each evaluation."""
+                    retry_errors: bool = False, real_again: bool | None = None) -> dict[str, float]:
+    """Every policy on the real workcell (a second time with other episode seeds where `real_again`, by
+    default the size's) and on each twin (resumable: the runner skips finished episodes, and those that
+    ended in an error unless `retry_errors`), then the real rollouts replayed in each twin. Returns the
+    wall time (s) of each evaluation."""
     sz = study_size(size)
     store = ResultsStore(out / "results" / "results.sqlite")
     times = {}
-    again = [(REAL_AGAIN, real_world, AGAIN_SEED)] if sz.real_again else []
+    if real_again is None:
+        real_again = sz.real_again
+    again = [(REAL_AGAIN, real_world, AGAIN_SEED)] if real_again else []
     runs = [(REAL_ROLLOUTS, real_world, 0), *again, *((twin_run_id(v), p, 0) for v, p in twins.items())]
     for run_id, world, seed in runs:
         t0 = time.perf_counter()

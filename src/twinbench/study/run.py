@@ -33,10 +33,11 @@ class _Timer:
 
 def run_study(task: str, out: Path, size: str = "small", seed: int = 0, workers: int = 1,
               variants: tuple[str, ...] | None = None, log=print, bc: bool = False,
-              bc_act: bool = False, bc_dp: bool = False) -> dict:
+              bc_act: bool = False, bc_dp: bool = False, real_again: bool | None = None) -> dict:
     """Every stage of a study of `task` into `out`; returns study.json's content. `bc`: also the CNN
     behaviour-cloning policies (study.bc; the torch extra); `bc_act` / `bc_dp`: those and LeRobot ACT /
-    Diffusion Policy policies trained on the same demonstrations (the lerobot extra)."""
+    Diffusion Policy policies trained on the same demonstrations (the lerobot extra). `real_again`: evaluate
+    the real workcell a second time (None: as the size says; `small` does not)."""
     from twinbench.evaluation.backends import refuse_in_worker_import
     from twinbench.study.evaluate import (
         make_policies,
@@ -73,7 +74,8 @@ def run_study(task: str, out: Path, size: str = "small", seed: int = 0, workers:
 
         policies += timer("bc", make_bc_policies, task, world, out / "policies" / "bc", size, log,
                           act=bc_act, dp=bc_dp)
-    eval_times = timer("evaluate", run_evaluations, task, world, twins, policies, out, size, workers, log)
+    eval_times = timer("evaluate", run_evaluations, task, world, twins, policies, out, size, workers, log,
+                       real_again=real_again)
     extra = {"evaluation_seconds": eval_times, "policies": policies, "seed": seed,
              "training": training_records(policies)}
     doc = write_study_json(out, task, size, list(twins), timer.seconds, extra)
