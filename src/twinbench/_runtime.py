@@ -60,4 +60,3 @@ def watch_parent(poll_s: float = 0.5, exit_code: int = 75) -> None:
                 os._exit(exit_code)
 
     threading.Thread(target=run, name="twinbench-parent-watchdog", daemon=True).start()
-

@@ -43,6 +43,7 @@ class sigterm_as_interrupt:
         if self._old is not None:
             signal.signal(signal.SIGTERM, self._old)
 
+
 def refuse_in_worker_import(what: str) -> None:
     """Raise InputError when called while a worker process started with multiprocessing's "spawn" (the
     evaluation's workers) imports the parent's main script: a script that starts workers without an
@@ -55,7 +56,6 @@ def refuse_in_worker_import(what: str) -> None:
             f"{what} was called while a worker process imports your script: worker processes (e.g. "
             "workers=2) import the main script again, so put the script's code under "
             "`if __name__ == \"__main__\":` (Python's multiprocessing rule for the spawn start method)")
-
 
 
 def _exit_reason(exitcode: int | None) -> str:
