@@ -104,16 +104,14 @@ def run_case(i: int, seed: int) -> dict:
            "diverged": any(e.diverged for e in res.evals.values())}
     for name in ("ground_friction", "ground_restitution"):  # whether the fit calls it constrained
         out[f"{name}_constrained"] = bool(res.identifiability.get(name, {}).get("constrained"))
-    if truth["slides"]:
-        out["friction_error"] = abs(res.params.ground_friction - truth["params"].ground_friction)
-    if truth["impacts"]:
-        out["restitution_error"] = abs(res.params.ground_restitution - truth["params"].ground_restitution)
     effect = contact_effect(data, truth, 0.15)  # how far +-0.15 of each contact value moves the true motion
-    for key in ("friction", "restitution"):
+    for key, acts in (("friction", truth["slides"]), ("restitution", truth["impacts"])):
+        error = abs(getattr(res.params, f"ground_{key}") - getattr(truth["params"], f"ground_{key}"))
         out[f"{key}_effect_mm"] = 1e3 * effect[key]
+        if acts:
+            out[f"{key}_error"] = error
         if out[f"{key}_effect_mm"] >= SHOWN_MM:
-            out[f"{key}_error_shown"] = abs(getattr(res.params, f"ground_{key}")
-                                            - getattr(truth["params"], f"ground_{key}"))
+            out[f"{key}_error_shown"] = error
     return out
 
 

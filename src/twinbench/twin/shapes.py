@@ -43,18 +43,15 @@ class Outline:
             raise ValueError("outline.polygon: the vertices must go counter-clockwise (seen from +z) and "
                              "enclose a positive area")
 
-    def _edges(self) -> tuple[np.ndarray, np.ndarray]:
-        return self._ends
-
     @property
     def area(self) -> float:
         """Signed area of the polygon (positive: counter-clockwise), m^2."""
-        a, b = self._edges()
+        a, b = self._ends
         return 0.5 * float(np.sum(a[:, 0] * b[:, 1] - b[:, 0] * a[:, 1]))
 
     def polar_radius2(self) -> float:
         """Mean squared distance of the footprint from the frame origin (polar second moment / area), m^2."""
-        a, b = self._edges()
+        a, b = self._ends
         cross = a[:, 0] * b[:, 1] - b[:, 0] * a[:, 1]
         sq = a[:, 0] ** 2 + a[:, 0] * b[:, 0] + b[:, 0] ** 2 + a[:, 1] ** 2 + a[:, 1] * b[:, 1] + b[:, 1] ** 2
         return float(np.sum(cross * sq)) / 12.0 / self.area
@@ -106,7 +103,7 @@ class Outline:
 
     def _closest_on_edges(self, p: np.ndarray) -> np.ndarray:
         """(N, K, 2): the closest point of each edge to each point."""
-        a, b = self._edges()
+        a, b = self._ends
         e = b - a
         t = np.einsum("nkd,kd->nk", p[:, None, :] - a, e) / np.sum(e * e, axis=1)
         return a + np.clip(t, 0.0, 1.0)[..., None] * e
@@ -114,7 +111,7 @@ class Outline:
     def _within(self, p: np.ndarray, tol: float) -> np.ndarray:
         """(N,) whether the (N, 2) points lie within `tol` of the boundary: the distance computed only for
         the points inside some edge's bounding box widened by `tol` (no other point can be that close)."""
-        a, b = self._edges()
+        a, b = self._ends
         lo, hi = np.minimum(a, b) - tol, np.maximum(a, b) + tol
         x, y = p[:, :1], p[:, 1:2]
         boxed = (x >= lo[:, 0]) & (x <= hi[:, 0]) & (y >= lo[:, 1]) & (y <= hi[:, 1])
