@@ -95,7 +95,7 @@ def test_default_fit_on_family_cases_improves_and_reports(i):
     assert res.selection["kept"] == "stage3" and res.evals["final"] is res.evals["stage3"]
     # stage 3 searched the global parameters other than the spring rule with stage 2's stiffness held
     assert res.stage3_history and "spring_Y" not in res.stage3_history[0]["params"]
-    assert res.evals["stage3"].train_loss <= res.evals["stage2"].train_loss * 1.001
+    assert fitted["stage3"] <= fitted["stage2"] * 1.001  # by its objective (no acceleration term)
     assert res.selection["frames"] == [] and "last stage" in res.selection["rule"]
     assert set(res.identifiability) >= {"spring_Y", "ground_friction", "dashpot_damping"}
     sy = res.identifiability["spring_Y"]
@@ -122,6 +122,25 @@ def test_family_with_default_options():
     rows = [bench.run_case(i, 0) for i in range(12)]
     assert all("error" not in r and not r["diverged"] for r in rows)
     assert np.median([r["val_final"] / r["floor"] for r in rows]) <= 2.0
+
+
+@pytest.mark.slow
+def test_the_second_start_rescues_the_irregular_lift():
+    """Family seed 1's irregular lift (the hand holds 6 particles within 1.5 cm): from stage 1 as set, the
+    stages end attached to much of the blob and validate at ~9x the noise floor; the start that scores the
+    attachment grid in stage 1 tracks the training frames better, is kept, and validates within 3.5x of
+    the floor (2.9x measured; ~2 minutes)."""
+    data, truth = family_case(7, 1)
+    one = identify(data, FitConfig(progress=False, attachment_starts=False), log=lambda _m: None)
+    two = identify(data, FitConfig(progress=False), log=lambda _m: None)
+    starts = two.selection["starts"]
+    assert [s["kept"] for s in starts] == [False, True]
+    assert starts[0]["train_error_m"] == pytest.approx(one.evals["final"].train_error)  # the same first run
+    val = list(data.val_frames)
+    floor = np.mean([np.linalg.norm(truth["positions"][k][m] - data.tracked[k][m], axis=1).mean()
+                     for k in val for m in [data.motion_valid[k]]])
+    assert one.evals["final"].val_error > 6.0 * floor
+    assert two.evals["final"].val_error < 3.5 * floor
 
 
 def test_a_drop_keeps_the_restitution_measured_from_its_bounce():

@@ -43,6 +43,7 @@ SEARCH = ("spring_Y", "control_radius", "control_max_neighbors", "ground_restitu
 
 def _config(**kw) -> FitConfig:
     base = dict(dt=1.0 / (30 * SUBSTEPS), substeps=SUBSTEPS, progress=False, stage3=False,
+                attachment_starts=False,
                 initial=GlobalParams(spring_Y=1000.0, control_radius=0.02, control_max_neighbors=8),
                 cma=CMAConfig(budget=80, search=SEARCH, ranges=("spring_Y=100:10000",), seed=0),
                 adam=AdamConfig(epochs=10, lr=0.02, y_min=50.0, y_max=1e4))
@@ -374,6 +375,44 @@ def test_stage3_scores_a_grid_of_control_attachments_at_its_start():
     assert all(row["params"]["drag_damping"] == start.drag_damping for row in history)  # only the attachment
     assert history[-1]["best"] < 0.5 * history[0]["loss"]
     assert best.control_max_neighbors < 50 and best.control_radius < 0.04
+
+
+@pytest.mark.parametrize("two", [True, False])
+def test_stages_run_from_two_starts_and_keep_the_better_tracking(monkeypatch, two):
+    """With control points whose attachment is searched, the stages run twice, stage 1 scoring the grid of
+    attachments the second time; the run whose result tracks the training frames best is kept and both
+    are recorded. Off: one run."""
+    import twinbench.physics.sysid as sysid_module
+    from twinbench.physics.sysid import ATTACHMENTS
+
+    data, _ = synthetic_case("rope", frames=12, validation_frames=3, seed=4)
+    calls: list[tuple] = []
+    real = sysid_module.stage1_cma
+
+    def spy(*args, **kw):
+        calls.append((kw.get("stage", "stage 1"), kw.get("variants", ())))
+        return real(*args, **kw)
+
+    monkeypatch.setattr(sysid_module, "stage1_cma", spy)
+    cfg = _config(attachment_starts=two, cma=CMAConfig(budget=24, search=SEARCH, seed=0),
+                  adam=AdamConfig(epochs=2, lr=0.02, y_min=50.0, y_max=1e4))
+    res = identify(data, cfg, log=_quiet)
+    if not two:
+        assert calls == [("stage 1", ())] and "starts" not in res.selection
+        return
+    assert calls == [("stage 1", ()), ("stage 1", ATTACHMENTS)]
+    starts = res.selection["starts"]
+    assert [s["stage1"] for s in starts] == ["as set", "control attachment grid scored"]
+    errors = [s["train_error_m"] for s in starts]
+    kept = [s["kept"] for s in starts]
+    assert kept.count(True) == 1 and errors[kept.index(True)] == min(errors)
+    assert res.evals["final"].train_error == min(errors) and res.seconds["other_start"] > 0
+    # the kept run's own records: its stage-1 history, and a note when the second start is kept
+    scored = {(r["params"]["control_radius"], r["params"]["control_max_neighbors"])
+              for r in res.stage1_history}
+    grid = {(a["control_radius"], a["control_max_neighbors"]) for a in ATTACHMENTS}
+    assert bool(scored & grid) or kept[0]
+    assert any("second start is kept" in n for n in res.notes) == kept[1]
 
 
 def _ident(constrained: bool | None) -> dict:

@@ -49,6 +49,9 @@ def main(cfg: SysIdConfig) -> int:
             f"{1e3 * e.train_error:.2f} mm, validation {1e3 * e.val_error:.2f} mm")
     if result.selection:
         say(f"kept: {result.selection['kept']} ({result.selection['rule']})")
+        for start in result.selection.get("starts", []):
+            say(f"start (stage 1 {start['stage1']}): training tracking error "
+                f"{1e3 * start['train_error_m']:.2f} mm{', kept' if start['kept'] else ''}")
     if data.has_tool:
         say(f"tool contact: friction {result.params.tool_friction:.3f}, restitution "
             f"{result.params.tool_restitution:.3f} (a twin's robot.tool_contact)")

@@ -6,7 +6,7 @@
 This module is the fit only; reading the input files, writing the identified object and the report
 are construction tools (``twinbench.construct.sysid_io``, ``twinbench.construct.sysid_report``).
 
-Two stages (DESIGN section 4), each switchable for the ablation "without physics optimisation":
+Stages (DESIGN section 4), each switchable for the ablation "without physics optimisation":
 
 1. **Stage 1** (``stage1=True``): CMA-ES (``cma`` package) over the global parameters of
    :class:`GlobalParams` within :data:`DEFAULT_RANGES` (normalised to [0, 1], stiffness in log space);
@@ -19,8 +19,13 @@ Two stages (DESIGN section 4), each switchable for the ablation "without physics
    the adjoint of the taped frame's last state, Adam steps, and the detached state carries on. The
    stiffness is fitted per spatial region (``AdamConfig.regions``); the result says which regions the
    motion constrains (:func:`region_information`, ``SysIdResult.region_identifiability``).
+3. **Stage 3** (``stage3=True``): CMA-ES again over the global parameters other than the spring rule,
+   with stage 2's stiffness held.
 
-With both off, the ``initial`` (hand-set) values are used as they are and only evaluated.
+With control points whose attachment is searched, stages 1-3 run from two starts (stage 1 as set, and
+stage 1 also scoring a grid of attachments) and the run that tracks the training frames best is kept
+(``FitConfig.attachment_starts``). With stages 1 and 2 off, the ``initial`` (hand-set) values are used as
+they are and only evaluated.
 
 Loss of frame ``k`` (PhysTwin's terms and weights 1, 1, 0.01):
 
@@ -284,6 +289,13 @@ class FitConfig:
     stage3_budget: int = 150
     """stage 3's evaluations, all used (its CMA-ES otherwise as ``cma``: step size, seed; the gains
     come slowly there, so ``cma.patience`` stopped it too early on the held-out family)"""
+    attachment_starts: bool = True
+    """with control points whose attachment stage 1 searches, run the stages twice: stage 1 as set, and
+    stage 1 also scoring the control attachments :data:`ATTACHMENTS` before its CMA-ES; keep the run whose
+    result tracks the training frames best (the attachment changes the motion in steps: either start can
+    lead a later stage into the better basin, and on the held-out family neither is better on every case;
+    the training tracking error picked the one with the lower validation error in each case where they
+    differed). Off: one run (half the time)"""
     guess: bool = True
     """stage 1 starts from physically scaled guesses computed from the data (stiffness from the control
     force and strain, friction from sliding, restitution from bounces: ``physics.sysid_guess``) where the
@@ -1175,7 +1187,9 @@ def identify(data: SysIdData, cfg: FitConfig, *, base: SimParams | None = None,
     in the motion. Stage 2: Adam on per-region (or per-spring) stiffness and the contact values. Stage 3:
     CMA-ES again over the global parameters other than the spring rule, with stage 2's stiffness held
     (stage 1 chose them under a uniform stiffness they partly stood in for), after scoring the grid of
-    control attachments :data:`ATTACHMENTS` at stage 2's point.
+    control attachments :data:`ATTACHMENTS` at stage 2's point. With ``cfg.attachment_starts`` and control
+    points, the three stages run a second time with stage 1 also scoring that grid, and the run with the
+    lower training tracking error is kept (``SysIdResult.selection["starts"]``).
 
     With automatic substeps (``cfg.dt == cfg.substeps == 0``, the default), every simulation runs at the
     fewest substeps stable for its stiffness and dashpot (``stable_substeps``): stage 1's candidates
@@ -1205,7 +1219,6 @@ def identify(data: SysIdData, cfg: FitConfig, *, base: SimParams | None = None,
         dash = max(params.dashpot_damping, cfg.initial.dashpot_damping)
         return cfg.base_params(data.fps, stable_substeps(topo, y_top or params.spring_Y, dash, data.fps))
 
-    notes: list[str] = []
     base = base_of(cfg.initial)
     frame_dt = base.dt * base.substeps
     if abs(frame_dt * data.fps - 1.0) > 0.05:
@@ -1216,109 +1229,145 @@ def identify(data: SysIdData, cfg: FitConfig, *, base: SimParams | None = None,
     fit = fit_view(data, n_sel)
     sel = range(fit.train_frames.stop, data.train_frames.stop)
     loss = SequenceLoss(data, cfg.weights)
-    seconds: dict[str, float] = {}
-    params = cfg.initial
-    models = {"initial": build_model(data, params, base, cfg.device)}
-    evals = {"initial": evaluate(models["initial"], data, loss)}
-    stage_params = {"initial": params}
-    history1: list[dict] = []
-    ident: dict[str, dict] = {}
-    guesses: dict[str, dict] = {}
-    if cfg.stage1:
-        start = params
-        searched = tuple(cfg.cma.search) or applicable_parameters(data, base)
-        if cfg.guess:
-            ranges = parse_ranges(cfg.cma.ranges)
-            guesses = physical_guesses(fit, topo or models["initial"], params.control_radius)
-            for name, g in guesses.items():
-                value = g["value"]
-                use = value is not None and name in searched and not (g.get("lower_bound")
-                                                                       and value <= getattr(start, name))
-                if use:
-                    value = min(max(value, ranges[name].lo), ranges[name].hi)
-                    start = replace(start, **{name: value})
-                g["used"] = bool(use)
-                log(f"guess {name}: {'-' if g['value'] is None else f'{value:.4g}'}"
-                    f"{'' if use else ' (not used)'}: {g['from']}")
-        fit_loss = SequenceLoss(fit, cfg.weights)
-        t0 = time.perf_counter()
-        params, history1 = stage1_cma(fit, base, start, cfg.cma, cfg.weights, cfg.device, cfg.progress, log,
-                                      base_of=base_of if topo is not None else None,
-                                      walk=bool(guesses.get("spring_Y", {}).get("used")),
-                                      candidates=() if start == params else (params,))
-        ident = identifiability(history1, parse_ranges(cfg.cma.ranges))
-        found = params
-        if cfg.keep_guess > 0:
-            def score(p: GlobalParams) -> float:
-                return stage1_loss(fit, p, base_of(p), fit_loss, cfg.device)
+    model0 = build_model(data, cfg.initial, base, cfg.device)
+    eval0 = evaluate(model0, data, loss)
+    searched = tuple(cfg.cma.search) or applicable_parameters(data, base)
 
-            params = keep_unconstrained_guesses(params, start, guesses, ident, history1, cfg.keep_guess,
-                                                score, notes)
-        seconds["stage1"] = time.perf_counter() - t0
-        models["stage1"] = build_model(data, params, base_of(params), cfg.device)
-        evals["stage1"] = evaluate(models["stage1"], data, loss)
-        stage_params["stage1"] = params
-        if found in (start, cfg.initial):
-            notes.append(f"stage 1 did not improve on its start: none of {len(history1) - 1} candidates "
-                         "beat the starting values (widen cma.ranges or check the data)")
-    adam = cfg.adam
-    if cfg.stage2 and adam.window > 0:
-        adam = replace(adam, y_min=max(adam.y_min, params.spring_Y / adam.window),
-                       y_max=min(adam.y_max, params.spring_Y * adam.window))
-    history2: list[dict] = []
-    regions = None
+    def stages(attach_grid: bool) -> dict:
+        """Stages 1-3 from the initial values; ``attach_grid``: stage 1 also scores :data:`ATTACHMENTS`
+        before its CMA-ES. Returns the run's state (kept stage, its params and model, histories, notes)."""
+        notes: list[str] = []
+        seconds: dict[str, float] = {}
+        params = cfg.initial
+        models = {"initial": model0}
+        evals = {"initial": eval0}
+        stage_params = {"initial": params}
+        history1: list[dict] = []
+        ident: dict[str, dict] = {}
+        guesses: dict[str, dict] = {}
+        if cfg.stage1:
+            start = params
+            if cfg.guess:
+                ranges = parse_ranges(cfg.cma.ranges)
+                guesses = physical_guesses(fit, topo or models["initial"], params.control_radius)
+                for name, g in guesses.items():
+                    value = g["value"]
+                    use = value is not None and name in searched and not (g.get("lower_bound")
+                                                                           and value <= getattr(start, name))
+                    if use:
+                        value = min(max(value, ranges[name].lo), ranges[name].hi)
+                        start = replace(start, **{name: value})
+                    g["used"] = bool(use)
+                    log(f"guess {name}: {'-' if g['value'] is None else f'{value:.4g}'}"
+                        f"{'' if use else ' (not used)'}: {g['from']}")
+            fit_loss = SequenceLoss(fit, cfg.weights)
+            t0 = time.perf_counter()
+            params, history1 = stage1_cma(fit, base, start, cfg.cma, cfg.weights, cfg.device, cfg.progress,
+                                          log,
+                                          base_of=base_of if topo is not None else None,
+                                          walk=bool(guesses.get("spring_Y", {}).get("used")),
+                                          candidates=() if start == params else (params,),
+                                          variants=ATTACHMENTS if attach_grid else ())
+            ident = identifiability(history1, parse_ranges(cfg.cma.ranges))
+            found = params
+            if cfg.keep_guess > 0:
+                def score(p: GlobalParams) -> float:
+                    return stage1_loss(fit, p, base_of(p), fit_loss, cfg.device)
+
+                params = keep_unconstrained_guesses(params, start, guesses, ident, history1, cfg.keep_guess,
+                                                    score, notes)
+            seconds["stage1"] = time.perf_counter() - t0
+            models["stage1"] = build_model(data, params, base_of(params), cfg.device)
+            evals["stage1"] = evaluate(models["stage1"], data, loss)
+            stage_params["stage1"] = params
+            if found in (start, cfg.initial):
+                notes.append(f"stage 1 did not improve on its start: none of {len(history1) - 1} candidates "
+                             "beat the starting values (widen cma.ranges or check the data)")
+        adam = cfg.adam
+        if cfg.stage2 and adam.window > 0:
+            adam = replace(adam, y_min=max(adam.y_min, params.spring_Y / adam.window),
+                           y_max=min(adam.y_max, params.spring_Y * adam.window))
+        history2: list[dict] = []
+        regions = None
+        if cfg.stage2:
+            base2 = base_of(params, adam.y_max) if topo is not None else base
+            model = build_model(data, params, base2, cfg.device, requires_grad=True)
+            regions = spring_regions(model, adam.regions)  # as stage2_adam groups them (seeded k-means)
+            weights = balanced_weights(cfg.weights, evals["stage1" if cfg.stage1 else "initial"].terms,
+                                       adam.acc_share, log)
+            t0 = time.perf_counter()
+            hold = bool(ident.get("spring_Y", {}).get("guess_kept"))
+            if hold:
+                notes.append("stage 2 fits the stiffness pattern around the kept measured stiffness: the "
+                             "object springs' mean log Y is held (the motion does not constrain its scale)")
+            _, history2 = stage2_adam(model, data, adam, weights, cfg.progress, log, select=n_sel,
+                                      hold_scale=hold)
+            first = history2[0]["train_loss"]
+            if len(history2) > 1 and not any(r.get("train_loss", math.inf) < first for r in history2[1:]):
+                notes.append("stage 2 did not improve on its start's fitted loss")
+            seconds["stage2"] = time.perf_counter() - t0
+            c = model.contact_coeffs.numpy().astype(np.float64)
+            fitted = fitted_contacts(model) if cfg.adam.fit_contact else []
+            stage_params["stage2"] = replace(params, **{CONTACT_NAMES[i]: float(c[i]) for i in fitted})
+            models["stage2"] = model
+            evals["stage2"] = evaluate(model, data, loss)
+        history3: list[dict] = []
+        rule = ("spring_Y", "spring_radius", "spring_max_neighbors")
+        # the global parameters other than the spring rule, but a measured value that was kept stays
+        names3 = tuple(n for n in applicable_parameters(data, base) if n not in rule
+                       and (n in cfg.cma.search or not cfg.cma.search)
+                       and not ident.get(n, {}).get("guess_kept"))
+        if cfg.stage2 and cfg.stage3 and names3:
+            ly = models["stage2"].log_y_np.astype(np.float64)
+            n_obj = models["stage2"].num_object_springs
+            hold = (ly[:n_obj], float(ly[n_obj:].mean() if len(ly) > n_obj else 0.0))
+            y_top = float(np.exp(ly.max()))
+
+            def base3(p: GlobalParams) -> SimParams:
+                return base_of(p, y_top) if topo is not None else base
+
+            t0 = time.perf_counter()
+            cma3 = replace(cfg.cma, search=names3, budget=cfg.stage3_budget, patience=0)
+            params3, history3 = stage1_cma(fit, base, stage_params["stage2"], cma3, cfg.weights, cfg.device,
+                                           cfg.progress, log, base_of=base3, hold=hold, stage="stage 3",
+                                           variants=ATTACHMENTS if data.num_controls else ())
+            ident.update(identifiability(history3, parse_ranges(cfg.cma.ranges)))
+            seconds["stage3"] = time.perf_counter() - t0
+            if params3 == stage_params["stage2"]:
+                notes.append(f"stage 3 did not improve on stage 2's global parameters ({len(history3) - 1} "
+                             "candidates)")
+            models["stage3"] = build_model(data, params3, base3(params3), cfg.device, hold=hold)
+            evals["stage3"] = evaluate(models["stage3"], data, loss)
+            stage_params["stage3"] = params3
+        kept, selection = _choose_stage(evals, sel, notes)
+        return {"kept": kept, "selection": selection, "params": stage_params[kept], "model": models[kept],
+                "evals": evals, "history1": history1, "history2": history2, "history3": history3,
+                "seconds": seconds, "notes": notes, "ident": ident, "regions": regions, "guesses": guesses}
+
+    runs = [stages(False)]
+    if cfg.stage1 and cfg.attachment_starts and data.num_controls and \
+            {"control_radius", "control_max_neighbors"} <= set(searched):
+        log("start 2 of 2: the stages again, stage 1 also scoring the control attachment grid")
+        runs.append(stages(True))
+    errors = [r["evals"][r["kept"]].train_error for r in runs]
+    errors = [e if math.isfinite(e) else math.inf for e in errors]
+    run = runs[int(np.argmin(errors))]
+    kept, selection, params, model = run["kept"], run["selection"], run["params"], run["model"]
+    evals, notes, seconds, regions = run["evals"], run["notes"], run["seconds"], run["regions"]
+    history1, history2, history3 = run["history1"], run["history2"], run["history3"]
+    ident, guesses = run["ident"], run["guesses"]
+    if len(runs) > 1:
+        starts = ("as set", "control attachment grid scored")
+        selection["starts"] = [{"stage1": what, "train_error_m": e, "kept": r is run}
+                               for what, e, r in zip(starts, errors, runs, strict=True)]
+        other = runs[1 - runs.index(run)]
+        seconds["other_start"] = float(sum(other["seconds"].values()))
+        if run is runs[1]:
+            notes.append(f"the second start is kept: with stage 1 scoring the control attachment grid the "
+                         f"fit tracks the training frames to {1e3 * errors[1]:.2f} mm against "
+                         f"{1e3 * errors[0]:.2f} mm (the attachment changes the motion in steps that one "
+                         "search does not cross)")
     region_info: dict = {}
-    if cfg.stage2:
-        base2 = base_of(params, adam.y_max) if topo is not None else base
-        model = build_model(data, params, base2, cfg.device, requires_grad=True)
-        regions = spring_regions(model, adam.regions)  # as stage2_adam groups them (seeded k-means)
-        weights = balanced_weights(cfg.weights, evals["stage1" if cfg.stage1 else "initial"].terms,
-                                   adam.acc_share, log)
-        t0 = time.perf_counter()
-        hold = bool(ident.get("spring_Y", {}).get("guess_kept"))
-        if hold:
-            notes.append("stage 2 fits the stiffness pattern around the kept measured stiffness: the object "
-                         "springs' mean log Y is held (the motion does not constrain its scale)")
-        _, history2 = stage2_adam(model, data, adam, weights, cfg.progress, log, select=n_sel,
-                                  hold_scale=hold)
-        first = history2[0]["train_loss"]
-        if len(history2) > 1 and not any(r.get("train_loss", math.inf) < first for r in history2[1:]):
-            notes.append("stage 2 did not improve on its start's fitted loss")
-        seconds["stage2"] = time.perf_counter() - t0
-        c = model.contact_coeffs.numpy().astype(np.float64)
-        stage_params["stage2"] = replace(params, **{CONTACT_NAMES[i]: float(c[i])
-                                                    for i in fitted_contacts(model) if cfg.adam.fit_contact})
-        models["stage2"] = model
-        evals["stage2"] = evaluate(model, data, loss)
-    history3: list[dict] = []
-    rule = ("spring_Y", "spring_radius", "spring_max_neighbors")
-    # the global parameters other than the spring rule, but a measured value that was kept stays
-    names3 = tuple(n for n in applicable_parameters(data, base) if n not in rule
-                   and (n in cfg.cma.search or not cfg.cma.search) and not ident.get(n, {}).get("guess_kept"))
-    if cfg.stage2 and cfg.stage3 and names3:
-        ly = models["stage2"].log_y_np.astype(np.float64)
-        n_obj = models["stage2"].num_object_springs
-        hold = (ly[:n_obj], float(ly[n_obj:].mean() if len(ly) > n_obj else 0.0))
-        y_top = float(np.exp(ly.max()))
-
-        def base3(p: GlobalParams) -> SimParams:
-            return base_of(p, y_top) if topo is not None else base
-
-        t0 = time.perf_counter()
-        cma3 = replace(cfg.cma, search=names3, budget=cfg.stage3_budget, patience=0)
-        params3, history3 = stage1_cma(fit, base, stage_params["stage2"], cma3, cfg.weights, cfg.device,
-                                       cfg.progress, log, base_of=base3, hold=hold, stage="stage 3",
-                                       variants=ATTACHMENTS if data.num_controls else ())
-        ident.update(identifiability(history3, parse_ranges(cfg.cma.ranges)))
-        seconds["stage3"] = time.perf_counter() - t0
-        if params3 == stage_params["stage2"]:
-            notes.append(f"stage 3 did not improve on stage 2's global parameters ({len(history3) - 1} "
-                         "candidates)")
-        models["stage3"] = build_model(data, params3, base3(params3), cfg.device, hold=hold)
-        evals["stage3"] = evaluate(models["stage3"], data, loss)
-        stage_params["stage3"] = params3
-    kept, selection = _choose_stage(evals, sel, notes)
-    params, model = stage_params[kept], models[kept]
     if kept == "stage3":  # stage 2's regions over stage 3's springs (its own control springs: one region)
         n_obj, n3 = model.num_object_springs, model.num_springs
         regions = np.arange(n3) if len(np.unique(regions)) == len(regions) else \
