@@ -19,8 +19,8 @@ Prints `name value unit` lines per case and the spread:
   same over the cases whose true motion shows the value (``contact_effect``: 0.15 more or less of it
   moves the noise-free motion by >= ``SHOWN_MM``; "slides" alone counts a motion where one particle
   slips once);
-- the stage kept (the lowest tracking error on the selection frames) and the stiffness guess over the
-  truth's geometric mean;
+- the stage kept (the lowest tracking error on the selection frames), whether the second start ran
+  (``FitConfig.attachment_starts``), and the stiffness guess over the truth's geometric mean;
 - median and worst of each over the family, and the count of diverged cases.
 
 With ``--oracle truth|uniform``, instead of fitting: what the tracks support. Per case, the region
@@ -99,6 +99,7 @@ def run_case(i: int, seed: int) -> dict:
            "slides": truth["slides"], "impacts": truth["impacts"], "notes": res.notes,
            "evaluations": len(res.stage1_history), "epochs": len(res.stage2_history) - 1,
            "kept": res.selection.get("kept", "final"),
+           "starts": len(res.selection.get("starts", [])) or 1,  # 2: the second start ran (FitConfig)
            "guess_Y_ratio": (res.guesses.get("spring_Y", {}).get("value") or math.nan)
            / math.exp(float(np.mean(truth["log_y"][:n]))),
            "diverged": any(e.diverged for e in res.evals.values())}
@@ -196,7 +197,8 @@ def _print_case(r: dict) -> None:
           f"ratio {r['val_final'] / r['floor']:.2f} spearman {r['spearman']:.3f} ({r['regions']} regions; "
           f"per spring {r['spearman_springs']:.3f}; over the {r['constrained']} constrained regions "
           f"{r['spearman_constrained']:.3f}){extra} "
-          f" kept {r['kept']} guess/truth Y {r['guess_Y_ratio']:.2f} ({r['pattern']}, {r['seconds']:.0f} s)"
+          f" kept {r['kept']} starts {r['starts']} guess/truth Y {r['guess_Y_ratio']:.2f} "
+          f"({r['pattern']}, {r['seconds']:.0f} s)"
           f"{' notes: ' + '; '.join(r['notes']) if r['notes'] else ''}", flush=True)
 
 
@@ -270,6 +272,7 @@ def main() -> None:
     _spread("seconds", [r["seconds"] for r in ok], "s")
     kept = [r["kept"] for r in ok]
     print("sysid_family_kept " + ", ".join(f"{k} {kept.count(k)}" for k in sorted(set(kept))) + " count")
+    print(f"sysid_family_second_start_run {sum(r['starts'] == 2 for r in ok)} count")
     print(f"sysid_family_total {time.perf_counter() - t0:.0f} s")
     if args.json:
         Path(args.json).write_text(json.dumps(sorted(rows, key=lambda r: r["case"]), indent=1) + "\n")

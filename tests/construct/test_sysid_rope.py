@@ -54,6 +54,20 @@ def test_guesses_scale_the_stiffness_and_bound_the_friction(rope):
     assert g["ground_friction"]["lower_bound"] and g["ground_restitution"]["value"] is None
 
 
+def test_track_noise_is_read_from_the_tracks(rope):
+    """The tracks' per-axis noise, estimated from their second differences alone: the rope's 1 mm (the
+    motion's own curvature adds a little), and 0 on noise-free tracks of a uniform motion."""
+    from dataclasses import replace
+
+    from twinbench.physics.sysid_guess import track_noise
+
+    data, truth = rope
+    assert 1.0e-3 < track_noise(data) < 1.2e-3
+    t = np.arange(data.num_frames)[:, None, None] * np.array([0.002, 0.0, 0.0])
+    still = replace(data, tracked=data.tracked[:1] * 0 + data.tracked[0] + t)
+    assert track_noise(still) < 1e-9
+
+
 @pytest.fixture(scope="module")
 def fitted(rope):
     data, _ = rope

@@ -377,11 +377,12 @@ def test_stage3_scores_a_grid_of_control_attachments_at_its_start():
     assert best.control_max_neighbors < 50 and best.control_radius < 0.04
 
 
-@pytest.mark.parametrize("two", [True, False])
-def test_stages_run_from_two_starts_and_keep_the_better_tracking(monkeypatch, two):
+@pytest.mark.parametrize("two, over_floor", [(True, 0.0), (False, 0.0), (True, 100.0)])
+def test_stages_run_from_two_starts_and_keep_the_better_tracking(monkeypatch, two, over_floor):
     """With control points whose attachment is searched, the stages run twice, stage 1 scoring the grid of
     attachments the second time; the run whose result tracks the training frames best is kept and both
-    are recorded. Off: one run."""
+    are recorded. Off, or when the first run already tracks within `over_floor` x the tracks' noise floor:
+    one run (the record says why)."""
     import twinbench.physics.sysid as sysid_module
     from twinbench.physics.sysid import ATTACHMENTS
 
@@ -394,13 +395,16 @@ def test_stages_run_from_two_starts_and_keep_the_better_tracking(monkeypatch, tw
         return real(*args, **kw)
 
     monkeypatch.setattr(sysid_module, "stage1_cma", spy)
-    cfg = _config(attachment_starts=two, cma=CMAConfig(budget=24, search=SEARCH, seed=0),
+    cfg = _config(attachment_starts=two, second_start_over_floor=over_floor,
+                  cma=CMAConfig(budget=24, search=SEARCH, seed=0),
                   adam=AdamConfig(epochs=2, lr=0.02, y_min=50.0, y_max=1e4))
     res = identify(data, cfg, log=_quiet)
-    if not two:
+    if not two or over_floor:
         assert calls == [("stage 1", ())] and "starts" not in res.selection
+        assert ("within 100x the tracks' noise floor" in res.selection.get("second_start", "")) == two
         return
     assert calls == [("stage 1", ()), ("stage 1", ATTACHMENTS)]
+    assert res.selection["second_start"].startswith("run: ")
     starts = res.selection["starts"]
     assert [s["stage1"] for s in starts] == ["as set", "control attachment grid scored"]
     errors = [s["train_error_m"] for s in starts]

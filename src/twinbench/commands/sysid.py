@@ -49,6 +49,9 @@ def main(cfg: SysIdConfig) -> int:
             f"{1e3 * e.train_error:.2f} mm, validation {1e3 * e.val_error:.2f} mm")
     if result.selection:
         say(f"kept: {result.selection['kept']} ({result.selection['rule']})")
+        if "second_start" in result.selection:
+            say("second start (stage 1 scoring the control attachment grid): "
+                f"{result.selection['second_start']}")
         for start in result.selection.get("starts", []):
             say(f"start (stage 1 {start['stage1']}): training tracking error "
                 f"{1e3 * start['train_error_m']:.2f} mm{', kept' if start['kept'] else ''}")

@@ -296,6 +296,10 @@ class FitConfig:
     lead a later stage into the better basin, and on the held-out family neither is better on every case;
     the training tracking error picked the one with the lower validation error in each case where they
     differed). Off: one run (half the time)"""
+    second_start_over_floor: float = 1.5
+    """the second start runs only when the first run's training tracking error exceeds this multiple of the
+    tracks' noise floor (the error a perfect model would have: 1.596 x the per-axis noise estimated from
+    the tracks, ``sysid_guess.track_noise``): a fit at the floor has nothing left to gain; 0 = always"""
     guess: bool = True
     """stage 1 starts from physically scaled guesses computed from the data (stiffness from the control
     force and strain, friction from sliding, restitution from bounces: ``physics.sysid_guess``) where the
@@ -1188,8 +1192,9 @@ def identify(data: SysIdData, cfg: FitConfig, *, base: SimParams | None = None,
     CMA-ES again over the global parameters other than the spring rule, with stage 2's stiffness held
     (stage 1 chose them under a uniform stiffness they partly stood in for), after scoring the grid of
     control attachments :data:`ATTACHMENTS` at stage 2's point. With ``cfg.attachment_starts`` and control
-    points, the three stages run a second time with stage 1 also scoring that grid, and the run with the
-    lower training tracking error is kept (``SysIdResult.selection["starts"]``).
+    points, when the result's training tracking error is over ``cfg.second_start_over_floor`` times the
+    tracks' noise floor, the three stages run a second time with stage 1 also scoring that grid, and the
+    run with the lower training tracking error is kept (``SysIdResult.selection["starts"]``).
 
     With automatic substeps (``cfg.dt == cfg.substeps == 0``, the default), every simulation runs at the
     fewest substeps stable for its stiffness and dashpot (``stable_substeps``): stage 1's candidates
@@ -1200,7 +1205,7 @@ def identify(data: SysIdData, cfg: FitConfig, *, base: SimParams | None = None,
     lowest tracking error on the selection frames is kept, the later one on a tie. The validation frames
     neither fit nor choose; a kept stage whose validation error is worse than the stage before it is
     named in the notes."""
-    from .sysid_guess import physical_guesses
+    from .sysid_guess import physical_guesses, track_noise
 
     cfg.check()
     pairs = data.springs if data.springs is not None else \
@@ -1233,9 +1238,12 @@ def identify(data: SysIdData, cfg: FitConfig, *, base: SimParams | None = None,
     eval0 = evaluate(model0, data, loss)
     searched = tuple(cfg.cma.search) or applicable_parameters(data, base)
 
-    def stages(attach_grid: bool) -> dict:
+    runs: list[dict] = []
+
+    def stages(attach_grid: bool) -> dict | None:
         """Stages 1-3 from the initial values; ``attach_grid``: stage 1 also scores :data:`ATTACHMENTS`
-        before its CMA-ES. Returns the run's state (kept stage, its params and model, histories, notes)."""
+        before its CMA-ES. Returns the run's state (kept stage, its params and model, histories, notes);
+        None when ``attach_grid``'s stage 1 ends where the first run's did (the rest would repeat it)."""
         notes: list[str] = []
         seconds: dict[str, float] = {}
         params = cfg.initial
@@ -1283,6 +1291,8 @@ def identify(data: SysIdData, cfg: FitConfig, *, base: SimParams | None = None,
             if found in (start, cfg.initial):
                 notes.append(f"stage 1 did not improve on its start: none of {len(history1) - 1} candidates "
                              "beat the starting values (widen cma.ranges or check the data)")
+        if attach_grid and cfg.stage1 and params == runs[0]["stage1"]:
+            return None  # no attachment of the grid won: stage 1 ended as the first run's, so do the rest
         adam = cfg.adam
         if cfg.stage2 and adam.window > 0:
             adam = replace(adam, y_min=max(adam.y_min, params.spring_Y / adam.window),
@@ -1342,13 +1352,31 @@ def identify(data: SysIdData, cfg: FitConfig, *, base: SimParams | None = None,
         kept, selection = _choose_stage(evals, sel, notes)
         return {"kept": kept, "selection": selection, "params": stage_params[kept], "model": models[kept],
                 "evals": evals, "history1": history1, "history2": history2, "history3": history3,
-                "seconds": seconds, "notes": notes, "ident": ident, "regions": regions, "guesses": guesses}
+                "seconds": seconds, "notes": notes, "ident": ident, "regions": regions, "guesses": guesses,
+                "stage1": stage_params.get("stage1")}
 
-    runs = [stages(False)]
+    runs.append(stages(False))
+    floor = CHI3_MEAN * track_noise(fit)
+    first = runs[0]["evals"][runs[0]["kept"]].train_error
     if cfg.stage1 and cfg.attachment_starts and data.num_controls and \
             {"control_radius", "control_max_neighbors"} <= set(searched):
-        log("start 2 of 2: the stages again, stage 1 also scoring the control attachment grid")
-        runs.append(stages(True))
+        if not first <= cfg.second_start_over_floor * floor:  # NaN / inf included
+            log(f"start 2 of 2: the stages again, stage 1 also scoring the control attachment grid (training "
+                f"tracking error {1e3 * first:.2f} mm, over {cfg.second_start_over_floor:g}x the tracks' "
+                f"noise floor {1e3 * floor:.2f} mm)")
+            second = stages(True)
+            if second is None:
+                log("start 2 of 2: stage 1 ended where the first run's did; the first run stands")
+                runs[0]["selection"]["second_start"] = (
+                    f"run to the end of stage 1, which ended where the first run's did (no attachment of the "
+                    f"grid scored better): the first run's training tracking error {1e3 * first:.2f} mm is "
+                    f"over {cfg.second_start_over_floor:g}x the tracks' noise floor {1e3 * floor:.2f} mm")
+            else:
+                runs.append(second)
+        else:
+            runs[0]["selection"]["second_start"] = (
+                f"not run: the training tracking error {1e3 * first:.2f} mm is within "
+                f"{cfg.second_start_over_floor:g}x the tracks' noise floor {1e3 * floor:.2f} mm")
     errors = [r["evals"][r["kept"]].train_error for r in runs]
     errors = [e if math.isfinite(e) else math.inf for e in errors]
     run = runs[int(np.argmin(errors))]
@@ -1357,6 +1385,9 @@ def identify(data: SysIdData, cfg: FitConfig, *, base: SimParams | None = None,
     history1, history2, history3 = run["history1"], run["history2"], run["history3"]
     ident, guesses = run["ident"], run["guesses"]
     if len(runs) > 1:
+        selection["second_start"] = (f"run: the first run's training tracking error {1e3 * first:.2f} mm is "
+                                     f"over {cfg.second_start_over_floor:g}x the tracks' noise floor "
+                                     f"{1e3 * floor:.2f} mm")
         starts = ("as set", "control attachment grid scored")
         selection["starts"] = [{"stage1": what, "train_error_m": e, "kept": r is run}
                                for what, e, r in zip(starts, errors, runs, strict=True)]
@@ -1386,6 +1417,9 @@ def identify(data: SysIdData, cfg: FitConfig, *, base: SimParams | None = None,
                        history2, seconds, cfg, notes, ident, regions, guesses, selection, region_info,
                        history3)
 
+
+CHI3_MEAN = 2.0 * math.sqrt(2.0 / math.pi)
+"""mean length of a 3-D Gaussian noise vector over its per-axis standard deviation"""
 
 SELECT_MARGIN = 0.02
 """an earlier stage replaces a later one only when its selection-frame error is this much (relative) lower:
