@@ -22,8 +22,9 @@ Stages (DESIGN section 4), each switchable for the ablation "without physics opt
 3. **Stage 3** (``stage3=True``): CMA-ES again over the global parameters other than the spring rule,
    with stage 2's stiffness held.
 
-With control points whose attachment is searched, stages 1-3 run from two starts (stage 1 as set, and
-stage 1 also scoring a grid of attachments) and the run that tracks the training frames best is kept
+With control points whose attachment is searched, and a first run that tracks the training frames worse
+than ``FitConfig.second_start_over_floor`` times the tracks' noise floor, stages 1-3 run from a second start
+(stage 1 also scoring a grid of attachments) and the run that tracks the training frames best is kept
 (``FitConfig.attachment_starts``). With stages 1 and 2 off, the ``initial`` (hand-set) values are used as
 they are and only evaluated.
 
@@ -290,8 +291,9 @@ class FitConfig:
     """stage 3's evaluations, all used (its CMA-ES otherwise as ``cma``: step size, seed; the gains
     come slowly there, so ``cma.patience`` stopped it too early on the held-out family)"""
     attachment_starts: bool = True
-    """with control points whose attachment stage 1 searches, run the stages twice: stage 1 as set, and
-    stage 1 also scoring the control attachments :data:`ATTACHMENTS` before its CMA-ES; keep the run whose
+    """with control points whose attachment stage 1 searches, run the stages a second time where the first
+    run tracks poorly (``second_start_over_floor``), stage 1 then also scoring the control attachments
+    :data:`ATTACHMENTS` before its CMA-ES; keep the run whose
     result tracks the training frames best (the attachment changes the motion in steps: either start can
     lead a later stage into the better basin, and on the held-out family neither is better on every case;
     the training tracking error picked the one with the lower validation error in each case where they
@@ -1357,25 +1359,28 @@ def identify(data: SysIdData, cfg: FitConfig, *, base: SimParams | None = None,
 
     runs.append(stages(False))
     floor = CHI3_MEAN * track_noise(fit)
-    first = runs[0]["evals"][runs[0]["kept"]].train_error
+    first_error = runs[0]["evals"][runs[0]["kept"]].train_error
     if cfg.stage1 and cfg.attachment_starts and data.num_controls and \
             {"control_radius", "control_max_neighbors"} <= set(searched):
-        if not first <= cfg.second_start_over_floor * floor:  # NaN / inf included
-            log(f"start 2 of 2: the stages again, stage 1 also scoring the control attachment grid (training "
-                f"tracking error {1e3 * first:.2f} mm, over {cfg.second_start_over_floor:g}x the tracks' "
-                f"noise floor {1e3 * floor:.2f} mm)")
+        if not first_error <= cfg.second_start_over_floor * floor:  # NaN / inf included
+            log("start 2 of 2: the stages again, stage 1 also scoring the control attachment grid (training "
+                f"tracking error {1e3 * first_error:.2f} mm, over {cfg.second_start_over_floor:g}x the "
+                f"tracks' noise floor {1e3 * floor:.2f} mm)")
+            t0 = time.perf_counter()
             second = stages(True)
             if second is None:
+                runs[0]["seconds"]["other_start"] = time.perf_counter() - t0
                 log("start 2 of 2: stage 1 ended where the first run's did; the first run stands")
                 runs[0]["selection"]["second_start"] = (
-                    f"run to the end of stage 1, which ended where the first run's did (no attachment of the "
-                    f"grid scored better): the first run's training tracking error {1e3 * first:.2f} mm is "
-                    f"over {cfg.second_start_over_floor:g}x the tracks' noise floor {1e3 * floor:.2f} mm")
+                    "run to the end of stage 1, which ended where the first run's did (no attachment of the "
+                    f"grid scored better): the first run's training tracking error {1e3 * first_error:.2f} "
+                    f"mm is over {cfg.second_start_over_floor:g}x the tracks' noise floor "
+                    f"{1e3 * floor:.2f} mm")
             else:
                 runs.append(second)
         else:
             runs[0]["selection"]["second_start"] = (
-                f"not run: the training tracking error {1e3 * first:.2f} mm is within "
+                f"not run: the training tracking error {1e3 * first_error:.2f} mm is within "
                 f"{cfg.second_start_over_floor:g}x the tracks' noise floor {1e3 * floor:.2f} mm")
     errors = [r["evals"][r["kept"]].train_error for r in runs]
     errors = [e if math.isfinite(e) else math.inf for e in errors]
@@ -1385,8 +1390,8 @@ def identify(data: SysIdData, cfg: FitConfig, *, base: SimParams | None = None,
     history1, history2, history3 = run["history1"], run["history2"], run["history3"]
     ident, guesses = run["ident"], run["guesses"]
     if len(runs) > 1:
-        selection["second_start"] = (f"run: the first run's training tracking error {1e3 * first:.2f} mm is "
-                                     f"over {cfg.second_start_over_floor:g}x the tracks' noise floor "
+        selection["second_start"] = (f"run: the first run's training tracking error {1e3 * first_error:.2f} "
+                                     f"mm is over {cfg.second_start_over_floor:g}x the tracks' noise floor "
                                      f"{1e3 * floor:.2f} mm")
         starts = ("as set", "control attachment grid scored")
         selection["starts"] = [{"stage1": what, "train_error_m": e, "kept": r is run}
