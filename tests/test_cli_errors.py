@@ -125,6 +125,22 @@ def test_an_internal_error_is_one_line_exit_1(monkeypatch, capsys):
     assert len(err) == 1 and "internal error: ZeroDivisionError" in err[0] and "--debug" in err[0]
 
 
+def test_a_full_disk_is_one_line_exit_1_with_the_free_space_and_the_fix(monkeypatch, capsys, tmp_path):
+    import errno
+    import os
+
+    import twinbench.commands.robot_info as info
+
+    def full(config):
+        raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC), str(tmp_path / "out" / "eval_info.json"))
+
+    monkeypatch.setattr(info, "main", full)
+    assert main(["robot-info"]) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "error: OSError: [Errno 28] No space left on device" in err[0]
+    assert f"free on {tmp_path})" in err[0] and err[0].endswith("run the same command again")
+
+
 def test_import_real_lists_every_bad_row_under_one_summary(tmp_path, capsys):
     csv = tmp_path / "r.csv"
     csv.write_text("policy,checkpoint,init_state,success\na,,x,yes\na,,1,perhaps\n")

@@ -3,6 +3,7 @@ and its `main`), imported only when that command runs; errors print as one line 
 
 from __future__ import annotations
 
+import errno
 import importlib
 import os
 import sys
@@ -112,7 +113,12 @@ def _report_error(command: str, err: BaseException) -> int:
         print(f"twinbench {command}: error: {_error_message(err)}", file=sys.stderr)
         return 2
     if isinstance(err, OSError):  # the machine failed (disk full, ...), not the input
-        print(f"twinbench {command}: error: {type(err).__name__}: {_error_message(err)}", file=sys.stderr)
+        text = _error_message(err)
+        if err.errno == errno.ENOSPC and err.filename is not None:
+            from twinbench.errors import free_space
+
+            text += f" ({free_space(err.filename)}); free space there and run the same command again"
+        print(f"twinbench {command}: error: {type(err).__name__}: {text}", file=sys.stderr)
         return 1
     print(f"twinbench {command}: internal error: {type(err).__name__}: {_error_message(err)} "
           "(re-run with --debug for the traceback, and please report it)", file=sys.stderr)

@@ -8,11 +8,15 @@
   status `sim_error`.
 - `PolicyError` (a `RuntimeError`): a policy failed to produce an action (crash, unreachable server, bad
   output); the episode ends with status `policy_error`.
+- `StorageError` (an `OSError`): the machine could not keep a result (disk full, read-only file system);
+  its text names the file, the free space and the fix (exit code 1).
 """
 
 from __future__ import annotations
 
 import re
+import shutil
+from pathlib import Path
 
 import numpy as np
 
@@ -42,6 +46,23 @@ class SimulationDiverged(TwinbenchError, RuntimeError):
 
 class PolicyError(TwinbenchError, RuntimeError):
     """A policy failed to produce an action (crash, unreachable server, bad output): policy_error."""
+
+
+class StorageError(TwinbenchError, OSError):
+    """The machine could not keep a result (disk full, read-only or vanished folder); what was committed
+    before stays."""
+
+
+def free_space(path) -> str:
+    """The free space on the file system holding `path` (its nearest existing folder), for messages."""
+    folder = Path(path)
+    while not folder.is_dir() and folder != folder.parent:
+        folder = folder.parent
+    try:
+        free = shutil.disk_usage(folder).free
+    except OSError:
+        return "free space unknown"
+    return f"{free / 2**20:.1f} MiB free on {folder}" if free >= 2**20 else f"{free} bytes free on {folder}"
 
 
 def check_name(value, what: str) -> str:

@@ -136,3 +136,65 @@ def test_concurrent_processes_lose_nothing(tmp_path):
     store = ResultsStore(path)
     assert store.finished("r1") == {(f"p{w}", "step_100", i, w) for w in range(n_workers) for i in range(n)}
     assert sum(e.success for e in store.episodes()) == n_workers * n // 2
+
+
+class _FullDisk:
+    """A connection whose writes fail as SQLite's do on a full disk (reads pass through)."""
+
+    def __init__(self, con: sqlite3.Connection) -> None:
+        self._con = con
+
+    def execute(self, sql: str, *args):
+        if sql.startswith("BEGIN"):
+            raise sqlite3.OperationalError("database or disk is full")
+        return self._con.execute(sql, *args)
+
+    def close(self) -> None:
+        self._con.close()
+
+
+def test_a_refused_write_is_a_storage_error_naming_the_file_and_the_fix(tmp_path, monkeypatch):
+    from twinbench.errors import StorageError
+
+    store = ResultsStore(tmp_path / "r.sqlite")
+    store.record_episode(_rec(seed=0))
+    real_connect = sqlite3.connect
+    monkeypatch.setattr(sqlite3, "connect", lambda *a, **k: _FullDisk(real_connect(*a, **k)))
+    with pytest.raises(StorageError, match=r"r\.sqlite: cannot write \(database or disk is full; .* free on "
+                                           r".*\)\. Free space .* episodes already stored are kept"):
+        store.record_episode(_rec(seed=1))
+    monkeypatch.undo()
+    store.record_episode(_rec(seed=1))
+    assert [e.seed for e in store.episodes()] == [0, 1]
+
+
+def test_a_full_file_system_keeps_what_was_stored(tmp_path):
+    """On a real tmpfs filled to the last byte (needs root and mount; skipped elsewhere)."""
+    import os
+    import subprocess
+
+    from twinbench.errors import StorageError
+
+    disk = tmp_path / "disk"
+    disk.mkdir()
+    if os.geteuid() != 0 or subprocess.run(["mount", "-t", "tmpfs", "-o", "size=512k", "tmpfs", str(disk)],
+                                           capture_output=True).returncode != 0:
+        pytest.skip("mounting a small tmpfs needs root and mount(8)")
+    try:
+        store = ResultsStore(disk / "results.sqlite")
+        store.record_episode(_rec(seed=0))
+        filler = disk / "filler"
+        with pytest.raises(OSError), filler.open("wb") as fh:
+            while True:
+                fh.write(b"\0" * 4096)
+                fh.flush()
+        with pytest.raises(StorageError, match="results.sqlite: cannot write"):
+            for seed in range(1, 200):  # the WAL's free pages may take a few episodes before it grows
+                store.record_episode(_rec(seed=seed, metrics={"pad": "x" * 2000}))
+        filler.unlink()
+        stored = store.episodes()
+        assert stored[0].seed == 0 and [e.seed for e in stored] == list(range(len(stored)))
+        store.record_episode(_rec(seed=500))
+        assert store.episodes()[-1].seed == 500
+    finally:
+        subprocess.run(["umount", str(disk)], capture_output=True)

@@ -18,7 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
-from twinbench.errors import InputError, check_name
+from twinbench.errors import InputError, StorageError, check_name, free_space
 
 DEFAULT_DB = Path("outputs/results.sqlite")
 DOMAINS = ("sim", "real", "replay")
@@ -26,6 +26,8 @@ STATUSES = ("ok", "sim_error", "policy_error")
 TRUE_WORDS = ("1", "true", "yes", "success")
 FALSE_WORDS = ("0", "false", "no", "failure")
 INT64 = (-(2**63), 2**63 - 1)  # what an SQLite INTEGER holds
+# SQLite's words for a file system that refuses a write (full, read-only, gone)
+_STORAGE_WORDS = ("disk I/O error", "disk is full", "readonly database", "unable to open database file")
 
 
 # ---- the one way outcomes and indices enter the store ------------------------------------------------
@@ -210,6 +212,11 @@ class ResultsStore:
             if "not a database" in str(err) or "malformed" in str(err):
                 raise InputError(f"{self.path} is not a twinbench results store (SQLite): {err}; give "
                                  "another --db path") from err
+            if isinstance(err, sqlite3.OperationalError) and any(w in str(err) for w in _STORAGE_WORDS):
+                raise StorageError(f"results store {self.path}: cannot write ({err}; {free_space(self.path)}). "
+                                   "Free space (or make the folder writable) and run the same command "
+                                   "again: episodes already stored are kept and a resumed run skips them") \
+                    from err
             raise
         finally:
             con.close()
