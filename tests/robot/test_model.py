@@ -255,3 +255,46 @@ def test_fixed_links_are_those_no_joint_moves(tmp_path):
     poses = m.fk(np.random.default_rng(0).uniform(-1, 1, size=(6, m.n_q)))
     moved = np.abs(poses - poses[:1]).max(axis=(0, 2, 3)) > 1e-9
     np.testing.assert_array_equal(moved, ~m.fixed_links)
+
+
+def _joint(name, kind, parent, child, xyz="0 0 0.1", extra=""):
+    limit = '<limit lower="0" upper="0.04" effort="1" velocity="1"/>' if kind != "fixed" else ""
+    return (f'<joint name="{name}" type="{kind}"><parent link="{parent}"/><child link="{child}"/>'
+            f'<origin xyz="{xyz}" rpy="0 0 0"/><axis xyz="0 1 0"/>{limit}{extra}</joint>')
+
+
+def _urdf(tmp_path, joints, name="r"):
+    links = sorted({x for j in joints for x in (j.split('link="')[1].split('"')[0],
+                                                  j.split('link="')[2].split('"')[0])})
+    body = "".join(f'<link name="{n}"/>' for n in links) + "".join(joints)
+    path = tmp_path / f"{name}.urdf"
+    path.write_text(f'<?xml version="1.0"?><robot name="{name}">{body}</robot>')
+    return path
+
+
+def test_the_default_end_effector_is_the_deepest_link_not_on_a_finger(tmp_path):
+    arm = [_joint("j1", "revolute", "base", "l1"), _joint("j2", "revolute", "l1", "l2"),
+           _joint("to_hand", "fixed", "l2", "hand")]
+    # Panda's ending: two fingers (one mimics the other) and a fixed TCP link, all at one depth, the
+    # fingers first in the file (the old rule, the first deepest link, picked a finger and put its joint
+    # into the IK chain)
+    panda = arm + [_joint("f1", "prismatic", "hand", "left"),
+                   _joint("f2", "prismatic", "hand", "right", extra='<mimic joint="f1"/>'),
+                   _joint("to_tcp", "fixed", "hand", "tcp", xyz="0 0 0.1")]
+    m = load_robot(_urdf(tmp_path, panda, "panda_like"))
+    assert m.ee_link == "tcp" and m.arm_joints == ["j1", "j2"]
+    # two fingers without mimic, deeper than the hand: still not the end effector
+    m = load_robot(_urdf(tmp_path, arm + [_joint("f1", "prismatic", "hand", "left"),
+                                          _joint("f2", "prismatic", "hand", "right")], "two_fingers"))
+    assert m.ee_link == "hand" and m.arm_joints == ["j1", "j2"]
+    # one jaw: a finger only when named as the gripper joint
+    jaw = arm + [_joint("jaw", "prismatic", "hand", "jaw_link")]
+    assert load_robot(_urdf(tmp_path, jaw, "one_jaw")).ee_link == "jaw_link"
+    assert load_robot(_urdf(tmp_path, jaw, "one_jaw"), gripper_joint="jaw").ee_link == "hand"
+    # two arms branching at a torso are not fingers (their joints have moving joints below them)
+    two = [_joint("la1", "revolute", "torso", "la"), _joint("la2", "revolute", "la", "lh"),
+           _joint("ra1", "revolute", "torso", "ra"), _joint("ra2", "revolute", "ra", "rh")]
+    m = load_robot(_urdf(tmp_path, two, "two_arms"))
+    assert m.ee_link == "lh" and m.arm_joints == ["la1", "la2"]
+    # an explicit ee_link is kept
+    assert load_robot(_urdf(tmp_path, panda, "panda_like"), ee_link="left").arm_joints == ["j1", "j2", "f1"]

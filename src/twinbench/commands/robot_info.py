@@ -18,7 +18,7 @@ class RobotInfoConfig:
 
     urdf: Annotated[str | None, tyro.conf.Positional] = None  # URDF file; omit for the built-in arm
     tool: str = "gripper"  # built-in arm tool: gripper | pusher (ignored with a URDF)
-    ee_link: str | None = None  # end-effector link of a URDF (default: the deepest link)
+    ee_link: str | None = None  # end-effector link of a URDF (default: the deepest link not on a finger)
     package_dirs: tuple[str, ...] = ()  # extra folders searched for package:// meshes
 
 

@@ -521,6 +521,36 @@ def _link_mesh(elements, link: str, urdf_path: Path, package_dirs: Sequence[Path
     return trimesh.util.concatenate(parts) if len(parts) > 1 else parts[0]
 
 
+def _default_ee_link(order: list[str], depth: dict[str, int], specs: list[JointSpec],
+                     gripper_joint: str | None) -> str:
+    """The deepest link not carried by a finger joint (ties: the first in tree order). A finger joint moves
+    and has no moving joint below it, and is the gripper joint, mimics or is mimicked, or has such a
+    sibling (another last moving joint on the same parent link): Franka's Panda, for one, ends in a hand
+    with two fingers and a fixed TCP link at one depth, and the TCP, not a finger, is its end effector."""
+    moving = [s for s in specs if s.type != "fixed"]
+    parent_link = {s.child: s.parent for s in specs}
+    has_moving_below = set()
+    for s in moving:  # every link above a moving joint has a moving joint below it
+        link = s.parent
+        while link is not None and link not in has_moving_below:
+            has_moving_below.add(link)
+            link = parent_link.get(link)
+    last = [s for s in moving if s.child not in has_moving_below]
+    mimicked = {s.mimic[0] for s in moving if s.mimic is not None}
+    fingers = {s.child for s in last if s.name == gripper_joint or s.mimic is not None or s.name in mimicked
+               or sum(t.parent == s.parent for t in last) > 1}
+
+    def carried(link: str) -> bool:
+        while link is not None:
+            if link in fingers:
+                return True
+            link = parent_link.get(link)
+        return False
+
+    candidates = [n for n in order if not carried(n)] or order
+    return max(candidates, key=lambda n: (depth[n], -order.index(n)))
+
+
 def load_robot(
     urdf_path: str | Path,
     *,
@@ -538,7 +568,7 @@ def load_robot(
 
     `package://NAME/rel` paths are searched in `package_dirs`, `ROS_PACKAGE_PATH`, the URDF's folder and
     its parents (both `ROOT/NAME/rel` and, when a folder is itself named NAME, `ROOT/rel`).
-    `ee_link` defaults to the deepest link of the tree. `gripper_open` / `gripper_closed` default to the
+    `ee_link` defaults to the deepest link not carried by a gripper's fingers. `gripper_open` / `gripper_closed` default to the
     gripper joint's upper / lower limits.
     """
     import yourdfpy
@@ -651,7 +681,7 @@ def load_robot(
                 collision[link.name] = v
 
     if ee_link is None:
-        ee_link = max(order, key=lambda n: (depth[n], -order.index(n)))
+        ee_link = _default_ee_link(order, depth, specs, gripper_joint)
     g_open = gripper_open
     g_closed = gripper_closed
     if gripper_joint is not None and gripper_joint in joint_names:
