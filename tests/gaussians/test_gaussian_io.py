@@ -214,3 +214,127 @@ def test_unknown_extension_and_missing_file(tmp_path, make_cloud):
     with pytest.raises(ValueError, match="extension"):
         save_gaussians(make_cloud(3), tmp_path / "x.obj")
     assert issubclass(GaussianFileError, ValueError)
+
+
+# ----- SuperSplat's compressed .ply: files built here bit by bit from the layout ------------------------
+_BOUNDS = ["min_x", "min_y", "min_z", "max_x", "max_y", "max_z", "min_scale_x", "min_scale_y", "min_scale_z",
+           "max_scale_x", "max_scale_y", "max_scale_z"]
+
+
+def _compressed_ply(path, chunks: list[dict], words: np.ndarray, sh: np.ndarray | None = None,
+                    n_chunks: int | None = None) -> None:
+    """A SuperSplat compressed .ply: per chunk its float bounds, per Gaussian its four packed uint32
+    (position, rotation, scale, colour) and optionally its uchar f_rest_* row."""
+    names = list(chunks[0])
+    lines = ["ply", "format binary_little_endian 1.0", f"element chunk {n_chunks or len(chunks)}"]
+    lines += [f"property float {p}" for p in names]
+    lines += [f"element vertex {len(words)}"]
+    lines += [f"property uint packed_{p}" for p in ("position", "rotation", "scale", "color")]
+    if sh is not None:
+        lines += [f"element sh {len(sh)}"] + [f"property uchar f_rest_{i}" for i in range(sh.shape[1])]
+    body = np.array([[c[p] for p in names] for c in chunks], "<f4").tobytes()
+    body += np.asarray(words, "<u4").tobytes() + (b"" if sh is None else np.asarray(sh, "u1").tobytes())
+    path.write_bytes(("\n".join(lines + ["end_header"]) + "\n").encode() + body)
+
+
+def _pack(fields: list[tuple[int, int]]) -> int:
+    """(value, bits) from the top bits down -> one uint32."""
+    word, left = 0, 32
+    for value, bits in fields:
+        left -= bits
+        word |= value << left
+    return word
+
+
+def test_compressed_ply_decodes_each_field_by_the_layout(tmp_path):
+
+    chunk = dict(zip(_BOUNDS, [0.0, 0.0, -1.0, 2.047, 1.023, 1.047, -6.0, -5.0, -4.0, -4.0, -3.0, -2.0],
+                     strict=True))
+    s2 = np.sqrt(2.0)
+    words = np.array([
+        # position 1000/2047, 500/1023, 2047/2047 of the bounds; scale 0, 1023/1023, 0; rgba 255, 0, 128,
+        # 204; rotation: the largest in slot 0 (w), the others at 511/1023
+        [_pack([(1000, 11), (500, 10), (2047, 11)]), _pack([(0, 2), (511, 10), (511, 10), (511, 10)]),
+         _pack([(0, 11), (1023, 10), (0, 11)]), _pack([(255, 8), (0, 8), (128, 8), (204, 8)])],
+        # a quarter turn about z: w = (1023/1023 - 0.5) sqrt(2) = 1/sqrt(2) in the first small slot, z the
+        # largest (slot 3)
+        [_pack([(0, 11), (0, 10), (0, 11)]), _pack([(3, 2), (1023, 10), (511, 10), (511, 10)]),
+         _pack([(2047, 11), (0, 10), (2047, 11)]), _pack([(0, 8), (255, 8), (0, 8), (0, 8)])],
+    ], dtype=np.uint32)
+    sh = np.zeros((2, 9), np.uint8)
+    sh[0, :3] = [0, 255, 128]
+    path = tmp_path / "compressed.ply"
+    _compressed_ply(path, [chunk], words, sh)
+    cloud = load_gaussians(path)
+    np.testing.assert_allclose(cloud.means, [[1.0, 0.5, 1.047], [0.0, 0.0, -1.0]], atol=1e-6)
+    np.testing.assert_allclose(cloud.log_scales, [[-6.0, -3.0, -4.0], [-4.0, -5.0, -2.0]], atol=1e-6)
+    np.testing.assert_allclose(cloud.base_colours, [[1.0, 0.0, 128 / 255], [0.0, 1.0, 0.0]], atol=1e-6)
+    np.testing.assert_allclose(cloud.opacities[0], 0.8, atol=1e-6)
+    assert cloud.opacities[1] < 1e-5
+    small = (511 / 1023 - 0.5) * s2
+    big = np.sqrt(1 - 3 * small**2)
+    np.testing.assert_allclose(cloud.quats[0], [big, small, small, small], atol=1e-6)
+    np.testing.assert_allclose(cloud.quats[1], [1 / s2, small, small, np.sqrt(0.5 - 2 * small**2)], atol=1e-6)
+    assert cloud.sh_degree == 1
+    # f_rest_* channel-major as in an INRIA .ply: f_rest_0..2 are red's three degree-1 coefficients;
+    # bytes 0 and 255 are -4 and 4, the others the middle of their 1/256 bin
+    np.testing.assert_allclose(cloud.sh[0, 1:, 0], [-4.0, 4.0, (128.5 / 256 - 0.5) * 8], atol=1e-6)
+    np.testing.assert_allclose(cloud.sh[0, 1:, 1:], -4.0 * np.ones((3, 2)), atol=1e-6)
+
+
+def test_compressed_ply_uses_each_chunks_bounds_and_colour_range(tmp_path):
+    chunks = []
+    for k in range(2):  # 300 Gaussians: chunk 0 holds 256, chunk 1 the last 44
+        c = dict(zip(_BOUNDS, [k, 0, 0, k + 2.047, 1.023, 2.047, -5, -5, -5, -3, -3, -3], strict=True))
+        c.update(min_r=0.25 * k, min_g=0.0, min_b=0.0, max_r=0.25 * k + 0.5, max_g=1.0, max_b=1.0)
+        chunks.append(c)
+    idx = np.arange(300)
+    words = np.zeros((300, 4), np.uint32)
+    words[:, 0] = [_pack([(int(i), 11), (0, 10), (0, 11)]) for i in idx]
+    words[:, 1] = _pack([(0, 2), (511, 10), (511, 10), (511, 10)])
+    words[:, 3] = [_pack([(255, 8), (0, 8), (0, 8), (255, 8)]) for _ in idx]
+    path = tmp_path / "two_chunks.ply"
+    _compressed_ply(path, chunks, words)
+    cloud = load_gaussians(path)
+    k = idx // 256
+    np.testing.assert_allclose(cloud.means[:, 0], k + idx / 1000, atol=1e-5)
+    np.testing.assert_allclose(cloud.base_colours[:, 0], 0.25 * k + 0.5, atol=1e-6)  # red at its chunk's max
+    assert cloud.sh_degree == 0 and len(cloud) == 300
+
+
+def test_compressed_ply_errors_name_the_problem(tmp_path):
+    chunk = dict(zip(_BOUNDS, [0.0] * 6 + [-5.0] * 6, strict=True))
+    words = np.tile(np.uint32(_pack([(0, 2), (511, 10), (511, 10), (511, 10)])), (3, 4))
+    path = tmp_path / "bad.ply"
+    _compressed_ply(path, [chunk], words, n_chunks=2)
+    with pytest.raises(GaussianFileError, match="truncated: element 'vertex' declares 3 rows"):
+        load_gaussians(path)
+    _compressed_ply(path, [chunk, chunk], words)
+    with pytest.raises(GaussianFileError, match="2 chunks for 3 Gaussians; .* one chunk per 256"):
+        load_gaussians(path)
+    _compressed_ply(path, [chunk], words, sh=np.zeros((3, 5), np.uint8))
+    with pytest.raises(GaussianFileError, match="element 'sh' needs 3 rows of uchar"):
+        load_gaussians(path)
+    path.write_bytes(path.read_bytes().replace(b"binary_little_endian", b"binary_big_endian"))
+    with pytest.raises(GaussianFileError, match="compressed PLY .* is binary little endian"):
+        load_gaussians(path)
+
+
+def test_compressed_ply_from_splat_transform_matches_its_source():
+    """A file written by PlayCanvas's own encoder (tests/data/supersplat/README.md) decodes to its source
+    within the layout's steps: 11/10 bits of a chunk's extent, 8 bits of colour, 10-bit rotations, SH bytes."""
+    from pathlib import Path
+
+    from scipy.spatial import cKDTree
+
+    data = Path(__file__).resolve().parents[1] / "data" / "supersplat"
+    src, got = load_gaussians(data / "cloud.ply"), load_gaussians(data / "cloud.compressed.ply")
+    assert len(got) == len(src) == 300 and got.sh_degree == src.sh_degree == 1
+    dist, j = cKDTree(src.means).query(got.means)  # splat-transform writes them in Morton order
+    assert sorted(j) == list(range(300))
+    assert dist.max() < 2.0 / 1023  # chunk extents <= 2 m, 10 bits on y
+    np.testing.assert_allclose(got.log_scales, src.log_scales[j], atol=4.0 / 1023)
+    assert _rotation_error(got.quats, src.quats[j]) < 1e-5
+    np.testing.assert_allclose(got.base_colours, src.base_colours[j], atol=1.0 / 255)
+    np.testing.assert_allclose(got.opacities, src.opacities[j], atol=0.5 / 255 + 1e-6)
+    np.testing.assert_allclose(got.sh[:, 1:], src.sh[j, 1:], atol=4.0 / 256 + 1e-6)

@@ -1,11 +1,13 @@
-"""3DGS file formats: INRIA `.ply` (binary / ASCII), antimatter15 `.splat`, Niantic `.spz` (v2, v3).
+"""3DGS file formats: INRIA `.ply` (binary / ASCII; SuperSplat's compressed .ply read), antimatter15
+`.splat`, Niantic `.spz` (v2, v3).
 
 `load_gaussians(path)` / `save_gaussians(cloud, path)` dispatch on the extension. Every reader validates
 its input and raises `GaussianFileError` (a ValueError) naming the file and the problem.
 Axes: a GaussianCloud uses the INRIA .ply axes as stored. `.spz` stores RUB axes (its spec), so its
 reader and writer convert RUB <-> RDF (y, z negated; the same convention as Niantic's library with
-`to/from = RDF`). `.splat` and `.ply` are read as-is. SuperSplat's compressed .ply layout, .spz
-extension records and the uncompressed NGSP (v4) container are rejected with clear errors.
+`to/from = RDF`). `.splat` and `.ply` are read as-is; a `.ply` may also be SuperSplat's compressed
+layout (read only). .spz extension records and the uncompressed NGSP (v4) container are rejected with
+clear errors.
 """
 
 from __future__ import annotations
@@ -163,11 +165,9 @@ def _read_ply(path: Path, max_gaussians: int = MAX_GAUSSIANS) -> GaussianCloud:
             raise GaussianFileError(path, f"element {name!r} declares {cnt} rows in a {len(data)}-byte file")
     prop_names = [p for p, _ in props]
     if "packed_position" in prop_names or "chunk" in names:
-        raise GaussianFileError(
-            path,
-            "compressed PLY (SuperSplat 'chunk'/'packed_*' layout) is not supported; "
-            "export an uncompressed INRIA .ply, .splat or .spz instead",
-        )
+        column = _read_compressed_ply(path, data, fmt, elements, body)
+        rest = [p for p in column if p.startswith("f_rest_")]
+        return _cloud_from_columns(path, count, column, rest)
     if any(t is None for _, t in props):
         raise GaussianFileError(path, "list properties in the 'vertex' element are not supported")
     missing = [p for p in _REQUIRED if p not in prop_names]
@@ -230,6 +230,11 @@ def _read_ply(path: Path, max_gaussians: int = MAX_GAUSSIANS) -> GaussianCloud:
             )
         arr = np.frombuffer(data, dtype=dtype, count=count, offset=offset)
         column = {p: arr[p].astype(np.float64) for p in prop_names}
+    return _cloud_from_columns(path, count, column, rest)
+
+
+def _cloud_from_columns(path, count: int, column: dict[str, np.ndarray], rest: list[str]) -> GaussianCloud:
+    """A checked GaussianCloud from an INRIA .ply's vertex columns (`rest`: the f_rest_* names)."""
     k1 = _REST_FOR_DEGREE[len(rest)] * (_REST_FOR_DEGREE[len(rest)] + 2)  # K - 1
     means = np.stack([column["x"], column["y"], column["z"]], 1)
     sh = np.zeros((count, k1 + 1, 3))
@@ -251,6 +256,107 @@ def _read_ply(path: Path, max_gaussians: int = MAX_GAUSSIANS) -> GaussianCloud:
     _check_quats(path, quats)
     _check_log_scales(path, log_scales)
     return GaussianCloud(means, quats, log_scales, opac, sh)
+
+
+# SuperSplat's compressed .ply (PlayCanvas): Gaussians in chunks of 256, each chunk with float32 bounds
+# (min_/max_ x, y, z; min_/max_scale_ x, y, z of the log-scales; optionally min_/max_ r, g, b), each
+# Gaussian four uint32: position and log-scale as 11/10/11-bit fractions of the chunk's bounds (x in the
+# top bits), colour and opacity as 8-bit r, g, b, a (a = sigmoid(opacity); r, g, b the DC colour, or a
+# fraction of the chunk's colour bounds), the rotation as its largest component's slot (top 2 bits, of
+# rot_0..rot_3) and the other three in slot order, 10 bits each over +-1/sqrt(2). An optional `sh`
+# element holds f_rest_* as bytes over [-4, 4].
+_CHUNK_BOUNDS = [f"{m}_{a}" for m in ("min", "max") for a in ("x", "y", "z")] + [
+    f"{m}_scale_{a}" for m in ("min", "max") for a in ("x", "y", "z")]
+_CHUNK_COLOURS = [f"{m}_{c}" for m in ("min", "max") for c in ("r", "g", "b")]
+_PACKED = ["packed_position", "packed_rotation", "packed_scale", "packed_color"]
+
+
+def _read_compressed_ply(path, data: bytes, fmt: str, elements: list, body: int) -> dict[str, np.ndarray]:
+    """The INRIA vertex columns of a SuperSplat compressed .ply (layout above)."""
+    if fmt != "binary_little_endian":
+        raise GaussianFileError(path, f"a compressed PLY (SuperSplat 'chunk' layout) is binary little "
+                                      f"endian; this one is {fmt}")
+    names = [e[0] for e in elements]
+    arrays, offset = {}, body
+    for name, cnt, eprops in elements:
+        lists = any(t is None for _, t in eprops)
+        if name not in ("chunk", "vertex", "sh") or names.count(name) > 1 or lists:
+            raise GaussianFileError(path, f"element {name!r}: a compressed PLY (SuperSplat 'chunk' layout) "
+                                          "holds one each of 'chunk', 'vertex' and optionally 'sh', with "
+                                          "scalar properties")
+        dtype = np.dtype([(p, "<" + t) for p, t in eprops])
+        need, left = cnt * dtype.itemsize, len(data) - offset
+        if left < need:
+            raise GaussianFileError(path, f"truncated: element {name!r} declares {cnt} rows ({need} bytes) "
+                                          f"but only {left} follow")
+        arrays[name] = np.frombuffer(data, dtype=dtype, count=cnt, offset=offset)
+        offset += cnt * dtype.itemsize
+    if offset != len(data):
+        raise GaussianFileError(path, f"{len(data) - offset} unexpected bytes after the compressed PLY's "
+                                      "elements (wrong counts in the header?)")
+    chunk, vertex = arrays.get("chunk"), arrays.get("vertex")
+    if chunk is None:
+        raise GaussianFileError(path, "a compressed PLY (packed_* properties) needs its 'chunk' element")
+    n = len(vertex)
+    want = {"chunk": _CHUNK_BOUNDS + (_CHUNK_COLOURS if "min_r" in chunk.dtype.names else []),
+            "vertex": _PACKED}
+    for name, props in want.items():
+        have = arrays[name].dtype
+        bad = [p for p in props if p not in have.names
+               or have[p] != np.dtype("<f4" if name == "chunk" else "<u4")]
+        if bad or len(have.names) != len(props):
+            kind = "float" if name == "chunk" else "uint"
+            raise GaussianFileError(path, f"compressed PLY element {name!r} needs exactly the {kind} "
+                                          f"properties {props}; got {list(have.names)}")
+    if len(chunk) != (n + 255) // 256:
+        raise GaussianFileError(path, f"{len(chunk)} chunks for {n} Gaussians; a compressed PLY has one "
+                                      f"chunk per 256 Gaussians ({(n + 255) // 256})")
+    c = {p: np.repeat(chunk[p].astype(np.float64), 256)[:n] for p in chunk.dtype.names}
+
+    def unorm(word, shift: int, bits: int) -> np.ndarray:
+        top = (1 << bits) - 1
+        return ((word >> np.uint32(shift)) & np.uint32(top)).astype(np.float64) / top
+
+    def lerp(lo, hi, t) -> np.ndarray:
+        return lo * (1.0 - t) + hi * t
+
+    column = {}
+    pos, scale, colour = vertex["packed_position"], vertex["packed_scale"], vertex["packed_color"]
+    for axis, (shift, bits) in zip("xyz", ((21, 11), (11, 10), (0, 11)), strict=True):
+        column[axis] = lerp(c[f"min_{axis}"], c[f"max_{axis}"], unorm(pos, shift, bits))
+        k = "xyz".index(axis)
+        column[f"scale_{k}"] = lerp(c[f"min_scale_{axis}"], c[f"max_scale_{axis}"], unorm(scale, shift, bits))
+    for k, ch in enumerate("rgb"):
+        v = unorm(colour, 24 - 8 * k, 8)
+        if "min_r" in c:
+            v = lerp(c[f"min_{ch}"], c[f"max_{ch}"], v)
+        column[f"f_dc_{k}"] = (v - 0.5) / SH_C0
+    column["opacity"] = _logit(unorm(colour, 0, 8))
+    rot = vertex["packed_rotation"]
+    small = np.stack([(unorm(rot, shift, 10) - 0.5) * np.sqrt(2.0) for shift in (20, 10, 0)], axis=1)
+    largest = np.sqrt(np.maximum(0.0, 1.0 - (small**2).sum(axis=1)))
+    which = (rot >> np.uint32(30)).astype(np.intp)
+    quats = np.empty((n, 4))
+    for slot in range(4):
+        others = [j for j in range(4) if j != slot]
+        rows = which == slot
+        quats[rows, slot] = largest[rows]
+        quats[np.ix_(rows, others)] = small[rows]
+    for k in range(4):
+        column[f"rot_{k}"] = quats[:, k]
+    sh = arrays.get("sh")
+    if sh is not None:
+        rest = [f"f_rest_{i}" for i in range(len(sh.dtype.names))]
+        if len(sh) != n or list(sh.dtype.names) != rest or len(rest) not in (9, 24, 45) \
+                or any(sh.dtype[p] != np.dtype("u1") for p in rest):
+            raise GaussianFileError(path, f"compressed PLY element 'sh' needs {n} rows of uchar "
+                                          f"f_rest_0..N-1 with N in (9, 24, 45); got {len(sh)} rows of "
+                                          f"{list(sh.dtype.names)}")
+        for p in rest:
+            b = sh[p].astype(np.float64)
+            t = np.where(b == 0, 0.0, np.where(b == 255, 1.0, (b + 0.5) / 256.0))
+            column[p] = (t - 0.5) * 8.0
+    return column
 
 
 def _check_quats(path, quats: np.ndarray) -> None:
