@@ -322,7 +322,8 @@ def test_compressed_ply_errors_name_the_problem(tmp_path):
 
 def test_compressed_ply_from_splat_transform_matches_its_source():
     """A file written by PlayCanvas's own encoder (tests/data/supersplat/README.md) decodes to its source
-    within the layout's steps: 11/10 bits of a chunk's extent, 8 bits of colour, 10-bit rotations, SH bytes."""
+    within the layout's steps: 11/10 bits of a chunk's extent, 8 bits of colour, 10-bit rotations, SH
+    bytes."""
     from pathlib import Path
 
     from scipy.spatial import cKDTree

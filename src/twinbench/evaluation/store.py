@@ -213,10 +213,10 @@ class ResultsStore:
                 raise InputError(f"{self.path} is not a twinbench results store (SQLite): {err}; give "
                                  "another --db path") from err
             if isinstance(err, sqlite3.OperationalError) and any(w in str(err) for w in _STORAGE_WORDS):
-                raise StorageError(f"results store {self.path}: cannot write ({err}; {free_space(self.path)}). "
-                                   "Free space (or make the folder writable) and run the same command "
-                                   "again: episodes already stored are kept and a resumed run skips them") \
-                    from err
+                free = free_space(self.path)
+                raise StorageError(f"results store {self.path}: cannot write ({err}; {free}). Free space (or "
+                                   "make the folder writable) and run the same command again: episodes "
+                                   "already stored are kept and a resumed run skips them") from err
             raise
         finally:
             con.close()

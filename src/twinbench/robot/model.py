@@ -568,8 +568,8 @@ def load_robot(
 
     `package://NAME/rel` paths are searched in `package_dirs`, `ROS_PACKAGE_PATH`, the URDF's folder and
     its parents (both `ROOT/NAME/rel` and, when a folder is itself named NAME, `ROOT/rel`).
-    `ee_link` defaults to the deepest link not carried by a gripper's fingers. `gripper_open` / `gripper_closed` default to the
-    gripper joint's upper / lower limits.
+    `ee_link` defaults to the deepest link not carried by a gripper's fingers. `gripper_open` /
+    `gripper_closed` default to the gripper joint's upper / lower limits.
     """
     import yourdfpy
 
