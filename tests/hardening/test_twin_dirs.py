@@ -61,6 +61,20 @@ def test_a_planar_quat_that_is_no_rotation_is_refused(good, tmp_path, quat):
         load_twin(root)
 
 
+def test_a_camera_mounted_on_a_link_the_robot_lacks_is_named_at_load(good, tmp_path):
+    """A twin.json edited for another URDF (Panda's links) but keeping the built-in arm's camera mount."""
+
+    def mount(doc):
+        doc["cameras"][1]["mount_link"] = "panda_hand"
+
+    root = _copy(good, tmp_path, mount)
+    with pytest.raises(TwinFormatError) as err:
+        load_twin(root)
+    text = str(err.value)
+    assert text.startswith(f"{root / 'twin.json'}: cameras[1].mount_link: 'panda_hand' is not a link of the "
+                           "robot xarm7_pusher20.urdf (links: ['link_base', "), text
+
+
 def test_twin_show_reports_a_nan_field_in_one_line(good, tmp_path, capsys):
     root = _copy(good, tmp_path, lambda d: d["sim"].__setitem__("ground_friction", float("nan")))
     assert cli(["twin", "show", str(root), "--out-dir", str(tmp_path / "png")]) == 2

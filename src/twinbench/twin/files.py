@@ -568,7 +568,7 @@ def load_twin(folder) -> TwinSpec:
     kw = {}
     if "background" in render_cfg:
         kw["render_background"] = tuple(r.array(render_cfg["background"], "render.background", (3,)).tolist())
-    return r.build(
+    spec = r.build(
         lambda: TwinSpec(
             name=doc["name"],
             robot=robot,
@@ -583,6 +583,30 @@ def load_twin(folder) -> TwinSpec:
         ),
         "(top level)",
     )
+    _check_robot_names(r, spec)
+    return spec
+
+
+def _check_robot_names(r: _Reader, spec: TwinSpec) -> None:
+    """The robot links twin.json names outside the robot section (camera mounts, the Gaussians' links)
+    exist in its URDF (read without meshes); the robot section's own names are checked by the loader."""
+    from twinbench.robot.builtin import load_builtin_arm
+    from twinbench.robot.model import load_robot
+
+    tool = spec.robot.builtin_tool
+    if tool:
+        model = load_builtin_arm(tool, load_meshes=False)
+    else:
+        model = load_robot(spec.robot.urdf, load_meshes=False)
+    names = model.link_names
+    for i, cam in enumerate(spec.cameras):
+        if cam.mount_link is not None and cam.mount_link not in names:
+            r.fail(f"cameras[{i}].mount_link", f"{cam.mount_link!r} is not a link of the robot "
+                                               f"{Path(model.urdf_path).name} (links: {names})")
+    missing = [n for n in spec.robot.gaussian_links if n not in names]
+    if missing:
+        r.fail("robot.gaussians.links", f"{missing} are not links of the robot {Path(model.urdf_path).name} "
+                                        f"(links: {names})")
 
 
 def twin_dir_hash(folder) -> str:
