@@ -67,3 +67,64 @@ def test_tiny_study_end_to_end(tmp_path, monkeypatch):
 
     page = write_study_report(tmp_path, doc, twins=twins).read_text()
     assert "real | perfect" in page and "real | cell" in page
+
+
+def test_a_study_run_started_again_keeps_the_stages_it_finished(tmp_path, monkeypatch):
+    """`study run` stopped in a stage and started again with the same arguments runs only from that stage
+    (stand-in stages: the order and the record are what is tested); other arguments are refused; a
+    finished stage whose files are gone runs again, and so do the stages after it."""
+    from twinbench.errors import InputError
+    from twinbench.study import evaluate as E
+    from twinbench.study import evidence, real, reconstruct, report
+    from twinbench.study.run import run_study
+
+    calls: list[str] = []
+    stop = {"reconstruct"}
+
+    def stage(name, result):
+        def fn(*args, **kwargs):
+            calls.append(name)
+            if name in stop:
+                stop.discard(name)
+                raise KeyboardInterrupt
+            out = result()
+            for p in (out.values() if isinstance(out, dict) else [out]):
+                if hasattr(p, "mkdir"):
+                    p.mkdir(parents=True, exist_ok=True)
+            return out
+        return fn
+
+    monkeypatch.setattr(real, "make_real", stage("make-real", lambda: tmp_path / "real"))
+    monkeypatch.setattr(evidence, "make_evidence", stage("evidence", lambda: tmp_path / "evidence"))
+    monkeypatch.setattr(reconstruct, "reconstruct",
+                        stage("reconstruct", lambda: {"full": tmp_path / "twins" / "full"}))
+    monkeypatch.setattr(E, "make_policies", stage("policies", lambda: ["p0=perceive:x.json"]))
+    monkeypatch.setattr(E, "user_calibration", lambda ev: None)
+    monkeypatch.setattr(E, "run_evaluations", stage("evaluate", lambda: {"real": 1.0}))
+    monkeypatch.setattr(E, "training_records", lambda policies: [])
+    monkeypatch.setattr(E, "write_study_json", lambda out, task, size, twins, seconds, extra: {
+        "twins": twins, "seconds": dict(seconds), "policies": extra["policies"]})
+    monkeypatch.setattr(report, "write_study_report", stage("report", lambda: tmp_path / "report.html"))
+
+    out = tmp_path / "study"
+    with pytest.raises(KeyboardInterrupt):
+        run_study("push-t", out, "small", seed=3, log=lambda line: None)
+    assert calls == ["make-real", "evidence", "reconstruct"]
+    calls.clear()
+    lines: list[str] = []
+    doc = run_study("push-t", out, "small", seed=3, log=lines.append)
+    assert calls == ["reconstruct", "policies", "evaluate", "report"]
+    assert "== make-real: finished by an earlier run" in lines[0] and "kept" in lines[0]
+    assert doc["twins"] == ["full"] and doc["policies"] == ["p0=perceive:x.json"]
+    assert set(doc["seconds"]) == {"make-real", "evidence", "reconstruct", "policies", "evaluate", "report"}
+    with pytest.raises(InputError, match=r"holds a study run with other arguments \(seed: 3 there, 4 now\)"):
+        run_study("push-t", out, "small", seed=4, log=lambda line: None)
+    calls.clear()
+    import shutil
+
+    shutil.rmtree(tmp_path / "evidence")
+    doc = run_study("push-t", out, "small", seed=3, log=lambda line: None)
+    assert calls == ["evidence", "reconstruct", "policies", "evaluate", "report"]
+    record = json.loads((out / "stages.json").read_text())
+    assert list(record["done"]) == ["make-real", "evidence", "reconstruct", "policies"]
+    assert record["done"]["reconstruct"]["result"] == {"full": str(tmp_path / "twins" / "full")}

@@ -7,28 +7,86 @@
                    with `bc` the behaviour-cloning demonstrations and checkpoints in DIR/policies/bc
     DIR/results    the results store of every evaluation (real rollouts and each twin)
     DIR/study.json the table and the stage times;  DIR/report.html the study page
+    DIR/stages.json the run's arguments and each finished stage's result and time
+
+Started again with the same arguments (after Ctrl-C or a killed machine), a run keeps the stages it
+finished (their results recorded in DIR/stages.json and their files still there) and goes on from the first
+one that did not finish; the evaluation resumes by itself (finished episodes are kept). Other arguments
+in the same DIR are refused.
 """
 
 from __future__ import annotations
 
+import json
 import time
 from pathlib import Path
 
 STAGES = ("make-real", "evidence", "reconstruct", "policies", "bc", "evaluate", "report")
+KEPT = ("make-real", "evidence", "reconstruct", "policies", "bc")  # stages a run started again keeps
+
+
+def _paths(value) -> list[Path]:
+    """The paths a stage's result names (make-real, evidence: a folder; reconstruct: one per variant)."""
+    if isinstance(value, str):
+        return [Path(value)]
+    if isinstance(value, dict):
+        return [Path(v) for v in value.values()]
+    return []
 
 
 class _Timer:
-    def __init__(self, log):
+    """Runs the stages, timing each; with `record` (DIR/stages.json) a stage finished by an earlier run
+    with the same arguments is kept (its result and seconds from the record) until one has to run."""
+
+    def __init__(self, log, record: Path | None = None, args: dict | None = None):
         self.seconds: dict[str, float] = {}
         self.log = log
+        self.record, self.args = record, args
+        self.done: dict = {}
+        if record is not None and record.is_file():
+            from twinbench.errors import InputError
+
+            try:
+                doc = json.loads(record.read_text())
+                before, self.done = doc["args"], dict(doc["done"])
+            except (ValueError, KeyError, TypeError) as err:
+                raise InputError(f"{record}: not a study run's stage record ({err}); remove it to start the "
+                                 "study in this folder again from its first stage") from None
+            if before != args:
+                changed = sorted(k for k in set(before) | set(args) if before.get(k) != args.get(k))
+                raise InputError(f"{record.parent} holds a study run with other arguments ("
+                                 + ", ".join(f"{k}: {before.get(k)!r} there, {args.get(k)!r} now"
+                                             for k in changed)
+                                 + "); give another --out, or remove that folder to start again")
 
     def __call__(self, stage: str, fn, *args, **kwargs):
+        kept = self.done.get(stage)
+        if kept is not None and all(p.exists() for p in _paths(kept["result"])):
+            self.seconds[stage] = float(kept["seconds"])
+            self.log(f"== {stage}: finished by an earlier run ({self.seconds[stage]:.0f} s then), kept")
+            result = kept["result"]
+            return {k: Path(v) for k, v in result.items()} if isinstance(result, dict) else (
+                Path(result) if isinstance(result, str) else result)
+        if self.record is not None and any(STAGES.index(k) >= STAGES.index(stage) for k in self.done):
+            # this stage runs again, so every later one does too: forget them before anything changes
+            self.done = {k: v for k, v in self.done.items() if STAGES.index(k) < STAGES.index(stage)}
+            self._save()
         self.log(f"== {stage}")
         t0 = time.perf_counter()
         out = fn(*args, **kwargs)
         self.seconds[stage] = time.perf_counter() - t0
         self.log(f"== {stage}: {self.seconds[stage]:.0f} s")
+        if self.record is not None and stage in KEPT:
+            result = {k: str(v) for k, v in out.items()} if isinstance(out, dict) else (
+                str(out) if isinstance(out, Path) else out)
+            self.done[stage] = {"result": result, "seconds": self.seconds[stage]}
+            self._save()
         return out
+
+    def _save(self) -> None:
+        tmp = self.record.with_suffix(".json.partial")
+        tmp.write_text(json.dumps({"args": self.args, "done": self.done}, indent=1) + "\n")
+        tmp.replace(self.record)
 
 
 def run_study(task: str, out: Path, size: str = "small", seed: int = 0, workers: int = 1,
@@ -62,7 +120,10 @@ def run_study(task: str, out: Path, size: str = "small", seed: int = 0, workers:
                          "`twinbench study make-real / evidence / reconstruct` take any built-in task")
     out = Path(out)
     variants = tuple(variants or VARIANTS)
-    timer = _Timer(log)
+    out.mkdir(parents=True, exist_ok=True)
+    args = {"task": task, "size": size, "seed": int(seed), "variants": list(variants), "bc": bool(bc),
+            "bc_act": bool(bc_act), "bc_dp": bool(bc_dp)}
+    timer = _Timer(log, out / "stages.json", args)
     real = timer("make-real", make_real, task, seed, out / "real", size)
     evidence = timer("evidence", make_evidence, real, out / "evidence", seed, size)
     twins = timer("reconstruct", reconstruct, evidence, out / "twins", variants, log=log)
