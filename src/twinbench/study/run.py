@@ -35,15 +35,15 @@ def _paths(value) -> list[Path]:
 
 
 class _Timer:
-    """Runs the stages, timing each; with `record` (DIR/stages.json) a stage finished by an earlier run
-    with the same arguments is kept (its result and seconds from the record) until one has to run."""
+    """Runs the stages, timing each; a stage that `record` (DIR/stages.json) holds as finished by an
+    earlier run with the same `args` is kept (its result and seconds from the record)."""
 
-    def __init__(self, log, record: Path | None = None, args: dict | None = None):
+    def __init__(self, log, record: Path, args: dict):
         self.seconds: dict[str, float] = {}
         self.log = log
         self.record, self.args = record, args
         self.done: dict = {}
-        if record is not None and record.is_file():
+        if record.is_file():
             from twinbench.errors import InputError
 
             try:
@@ -67,7 +67,7 @@ class _Timer:
             result = kept["result"]
             return {k: Path(v) for k, v in result.items()} if isinstance(result, dict) else (
                 Path(result) if isinstance(result, str) else result)
-        if self.record is not None and any(STAGES.index(k) >= STAGES.index(stage) for k in self.done):
+        if any(STAGES.index(k) >= STAGES.index(stage) for k in self.done):
             # this stage runs again, so every later one does too: forget them before anything changes
             self.done = {k: v for k, v in self.done.items() if STAGES.index(k) < STAGES.index(stage)}
             self._save()
@@ -76,7 +76,7 @@ class _Timer:
         out = fn(*args, **kwargs)
         self.seconds[stage] = time.perf_counter() - t0
         self.log(f"== {stage}: {self.seconds[stage]:.0f} s")
-        if self.record is not None and stage in KEPT:
+        if stage in KEPT:
             result = {k: str(v) for k, v in out.items()} if isinstance(out, dict) else (
                 str(out) if isinstance(out, Path) else out)
             self.done[stage] = {"result": result, "seconds": self.seconds[stage]}
