@@ -311,25 +311,27 @@ def _read_compressed_ply(path, data: bytes, fmt: str, elements: list, body: int)
     if len(chunk) != (n + 255) // 256:
         raise GaussianFileError(path, f"{len(chunk)} chunks for {n} Gaussians; a compressed PLY has one "
                                       f"chunk per 256 Gaussians ({(n + 255) // 256})")
-    c = {p: np.repeat(chunk[p].astype(np.float64), 256)[:n] for p in chunk.dtype.names}
+    of_chunk = np.arange(n) // 256
 
     def unorm(word, shift: int, bits: int) -> np.ndarray:
         top = (1 << bits) - 1
         return ((word >> np.uint32(shift)) & np.uint32(top)).astype(np.float64) / top
 
-    def lerp(lo, hi, t) -> np.ndarray:
-        return lo * (1.0 - t) + hi * t
+    def lerp(name: str, t: np.ndarray) -> np.ndarray:
+        """Each Gaussian's fraction t between its chunk's min_NAME and max_NAME."""
+        lo = chunk[f"min_{name}"].astype(np.float64)[of_chunk]
+        return lo * (1.0 - t) + chunk[f"max_{name}"].astype(np.float64)[of_chunk] * t
 
     column = {}
     pos, scale, colour = vertex["packed_position"], vertex["packed_scale"], vertex["packed_color"]
     for axis, (shift, bits) in zip("xyz", ((21, 11), (11, 10), (0, 11)), strict=True):
-        column[axis] = lerp(c[f"min_{axis}"], c[f"max_{axis}"], unorm(pos, shift, bits))
+        column[axis] = lerp(axis, unorm(pos, shift, bits))
         k = "xyz".index(axis)
-        column[f"scale_{k}"] = lerp(c[f"min_scale_{axis}"], c[f"max_scale_{axis}"], unorm(scale, shift, bits))
+        column[f"scale_{k}"] = lerp(f"scale_{axis}", unorm(scale, shift, bits))
     for k, ch in enumerate("rgb"):
         v = unorm(colour, 24 - 8 * k, 8)
-        if "min_r" in c:
-            v = lerp(c[f"min_{ch}"], c[f"max_{ch}"], v)
+        if "min_r" in chunk.dtype.names:
+            v = lerp(ch, v)
         column[f"f_dc_{k}"] = (v - 0.5) / SH_C0
     column["opacity"] = _logit(unorm(colour, 0, 8))
     rot = vertex["packed_rotation"]
