@@ -121,7 +121,14 @@ def test_parent_sigkill_takes_the_workers_with_it(tmp_path):
                             stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, env=ENV)
     try:
         workers = _worker_pids(proc.pid, 2)
-        time.sleep(2.0)
+        # kill a second after an episode is stored: both workers are then past their start-up (a busy
+        # machine can take longer than any fixed sleep to import) and inside their next episodes, which
+        # run >= 11 s more, so within the 3 s below only their watch on the parent can end them
+        store, deadline = ResultsStore(tmp_path / "r.sqlite"), time.monotonic() + 120
+        while not store.episodes("kill") and time.monotonic() < deadline:
+            time.sleep(0.2)
+        assert store.episodes("kill"), "no episode finished within 120 s"
+        time.sleep(1.0)
         proc.kill()
         proc.wait(timeout=10)
         deadline = time.monotonic() + 3
