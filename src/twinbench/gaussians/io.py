@@ -298,7 +298,8 @@ def _read_compressed_ply(path, data: bytes, fmt: str, elements: list, body: int)
     if chunk is None:
         raise GaussianFileError(path, "a compressed PLY (packed_* properties) needs its 'chunk' element")
     n = len(vertex)
-    want = {"chunk": _CHUNK_BOUNDS + (_CHUNK_COLOURS if "min_r" in chunk.dtype.names else []),
+    colours = "min_r" in chunk.dtype.names  # per-chunk colour bounds (newer writers)
+    want = {"chunk": _CHUNK_BOUNDS + (_CHUNK_COLOURS if colours else []),
             "vertex": _PACKED}
     for name, props in want.items():
         have = arrays[name].dtype
@@ -324,13 +325,12 @@ def _read_compressed_ply(path, data: bytes, fmt: str, elements: list, body: int)
 
     column = {}
     pos, scale, colour = vertex["packed_position"], vertex["packed_scale"], vertex["packed_color"]
-    for axis, (shift, bits) in zip("xyz", ((21, 11), (11, 10), (0, 11)), strict=True):
+    for k, (axis, shift, bits) in enumerate((("x", 21, 11), ("y", 11, 10), ("z", 0, 11))):
         column[axis] = lerp(axis, unorm(pos, shift, bits))
-        k = "xyz".index(axis)
         column[f"scale_{k}"] = lerp(f"scale_{axis}", unorm(scale, shift, bits))
     for k, ch in enumerate("rgb"):
         v = unorm(colour, 24 - 8 * k, 8)
-        if "min_r" in chunk.dtype.names:
+        if colours:
             v = lerp(ch, v)
         column[f"f_dc_{k}"] = (v - 0.5) / SH_C0
     column["opacity"] = _logit(unorm(colour, 0, 8))
