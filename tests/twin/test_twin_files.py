@@ -164,8 +164,20 @@ def test_rich_twin_builds_and_renders(tmp_path):
     assert frames["front"].depth.max() > 0.3
 
 
+def test_twin_export_takes_the_directory_as_path_or_out(tmp_path, capsys):
+    from twinbench.cli import main
+
+    assert main(["twin", "export", str(tmp_path / "a"), "--task", "point-reach"]) == 2  # no twin: refused
+    assert "debug task" in capsys.readouterr().err
+    assert main(["twin", "export", "--task", "push-t", "--preset", "fast", "--out", str(tmp_path / "b")]) == 0
+    assert (tmp_path / "b" / "twin.json").is_file()
+    assert main(["twin", "export", str(tmp_path / "c"), "--out", str(tmp_path / "d")]) == 2
+    assert "once" in capsys.readouterr().err
+    assert not (tmp_path / "c").exists() and not (tmp_path / "d").exists()
+
+
 def test_builtin_and_exported_twins_give_bit_identical_episodes(tmp_path):
-    assert export(ExportConfig(out=tmp_path / "pusht", preset="fast")) == 0
+    assert export(ExportConfig(path=tmp_path / "pusht", preset="fast")) == 0
     actions = np.random.default_rng(0).uniform([0.35, -0.1], [0.55, 0.1], (12, 2)).astype(np.float32)
     runs = []
     for twin in (None, tmp_path / "pusht"):

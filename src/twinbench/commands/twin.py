@@ -15,8 +15,10 @@ import tyro
 class ExportConfig:
     """Write the built-in twin of a task as a twin directory (twin.json + .ply + .npz)."""
 
-    out: tyro.conf.Positional[Path]
-    """the twin directory to write"""
+    path: Annotated[Path | None, tyro.conf.Positional, tyro.conf.arg(metavar="PATH")] = None
+    """the twin directory to write (or --out PATH, as the other commands take it)"""
+    out: Path | None = None
+    """the same as PATH"""
     task: str = "push-t"
     """the task whose built-in cell is written"""
     preset: str = "reference"
@@ -57,11 +59,13 @@ def export(cfg: ExportConfig) -> int:
     from twinbench.tasks import get_task
     from twinbench.twin.files import save_twin
 
+    if (cfg.path is None) == (cfg.out is None):
+        raise ValueError("twin export: give the twin directory to write once, as PATH or as --out PATH")
     task = get_task(cfg.task)
     if task.task_cls is None:
         raise ValueError(f"task {cfg.task!r} has no twin (it is a debug task with its own env)")
     spec = task.task_cls().default_twin(cfg.preset)
-    path = save_twin(spec, cfg.out)
+    path = save_twin(spec, cfg.path or cfg.out)
     print(f"wrote the {cfg.task} twin ({cfg.preset}) to {path.parent}")
     return 0
 
