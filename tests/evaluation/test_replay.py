@@ -227,3 +227,15 @@ def test_a_replay_run_grows_with_more_recorded_episodes(tmp_path):
     assert store.run_protocol("grow")["n_episodes"] == len(eps)
     with pytest.raises(ValueError, match="different protocol keys"):
         replay_episodes("point-reach", eps, store, "grow", env_kwargs={"fail_step": 7})
+
+
+def test_a_pyarrow_that_fails_to_import_is_named_with_the_fix(tmp_path, monkeypatch):
+    """pyarrow >= 26 imports only with numpy >= 2, which its metadata does not say: beside numpy 1.x (openpi)
+    a user gets pyarrow 26 and an ImportError; the message says which pyarrow to install."""
+    import sys
+
+    from twinbench.evaluation.replay import _read_parquet
+
+    monkeypatch.setitem(sys.modules, "pyarrow", None)  # `import pyarrow` raises ImportError
+    with pytest.raises(ImportError, match=r"x\.parquet needs pyarrow.*pyarrow>=18,<26"):
+        _read_parquet(tmp_path / "x.parquet")

@@ -122,7 +122,10 @@ class _Storage:
 
 
 def _numpy_globals() -> dict[tuple[str, str], object]:
-    from numpy._core import multiarray, numeric
+    try:
+        from numpy._core import multiarray, numeric  # numpy >= 2
+    except ImportError:  # numpy 1.x (whose numpy._core is a stub without numeric)
+        from numpy.core import multiarray, numeric
 
     out: dict[tuple[str, str], object] = {}
     for mod in ("numpy.core", "numpy._core"):

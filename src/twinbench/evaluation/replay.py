@@ -283,8 +283,12 @@ def load_npz_log(path: str | Path) -> list[RecordedEpisode]:
 
 
 def _read_parquet(path: Path, columns: list[str] | None = None):
-    import pyarrow as pa
-    import pyarrow.parquet as pq
+    try:
+        import pyarrow as pa
+        import pyarrow.parquet as pq
+    except ImportError as err:  # e.g. pyarrow >= 26 beside numpy 1.x (its metadata does not require numpy 2)
+        raise ImportError(f"reading {path} needs pyarrow, which failed to import ({err}); with numpy 1.x "
+                          "(e.g. beside openpi) install pyarrow < 26: pip install 'pyarrow>=18,<26'") from err
 
     try:
         return pq.read_table(path, columns=columns).to_pylist()
