@@ -90,6 +90,16 @@ def test_entity_declarations_are_refused(tmp_path):
         load_robot(path, load_meshes=False)
 
 
+def test_a_xacro_file_is_named_with_the_command_that_expands_it(tmp_path):
+    path = tmp_path / "arm.urdf.xacro"
+    path.write_text('<?xml version="1.0"?><robot xmlns:xacro="http://www.ros.org/wiki/xacro" name="arm">'
+                    '<xacro:property name="L" value="0.3"/><link name="base"/><link name="l1"/>'
+                    '<joint name="j" type="fixed"><parent link="base"/><child link="l1"/>'
+                    '<origin xyz="0 0 ${L}"/></joint></robot>')
+    with pytest.raises(URDFError, match=r"arm\.urdf\.xacro: a xacro file .* `xacro FILE > robot\.urdf`"):
+        load_robot(path, load_meshes=False)
+
+
 def _mesh_urdf(folder, filename):
     folder.mkdir(parents=True, exist_ok=True)
     path = folder / "r.urdf"

@@ -586,6 +586,9 @@ def load_robot(
         raise URDFError(f"{urdf_path}: malformed XML ({exc}); fix the file") from exc
     if root.tag != "robot":
         raise URDFError(f"{urdf_path}: root element is <{root.tag}>, expected <robot>")
+    if b"http://www.ros.org/wiki/xacro" in head or b"<xacro:" in head:
+        raise URDFError(f"{urdf_path}: a xacro file (macros and ${{...}} expressions), not a URDF; expand it "
+                        "first: `xacro FILE > robot.urdf` (ROS, or `pip install xacro`)")
     try:
         urdf = yourdfpy.URDF.load(
             str(urdf_path),
