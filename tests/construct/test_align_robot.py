@@ -122,6 +122,38 @@ def test_real_xarm7_scan_is_registered_and_labelled():
     _check(model, q, scan, world, true, result, len(world))
 
 
+@pytest.mark.parametrize("seed, scale", [(4, 3.7), (5, 0.05)])
+def test_a_scan_in_any_unit_and_orientation_registers_with_scale(gripper_arm, seed, scale):
+    """COLMAP-like scans: any unit (the first scale estimate comes from the clouds' spreads), any
+    orientation (here a further 90 deg about x on top of the random one: y up)."""
+    model = gripper_arm
+    q = model.home_q
+    scan, world, true, pts, normals = _scenario(model, q, seed, scale)
+    flip = np.eye(4)
+    flip[:3, :3] = rotvec_to_matrix(np.array([np.pi / 2, 0.0, 0.0]))
+    pts, normals, true = pts @ flip[:3, :3].T, normals @ flip[:3, :3].T, flip @ true
+    params = RegistrationParams(estimate_scale=True, label_points_per_link=10000)
+    result = register_robot(pts, model, q, params, scan_normals=normals)
+    _check(model, q, scan, world, true, result, len(world))
+
+
+def test_a_scan_not_in_metres_is_refused_without_scale_and_nothing_is_written(gripper_arm, tmp_path):
+    from twinbench.construct.align_robot import align_robot_files
+    from twinbench.gaussians.io import save_gaussians
+
+    scan = sample_robot_scan(gripper_arm, spacing=0.008, seed=3)
+    cloud = scan.posed(gripper_arm.home_q)
+    big = np.diag([3.7, 3.7, 3.7, 1.0])
+    save_gaussians(cloud.transform(big), tmp_path / "robot.ply")
+    with pytest.raises(ValueError, match=r"robot\.ply: after registration .* % of the robot's Gaussians .* "
+                                         r"add --scale"):
+        align_robot_files(tmp_path / "robot.ply", tmp_path / "out")
+    assert not (tmp_path / "out").exists()
+    rep = align_robot_files(tmp_path / "robot.ply", tmp_path / "out",
+                            params=RegistrationParams(estimate_scale=True))
+    assert abs(rep["scale"] * 3.7 - 1.0) < 2e-3 and rep["fitness"] > 0.95
+
+
 def test_registration_without_scale_rejects_nothing_it_should_keep(gripper_arm):
     """A scan already in the world frame (identity) is kept there: the global stage does not wander."""
     model = gripper_arm

@@ -25,20 +25,23 @@ class AlignRobotConfig:
     q: tuple[float, ...] | None = None
     """joint configuration of the scan (default: the robot's home)"""
     scale: bool = False
-    """also estimate a uniform scale (scans of unknown units)"""
+    """also estimate a uniform scale (scans of unknown units, e.g. COLMAP's: any unit)"""
     also: tuple[Path, ...] = ()
     """other parts of the same scan to move into the robot base frame (background, objects)"""
     max_distance: float = 0.02
     """Gaussians farther than this from every link after alignment go to far.ply, not to the robot (m)"""
     voxel: float = 0.012
     """global-registration voxel (m, robot units)"""
+    min_inliers: float = 0.5
+    """refuse the registration when fewer than this fraction of the Gaussians end within --max-distance"""
     seed: int = 0
 
 
 def main(cfg: AlignRobotConfig) -> int:
     params = RegistrationParams(estimate_scale=cfg.scale, voxel=cfg.voxel, seed=cfg.seed)
     rep = align_robot_files(cfg.robot, cfg.out, urdf=cfg.urdf, q=cfg.q, params=params,
-                            max_distance=cfg.max_distance, also=cfg.also)
+                            max_distance=cfg.max_distance, also=cfg.also,
+                            min_inliers=cfg.min_inliers)
     print(f"fitness={rep['fitness']:.4f} rmse={rep['rmse_m'] * 1e3:.2f}mm scale={rep['scale']:.4f} "
           f"labelled={rep['labelled']} dropped={rep['dropped_far']}")
     return 0

@@ -377,7 +377,9 @@ class RegistrationParams:
     voxel: float = 0.012  # global-registration voxel (m)
     feature_k: int = 32  # neighbours of the FPFH features
     estimate_scale: bool = False
-    scale_range: tuple[float, float] = (0.5, 2.0)  # accepted scale of scan -> world
+    # with estimate_scale: the accepted scan -> world scale, relative to the first estimate from the clouds'
+    # spreads (so a scan in any unit, e.g. COLMAP's, registers; the fit may refine that estimate this much)
+    scale_range: tuple[float, float] = (0.5, 2.0)
     ransac_iterations: int = 60000
     icp_max_dist: float = 0.03
     icp_points: int = 40000  # scan points used by ICP (random subset when more)
@@ -414,21 +416,23 @@ def register_robot(
     tree = cKDTree(dst)
     timings["urdf_samples"] = time.perf_counter() - t0
 
+    def spread_ratio(p: np.ndarray) -> float:  # the URDF samples' RMS radius over the points'
+        rs = np.sqrt(np.mean(np.sum((p - p.mean(axis=0)) ** 2, axis=1)))
+        rd = np.sqrt(np.mean(np.sum((reg.points - reg.points.mean(axis=0)) ** 2, axis=1)))
+        return float(rd / max(rs, 1e-12))
+
     t0 = time.perf_counter()
-    keep = density_filter(pts, params.floater_radius)
+    # the floater radius is in metres: in scan units when the scan's unit is estimated
+    keep = density_filter(pts, params.floater_radius / (spread_ratio(pts) if params.estimate_scale else 1.0))
     clean = pts[keep]
     timings["density_filter"] = time.perf_counter() - t0
 
     rng = np.random.default_rng(params.seed)
     global_fit = float("nan")
+    s0 = spread_ratio(clean) if params.estimate_scale else 1.0  # first estimate of scan -> world scale
     if init is None:
         t0 = time.perf_counter()
-        s0 = 1.0
         cs_, cd_ = clean.mean(axis=0), reg.points.mean(axis=0)
-        if params.estimate_scale:
-            rs = np.sqrt(np.mean(np.sum((clean - cs_) ** 2, axis=1)))
-            rd = np.sqrt(np.mean(np.sum((reg.points - cd_) ** 2, axis=1)))
-            s0 = float(rd / rs)
         pre = np.eye(4)
         pre[:3, :3] *= s0
         pre[:3, 3] = cd_ - s0 * cs_
@@ -441,7 +445,7 @@ def register_robot(
             src_v, dst_v, src_f, dst_f,
             inlier_dist=1.5 * params.voxel,
             with_scale=params.estimate_scale,
-            scale_range=(lo / s0, hi / s0) if params.estimate_scale else (1.0, 1.0),
+            scale_range=(lo, hi) if params.estimate_scale else (1.0, 1.0),
             iterations=params.ransac_iterations,
             seed=params.seed,
         )
@@ -457,10 +461,11 @@ def register_robot(
     timings["icp"] = time.perf_counter() - t0
     scale = similarity_scale(t)
     lo, hi = params.scale_range
-    if params.estimate_scale and not lo <= scale <= hi:
+    if params.estimate_scale and not lo * s0 <= scale <= hi * s0:
         raise ValueError(
-            f"registration: estimated scale {scale:.3f} is outside scale_range {params.scale_range}; "
-            "check the scan's units or widen scale_range"
+            f"registration: estimated scale {scale:.4g} is outside {params.scale_range} x {s0:.4g} (the first "
+            "estimate, from the spread of the scan's robot Gaussians against the URDF's): the registration "
+            "failed; check that segment's robot box holds the robot and little else, --urdf and --q"
         )
     t0 = time.perf_counter()
     world_n = None if scan_normals is None else np.asarray(scan_normals, dtype=np.float64) @ t[:3, :3].T
@@ -525,9 +530,10 @@ def label_points(
 
 def align_robot_files(robot_path, out, *, urdf: str = "builtin:xarm7_gripper", q=None,
                       params: RegistrationParams = RegistrationParams(), max_distance: float = 0.02,
-                      also=()) -> dict:
+                      also=(), min_inliers: float = 0.5) -> dict:
     """`twinbench align-robot`: register the robot's Gaussians (a 3DGS file) to the URDF at `q` (default:
-    the robot's home), write the output folder (`write_aligned_robot`) and return the report."""
+    the robot's home), write the output folder (`write_aligned_robot`) and return the report. Refused (no
+    files written) when under `min_inliers` of the Gaussians end within `max_distance` of the links."""
     from twinbench.gaussians.io import load_gaussians
     from twinbench.twin.build import load_spec_robot
     from twinbench.twin.spec import RobotSpec
@@ -544,12 +550,17 @@ def align_robot_files(robot_path, out, *, urdf: str = "builtin:xarm7_gripper", q
         raise ValueError(f"{robot_path}: the robot's {len(cloud.means)} Gaussians span {extent:.4g} m "
                          f"(fewer than 10 distinct points, or under 4 voxels of {params.voxel} m): not a "
                          "scan of a robot to register; check the file (segment's robot.ply) or --voxel")
+    if not 0.0 <= min_inliers <= 1.0:
+        raise ValueError(f"--min-inliers: expected a fraction in [0, 1], got {min_inliers!r}")
     res = register_robot(cloud.means, model, q, params, scan_normals=gaussian_normals(cloud))
-    if not np.any(res.distances <= max_distance):
-        raise ValueError(f"{robot_path}: after registration no Gaussian lies within --max-distance "
-                         f"{max_distance} m of the URDF's links (nearest {float(res.distances.min()):.3g} "
-                         "m): the registration failed; check --urdf, --q (the scan's joint configuration) "
-                         "and --scale")
+    near = float(np.mean(res.distances <= max_distance))
+    if not np.any(res.distances <= max_distance) or near < min_inliers:
+        hint = "" if params.estimate_scale else "if the scan is not in metres (e.g. COLMAP's), add --scale; "
+        raise ValueError(f"{robot_path}: after registration {100 * near:.1f} % of the robot's Gaussians lie "
+                         f"within --max-distance {max_distance} m of the URDF's links (--min-inliers "
+                         f"{min_inliers}; nearest {float(res.distances.min()):.3g} m): the registration "
+                         f"failed; {hint}check --urdf, --q (the scan's joint configuration) and that "
+                         "segment's robot box holds the robot and little else")
     write_aligned_robot(out, cloud, res, q, urdf, max_distance, also)
     return res.report(max_distance)
 
