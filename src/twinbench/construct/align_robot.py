@@ -463,9 +463,10 @@ def register_robot(
     lo, hi = params.scale_range
     if params.estimate_scale and not lo * s0 <= scale <= hi * s0:
         raise ValueError(
-            f"registration: estimated scale {scale:.4g} is outside {params.scale_range} x {s0:.4g} (the first "
-            "estimate, from the spread of the scan's robot Gaussians against the URDF's): the registration "
-            "failed; check that segment's robot box holds the robot and little else, --urdf and --q"
+            f"registration: estimated scale {scale:.4g} is outside {params.scale_range} x {s0:.4g} (the "
+            "first estimate, from the spread of the scan's robot Gaussians against the URDF's): the "
+            "registration failed; check that segment's robot box holds the robot and little else, --urdf "
+            "and --q"
         )
     t0 = time.perf_counter()
     world_n = None if scan_normals is None else np.asarray(scan_normals, dtype=np.float64) @ t[:3, :3].T
