@@ -4,6 +4,7 @@ of openpi's examples already has. Skipped where openpi-client is not installed; 
 
 import numpy as np
 import pytest
+from served import Doubler
 
 from twinbench.evaluation.rollout import policy_observation
 from twinbench.policies.server import PolicyServer
@@ -13,16 +14,6 @@ from twinbench.tasks import get_task
 openpi_client = pytest.importorskip("openpi_client.websocket_client_policy")
 # openpi-client 0.1.2 opens its connection without a context manager, which newer websockets flag
 pytestmark = pytest.mark.filterwarnings("ignore:connect\\(\\) must be used:DeprecationWarning")
-
-
-class Doubler:
-    def reset(self):
-        pass
-
-    def select_action(self, obs):
-        if obs.get("prompt") == "crash":
-            raise ValueError("bad observation")
-        return 2 * np.asarray(obs["agent_pos"], np.float32)
 
 
 def test_openpi_client_talks_to_twinbench_server():

@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 from openpi_codec import pack, unpack
 from scipy.spatial.transform import Rotation
+from served import Doubler
 from websockets.exceptions import ConnectionClosed
 from websockets.sync.client import connect
 from websockets.sync.server import serve
@@ -92,16 +93,6 @@ def test_twinbench_client_against_openpi_style_server():
         pol.close()
     finally:
         server.close()
-
-
-class Doubler:
-    def reset(self):
-        pass
-
-    def select_action(self, obs):
-        if obs.get("prompt") == "crash":
-            raise ValueError("bad observation")
-        return 2 * np.asarray(obs["agent_pos"], np.float32)
 
 
 def test_openpi_style_client_against_twinbench_server():
