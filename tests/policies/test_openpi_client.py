@@ -1,12 +1,19 @@
-"""openpi's own client package (`openpi-client`, PyPI) against twinbench's policy server: the client a user
-of openpi's examples already has. Skipped where openpi-client is not installed; CI's numpy-1 job installs it
-(openpi and openpi-client require numpy < 2, see .ci/run)."""
+"""openpi's own code against twinbench, both ways: its client package (`openpi-client`, PyPI: what a user of
+openpi's examples already has) against twinbench's policy server, and twinbench's `remote:` client against
+openpi's `WebsocketPolicyServer` (as packaged on PyPI by `openpi-server`, which needs openpi-client). Skipped
+where they are not installed; CI's numpy-1 job installs both (openpi and openpi-client require numpy < 2, see
+.ci/run)."""
+
+import socket
+import threading
+import time
 
 import numpy as np
 import pytest
-from served import Doubler
+from served import CHUNK, Doubler, Env, libero_actions, libero_obs
 
 from twinbench.evaluation.rollout import policy_observation
+from twinbench.policies import PolicyError
 from twinbench.policies.server import PolicyServer
 from twinbench.policies.spec import make_policy
 from twinbench.tasks import get_task
@@ -43,3 +50,49 @@ def test_openpi_client_drives_the_served_expert():
             want = np.asarray(local.select_action(sent))
             assert np.allclose(remote, want, atol=1e-6)
             obs, _, _, _, info = env.step(want)
+
+
+class LiberoModel:
+    """An openpi policy (`infer(obs) -> dict`) answering CHUNK to LIBERO-shaped requests."""
+
+    def __init__(self):
+        self.requests = []
+
+    def infer(self, obs):
+        self.requests.append(obs)
+        if obs["prompt"] == "crash":
+            raise RuntimeError("model exploded")
+        assert obs["observation/image"].shape == (224, 224, 3) and obs["observation/state"].shape == (8,)
+        return {"actions": CHUNK}
+
+    def reset(self):
+        pass
+
+
+def test_twinbench_client_against_openpis_own_server():
+    server_mod = pytest.importorskip("openpi_server.websocket_policy_server")
+    with socket.socket() as s:  # a free port (openpi's server does not report the one it binds)
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    model = LiberoModel()
+    server = server_mod.WebsocketPolicyServer(model, host="127.0.0.1", port=port, metadata={"env": "libero"})
+    threading.Thread(target=server.serve_forever, daemon=True).start()
+    for _ in range(200):  # until it listens
+        with socket.socket() as s:
+            if s.connect_ex(("127.0.0.1", port)) == 0:
+                break
+        time.sleep(0.05)
+    url = f"ws://127.0.0.1:{port}"
+    pol = make_policy(f"pi05=remote:{url}?io=openpi-libero", get_task("point-reach"), Env())
+    obs = libero_obs()
+    got = np.array([pol.select_action(obs) for _ in range(7)])
+    assert len(model.requests) == 2  # 5 of each 10-action chunk executed (openpi's replan_steps)
+    assert model.requests[0]["prompt"] == "put the bowl on the plate"
+    expected = libero_actions(obs)
+    assert np.allclose(got, np.r_[expected[:5], expected[:2]], atol=1e-6)
+    pol.close()
+    pol = make_policy(f"remote:{url}?io=openpi-libero", get_task("point-reach"), Env())
+    pol.prompt = "crash"
+    with pytest.raises(PolicyError, match="model exploded"):
+        pol.select_action(obs)
+    pol.close()

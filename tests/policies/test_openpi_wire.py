@@ -9,8 +9,7 @@ import traceback
 import numpy as np
 import pytest
 from openpi_codec import pack, unpack
-from scipy.spatial.transform import Rotation
-from served import Doubler
+from served import CHUNK, Doubler, Env, libero_actions, libero_obs
 from websockets.exceptions import ConnectionClosed
 from websockets.sync.client import connect
 from websockets.sync.server import serve
@@ -18,8 +17,6 @@ from websockets.sync.server import serve
 from twinbench.policies import PolicyError, make_policy
 from twinbench.policies.server import PolicyServer
 from twinbench.tasks import get_task
-
-CHUNK = np.linspace(-1, 1, 70, dtype=np.float32).reshape(10, 7)
 
 
 class OpenpiStyleServer:
@@ -54,39 +51,21 @@ class OpenpiStyleServer:
         self._server.shutdown()
 
 
-class _Env:
-    """What make_policy reads from an env: the task text."""
-
-    class unwrapped:  # noqa: N801
-        task_description = "put the bowl on the plate"
-
-
-def _libero_obs():
-    rng = np.random.default_rng(0)
-    return {"pixels": {c: rng.integers(0, 255, (240, 320, 3), dtype=np.uint8) for c in ("front", "wrist")},
-            "agent_pos": np.array([0.4, 0, 0.2, 1, 0, 0, 0, 0.0], np.float32)}
-
-
 def test_twinbench_client_against_openpi_style_server():
     server = OpenpiStyleServer()
     try:
         spec = f"pi05=remote:{server.url}?io=openpi-libero"
-        pol = make_policy(spec, get_task("point-reach"), _Env())
-        obs = _libero_obs()
+        pol = make_policy(spec, get_task("point-reach"), Env())
+        obs = libero_obs()
         got = np.array([pol.select_action(obs) for _ in range(7)])
         assert len(server.requests) == 2  # 5 of each 10-action chunk executed (openpi's replan_steps)
         req = server.requests[0]
         assert set(req) == {"observation/image", "observation/wrist_image", "observation/state", "prompt"}
         assert req["prompt"] == "put the bowl on the plate" and req["observation/image"].dtype == np.uint8
-        delta = CHUNK * np.r_[[0.05] * 3, [0.5] * 3, 1.0]
-        delta[:, 6] = (CHUNK[:, 6] + 1) / 2  # gripper [-1, 1] -> [0, 1]
-        # per-step deltas from the observed pose (identity rotation): [p + dp, quat(dr), g]
-        quat = Rotation.from_rotvec(delta[:, 3:6]).as_quat()[:, [3, 0, 1, 2]]
-        quat *= np.where(quat[:, :1] < 0, -1.0, 1.0)
-        expected = np.c_[obs["agent_pos"][:3] + delta[:, :3], quat, delta[:, 6]]
+        expected = libero_actions(obs)
         assert np.allclose(got, np.r_[expected[:5], expected[:2]], atol=1e-6)
         pol.close()
-        pol = make_policy(f"remote:{server.url}?io=openpi-libero", get_task("point-reach"), _Env())
+        pol = make_policy(f"remote:{server.url}?io=openpi-libero", get_task("point-reach"), Env())
         pol.prompt = "crash"
         with pytest.raises(PolicyError, match="model exploded"):
             pol.select_action(obs)
