@@ -39,3 +39,28 @@ def libero_actions(obs):
     quat = Rotation.from_rotvec(delta[:, 3:6]).as_quat()[:, [3, 0, 1, 2]]
     quat *= np.where(quat[:, :1] < 0, -1.0, 1.0)
     return np.c_[obs["agent_pos"][:3] + delta[:, :3], quat, delta[:, 6]]
+
+
+def check_libero_exchange(url: str, requests: list) -> None:
+    """twinbench's `remote:` client with the `openpi-libero` layout against a LIBERO-like server at `url` that
+    answers CHUNK and raises "model exploded" on the prompt "crash" (`requests`: what it received)."""
+    import pytest
+
+    from twinbench.policies import PolicyError, make_policy
+    from twinbench.tasks import get_task
+
+    pol = make_policy(f"pi05=remote:{url}?io=openpi-libero", get_task("point-reach"), Env())
+    obs = libero_obs()
+    got = np.array([pol.select_action(obs) for _ in range(7)])
+    assert len(requests) == 2  # 5 of each 10-action chunk executed (openpi's replan_steps)
+    req = requests[0]
+    assert set(req) == {"observation/image", "observation/wrist_image", "observation/state", "prompt"}
+    assert req["prompt"] == "put the bowl on the plate" and req["observation/image"].dtype == np.uint8
+    expected = libero_actions(obs)
+    assert np.allclose(got, np.r_[expected[:5], expected[:2]], atol=1e-6)
+    pol.close()
+    pol = make_policy(f"remote:{url}?io=openpi-libero", get_task("point-reach"), Env())
+    pol.prompt = "crash"
+    with pytest.raises(PolicyError, match="model exploded"):
+        pol.select_action(obs)
+    pol.close()

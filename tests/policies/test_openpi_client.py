@@ -10,10 +10,9 @@ import time
 
 import numpy as np
 import pytest
-from served import CHUNK, Doubler, Env, libero_actions, libero_obs
+from served import CHUNK, Doubler, check_libero_exchange
 
 from twinbench.evaluation.rollout import policy_observation
-from twinbench.policies import PolicyError
 from twinbench.policies.server import PolicyServer
 from twinbench.policies.spec import make_policy
 from twinbench.tasks import get_task
@@ -82,17 +81,4 @@ def test_twinbench_client_against_openpis_own_server():
             if s.connect_ex(("127.0.0.1", port)) == 0:
                 break
         time.sleep(0.05)
-    url = f"ws://127.0.0.1:{port}"
-    pol = make_policy(f"pi05=remote:{url}?io=openpi-libero", get_task("point-reach"), Env())
-    obs = libero_obs()
-    got = np.array([pol.select_action(obs) for _ in range(7)])
-    assert len(model.requests) == 2  # 5 of each 10-action chunk executed (openpi's replan_steps)
-    assert model.requests[0]["prompt"] == "put the bowl on the plate"
-    expected = libero_actions(obs)
-    assert np.allclose(got, np.r_[expected[:5], expected[:2]], atol=1e-6)
-    pol.close()
-    pol = make_policy(f"remote:{url}?io=openpi-libero", get_task("point-reach"), Env())
-    pol.prompt = "crash"
-    with pytest.raises(PolicyError, match="model exploded"):
-        pol.select_action(obs)
-    pol.close()
+    check_libero_exchange(f"ws://127.0.0.1:{port}", model.requests)

@@ -9,14 +9,12 @@ import traceback
 import numpy as np
 import pytest
 from openpi_codec import pack, unpack
-from served import CHUNK, Doubler, Env, libero_actions, libero_obs
+from served import CHUNK, Doubler, check_libero_exchange
 from websockets.exceptions import ConnectionClosed
 from websockets.sync.client import connect
 from websockets.sync.server import serve
 
-from twinbench.policies import PolicyError, make_policy
 from twinbench.policies.server import PolicyServer
-from twinbench.tasks import get_task
 
 
 class OpenpiStyleServer:
@@ -54,22 +52,7 @@ class OpenpiStyleServer:
 def test_twinbench_client_against_openpi_style_server():
     server = OpenpiStyleServer()
     try:
-        spec = f"pi05=remote:{server.url}?io=openpi-libero"
-        pol = make_policy(spec, get_task("point-reach"), Env())
-        obs = libero_obs()
-        got = np.array([pol.select_action(obs) for _ in range(7)])
-        assert len(server.requests) == 2  # 5 of each 10-action chunk executed (openpi's replan_steps)
-        req = server.requests[0]
-        assert set(req) == {"observation/image", "observation/wrist_image", "observation/state", "prompt"}
-        assert req["prompt"] == "put the bowl on the plate" and req["observation/image"].dtype == np.uint8
-        expected = libero_actions(obs)
-        assert np.allclose(got, np.r_[expected[:5], expected[:2]], atol=1e-6)
-        pol.close()
-        pol = make_policy(f"remote:{server.url}?io=openpi-libero", get_task("point-reach"), Env())
-        pol.prompt = "crash"
-        with pytest.raises(PolicyError, match="model exploded"):
-            pol.select_action(obs)
-        pol.close()
+        check_libero_exchange(server.url, server.requests)
     finally:
         server.close()
 
