@@ -561,7 +561,7 @@ def align_robot_files(robot_path, out, *, urdf: str = "builtin:xarm7_gripper", q
                          f"within --max-distance {max_distance} m of the URDF's links (--min-inliers "
                          f"{min_inliers}; nearest {float(res.distances.min()):.3g} m): the registration "
                          f"failed; {hint}check --urdf, --q (the scan's joint configuration) and that "
-                         "segment's robot box holds the robot and little else")
+                         "segment's robot box holds the robot and little else (or lower --min-inliers)")
     write_aligned_robot(out, cloud, res, q, urdf, max_distance, also)
     return res.report(max_distance)
 
