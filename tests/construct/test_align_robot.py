@@ -152,6 +152,12 @@ def test_a_scan_not_in_metres_is_refused_without_scale_and_nothing_is_written(gr
     rep = align_robot_files(tmp_path / "robot.ply", tmp_path / "out",
                             params=RegistrationParams(estimate_scale=True))
     assert abs(rep["scale"] * 3.7 - 1.0) < 2e-3 and rep["fitness"] > 0.95
+    # a scan in units of 1 / 100 m spans under 4 voxels of 0.012 m: with --scale its extent is not held
+    # against it
+    save_gaussians(cloud.transform(np.diag([0.01, 0.01, 0.01, 1.0])), tmp_path / "tiny.ply")
+    rep = align_robot_files(tmp_path / "tiny.ply", tmp_path / "out2",
+                            params=RegistrationParams(estimate_scale=True))
+    assert abs(rep["scale"] * 0.01 - 1.0) < 2e-3 and rep["fitness"] > 0.95
 
 
 def test_registration_without_scale_rejects_nothing_it_should_keep(gripper_arm):

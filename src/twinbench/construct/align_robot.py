@@ -547,7 +547,8 @@ def align_robot_files(robot_path, out, *, urdf: str = "builtin:xarm7_gripper", q
     q = model.home_q if q is None else model.check_q(np.asarray(q, dtype=np.float64))
     cloud = load_gaussians(robot_path)
     extent = float(np.ptp(cloud.means, axis=0).max()) if len(cloud.means) else 0.0
-    if len(np.unique(cloud.means.round(6), axis=0)) < 10 or extent < 4 * params.voxel:
+    # (with --scale the scan's unit is unknown: its extent says nothing)
+    if len(np.unique(cloud.means, axis=0)) < 10 or (extent < 4 * params.voxel and not params.estimate_scale):
         raise ValueError(f"{robot_path}: the robot's {len(cloud.means)} Gaussians span {extent:.4g} m "
                          f"(fewer than 10 distinct points, or under 4 voxels of {params.voxel} m): not a "
                          "scan of a robot to register; check the file (segment's robot.ply) or --voxel")
