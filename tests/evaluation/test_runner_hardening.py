@@ -236,3 +236,23 @@ def test_worker_and_seed_bounds_and_safe_policy_folders(tmp_path):
     assert policy_folder("a/../..", "x") == "a-..-.._x" and "/" not in policy_folder("/etc", "passwd")
     recs = evaluate("point-reach", ["..=expert"], 1, 0, "dots", tmp_path / "r.sqlite", output_dir=tmp_path)
     assert recs[0].policy == ".." and (tmp_path / "eval" / "dots" / "_." / "eval_info.json").is_file()
+
+
+def test_progress_lines_for_logs_print_at_most_once_a_minute_with_an_eta():
+    from twinbench.progress import ProgressLines
+
+    now, out = [100.0], []
+    lines = ProgressLines(out.append, "eval r", total=10, done=2, clock=lambda: now[0])
+    for t, done in ((30.0, 3), (61.0, 4), (90.0, 5), (125.0, 6)):
+        now[0] = 100.0 + t
+        lines.update(done, f"{done} successes")
+    # 2 of 8 to do finished in 61 s: 6 left at 30.5 s each; then 4 in 125 s: 4 left at 31.25 s each
+    assert out == ["eval r: 4/10 (4 successes), elapsed 0:01:01, ETA 0:03:03",
+                   "eval r: 6/10 (6 successes), elapsed 0:02:05, ETA 0:02:05"]
+    now[0] += 1.0
+    lines.update(10)  # the end of a run that printed: always a last line
+    assert out[-1] == "eval r: 10/10, elapsed 0:02:06, ETA 0:00:00"
+    quiet = []
+    short = ProgressLines(quiet.append, "eval s", total=3, clock=lambda: 0.0)
+    short.update(3)  # a run shorter than a minute prints nothing
+    assert quiet == []

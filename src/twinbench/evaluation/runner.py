@@ -34,7 +34,7 @@ from twinbench.evaluation.rollout import EpisodeBatch, EpisodeJob
 from twinbench.evaluation.store import DEFAULT_DB, EpisodeRecord, ResultsStore, check_run_id
 from twinbench.evaluation.video import ALL_VIEWS, partial_path
 from twinbench.policies.spec import parse_policy_spec
-from twinbench.progress import progress_bar
+from twinbench.progress import ProgressLines, progress_bar
 
 MAX_EPISODES = 100_000  # per policy and run; more is refused before anything is allocated
 MAX_WORKERS = 256
@@ -241,6 +241,9 @@ def evaluate(task: str, policies: Sequence[str], episodes: str | int = "grid", w
 
     with progress_bar(progress) as bar:
         bar_task = bar.add_task(f"eval {run_id}", total=len(jobs), completed=done_count[0])
+        # not a terminal (a log file): the bar shows nothing until the end, so lines at most once a minute
+        lines = (ProgressLines(log, f"eval {run_id}", len(jobs), done_count[0])
+                 if progress and not bar.console.is_terminal else None)
 
         def on_done(rec: EpisodeRecord) -> None:
             _remove_partial_videos([jobs[(rec.policy, rec.checkpoint, rec.init_state, rec.seed)]])
@@ -248,6 +251,11 @@ def evaluate(task: str, policies: Sequence[str], episodes: str | int = "grid", w
             results[(rec.policy, rec.checkpoint, rec.init_state, rec.seed)] = rec
             done_count[0] += 1
             bar.advance(bar_task)
+            if lines is not None:
+                finished = [r for r in results.values() if r.status == "ok"]
+                wins, errors = sum(r.success for r in finished), len(results) - len(finished)
+                lines.update(done_count[0], f"{wins} success{'es' * (wins != 1)}, "
+                             f"{errors} error{'s' * (errors != 1)}")
 
         try:
             with sigterm_as_interrupt():

@@ -127,7 +127,8 @@ def run_evaluations(task: str, real_world: Path, twins: dict[str, Path], policie
         t0 = time.perf_counter()
         recs = evaluate(task, policies, episodes=episodes_arg(sz), workers=workers, run_id=run_id,
                         store=store, env_kwargs=env_kwargs(world, sz), output_dir=out / "results", log=log,
-                        record_actions=run_id == REAL_ROLLOUTS, retry_errors=retry_errors, seed=seed)
+                        record_actions=run_id == REAL_ROLLOUTS, retry_errors=retry_errors, seed=seed,
+                        progress=True)  # a bar in a terminal, else a line a minute (a study runs for hours)
         times[run_id] = time.perf_counter() - t0
         bad = [r for r in recs if r.status != "ok"]
         log(f"{run_id}: {sum(r.success for r in recs)}/{len(recs)} successes, {len(bad)} errors, "
