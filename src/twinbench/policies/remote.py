@@ -150,8 +150,14 @@ class RemotePolicy(ChunkedPolicy):
                 raise PolicyError(f"policy server {self.url} replied without an {ACTIONS_KEY!r} entry: "
                                   f"{type(out).__name__} {list(out) if isinstance(out, dict) else ''}")
             return out
-        raise PolicyError(f"policy server {self.url} unreachable after {self.retries + 1} attempts "
-                          f"(time-out {self.timeout_s} s): {type(last).__name__}: {last}")
+        n = self.retries + 1
+        if isinstance(last, ConnectionRefusedError):
+            why = "connection refused: nothing listens there; start the server, or check the host and port"
+        elif isinstance(last, TimeoutError):
+            why = f"no reply within the time-out of {self.timeout_s} s"
+        else:
+            why = f"{type(last).__name__}: {last} (time-out {self.timeout_s} s)"
+        raise PolicyError(f"policy server {self.url} unreachable after {n} attempt{'s' * (n != 1)}: {why}")
 
     @property
     def uses_environment_state(self) -> bool:
