@@ -40,7 +40,8 @@ class ProgressLines:
         self.done0 = int(done)
         self.printed = False
 
-    def update(self, done: int, info: str = "") -> None:
+    def update(self, done: int, info=None) -> None:
+        """`info`: a function giving the line's extra text, called only when a line is printed."""
         now = self.clock()
         end = done >= self.total
         if not (now - self.last >= self.every_s or (end and self.printed)):
@@ -49,5 +50,6 @@ class ProgressLines:
         elapsed = now - self.t0
         rate = (done - self.done0) / elapsed if elapsed > 0 else 0.0
         eta = "-" if rate <= 0 else _duration((self.total - done) / rate)
-        extra = f" ({info})" if info else ""
+        text = info() if info is not None else ""
+        extra = f" ({text})" if text else ""
         self.log(f"{self.desc}: {done}/{self.total}{extra}, elapsed {_duration(elapsed)}, ETA {eta}")

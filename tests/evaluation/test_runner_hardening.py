@@ -245,7 +245,7 @@ def test_progress_lines_for_logs_print_at_most_once_a_minute_with_an_eta():
     lines = ProgressLines(out.append, "eval r", total=10, done=2, clock=lambda: now[0])
     for t, done in ((30.0, 3), (61.0, 4), (90.0, 5), (125.0, 6)):
         now[0] = 100.0 + t
-        lines.update(done, f"{done} successes")
+        lines.update(done, lambda done=done: f"{done} successes")
     # 2 of 8 to do finished in 61 s: 6 left at 30.5 s each; then 4 in 125 s: 4 left at 31.25 s each
     assert out == ["eval r: 4/10 (4 successes), elapsed 0:01:01, ETA 0:03:03",
                    "eval r: 6/10 (6 successes), elapsed 0:02:05, ETA 0:02:05"]

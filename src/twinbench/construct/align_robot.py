@@ -416,10 +416,13 @@ def register_robot(
     tree = cKDTree(dst)
     timings["urdf_samples"] = time.perf_counter() - t0
 
+    def rms_radius(p: np.ndarray) -> float:
+        return float(np.sqrt(np.mean(np.sum((p - p.mean(axis=0)) ** 2, axis=1))))
+
+    urdf_radius = rms_radius(reg.points)
+
     def spread_ratio(p: np.ndarray) -> float:  # the URDF samples' RMS radius over the points'
-        rs = np.sqrt(np.mean(np.sum((p - p.mean(axis=0)) ** 2, axis=1)))
-        rd = np.sqrt(np.mean(np.sum((reg.points - reg.points.mean(axis=0)) ** 2, axis=1)))
-        return float(rd / max(rs, 1e-12))
+        return urdf_radius / max(rms_radius(p), 1e-12)
 
     t0 = time.perf_counter()
     # the floater radius is in metres: in scan units when the scan's unit is estimated

@@ -252,10 +252,12 @@ def evaluate(task: str, policies: Sequence[str], episodes: str | int = "grid", w
             done_count[0] += 1
             bar.advance(bar_task)
             if lines is not None:
-                finished = [r for r in results.values() if r.status == "ok"]
-                wins, errors = sum(r.success for r in finished), len(results) - len(finished)
-                lines.update(done_count[0], f"{wins} success{'es' * (wins != 1)}, "
-                             f"{errors} error{'s' * (errors != 1)}")
+                lines.update(done_count[0], counts)
+
+        def counts() -> str:  # the run's successes and errors so far (for a progress line)
+            finished = [r for r in results.values() if r.status == "ok"]
+            wins, errors = sum(r.success for r in finished), len(results) - len(finished)
+            return f"{wins} success{'es' * (wins != 1)}, {errors} error{'s' * (errors != 1)}"
 
         try:
             with sigterm_as_interrupt():
