@@ -177,6 +177,23 @@ def test_package_paths_resolved_from_urdf_parents_and_package_dirs(tmp_path):
     np.testing.assert_allclose(m2.visual_meshes["finger_x"].extents, [0.01, 0.02, 0.03])
 
 
+def test_a_description_copied_out_of_its_package_finds_its_meshes(tmp_path):
+    # example-robot-data's SO-101: package://example-robot-data/robots/so_arm_description/meshes/...,
+    # with so_arm_description/ copied on its own (urdf/ and meshes/ side by side)
+    _box_stl(tmp_path / "so_arm_description" / "meshes" / "so101" / "box.stl")
+    urdf = tmp_path / "so_arm_description" / "urdf" / "tiny.urdf"
+    urdf.parent.mkdir()
+    urdf.write_text(URDF_TEMPLATE.format(
+        mesh="package://example-robot-data/robots/so_arm_description/meshes/so101/box.stl"))
+    np.testing.assert_allclose(load_robot(urdf).visual_meshes["finger_x"].extents, [0.01, 0.02, 0.03])
+    # only tails of a folder and a file: a bare file name elsewhere is not taken for the mesh
+    _box_stl(tmp_path / "other" / "box.stl")
+    lone = tmp_path / "other" / "tiny.urdf"
+    lone.write_text(URDF_TEMPLATE.format(mesh="package://pkg/meshes/gone/box.stl"))
+    with pytest.raises(FileNotFoundError, match="ROS_PACKAGE_PATH=DIR"):
+        load_robot(lone)
+
+
 def test_missing_mesh_error_names_link_and_path(tmp_path):
     urdf = tmp_path / "tiny.urdf"
     urdf.write_text(URDF_TEMPLATE.format(mesh="meshes/nothing_here.stl"))

@@ -47,3 +47,20 @@ def test_robot_info_pusher_and_urdf(capsys, tmp_path):
     pos, quat = _ee_line(out)
     np.testing.assert_allclose(pos, [0, 0, 0.5])
     np.testing.assert_allclose(quat, [1, 0, 0, 0])
+
+
+def test_robot_info_names_the_gripper_joint_and_the_end_effector_it_implies(capsys, tmp_path):
+    # Unitree Z1's ending: a fixed stator and one revolute jaw; named as the gripper, the jaw is a finger
+    # and the stator the end effector
+    urdf = tmp_path / "z1like.urdf"
+    urdf.write_text("""<robot name="z1like"><link name="base"/><link name="stator"/><link name="jaw"/>
+      <joint name="fix" type="fixed"><parent link="base"/><child link="stator"/>
+      <origin xyz="0 0 0.3"/></joint>
+      <joint name="jaw_joint" type="revolute"><parent link="stator"/><child link="jaw"/>
+      <origin xyz="0.1 0 0"/><axis xyz="0 1 0"/><limit lower="-1.5" upper="0" effort="1" velocity="1"/>
+      </joint></robot>""")
+    assert main(["robot-info", str(urdf)]) == 0
+    assert "end effector jaw at home" in capsys.readouterr().out
+    assert main(["robot-info", str(urdf), "--gripper-joint", "jaw_joint"]) == 0
+    out = capsys.readouterr().out
+    assert "end effector stator at home" in out and "gripper joint jaw_joint: open 0, closed -1.5" in out

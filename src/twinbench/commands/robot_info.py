@@ -19,6 +19,7 @@ class RobotInfoConfig:
     urdf: Annotated[str | None, tyro.conf.Positional] = None  # URDF file; omit for the built-in arm
     tool: str = "gripper"  # built-in arm tool: gripper | pusher (ignored with a URDF)
     ee_link: str | None = None  # end-effector link of a URDF (default: the deepest link not on a finger)
+    gripper_joint: str | None = None  # the joint driving a URDF's fingers (twin.json's robot.gripper_joint)
     package_dirs: tuple[str, ...] = ()  # extra folders searched for package:// meshes
 
 
@@ -61,6 +62,7 @@ def main(config: RobotInfoConfig) -> int:
             raise ValueError(f"--tool: expected one of {TOOLS}, got {config.tool!r}")
         model = load_builtin_arm(config.tool)
     else:
-        model = load_robot(config.urdf, ee_link=config.ee_link, package_dirs=config.package_dirs)
+        model = load_robot(config.urdf, ee_link=config.ee_link, gripper_joint=config.gripper_joint,
+                           package_dirs=config.package_dirs)
     print(describe(model))
     return 0

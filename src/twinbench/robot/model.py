@@ -409,6 +409,17 @@ def _resolve_filename(
                 tried.append(c)
                 if c.is_file():
                     return c, tried
+        # A description copied out of its package (example-robot-data's so_arm_description, say, whose
+        # meshes are `package://example-robot-data/robots/so_arm_description/meshes/...`): the path's
+        # tails of at least a folder and a file, longest first, under the URDF's folder and its parents.
+        parts = Path(rel).parts
+        for k in range(1, len(parts) - 1):
+            tail = Path(*parts[k:])
+            for root in [*package_dirs, urdf_dir, *urdf_dir.parents]:
+                c = root / tail
+                if _inside(c, root) and c.is_file():
+                    tried.append(c)
+                    return c, tried
         return None, tried
     if filename.startswith("file://"):
         filename = filename[len("file://") :]
@@ -469,7 +480,8 @@ def _geometry_mesh(
             shown = ", ".join(str(t) for t in tried[:6]) + (" ..." if len(tried) > 6 else "")
             raise FileNotFoundError(
                 f"{urdf_path}: link {link!r}: mesh {geometry.mesh.filename!r} not found (tried {shown}); "
-                "fix the path or pass package_dirs=[folder containing the package]"
+                "fix the path, or name the folder holding the package: ROS_PACKAGE_PATH=DIR (any command), "
+                "--package-dirs DIR (robot-info) or package_dirs=[DIR] (load_robot)"
             )
         scale = None
         if geometry.mesh.scale is not None:
@@ -551,6 +563,18 @@ def _default_ee_link(order: list[str], depth: dict[str, int], specs: list[JointS
     return max(candidates, key=lambda n: (depth[n], -order.index(n)))
 
 
+def _is_xacro(root: ElementTree.Element) -> bool:
+    """Whether a parsed URDF still holds xacro: an element in xacro's namespace or a `${...}` / `$(...)`
+    value. A URDF that xacro generated keeps the namespace declaration (and often a comment naming xacro)
+    and is a plain URDF."""
+    for el in root.iter():
+        if isinstance(el.tag, str) and el.tag.startswith("{http://www.ros.org/wiki/xacro}"):
+            return True
+        if any("${" in v or "$(" in v for v in el.attrib.values()):
+            return True
+    return False
+
+
 def load_robot(
     urdf_path: str | Path,
     *,
@@ -586,7 +610,7 @@ def load_robot(
         raise URDFError(f"{urdf_path}: malformed XML ({exc}); fix the file") from exc
     if root.tag != "robot":
         raise URDFError(f"{urdf_path}: root element is <{root.tag}>, expected <robot>")
-    if b"http://www.ros.org/wiki/xacro" in head or b"<xacro:" in head:
+    if _is_xacro(root):
         raise URDFError(f"{urdf_path}: a xacro file (macros and ${{...}} expressions), not a URDF; expand it "
                         "first: `xacro FILE > robot.urdf` (ROS, or `pip install xacro`)")
     try:

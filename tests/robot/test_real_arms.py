@@ -1,0 +1,46 @@
+"""Arms from example-robot-data (extra `xarm`) as a user brings them: Franka Panda (a URDF that xacro
+generated), UR5, LeRobot's SO-100 / SO-101 (meshes named through another package's path), Unitree Z1
+(a revolute jaw): each loads, picks the end effector a user expects, and IK reaches poses it can reach."""
+
+from __future__ import annotations
+
+import importlib.metadata
+
+import numpy as np
+import pytest
+
+from twinbench.robot.ik import random_configurations, solve_ik
+from twinbench.robot.model import load_robot
+
+try:
+    _DIST = importlib.metadata.distribution("example-robot-data")
+except importlib.metadata.PackageNotFoundError:
+    pytest.skip("example-robot-data is not installed (pip install 'twinbench[xarm]')",
+                allow_module_level=True)
+
+ROBOTS = _DIST.locate_file("cmeel.prefix/share/example-robot-data/robots")
+
+# (URDF, gripper joint, end effector, arm joints, load meshes)
+ARMS = [
+    ("panda_description/urdf/panda.urdf", "panda_finger_joint1", "panda_hand_tcp", 7, True),
+    ("ur_description/urdf/ur5_gripper.urdf", None, "ee_link", 6, False),
+    ("so_arm_description/urdf/so101.urdf", "gripper", "gripper_frame_link", 5, True),
+    ("so_arm_description/urdf/so100.urdf", "gripper", "gripper", 5, False),  # no frame link: the jaw's parent
+    ("z1_description/urdf/z1.urdf", "jointGripper", "gripperStator", 6, False),
+]
+
+
+@pytest.mark.parametrize("urdf, gripper, ee, n_arm, meshes", ARMS, ids=[a[0].split("/")[-1] for a in ARMS])
+def test_a_real_arm_loads_and_reaches_what_it_can_reach(urdf, gripper, ee, n_arm, meshes):
+    model = load_robot(ROBOTS / urdf, gripper_joint=gripper, load_meshes=meshes)
+    assert model.ee_link == ee and model.arm_q_indices.size == n_arm
+    if meshes:  # every link with a <visual> mesh found it
+        assert len(model.visual_meshes) >= n_arm + 1
+        assert all(np.isfinite(m.vertices).all() and len(m.faces) for m in model.visual_meshes.values())
+    if gripper is not None:
+        k = model.joint_names.index(gripper)
+        assert (model.gripper_open, model.gripper_closed) == (model.upper[k], model.lower[k])
+    qs = random_configurations(model, 6, np.random.default_rng(0))
+    result = solve_ik(model, model.ee_pose(qs))
+    assert np.all(result.converged)
+    np.testing.assert_allclose(model.ee_pose(result.q)[:, :3, 3], model.ee_pose(qs)[:, :3, 3], atol=1e-4)
