@@ -100,3 +100,29 @@ def test_chain_rebuilds_the_cell(tmp_path):
     # without the colour map the images differ clearly (the test can fail)
     plain = build_twin(dataclasses.replace(rebuilt, background_color_map=None))
     assert np.abs(plain[0].render(plain[1], ["front"])["front"].rgb - original).mean() > 2 * err
+
+
+def test_build_config_gives_a_users_pusher_its_tool_radius(tmp_path):
+    """A user's own URDF with a pushing tool: the build config carries the tip radius that push-T's rules
+    read (the built-in pusher fills it in itself); before, the field was refused and the user had to edit
+    twin.json by hand."""
+    from twinbench.construct.build_config import build_spec_from_config
+
+    (tmp_path / "arm.urdf").write_text(
+        '<robot name="arm"><link name="base"/><link name="tip"/><joint name="j" type="prismatic">'
+        '<parent link="base"/><child link="tip"/><axis xyz="1 0 0"/>'
+        '<limit lower="0" upper="0.5" effort="1" velocity="1"/></joint></robot>')
+    save_object(push_t_cell("fast").objects[0], tmp_path / "tblock")
+    (tmp_path / "cal.json").write_text(json.dumps({"cameras": [{
+        "name": "front", "intrinsics": [200.0, 200.0, 106.0, 60.0], "sensor_size": [212, 120],
+        "output_hw": [120, 212], "camera_to_world": np.eye(4).tolist()}]}))
+    config = {"robot": {"urdf": "arm.urdf", "contact_links": ["tip"], "tool_radius": 0.0125},
+              "objects": [{"dir": "tblock"}], "cameras": "cal.json"}
+    (tmp_path / "build.json").write_text(json.dumps(config))
+    spec = build_spec_from_config(tmp_path / "build.json")
+    assert spec.robot.tool_radius == 0.0125 and spec.robot.contact_links == ("tip",)
+    config["robot"]["tip_radius"] = 0.01
+    (tmp_path / "build.json").write_text(json.dumps(config))
+    unknown = r"robot: unknown field\(s\) \['tip_radius'\]; known: .*'tool_radius'"
+    with pytest.raises(ValueError, match=unknown):
+        build_spec_from_config(tmp_path / "build.json")
