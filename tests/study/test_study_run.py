@@ -128,3 +128,30 @@ def test_a_study_run_started_again_keeps_the_stages_it_finished(tmp_path, monkey
     record = json.loads((out / "stages.json").read_text())
     assert list(record["done"]) == ["make-real", "evidence", "reconstruct", "policies"]
     assert record["done"]["reconstruct"]["result"] == {"full": str(tmp_path / "twins" / "full")}
+    # the user's own policies join the evaluation, also in a run started again (not a stage argument)
+    evaluated = []
+    monkeypatch.setattr(E, "run_evaluations", lambda task, world, twins, policies, *a, **k: evaluated.append(
+        policies) or {"real": 1.0})
+    calls.clear()
+    doc = run_study("push-t", out, "small", seed=3, log=lambda line: None, policies=["mine=expert@0.5"])
+    assert calls == ["report"] and evaluated == [["p0=perceive:x.json", "mine=expert@0.5"]]
+    with pytest.raises(InputError, match=r"policy spec 'nope:x': unknown policy kind 'nope'"):
+        run_study("push-t", out, "small", seed=3, log=lambda line: None, policies=["nope:x"])
+    with pytest.raises(InputError, match=r"'p0' is one of the study's own policies; name yours otherwise"):
+        run_study("push-t", out, "small", seed=3, log=lambda line: None, policies=["p0=expert"])
+
+
+def test_user_policies_are_checked_before_a_study_runs():
+    from twinbench.errors import InputError
+    from twinbench.study.evaluate import with_user_policies
+
+    study = ["p0-clean=perceive:a.json", "p1-noise1cm=perceive:b.json"]
+    assert with_user_policies("push-t", study, ["mine=expert@0.3", "lerobot:ckpt/step_5?io=io.json"]) == [
+        *study, "mine=expert@0.3", "lerobot:ckpt/step_5?io=io.json"]
+    with pytest.raises(InputError, match=r"'p5-noise4cm' is one of the study's own policies; name yours "
+                                         r"otherwise: --policy MINE=expert"):
+        with_user_policies("push-t", None, ["p5-noise4cm=expert"])  # before the study's policies exist
+    with pytest.raises(InputError, match=r"also 'expert@0.3''s; name it: --policy MINE=expert@0.3"):
+        with_user_policies("push-t", study, ["expert@0.3", "expert@0.3"])
+    with pytest.raises(InputError, match=r"policy name 'my policy'"):
+        with_user_policies("push-t", study, ["my policy=expert"])

@@ -78,6 +78,10 @@ class EvaluateConfig:
     """also evaluate the real workcell a second time with other episode seeds (the yardstick for r and
     MMRV: how well one real evaluation predicts another) at a size that leaves it out (small); medium and
     full always do"""
+    policy: tuple[str, ...] = ()
+    """your own policies, evaluated beside the study's on the real workcell and every twin (repeatable;
+    any spec `twinbench eval --policy` takes, e.g. mine=lerobot:DIR?io=FILE); they see what the study's
+    policies see: the front camera and the robot state"""
 
 
 @dataclass(frozen=True)
@@ -105,6 +109,10 @@ class RunConfig:
     """also evaluate the real workcell a second time with other episode seeds (the yardstick for r and
     MMRV: how well one real evaluation predicts another) at a size that leaves it out (small); medium and
     full always do"""
+    policy: tuple[str, ...] = ()
+    """your own policies, evaluated beside the study's on the real workcell and every twin (repeatable;
+    any spec `twinbench eval --policy` takes, e.g. mine=lerobot:DIR?io=FILE); they see what the study's
+    policies see: the front camera and the robot state"""
 
 
 StudyCommand = (
@@ -124,6 +132,7 @@ def _evaluate(cfg: EvaluateConfig) -> int:
         run_evaluations,
         training_records,
         user_calibration,
+        with_user_policies,
         write_study_json,
     )
     from twinbench.study.report import write_study_report
@@ -134,6 +143,7 @@ def _evaluate(cfg: EvaluateConfig) -> int:
     if not real.is_dir() or not twins:
         raise InputError(f"{cfg.out}: needs real/world (study make-real) and twins/<variant> (study "
                          "reconstruct); `twinbench study run` makes them")
+    with_user_policies(cfg.task, None, cfg.policy)  # before the calibration and training
     rank = {v: i for i, v in enumerate(VARIANTS)}
     twins = dict(sorted(twins.items(), key=lambda kv: (rank.get(kv[0], len(rank)), kv[0])))
     policies = make_policies(cfg.task, real, cfg.out / "policies", cfg.size,
@@ -143,10 +153,12 @@ def _evaluate(cfg: EvaluateConfig) -> int:
 
         policies += make_bc_policies(cfg.task, real, cfg.out / "policies" / "bc", cfg.size, act=cfg.bc_act,
                                      dp=cfg.bc_dp)
+    policies = with_user_policies(cfg.task, policies, cfg.policy)
     times = run_evaluations(cfg.task, real, twins, policies, cfg.out, cfg.size, cfg.workers,
                             retry_errors=cfg.retry_errors, real_again=cfg.real_again or None)
     doc = write_study_json(cfg.out, cfg.task, cfg.size, list(twins), times,
-                           {"policies": policies, "training": training_records(policies)})
+                           {"policies": policies, "user_policies": list(cfg.policy),
+                            "training": training_records(policies)})
     write_study_report(cfg.out, doc)
     print(format_table(doc))
     print(f"wrote {cfg.out / 'study.json'} and {cfg.out / 'report.html'}")
@@ -174,7 +186,7 @@ def main(cfg) -> int:
         from twinbench.study.run import run_study
 
         doc = run_study(cfg.task, cfg.out, cfg.size, cfg.seed, cfg.workers, bc=cfg.bc, bc_act=cfg.bc_act,
-                        bc_dp=cfg.bc_dp, real_again=cfg.real_again or None)
+                        bc_dp=cfg.bc_dp, real_again=cfg.real_again or None, policies=cfg.policy)
         print(format_table(doc))
         print("stage wall times: " + ", ".join(f"{k} {v:.0f} s" for k, v in doc["stage_seconds"].items()))
         print(f"wrote {cfg.out / 'study.json'} and {cfg.out / 'report.html'}")

@@ -101,6 +101,39 @@ def make_policies(task: str, real_world: Path, out: Path, size: str | StudySize 
     return specs
 
 
+def with_user_policies(task: str, study: list[str] | None, user) -> list[str]:
+    """The study's policy specs followed by the user's own (`--policy`: any spec `twinbench eval` takes),
+    checked before anything runs: each must parse, no two may share a (policy, checkpoint) label, and no
+    user policy may take the name of one of the study's (or of the task's perception controllers).
+    `study` None checks the user's alone (a `study run` before its policies exist)."""
+    from twinbench.policies import parse_policy_spec
+    from twinbench.study.policies import LEVELS
+
+    user = list(user or ())
+    labels: dict[tuple[str, str], str] = {}
+    study_names: set[str] = set()
+    for text in [*(study or []), *user]:
+        spec = parse_policy_spec(text)
+        key = (spec.name, spec.checkpoint)
+        if key in labels:
+            raise InputError(f"--policy {text!r}: its label (policy {spec.name!r}, checkpoint "
+                             f"{spec.checkpoint!r}) is also {labels[key]!r}'s; name it: "
+                             f"--policy MINE={_unnamed(text)}")
+        if text in user and (spec.name in LEVELS.get(task, {}) or spec.name in study_names):
+            raise InputError(f"--policy {text!r}: {spec.name!r} is one of the study's own policies; name "
+                             f"yours otherwise: --policy MINE={_unnamed(text)}")
+        labels[key] = text
+        if text not in user:
+            study_names.add(spec.name)
+    return [*(study or []), *user]
+
+
+def _unnamed(text: str) -> str:
+    """A policy spec without its NAME= prefix (parse_policy_spec's rule)."""
+    head, sep, rest = text.partition("=")
+    return rest if sep and ":" not in head and "@" not in head else text
+
+
 def _real_records(store: ResultsStore, task: str, recs) -> None:
     """Copy the real rollouts' records as domain "real" into run `real` (replacing earlier copies)."""
     ok = [replace(r, run_id=REAL, domain="real") for r in recs if r.status == "ok"]

@@ -91,11 +91,13 @@ class _Timer:
 
 def run_study(task: str, out: Path, size: str = "small", seed: int = 0, workers: int = 1,
               variants: tuple[str, ...] | None = None, log=print, bc: bool = False,
-              bc_act: bool = False, bc_dp: bool = False, real_again: bool | None = None) -> dict:
+              bc_act: bool = False, bc_dp: bool = False, real_again: bool | None = None,
+              policies=()) -> dict:
     """Every stage of a study of `task` into `out`; returns study.json's content. `bc`: also the CNN
     behaviour-cloning policies (study.bc; the torch extra); `bc_act` / `bc_dp`: those and LeRobot ACT /
     Diffusion Policy policies trained on the same demonstrations (the lerobot extra). `real_again`: evaluate
-    the real workcell a second time (None: as the size says; `small` does not)."""
+    the real workcell a second time (None: as the size says; `small` does not). `policies`: the user's own
+    policy specs, evaluated beside the study's (not a stage argument: a run started again may add some)."""
     from twinbench.evaluation.backends import refuse_in_worker_import
     from twinbench.study.evaluate import (
         make_policies,
@@ -103,6 +105,7 @@ def run_study(task: str, out: Path, size: str = "small", seed: int = 0, workers:
         study_size,
         training_records,
         user_calibration,
+        with_user_policies,
         write_study_json,
     )
     from twinbench.study.evidence import make_evidence
@@ -118,6 +121,8 @@ def run_study(task: str, out: Path, size: str = "small", seed: int = 0, workers:
     if task not in LEVELS:  # ... and a task without perception controllers (before hours of stages)
         raise InputError(f"study run --task {task}: perception controllers exist for {sorted(LEVELS)}; "
                          "`twinbench study make-real / evidence / reconstruct` take any built-in task")
+    user = list(policies)
+    with_user_policies(task, None, user)  # a bad spec is refused before hours of stages
     out = Path(out)
     variants = tuple(variants or VARIANTS)
     out.mkdir(parents=True, exist_ok=True)
@@ -135,9 +140,10 @@ def run_study(task: str, out: Path, size: str = "small", seed: int = 0, workers:
 
         policies += timer("bc", make_bc_policies, task, world, out / "policies" / "bc", size, log,
                           act=bc_act, dp=bc_dp)
+    policies = with_user_policies(task, policies, user)
     eval_times = timer("evaluate", run_evaluations, task, world, twins, policies, out, size, workers, log,
                        real_again=real_again)
-    extra = {"evaluation_seconds": eval_times, "policies": policies, "seed": seed,
+    extra = {"evaluation_seconds": eval_times, "policies": policies, "user_policies": user, "seed": seed,
              "training": training_records(policies)}
     doc = write_study_json(out, task, size, list(twins), timer.seconds, extra)
     timer("report", write_study_report, out, doc)
