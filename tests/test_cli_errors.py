@@ -57,6 +57,9 @@ def _case(tmp_path, name):
     if name == "eval-bad-policy":
         return ["eval", "--run-id", "r", "--task", "point-reach", "--policy", "nonsense", "--db", str(db)], \
             "nonsense"
+    if name == "eval-twin-on-point-reach":
+        return (["eval", "--run-id", "r", "--task", "point-reach", "--policy", "expert", "--twin",
+                 str(tmp_path / "twin"), "--db", str(db)], "--twin: task 'point-reach' has an env of its own")
     if name == "import-real-missing":
         return ["import-real", str(tmp_path / "none.csv"), "--db", str(db)], "none.csv does not exist"
     if name == "report-unknown-run":
@@ -88,7 +91,8 @@ def _case(tmp_path, name):
 
 CASES = ["malformed-urdf", "missing-urdf", "bad-tool", "bad-lerobot-info", "missing-replay-source",
          "replay-env-kwargs", "eval-db-under-a-file", "eval-db-not-sqlite", "eval-other-protocol",
-         "eval-unknown-task", "eval-run-id-path", "eval-bad-policy", "import-real-missing",
+         "eval-unknown-task", "eval-run-id-path", "eval-bad-policy", "eval-twin-on-point-reach",
+         "import-real-missing",
          "report-unknown-run", "render-missing", "refine-missing-calibration", "refine-no-real-image",
          "refine-scan-out-of-view"]
 

@@ -18,10 +18,16 @@ def parse_env_kwargs(text: str) -> dict:
     return env_kwargs
 
 
-def env_kwargs_with_twin(env_kwargs: dict, twin: Path | None) -> dict:
-    """`--twin DIR`: evaluate in the twin directory DIR (an absolute path, so worker processes find it)."""
+def env_kwargs_with_twin(env_kwargs: dict, twin: Path | None, task: str) -> dict:
+    """`--twin DIR`: evaluate `task` in the twin directory DIR (an absolute path, so worker processes find
+    it); a task with an env of its own (point-reach) is refused."""
     if twin is None:
         return env_kwargs
+    from twinbench.errors import InputError
+    from twinbench.tasks import get_task
+
+    if get_task(task).task_cls is None:
+        raise InputError(f"--twin: task {task!r} has an env of its own, not a twin; run it without --twin")
     if "twin" in env_kwargs:
         raise ValueError("give the twin either as --twin or in --env-kwargs, not both")
     if not (Path(twin) / "twin.json").is_file():

@@ -67,7 +67,7 @@ def main(cfg: EvalConfig) -> int:
     if not cfg.policy:
         say("twinbench eval: give at least one --policy (e.g. --policy expert)")
         return 2
-    env_kwargs = env_kwargs_with_twin(parse_env_kwargs(cfg.env_kwargs), cfg.twin)
+    env_kwargs = env_kwargs_with_twin(parse_env_kwargs(cfg.env_kwargs), cfg.twin, cfg.task)
     try:
         records = evaluate(cfg.task, list(cfg.policy), cfg.episodes, cfg.workers, cfg.run_id, cfg.db,
                            seed=cfg.seed, video=cfg.video, backend=cfg.backend, output_dir=cfg.output_dir,

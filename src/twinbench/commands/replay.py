@@ -37,7 +37,7 @@ class ReplayConfig:
 
 
 def main(cfg: ReplayConfig) -> int:
-    env_kwargs = env_kwargs_with_twin(parse_env_kwargs(cfg.env_kwargs), cfg.twin)
+    env_kwargs = env_kwargs_with_twin(parse_env_kwargs(cfg.env_kwargs), cfg.twin, cfg.task)
     episodes = load_recorded(cfg.source, cfg.outcomes)
     pairs = replay_episodes(cfg.task, episodes, cfg.db, cfg.run_id, env_kwargs=env_kwargs,
                             index_map=cfg.index_map, workers=cfg.workers)
