@@ -98,3 +98,19 @@ def test_the_expert_pushes_the_scaled_t_home(small_env):
         obs, _, term, trunc, info = small_env.step(action)
         steps += 1
     assert info["is_success"] and term, f"not home after {steps} steps: {info}"
+
+
+def test_an_arm_that_cannot_reach_the_start_pose_is_named_with_how_far_it_stays(tmp_path):
+    from twinbench.robot.model import load_robot
+
+    # a 30 cm prismatic slide along z: the start (0.3, -0.2, 0.005), tool pointing down, is out of reach
+    (tmp_path / "slide.urdf").write_text(
+        '<robot name="slide"><link name="base"/><link name="tip"/><joint name="z" type="prismatic">'
+        '<parent link="base"/><child link="tip"/><axis xyz="0 0 1"/>'
+        '<limit lower="0" upper="0.3" effort="1" velocity="1"/></joint></robot>')
+    twin = types.SimpleNamespace(robot=load_robot(tmp_path / "slide.urdf", load_meshes=False))
+    task = PushTTask()
+    far = (r"push-t: the task's start pose \(end effector 'tip' at \(0.3, -0.2, 0.005\) m .* is not "
+           r"reachable by slide \(the closest configuration found is 360.6 mm and 180.0 deg away\)")
+    with pytest.raises(ValueError, match=far):
+        task.start_configuration(twin, (0.3, -0.2, 0.005), (0.0, 1.0, 0.0, 0.0))

@@ -210,8 +210,12 @@ class TwinTask:
         target = pose_matrix(np.asarray(position, np.float64), np.asarray(quat, np.float64))
         res = solve_ik(twin.robot, target, twin.robot.home_q)
         if not res.converged:
-            raise ValueError(f"{self.name}: start position {tuple(position)} is not reachable by "
-                             f"{twin.robot.name}")
+            raise ValueError(
+                f"{self.name}: the task's start pose (end effector {twin.robot.ee_link!r} at "
+                f"{tuple(float(v) for v in position)} m in the robot's base frame, orientation wxyz "
+                f"{tuple(float(v) for v in quat)}) is not reachable by {twin.robot.name} (the closest "
+                f"configuration found is {1000 * float(res.pos_err):.1f} mm and "
+                f"{np.degrees(float(res.rot_err)):.1f} deg away); the task needs an arm that reaches it")
         return res.q
 
 
