@@ -19,6 +19,10 @@ def test_study_evaluate_needs_the_study_folder(tmp_path, capsys):
     assert "needs real/world" in capsys.readouterr().err
     assert cli_main(["study", "run", "--out", str(tmp_path), "--size", "huge"]) == 2
     assert "study size 'huge' (--size)" in capsys.readouterr().err
+    out = tmp_path / "study"
+    assert cli_main(["study", "run", "--out", str(out), "--policy", "mine=expert", "--policy", "nope:x"]) == 2
+    assert "policy spec 'nope:x': unknown policy kind 'nope'" in capsys.readouterr().err
+    assert not out.exists()  # refused before any stage
 
 
 @pytest.mark.slow

@@ -16,6 +16,7 @@ from pathlib import Path
 from typing import Annotated
 
 import tyro
+from tyro.conf import UseAppendAction
 
 from twinbench.study.reconstruct import VARIANTS
 
@@ -78,7 +79,7 @@ class EvaluateConfig:
     """also evaluate the real workcell a second time with other episode seeds (the yardstick for r and
     MMRV: how well one real evaluation predicts another) at a size that leaves it out (small); medium and
     full always do"""
-    policy: tuple[str, ...] = ()
+    policy: Annotated[tuple[str, ...], UseAppendAction] = ()  # repeatable: --policy a --policy b
     """your own policies, evaluated beside the study's on the real workcell and every twin (repeatable;
     any spec `twinbench eval --policy` takes, e.g. mine=lerobot:DIR?io=FILE); they see what the study's
     policies see: the front camera and the robot state"""
@@ -109,7 +110,7 @@ class RunConfig:
     """also evaluate the real workcell a second time with other episode seeds (the yardstick for r and
     MMRV: how well one real evaluation predicts another) at a size that leaves it out (small); medium and
     full always do"""
-    policy: tuple[str, ...] = ()
+    policy: Annotated[tuple[str, ...], UseAppendAction] = ()  # repeatable: --policy a --policy b
     """your own policies, evaluated beside the study's on the real workcell and every twin (repeatable;
     any spec `twinbench eval --policy` takes, e.g. mine=lerobot:DIR?io=FILE); they see what the study's
     policies see: the front camera and the robot state"""
