@@ -132,6 +132,23 @@ def load_spec_robot(spec: RobotSpec) -> RobotModel:
     )
 
 
+HEAVY_CONTACT_FACES = 5000  # a contact mesh above this makes physics steps slow: warned at build
+
+
+def _warn_heavy_contact_mesh(model: RobotModel, link: str) -> None:
+    """Every physics substep moves a contact link's mesh and refits its BVH (~1 us a face on a CPU core,
+    667 substeps a frame at the cells' dt): a CAD mesh from a user's URDF (an SO-101's gripper and jaw,
+    76k faces together) made an env step 3-9 s against the built-in pusher's 0.1 s."""
+    n = len(model.contact_faces(link))
+    if n > HEAVY_CONTACT_FACES:
+        import warnings
+
+        warnings.warn(f"{model.urdf_path}: contact link {link!r} has a collision mesh of {n:,} faces, "
+                      "refitted every physics substep: steps will be slow; give the link a <collision> mesh "
+                      f"of at most {HEAVY_CONTACT_FACES:,} faces (a convex hull or a decimated copy)",
+                      stacklevel=3)
+
+
 def _robot_gaussians(spec: RobotSpec, model: RobotModel) -> RobotGaussians:
     if spec.gaussians is None:
         rg = sample_robot_scan(model, spacing=spec.scan_spacing)
@@ -188,6 +205,7 @@ class Twin:
         tool = spec.robot.tool_contact
         self._tool_mesh: dict[str, int] = {}
         for link in self.robot.contact_links:
+            _warn_heavy_contact_mesh(self.robot, link)
             self._tool_mesh[link] = builder.add_kinematic_mesh(
                 self.robot.contact_vertices(q0, link),
                 self.robot.contact_faces(link),
