@@ -4,9 +4,9 @@ hidden "real" workcell (twinbench.study). `run` does every stage into one folder
     twinbench study run --task push-t --out study_pusht --size small
     twinbench study run --task rope-routing --out study_rope --size small
 
-Tasks: push-t and rope-routing (every stage); toy-packing through make-real, evidence and reconstruct (its
-box rebuilt as a collider like the rope's clip), with no perception controllers yet: `evaluate` and `run`
-refuse it, naming the tasks that have them.
+Tasks: push-t, rope-routing and toy-packing, every stage (each has its perception controllers); another
+task goes through make-real, evidence and reconstruct, and `evaluate` / `run` refuse it, naming the tasks
+that have them. `--policy NAME=SPEC` adds your own policies to `evaluate` and `run`.
 """
 
 from __future__ import annotations
