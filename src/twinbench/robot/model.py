@@ -568,7 +568,7 @@ def _is_xacro(root: ElementTree.Element) -> bool:
     value. A URDF that xacro generated keeps the namespace declaration (and often a comment naming xacro)
     and is a plain URDF."""
     for el in root.iter():
-        if isinstance(el.tag, str) and el.tag.startswith("{http://www.ros.org/wiki/xacro}"):
+        if el.tag.startswith("{http://www.ros.org/wiki/xacro}"):  # (the parser drops comments)
             return True
         if any("${" in v or "$(" in v for v in el.attrib.values()):
             return True
