@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import re
 
 import imageio.v3 as iio
 import numpy as np
@@ -126,3 +127,47 @@ def test_build_config_gives_a_users_pusher_its_tool_radius(tmp_path):
     unknown = r"robot: unknown field\(s\) \['tip_radius'\]; known: .*'tool_radius'"
     with pytest.raises(ValueError, match=unknown):
         build_spec_from_config(tmp_path / "build.json")
+
+
+def test_a_heavy_contact_mesh_collides_through_its_simplified_hull_when_the_config_asks(tmp_path, recwarn):
+    """`robot.contact_mesh: "convex_hull"` in a build config: the twin's physics holds the tool's hull of
+    at most 1,000 faces instead of its 20,480-face mesh (no slow-step warning), the twin directory keeps
+    the choice, and `twin show`'s summary says how far the hull moved; a value it does not know is
+    refused naming the field."""
+    import trimesh
+
+    from twinbench.commands.twin import summary
+    from twinbench.construct.build_config import build_spec_from_config
+    from twinbench.twin import save_twin
+
+    trimesh.creation.icosphere(subdivisions=5, radius=0.02).export(tmp_path / "ball.stl")  # 20,480 faces
+    (tmp_path / "arm.urdf").write_text(
+        '<robot name="arm"><link name="base"/><link name="tip"><visual><geometry><sphere radius="0.02"/>'
+        '</geometry></visual><collision><geometry><mesh filename="ball.stl"/></geometry></collision></link>'
+        '<joint name="z" type="prismatic"><parent link="base"/><child link="tip"/><axis xyz="0 0 1"/>'
+        '<limit lower="0.1" upper="0.3" effort="1" velocity="1"/></joint></robot>')
+    save_object(push_t_cell("fast").objects[0], tmp_path / "tblock")
+    (tmp_path / "cal.json").write_text(json.dumps({"cameras": [{
+        "name": "front", "intrinsics": [200.0, 200.0, 106.0, 60.0], "sensor_size": [212, 120],
+        "output_hw": [120, 212], "camera_to_world": np.eye(4).tolist()}]}))
+    config = {"robot": {"urdf": "arm.urdf", "contact_links": ["tip"], "contact_mesh": "convex_hull"},
+              "objects": [{"dir": "tblock"}], "cameras": "cal.json"}
+    (tmp_path / "build.json").write_text(json.dumps(config))
+    spec = build_spec_from_config(tmp_path / "build.json")
+    assert spec.robot.contact_mesh == "convex_hull"
+    twin, _ = build_twin(load_twin(save_twin(spec, tmp_path / "twin").parent))
+    assert not [w for w in recwarn.list if "faces" in str(w.message)]
+    tool = twin.model.meshes[twin._tool_mesh["tip"]]
+    assert 100 < len(tool.faces) <= 1000 and trimesh.Trimesh(tool.vertices, tool.faces).is_convex
+    assert re.search(r"contact links \[tip \(\d{3} faces, convex hull within 0\.\d mm\)\]", summary(twin)[1])
+    config["robot"]["contact_mesh"] = "hull"
+    (tmp_path / "build.json").write_text(json.dumps(config))
+    refused = r"robot.contact_mesh: expected one of \['collision', 'convex_hull'\], got 'hull'"
+    with pytest.raises(ValueError, match=refused):
+        build_spec_from_config(tmp_path / "build.json")
+    del config["robot"]["contact_mesh"]  # the default: the mesh as it is, and twin.json without the field
+    (tmp_path / "build.json").write_text(json.dumps(config))
+    path = save_twin(build_spec_from_config(tmp_path / "build.json"), tmp_path / "plain")
+    assert "contact_mesh" not in json.loads(path.read_text())["robot"]
+    with pytest.warns(UserWarning, match='20,480 faces.*set robot.contact_mesh to "convex_hull"'):
+        build_twin(load_twin(path.parent))

@@ -315,3 +315,57 @@ def test_the_default_end_effector_is_the_deepest_link_not_on_a_finger(tmp_path):
     assert m.ee_link == "lh" and m.arm_joints == ["la1", "la2"]
     # an explicit ee_link is kept
     assert load_robot(_urdf(tmp_path, panda, "panda_like"), ee_link="left").arm_joints == ["j1", "j2", "f1"]
+
+
+def test_a_heavy_convex_contact_mesh_is_simplified_inside_its_hull_by_the_distance_it_reports():
+    """A 20,480-face sphere: its simplified hull has at most the asked faces, is convex, lies inside the
+    exact hull, and every exact-hull point is within the reported distance of it (the distance is the
+    Hausdorff distance: one vertex attains it)."""
+    from twinbench.robot.model import convex_contact_mesh
+
+    ball = trimesh.creation.icosphere(subdivisions=5, radius=0.02)
+    small, moved = convex_contact_mesh(ball, max_faces=300)
+    assert len(small.faces) <= 300 and small.is_convex and small.is_watertight
+    assert 0 < moved < 0.002  # a 2 cm ball, a few hundred faces: well under 2 mm
+    assert np.all(np.linalg.norm(small.vertices, axis=1) <= 0.02 + 1e-9)  # its vertices are the ball's
+    _, dist, _ = trimesh.proximity.closest_point(small, ball.vertices)
+    assert dist.max() == pytest.approx(moved, rel=1e-9)
+    assert small.volume < ball.volume and small.volume > ball.volume * (1 - 3 * moved / 0.02)
+    # a mesh small enough keeps its exact hull; a flat one has none
+    box = trimesh.creation.box((0.01, 0.02, 0.03))
+    hull, moved = convex_contact_mesh(box)
+    assert moved == 0.0 and hull.volume == pytest.approx(6e-6) and len(hull.faces) == 12
+    with pytest.raises(ValueError, match="flat"):
+        square = trimesh.Trimesh([[0, 0, 0], [1, 0, 0], [0, 1, 0], [1, 1, 0]], [[0, 1, 2], [1, 3, 2]])
+        convex_contact_mesh(square)
+
+
+def test_with_convex_contacts_replaces_only_the_contact_links_meshes(tmp_path):
+    """A C-shaped jaw (concave) collides through its hull, which fills the jaw's mouth; other links keep
+    their meshes; the original model is unchanged; a flat contact mesh is an error naming the link."""
+    back = trimesh.creation.box((0.01, 0.05, 0.01))
+    top = trimesh.creation.box((0.04, 0.01, 0.01))
+    top.apply_translation((0.015, 0.02, 0))
+    bottom = top.copy()
+    bottom.apply_translation((0, -0.04, 0))
+    trimesh.util.concatenate([back, top, bottom]).export(tmp_path / "jaw.stl")
+    trimesh.creation.box((0.1, 0.1, 0.1)).export(tmp_path / "base.stl")
+    (tmp_path / "arm.urdf").write_text(
+        '<robot name="arm"><link name="base"><collision><geometry><mesh filename="base.stl"/></geometry>'
+        '</collision></link><link name="jaw"><collision><geometry><mesh filename="jaw.stl"/></geometry>'
+        '</collision></link><joint name="z" type="prismatic"><parent link="base"/><child link="jaw"/>'
+        '<axis xyz="0 0 1"/><limit lower="0" upper="0.3" effort="1" velocity="1"/></joint></robot>')
+    model = load_robot(tmp_path / "arm.urdf", contact_links=("jaw",))
+    convex = model.with_convex_contacts()
+    jaw = convex.collision_meshes["jaw"]
+    assert jaw.is_convex and jaw.volume == pytest.approx(0.04 * 0.05 * 0.01)  # the mouth filled
+    assert model.collision_meshes["jaw"].volume == pytest.approx(2 * 0.04 * 0.01 * 0.01 + 0.01 * 0.05 * 0.01)
+    inside_mouth = np.array([[0.02, 0.0, 0.0]])
+    assert jaw.contains(inside_mouth)[0] and not model.collision_meshes["jaw"].contains(inside_mouth)[0]
+    assert convex.collision_meshes["base"] is model.collision_meshes["base"]
+    assert convex.convex_contact_moved == {"jaw": 0.0} and model.convex_contact_moved == {}
+    np.testing.assert_allclose(convex.contact_vertices(np.array([0.1]), "jaw")[:, 2].max(), 0.105)
+    trimesh.Trimesh([[0, 0, 0], [0.01, 0, 0], [0, 0.01, 0]], [[0, 1, 2]]).export(tmp_path / "jaw.stl")
+    flat = load_robot(tmp_path / "arm.urdf", contact_links=("jaw",))
+    with pytest.raises(URDFError, match=r"arm.urdf: contact link 'jaw': its collision mesh is flat"):
+        flat.with_convex_contacts()

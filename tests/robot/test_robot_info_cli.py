@@ -7,6 +7,7 @@ import re
 import numpy as np
 
 from twinbench.cli import main
+from twinbench.robot.builtin import load_builtin_arm
 from twinbench.transforms import matrix_to_quat
 
 
@@ -35,7 +36,10 @@ def test_robot_info_builtin(capsys, arm):
 
 def test_robot_info_pusher_and_urdf(capsys, tmp_path):
     assert main(["robot-info", "--tool", "pusher"]) == 0
-    assert "contact links: pusher" in capsys.readouterr().out
+    out = capsys.readouterr().out
+    assert "contact links: pusher" in out
+    faces = len(load_builtin_arm("pusher").collision_meshes["pusher"].faces)  # what physics refits
+    assert re.search(rf"\n  pusher  mesh: \d+ vertices  collision: {faces:,} faces\n", out)
     urdf = tmp_path / "two.urdf"
     urdf.write_text("""<robot name="two"><link name="a"/><link name="b"/>
       <joint name="hinge" type="revolute"><parent link="a"/><child link="b"/>

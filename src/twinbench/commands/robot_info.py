@@ -27,8 +27,10 @@ def describe(model: RobotModel) -> str:
     """Human-readable summary: links, joints (type, axis, limits, mimic) and the home EE pose."""
     lines = [f"robot {model.name}  ({model.urdf_path})", f"links ({model.n_links}):"]
     for name in model.link_names:
-        mesh = model.visual_meshes.get(name)
+        mesh, col = model.visual_meshes.get(name), model.collision_meshes.get(name)
         extra = f"  mesh: {len(mesh.vertices)} vertices" if mesh is not None else ""
+        if col is not None:  # a contact link's collision mesh is refitted every physics substep
+            extra += f"  collision: {len(col.faces):,} faces"
         lines.append(f"  {name}{extra}")
     lines.append(f"joints ({len(model.joints)}, {model.n_q} actuated):")
     for j in model.joints:

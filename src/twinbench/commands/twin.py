@@ -70,6 +70,17 @@ def export(cfg: ExportConfig) -> int:
     return 0
 
 
+def _contact_links(robot) -> str:
+    """Each contact link with its mesh's faces (and for a convex hull, how far it moved)."""
+    parts = []
+    for link in robot.contact_links:
+        text = f"{link} ({len(robot.contact_faces(link)):,} faces"
+        if link in robot.convex_contact_moved:
+            text += f", convex hull within {robot.convex_contact_moved[link] * 1000:.1f} mm"
+        parts.append(text + ")")
+    return "[" + ", ".join(parts) + "]"
+
+
 def summary(twin) -> list[str]:
     """Human-readable lines describing a built twin."""
     spec, m, robot = twin.spec, twin.model, twin.robot
@@ -78,7 +89,7 @@ def summary(twin) -> list[str]:
         f"twin {spec.name!r}",
         f"  robot: {spec.robot.urdf} ({robot.n_q} joints, {robot.n_links} links), "
         f"end-effector {robot.ee_link!r}, "
-        f"contact links {list(robot.contact_links)}, gripper {robot.gripper_joint or '-'}, "
+        f"contact links {_contact_links(robot)}, gripper {robot.gripper_joint or '-'}, "
         f"{len(twin.robot_gaussians)} Gaussians",
         f"  background: {0 if spec.background is None else len(spec.background)} Gaussians",
     ]

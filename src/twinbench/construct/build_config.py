@@ -17,7 +17,7 @@ from twinbench.gaussians.io import load_gaussians
 _BUILD_FIELDS = {"name", "robot", "background", "objects", "colliders", "cameras", "sim", "controller",
                  "render"}
 _ROBOT_PASS = {"ee_link", "contact_links", "gripper_joint", "gripper_open", "gripper_closed", "home_q",
-               "scan_spacing", "tool_radius"}
+               "scan_spacing", "tool_radius", "contact_mesh"}
 
 
 def _color_map_file(root: Path, value, where: str):
@@ -58,7 +58,7 @@ def _build_spec(config_path):
          "robot": {"aligned": "aligned/" | null, "urdf": "builtin:xarm7_gripper" (default: the aligned
                    folder's), "color_map": "color/color_map.json" | null, "tool_contact": {...},
                    ee_link, contact_links, gripper_joint, gripper_open, gripper_closed, home_q, scan_spacing,
-                   tool_radius},
+                   tool_radius, contact_mesh ("collision" | "convex_hull")},
          "background": {"gaussians": "aligned/aligned/background.ply" | null, "color_map": null},
          "objects": [{"dir": "objects/tblock", "rest_pose": 4x4 | null,
                       "gaussians": "world-frame .ply replacing the object's own" | null, "color_map": null}],

@@ -25,6 +25,7 @@ class URDFError(InputError):
     """A URDF that cannot be turned into a RobotModel (message names the file and the fix)."""
 
 
+CONVEX_CONTACT_FACES = 1000  # faces of a simplified convex contact mesh (`convex_contact_mesh`)
 _FK_MEMO = 256  # configurations RobotModel.fk remembers (a step of 64 worlds asks for a few per world)
 
 
@@ -65,6 +66,8 @@ class RobotModel:
     gripper_closed: float = 0.0  # gripper joint value when fully closed (command 1)
     contact_links: tuple[str, ...] = ()  # links whose collision meshes touch objects (fingers, pusher)
     home_q: np.ndarray | None = None  # (n_q,) default configuration
+    # contact links whose meshes are convex hulls (`with_convex_contacts`): how far (m) each moved at most
+    convex_contact_moved: dict[str, float] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
         self.ee_offset = np.asarray(self.ee_offset, dtype=np.float64).reshape(4, 4)
@@ -304,11 +307,63 @@ class RobotModel:
             a = a[:, None]
         return (1.0 - a) * q_from + a * q_to
 
+    def with_convex_contacts(self, max_faces: int = CONVEX_CONTACT_FACES) -> RobotModel:
+        """A copy whose contact links collide through their collision meshes' convex hulls (MuJoCo's rule
+        for every mesh), each of at most `max_faces` faces (`convex_contact_mesh`; how far each moved is
+        in `convex_contact_moved`). A hull fills a link's concavities: a jaw whose grasping side is
+        hollow needs a collision mesh of its own."""
+        import dataclasses
+
+        meshes, moved = dict(self.collision_meshes), {}
+        for link in self.contact_links:
+            try:
+                meshes[link], moved[link] = convex_contact_mesh(self._contact_mesh(link), max_faces)
+            except ValueError as e:
+                raise URDFError(f"{self.urdf_path}: contact link {link!r}: {e}") from None
+        return dataclasses.replace(self, collision_meshes=meshes, convex_contact_moved=moved)
+
     def contact_vertices_interpolated(
         self, q_from: np.ndarray, q_to: np.ndarray, alpha, link: str
     ) -> np.ndarray:
         """World vertices of a contact link at the joint-space interpolation of q_from and q_to."""
         return self.contact_vertices(self.interpolate(q_from, q_to, alpha), link)
+
+
+def convex_contact_mesh(
+    mesh: trimesh.Trimesh, max_faces: int = CONVEX_CONTACT_FACES
+) -> tuple[trimesh.Trimesh, float]:
+    """The convex hull of `mesh` with at most `max_faces` faces, and how far (m) its surface lies inside
+    the exact hull at most (0 when the exact hull is small enough).
+
+    A curved CAD part's hull keeps thousands of faces; then the hull's vertices are binned in cubic cells,
+    one kept per cell (the farthest from the centre, so the extremes stay), the cell growing until the
+    hull of the kept ones is small enough. It lies inside the exact hull, and the distance returned is
+    the exact Hausdorff distance between the two (attained at an exact hull vertex)."""
+    if max_faces < 4:
+        raise ValueError(f"max_faces must be at least 4 (a tetrahedron), got {max_faces}")
+    v = np.asarray(mesh.vertices, dtype=np.float64)
+    if len(v) < 4 or np.linalg.matrix_rank(v - v.mean(axis=0), tol=1e-9) < 3:
+        raise ValueError("its collision mesh is flat or has under 4 vertices: it has no convex hull with "
+                         "volume")
+    hull = trimesh.convex.convex_hull(v)
+    if len(hull.faces) <= max_faces:
+        return hull, 0.0
+    pts = np.asarray(hull.vertices)
+    far = np.linalg.norm(pts - pts.mean(axis=0), axis=1)
+    cell = float(np.max(hull.extents)) / 128.0
+    while True:
+        keys = np.floor(pts / cell).astype(np.int64)
+        order = np.lexsort((-far, keys[:, 2], keys[:, 1], keys[:, 0]))  # per cell, the farthest first
+        k = keys[order]
+        first = np.ones(len(k), dtype=bool)
+        first[1:] = np.any(k[1:] != k[:-1], axis=1)
+        kept = pts[order[first]]
+        if len(kept) >= 4 and np.linalg.matrix_rank(kept - kept.mean(axis=0), tol=1e-9) == 3:
+            small = trimesh.convex.convex_hull(kept)
+            if len(small.faces) <= max_faces:
+                _, dist, _ = trimesh.proximity.closest_point(small, pts)
+                return small, float(np.max(dist))
+        cell *= 1.2
 
 
 # ===================================================================== loading

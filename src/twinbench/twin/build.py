@@ -120,16 +120,17 @@ def load_spec_robot(spec: RobotSpec) -> RobotModel:
                     **overrides,
                 },
             )
-        return model
-    return load_robot(
-        spec.urdf,
-        ee_link=spec.ee_link,
-        gripper_joint=spec.gripper_joint,
-        gripper_open=spec.gripper_open,
-        gripper_closed=spec.gripper_closed,
-        contact_links=spec.contact_links,
-        home_q=None if spec.home_q is None else np.asarray(spec.home_q, dtype=np.float64),
-    )
+    else:
+        model = load_robot(
+            spec.urdf,
+            ee_link=spec.ee_link,
+            gripper_joint=spec.gripper_joint,
+            gripper_open=spec.gripper_open,
+            gripper_closed=spec.gripper_closed,
+            contact_links=spec.contact_links,
+            home_q=None if spec.home_q is None else np.asarray(spec.home_q, dtype=np.float64),
+        )
+    return model.with_convex_contacts() if spec.contact_mesh == "convex_hull" else model
 
 
 HEAVY_CONTACT_FACES = 5000  # a contact mesh above this makes physics steps slow: warned at build
@@ -144,8 +145,10 @@ def _warn_heavy_contact_mesh(model: RobotModel, link: str) -> None:
         import warnings
 
         warnings.warn(f"{model.urdf_path}: contact link {link!r} has a collision mesh of {n:,} faces, "
-                      "refitted every physics substep: steps will be slow; give the link a <collision> mesh "
-                      f"of at most {HEAVY_CONTACT_FACES:,} faces (a convex hull or a decimated copy)",
+                      "refitted every physics substep: steps will be slow; set robot.contact_mesh to "
+                      '"convex_hull" in the twin (or its build config) to collide through its simplified '
+                      f"convex hull, or give the link a <collision> mesh of at most {HEAVY_CONTACT_FACES:,} "
+                      "faces",
                       stacklevel=3)
 
 

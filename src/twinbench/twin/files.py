@@ -8,7 +8,8 @@ field is in README.md ("Twin directories"). Every problem raises `TwinFormatErro
 the field; a save followed by a load gives back the same spec, array for array.
 
 Versions: 2 added the geometry that task rules read (an object's `outline`, the robot's `tool_radius`, a
-collider's `channel`) and an object's optional `goal_pose`; version 1 files (without them) still load.
+collider's `channel`) and an object's optional `goal_pose`; version 1 files (without them) still load. The
+robot's optional `contact_mesh` is written only when it is not the default.
 """
 
 from __future__ import annotations
@@ -421,6 +422,7 @@ _ROBOT_FIELDS = (
         "tool_contact",
         "color_map",
         "tool_radius",
+        "contact_mesh",
     },
 )
 _CAMERA_FIELDS = (
@@ -477,6 +479,8 @@ def _read_robot(r: _Reader, d) -> RobotSpec:
     kw["color_map"] = r.color_map(d.get("color_map"), "robot.color_map")
     if d.get("tool_radius") is not None:
         kw["tool_radius"] = r.number(d["tool_radius"], "robot.tool_radius")
+    if d.get("contact_mesh") is not None:
+        kw["contact_mesh"] = d["contact_mesh"]
     return r.build(lambda: RobotSpec(**kw), "robot")
 
 
@@ -717,6 +721,8 @@ def _robot_json(spec: RobotSpec, root: Path) -> dict:
         "color_map": _color_map_json(spec.color_map),
         "tool_radius": spec.tool_radius,
     }
+    if spec.contact_mesh != "collision":  # written only when set, so that other twins stay readable as before
+        out["contact_mesh"] = spec.contact_mesh
     if spec.builtin_tool is None:
         src = Path(spec.urdf).resolve()
         if src.is_relative_to(root.resolve()):

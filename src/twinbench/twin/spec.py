@@ -28,6 +28,7 @@ from twinbench.robot.controller import ControllerConfig
 from twinbench.twin.shapes import Outline
 
 BINDINGS = ("rigid", "lbs")
+CONTACT_MESHES = ("collision", "convex_hull")  # RobotSpec.contact_mesh
 BUILTIN_ROBOTS = {
     "builtin:xarm7_pusher": "pusher", "builtin:xarm7_pusher20": "pusher20", "builtin:xarm7_gripper": "gripper"
 }
@@ -87,6 +88,11 @@ class RobotSpec:
     each labelled with a link (`gaussian_labels` index `gaussian_links`); or, when `gaussians` is None,
     discs sampled on the URDF's visual meshes every `scan_spacing` metres (built-in robots).
 
+    `contact_mesh`: how the contact links collide with objects: "collision" (their URDF collision meshes
+    as they are) or "convex_hull" (each one's convex hull, simplified to at most 1,000 faces: for CAD
+    meshes, whose tens of thousands of faces make every physics substep slow; see
+    `RobotModel.with_convex_contacts`).
+
     `tool_radius`: the radius (m) of the tool tip that pushes (a pusher rod; None for other tools). The
     built-in pushers' is their rod's (`twinbench.robot.builtin.PUSHERS`), filled in when omitted.
     """
@@ -106,8 +112,13 @@ class RobotSpec:
     tool_contact: ContactSpec = field(default_factory=ContactSpec)
     color_map: ColorMap | None = None
     tool_radius: float | None = None
+    contact_mesh: str = "collision"
 
     def __post_init__(self) -> None:
+        if self.contact_mesh not in CONTACT_MESHES:
+            raise ValueError(
+                f"robot.contact_mesh: expected one of {list(CONTACT_MESHES)}, got {self.contact_mesh!r}"
+            )
         if not isinstance(self.urdf, str) or not self.urdf:
             raise ValueError("robot.urdf: give a URDF path or a built-in name " + str(sorted(BUILTIN_ROBOTS)))
         if self.urdf.startswith("builtin:") and self.urdf not in BUILTIN_ROBOTS:
