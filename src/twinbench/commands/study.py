@@ -80,9 +80,9 @@ class EvaluateConfig:
     MMRV: how well one real evaluation predicts another) at a size that leaves it out (small); medium and
     full always do"""
     policy: Annotated[tuple[str, ...], UseAppendAction] = ()  # repeatable: --policy a --policy b
-    """your own policies, evaluated beside the study's on the real workcell and every twin (repeatable;
-    any spec `twinbench eval --policy` takes, e.g. mine=lerobot:DIR?io=FILE); they see what the study's
-    policies see: the front camera and the robot state"""
+    """your own policies, evaluated beside the study's on the real workcell and every twin: any spec
+    `twinbench eval --policy` takes, e.g. mine=lerobot:DIR?io=FILE; they see what the study's policies
+    see: the front camera and the robot state"""
 
 
 @dataclass(frozen=True)
@@ -111,9 +111,9 @@ class RunConfig:
     MMRV: how well one real evaluation predicts another) at a size that leaves it out (small); medium and
     full always do"""
     policy: Annotated[tuple[str, ...], UseAppendAction] = ()  # repeatable: --policy a --policy b
-    """your own policies, evaluated beside the study's on the real workcell and every twin (repeatable;
-    any spec `twinbench eval --policy` takes, e.g. mine=lerobot:DIR?io=FILE); they see what the study's
-    policies see: the front camera and the robot state"""
+    """your own policies, evaluated beside the study's on the real workcell and every twin: any spec
+    `twinbench eval --policy` takes, e.g. mine=lerobot:DIR?io=FILE; they see what the study's policies
+    see: the front camera and the robot state"""
 
 
 StudyCommand = (
