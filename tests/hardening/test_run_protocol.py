@@ -118,3 +118,38 @@ def test_a_built_in_cell_is_identified_by_its_content(tmp_path, monkeypatch, cap
     assert cli(argv) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "has changed since" in err[0] and "new --run-id" in err[0], err
+
+
+def test_a_run_resumes_on_its_twin_moved_elsewhere_and_a_policy_file_moved_with_it(twin_dir, tmp_path,
+                                                                                   monkeypatch):
+    """A moved study or results folder: the same twin (same content hash) at another path, and a policy
+    spec whose file moved (the same label), resume the run (the protocol takes the new path; no policy is
+    counted as added); other settings that differ, or a changed twin at the new path, are still refused.
+    Before, the path alone refused the resume ("different protocol keys ['env_kwargs', ...]")."""
+    import twinbench.evaluation.runner as runner
+    from twinbench.errors import InputError
+
+    monkeypatch.setattr(runner, "run_local", _no_episodes)
+    store = ResultsStore(tmp_path / "r.sqlite")
+    first = shutil.copytree(twin_dir, tmp_path / "a" / "twin")
+    (tmp_path / "a" / "p.json").write_text("{}")
+    logs = []
+
+    def run(folder, policies, **extra):
+        with pytest.raises(_Ran):
+            runner.evaluate("push-t", policies, "grid:0", 0, "R", store, output_dir=tmp_path / "out",
+                            env_kwargs={"twin": str(folder), "cameras": "front", **extra}, log=logs.append)
+
+    run(first, ["mine=remote:ws://127.0.0.1:9?io=" + str(tmp_path / "a" / "p.json")])
+    moved = shutil.move(tmp_path / "a", tmp_path / "b")
+    second = tmp_path / "b" / "twin"
+    logs.clear()
+    run(second, ["mine=remote:ws://127.0.0.1:9?io=" + str(tmp_path / "b" / "p.json")])
+    assert store.run_protocol("R")["env_kwargs"]["twin"] == str(second) and moved
+    assert not [line for line in logs if "adding" in line]
+    with pytest.raises(InputError, match=r"different protocol keys \['env_kwargs'"):
+        runner.evaluate("push-t", ["mine=remote:ws://127.0.0.1:9"], "grid:0", 0, "R", store,
+                        output_dir=tmp_path / "out", env_kwargs={"twin": str(second), "cameras": ""})
+    _edit_friction(second, 0.9)
+    with pytest.raises(InputError, match="its files have changed since"):
+        run(second, ["mine=remote:ws://127.0.0.1:9"])

@@ -388,7 +388,7 @@ def replay_episodes(task: str, episodes: list[RecordedEpisode], store: ResultsSt
     from twinbench.evaluation.backends import refuse_in_worker_import, run_local
     from twinbench.evaluation.grids import grid_info, map_index, read_index_map
     from twinbench.evaluation.rollout import EpisodeBatch, EpisodeJob, run_episode
-    from twinbench.evaluation.runner import _check_counts, _twin_hash
+    from twinbench.evaluation.runner import _check_counts, _twin_hash, moved_twin_keys
     from twinbench.policies.base import OpenLoopPolicy
     from twinbench.tasks import get_task
 
@@ -421,7 +421,8 @@ def replay_episodes(task: str, episodes: list[RecordedEpisode], store: ResultsSt
                 "index_map": None if index_map is None else str(index_map)}
     if spec.task_cls is not None:  # resuming must replay in the same twin
         protocol["twin_hash"] = _twin_hash(task, dict(env_kwargs or {}), run_id, store)
-    store.start_run(run_id, task, protocol, grow=("n_episodes",))  # more recorded episodes extend the run
+    # more recorded episodes extend the run; a moved twin keeps it
+    store.start_run(run_id, task, protocol, grow=("n_episodes", *moved_twin_keys(store, run_id, protocol)))
 
     def key(ep: RecordedEpisode) -> tuple:
         return ep.policy, ep.checkpoint, ep.init_state, ep.key_seed

@@ -103,6 +103,25 @@ def _remove_partial_videos(jobs) -> None:
             partial_path(job.video_path).unlink(missing_ok=True)
 
 
+def _stored_policies(store: ResultsStore, run_id: str) -> list[str]:
+    """The policy specs run `run_id` was started (or extended) with; [] for a new run."""
+    try:
+        return list(store.run_protocol(run_id).get("policies", []))
+    except KeyError:
+        return []
+
+
+def _parsed(specs) -> list:
+    """The specs that parse (a stored one from an older grammar may not: it then names no label)."""
+    out = []
+    for text in specs:
+        try:
+            out.append(parse_policy_spec(text))
+        except (ValueError, InputError):
+            pass
+    return out
+
+
 def _twin_hash(task: str, env_kwargs: dict, run_id: str, store: ResultsStore) -> str:
     """The content hash of the twin the run evaluates on: the twin directory `env_kwargs["twin"]`, or the
     task's built-in cell as `env_kwargs` build it; InputError when run `run_id` was started on a twin with
@@ -140,6 +159,20 @@ def _twin_hash(task: str, env_kwargs: dict, run_id: str, store: ResultsStore) ->
                          f"{before[:12]}..., {changed} (now {now[:12]}...); use a new --run-id for the "
                          f"changed twin, or {fix} to resume")
     return now
+
+
+def moved_twin_keys(store: ResultsStore, run_id: str, protocol: dict) -> tuple[str, ...]:
+    """("env_kwargs",) when run `run_id` was started on the same twin (equal `twin_hash`) at another path,
+    with its other env settings equal: a moved study or results folder, or a twin named relative to
+    another directory. The protocol may then take the new path (a `grow` key of `start_run`)."""
+    try:
+        old = store.run_protocol(run_id)
+    except KeyError:
+        return ()
+    before, now = dict(old.get("env_kwargs") or {}), dict(protocol.get("env_kwargs") or {})
+    moved = before.pop("twin", None) != now.pop("twin", None)
+    same = old.get("twin_hash") is not None and old.get("twin_hash") == protocol.get("twin_hash")
+    return ("env_kwargs",) if moved and same and before == now else ()
 
 
 def _versions() -> dict:
@@ -201,9 +234,12 @@ def evaluate(task: str, policies: Sequence[str], episodes: str | int = "grid", w
                 "env_id": spec_task.env_id, "grid": grid_info(task, env_kwargs), "versions": _versions()}
     if spec_task.task_cls is not None:  # a twin (directory or built-in cell): resuming needs the same one
         protocol["twin_hash"] = _twin_hash(task, env_kwargs, run_id, store)
-    added = store.start_run(run_id, task, protocol, grow=("policies",))
-    if added and log is not None:  # a resumed run extended with more policies (other settings unchanged)
-        log(f"run {run_id!r}: adding {len(added)} policies to those it was started with")
+    known = {(s.name, s.checkpoint) for s in _parsed(_stored_policies(store, run_id))}
+    added = store.start_run(run_id, task, protocol,
+                            grow=("policies", *moved_twin_keys(store, run_id, protocol)))
+    new = [p for p in _parsed(added) if (p.name, p.checkpoint) not in known]
+    if new and log is not None:  # a resumed run extended with more policies (other settings unchanged)
+        log(f"run {run_id!r}: adding {len(new)} policies to those it was started with")
     out_dir = Path(output_dir)
     jobs: dict[tuple[str, str, int, int], EpisodeJob] = {}  # by (policy, checkpoint, init_state, seed)
     for spec in specs:
