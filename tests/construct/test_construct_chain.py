@@ -137,7 +137,7 @@ def test_a_heavy_contact_mesh_collides_through_its_simplified_hull_when_the_conf
     import trimesh
 
     from twinbench.commands.twin import summary
-    from twinbench.construct.build_config import build_spec_from_config
+    from twinbench.construct.build_config import build_from_config, build_spec_from_config
     from twinbench.twin import save_twin
 
     trimesh.creation.icosphere(subdivisions=5, radius=0.02).export(tmp_path / "ball.stl")  # 20,480 faces
@@ -167,7 +167,12 @@ def test_a_heavy_contact_mesh_collides_through_its_simplified_hull_when_the_conf
         build_spec_from_config(tmp_path / "build.json")
     del config["robot"]["contact_mesh"]  # the default: the mesh as it is, and twin.json without the field
     (tmp_path / "build.json").write_text(json.dumps(config))
-    path = save_twin(build_spec_from_config(tmp_path / "build.json"), tmp_path / "plain")
-    assert "contact_mesh" not in json.loads(path.read_text())["robot"]
     with pytest.warns(UserWarning, match='20,480 faces.*set robot.contact_mesh to "convex_hull"'):
-        build_twin(load_twin(path.parent))
+        path = build_from_config(tmp_path / "build.json", tmp_path / "plain")  # said at build already
+    assert "contact_mesh" not in json.loads(path.read_text())["robot"]
+    # the robot's fields are checked against its URDF before anything is written
+    config["robot"]["contact_links"] = ["tp"]
+    (tmp_path / "build.json").write_text(json.dumps(config))
+    with pytest.raises(ValueError, match=r"build.json: robot: .*arm.urdf: contact link 'tp' is not a link"):
+        build_from_config(tmp_path / "build.json", tmp_path / "typo")
+    assert not (tmp_path / "typo").exists()

@@ -295,7 +295,7 @@ def test_a_heavy_contact_mesh_is_warned_about_and_the_builtin_pusher_is_not(tmp_
 
     from twinbench.robot.builtin import load_builtin_arm
     from twinbench.robot.model import load_robot
-    from twinbench.twin.build import _warn_heavy_contact_mesh
+    from twinbench.twin.build import warn_heavy_contact_mesh
 
     trimesh.creation.icosphere(subdivisions=5, radius=0.02).export(tmp_path / "ball.stl")  # 20,480 faces
     (tmp_path / "arm.urdf").write_text(
@@ -303,8 +303,8 @@ def test_a_heavy_contact_mesh_is_warned_about_and_the_builtin_pusher_is_not(tmp_
         '<mesh filename="ball.stl"/></geometry></collision></link><joint name="z" type="prismatic">'
         '<parent link="base"/><child link="tip"/><axis xyz="0 0 1"/>'
         '<limit lower="0" upper="0.3" effort="1" velocity="1"/></joint></robot>')
-    _warn_heavy_contact_mesh(load_builtin_arm("pusher"), "pusher")
+    warn_heavy_contact_mesh(load_builtin_arm("pusher"), "pusher")
     assert not recwarn.list
     heavy = r"arm.urdf: contact link 'tip' has a collision mesh of 20,480 faces"
     with pytest.warns(UserWarning, match=heavy):
-        _warn_heavy_contact_mesh(load_robot(tmp_path / "arm.urdf", contact_links=("tip",)), "tip")
+        warn_heavy_contact_mesh(load_robot(tmp_path / "arm.urdf", contact_links=("tip",)), "tip")

@@ -161,7 +161,15 @@ def _build_spec(config_path):
 
 def build_from_config(config_path, out) -> Path:
     """`twinbench twin build CONFIG --out TWIN_DIR`: write the twin directory a build config describes."""
+    from twinbench.errors import InputError
     from twinbench.twin import save_twin
+    from twinbench.twin.build import load_spec_robot, warn_heavy_contact_mesh
 
     spec = build_spec_from_config(config_path)
+    try:  # the robot's fields against its URDF (links, joints, home_q) before anything is written
+        robot = load_spec_robot(spec.robot)
+    except (InputError, KeyError) as err:
+        raise ValueError(f"{config_path}: robot: {str(err).strip(chr(34) + chr(39))}") from None
+    for link in robot.contact_links:
+        warn_heavy_contact_mesh(robot, link)
     return save_twin(spec, out)

@@ -136,7 +136,7 @@ def load_spec_robot(spec: RobotSpec) -> RobotModel:
 HEAVY_CONTACT_FACES = 5000  # a contact mesh above this makes physics steps slow: warned at build
 
 
-def _warn_heavy_contact_mesh(model: RobotModel, link: str) -> None:
+def warn_heavy_contact_mesh(model: RobotModel, link: str) -> None:
     """Every physics substep moves a contact link's mesh and refits its BVH (~0.1 us a face on a CPU core,
     667 substeps a frame at the cells' dt): a CAD mesh from a user's URDF (an SO-101's gripper and jaw,
     76k faces together) made an env step 8.7 s against the built-in pusher's 0.12 s."""
@@ -208,7 +208,7 @@ class Twin:
         tool = spec.robot.tool_contact
         self._tool_mesh: dict[str, int] = {}
         for link in self.robot.contact_links:
-            _warn_heavy_contact_mesh(self.robot, link)
+            warn_heavy_contact_mesh(self.robot, link)
             self._tool_mesh[link] = builder.add_kinematic_mesh(
                 self.robot.contact_vertices(q0, link),
                 self.robot.contact_faces(link),
