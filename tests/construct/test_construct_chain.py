@@ -103,23 +103,30 @@ def test_chain_rebuilds_the_cell(tmp_path):
     assert np.abs(plain[0].render(plain[1], ["front"])["front"].rgb - original).mean() > 2 * err
 
 
+def _users_arm_config(tmp_path, tip_link: str, axis: str, **robot) -> dict:
+    """A build config (written to tmp_path/build.json) of a user's one-joint arm whose link `tip` (given
+    as URDF) moves along `axis`, with push-T's block and one camera; `robot`: more robot fields."""
+    (tmp_path / "arm.urdf").write_text(
+        f'<robot name="arm"><link name="base"/>{tip_link}<joint name="j" type="prismatic">'
+        f'<parent link="base"/><child link="tip"/><axis xyz="{axis}"/>'
+        '<limit lower="0.1" upper="0.5" effort="1" velocity="1"/></joint></robot>')
+    save_object(push_t_cell("fast").objects[0], tmp_path / "tblock")
+    (tmp_path / "cal.json").write_text(json.dumps({"cameras": [{
+        "name": "front", "intrinsics": [200.0, 200.0, 106.0, 60.0], "sensor_size": [212, 120],
+        "output_hw": [120, 212], "camera_to_world": np.eye(4).tolist()}]}))
+    config = {"robot": {"urdf": "arm.urdf", "contact_links": ["tip"], **robot},
+              "objects": [{"dir": "tblock"}], "cameras": "cal.json"}
+    (tmp_path / "build.json").write_text(json.dumps(config))
+    return config
+
+
 def test_build_config_gives_a_users_pusher_its_tool_radius(tmp_path):
     """A user's own URDF with a pushing tool: the build config carries the tip radius that push-T's rules
     read (the built-in pusher fills it in itself); before, the field was refused and the user had to edit
     twin.json by hand."""
     from twinbench.construct.build_config import build_spec_from_config
 
-    (tmp_path / "arm.urdf").write_text(
-        '<robot name="arm"><link name="base"/><link name="tip"/><joint name="j" type="prismatic">'
-        '<parent link="base"/><child link="tip"/><axis xyz="1 0 0"/>'
-        '<limit lower="0" upper="0.5" effort="1" velocity="1"/></joint></robot>')
-    save_object(push_t_cell("fast").objects[0], tmp_path / "tblock")
-    (tmp_path / "cal.json").write_text(json.dumps({"cameras": [{
-        "name": "front", "intrinsics": [200.0, 200.0, 106.0, 60.0], "sensor_size": [212, 120],
-        "output_hw": [120, 212], "camera_to_world": np.eye(4).tolist()}]}))
-    config = {"robot": {"urdf": "arm.urdf", "contact_links": ["tip"], "tool_radius": 0.0125},
-              "objects": [{"dir": "tblock"}], "cameras": "cal.json"}
-    (tmp_path / "build.json").write_text(json.dumps(config))
+    config = _users_arm_config(tmp_path, '<link name="tip"/>', "1 0 0", tool_radius=0.0125)
     spec = build_spec_from_config(tmp_path / "build.json")
     assert spec.robot.tool_radius == 0.0125 and spec.robot.contact_links == ("tip",)
     config["robot"]["tip_radius"] = 0.01
@@ -141,18 +148,9 @@ def test_a_heavy_contact_mesh_collides_through_its_simplified_hull_when_the_conf
     from twinbench.twin import save_twin
 
     trimesh.creation.icosphere(subdivisions=5, radius=0.02).export(tmp_path / "ball.stl")  # 20,480 faces
-    (tmp_path / "arm.urdf").write_text(
-        '<robot name="arm"><link name="base"/><link name="tip"><visual><geometry><sphere radius="0.02"/>'
-        '</geometry></visual><collision><geometry><mesh filename="ball.stl"/></geometry></collision></link>'
-        '<joint name="z" type="prismatic"><parent link="base"/><child link="tip"/><axis xyz="0 0 1"/>'
-        '<limit lower="0.1" upper="0.3" effort="1" velocity="1"/></joint></robot>')
-    save_object(push_t_cell("fast").objects[0], tmp_path / "tblock")
-    (tmp_path / "cal.json").write_text(json.dumps({"cameras": [{
-        "name": "front", "intrinsics": [200.0, 200.0, 106.0, 60.0], "sensor_size": [212, 120],
-        "output_hw": [120, 212], "camera_to_world": np.eye(4).tolist()}]}))
-    config = {"robot": {"urdf": "arm.urdf", "contact_links": ["tip"], "contact_mesh": "convex_hull"},
-              "objects": [{"dir": "tblock"}], "cameras": "cal.json"}
-    (tmp_path / "build.json").write_text(json.dumps(config))
+    tip = ('<link name="tip"><visual><geometry><sphere radius="0.02"/></geometry></visual><collision>'
+           '<geometry><mesh filename="ball.stl"/></geometry></collision></link>')
+    config = _users_arm_config(tmp_path, tip, "0 0 1", contact_mesh="convex_hull")
     spec = build_spec_from_config(tmp_path / "build.json")
     assert spec.robot.contact_mesh == "convex_hull"
     twin, _ = build_twin(load_twin(save_twin(spec, tmp_path / "twin").parent))
