@@ -160,20 +160,24 @@ def test_a_twin_that_differs_only_in_appearance_takes_the_replays_of_its_physics
                                   _records(E.REAL_ROLLOUTS, "sim", REAL_RATES))
     run = E.replay_run_id("full")  # every replay in `full` done: replay_in_twin has nothing to run
     full = _records(run, "real", REAL_RATES) + _records(run, "replay", {p: [0, 1, 0, 1] for p in REAL_RATES})
-    store.start_run_with_episodes(run, "push-t", {"task": "push-t", "kind": "replay"}, full)
+    before = {"task": "push-t", "kind": "replay", "env_kwargs": {"twin": "/old/full"}, "twin_hash": "h"}
+    store.start_run_with_episodes(run, "push-t", before, full)
     logs = []
     E.replay_in_twins("push-t", store, tmp_path, twins, E.study_size("small"), logs.append)
     copied = store.episodes(E.replay_run_id("no-color"))
     assert [dataclasses.replace(r, run_id=run) for r in copied] == store.episodes(run)
     assert store.run_protocol(E.replay_run_id("no-color"))["copied_from"] == run
     assert any("only in appearance" in m for m in logs)
-    # the source gains replays (a study extended with a policy): the copy follows, nothing is run
+    # the source gains replays (a study extended with a policy), after the study folder moved (its twin
+    # at another path, as replay_episodes then records it): the copy follows, nothing is run
     extra = {"e": [1, 0]}
-    store.start_run_with_episodes(run, "push-t", {"task": "push-t", "kind": "replay"},
-                                  _records(run, "real", extra) + _records(run, "replay", extra))
+    store.start_run_with_episodes(run, "push-t", {**before, "env_kwargs": {"twin": "/new/full"}},
+                                  _records(run, "real", extra) + _records(run, "replay", extra),
+                                  grow=("env_kwargs",))
     store.record_episodes(_records(E.REAL_ROLLOUTS, "sim", extra))
     E.replay_in_twins("push-t", store, tmp_path, twins, E.study_size("small"), logs.append)
     assert len(store.episodes(E.replay_run_id("no-color"))) == 36
+    assert store.run_protocol(E.replay_run_id("no-color"))["env_kwargs"] == {"twin": "/new/full"}
     # a replay run that was run, not copied (an older study), is resumed as it is: here complete, nothing
     # runs and nothing is copied over it
     other = ResultsStore(tmp_path / "other.sqlite")

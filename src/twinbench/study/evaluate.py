@@ -25,7 +25,7 @@ import numpy as np
 
 from twinbench.errors import InputError
 from twinbench.evaluation import metrics
-from twinbench.evaluation.runner import evaluate
+from twinbench.evaluation.runner import evaluate, moved_twin_keys
 from twinbench.evaluation.store import ResultsStore
 from twinbench.study.sizes import SIZES, StudySize, size_name, study_size  # noqa: F401 - re-exported
 from twinbench.twin.files import load_twin, twin_physics_hash
@@ -208,7 +208,8 @@ def copy_replays(store: ResultsStore, source: str, variant: str) -> None:
     recs = [replace(r, run_id=run_id) for r in store.episodes(src)]
     protocol = {**store.run_protocol(src), "copied_from": src,
                 "why": "the twins differ only in appearance (twin_physics_hash); replays render no camera"}
-    store.start_run_with_episodes(run_id, store.run_task(src), protocol, recs, grow=("n_episodes",))
+    store.start_run_with_episodes(run_id, store.run_task(src), protocol, recs,
+                                  grow=("n_episodes", *moved_twin_keys(store, run_id, protocol)))
 
 
 def replay_in_twin(task: str, store: ResultsStore, results: Path, variant: str, world: Path,
