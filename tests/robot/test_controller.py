@@ -137,6 +137,23 @@ def test_planar_pushing_reaches_xy_at_fixed_height(pusher_arm):
     assert cmd.gripper_opening == 0.0
 
 
+def test_planar_pushing_with_a_four_joint_arm_leaves_the_turn_about_the_vertical_free(four_joint_arm):
+    """A four-joint arm reaches planar targets pointing down, whatever turn the pan gives it there; before,
+    the controller asked for the pushing orientation's own turn and stopped centimetres short."""
+    cfg = ControllerConfig(action_mode="planar", planar_height=0.03)
+    ctrl = RobotController(four_joint_arm, cfg)
+    for target in ([0.2, 0.1], [0.15, -0.2]):
+        for _ in range(150):
+            cmd = ctrl.step(np.array(target))
+        assert cmd.ik_converged
+        np.testing.assert_allclose(ctrl.ee_pose()[:3, 3], [*target, 0.03], atol=1e-3)
+        np.testing.assert_allclose(ctrl.ee_pose()[:3, 2], [0.0, 0.0, -1.0], atol=1e-3)
+    ctrl.free_axis = None  # the whole orientation asked for: it cannot get there
+    for _ in range(150):
+        cmd = ctrl.step(np.array([0.2, 0.1]))
+    assert not cmd.ik_converged and np.linalg.norm(ctrl.ee_pose()[:2, 3] - [0.2, 0.1]) > 0.005
+
+
 def test_action_validation(arm):
     ctrl = RobotController(arm)
     with pytest.raises(ValueError, match="expected shape"):

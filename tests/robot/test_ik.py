@@ -71,3 +71,32 @@ def test_ik_input_validation(arm):
         solve_ik(arm, skew)
     with pytest.raises(ValueError, match="batch"):
         solve_ik(arm, np.stack([np.eye(4)] * 3), np.zeros((2, arm.n_q)))
+
+
+def test_a_free_axis_leaves_the_turn_about_it_free_and_measures_the_axis_angle(four_joint_arm, pusher_arm):
+    """A four-joint arm cannot point its tool down with any turn about the vertical: the turn is the pan's,
+    set by where the tool is. With the tool's axis free, pointing down at a place the pan does not face
+    in the target's turn converges (position exact, the axis straight down); without, it cannot."""
+    from twinbench.robot.ik import free_yaw_axis, pose_error
+
+    arm = four_joint_arm
+    down = np.array([0.0, 1.0, 0.0, 0.0])  # wxyz, tool z pointing down, its x along world x
+    axis = free_yaw_axis(arm, down)
+    np.testing.assert_allclose(axis, [0, 0, -1], atol=1e-12)  # the tool's z, pointing down
+    targets = np.stack([pose_matrix(np.array(p), down) for p in [(0.2, 0.1, 0.05), (0.15, -0.2, 0.1),
+                                                                   (0.25, 0.0, 0.02), (0.1, 0.15, 0.0)]])
+    fixed = solve_ik(arm, targets, arm.home_q, restarts=4)
+    free = solve_ik(arm, targets, arm.home_q, restarts=4, free_axis=axis)
+    assert not fixed.converged[[0, 1, 3]].any()  # these need a turn the pan does not give there
+    assert free.converged.all()
+    reached = arm.ee_pose(free.q)
+    np.testing.assert_allclose(reached[:, :3, 3], targets[:, :3, 3], atol=1e-4)
+    np.testing.assert_allclose(reached[:, :3, 2], np.tile([0.0, 0.0, -1.0], (4, 1)), atol=1e-3)
+    # the error it measures: none for a pure turn about the axis; a tilt's angle; pi for the axis reversed
+    turned = pose_matrix(np.zeros(3), np.array([0.0, np.cos(0.4), np.sin(0.4), 0.0]))  # down, turned 0.8
+    tilted = pose_matrix(np.zeros(3), down) @ pose_matrix(np.zeros(3), np.array([np.cos(0.15), np.sin(0.15),
+                                                                                  0.0, 0.0]))  # tilted 0.3
+    ee = np.stack([turned, tilted, np.eye(4)])
+    err = pose_error(ee, np.stack([pose_matrix(np.zeros(3), down)] * 3), 1.0, axis)
+    np.testing.assert_allclose(np.linalg.norm(err[:, 3:], axis=1), [0.0, 0.3, np.pi], atol=1e-9)
+    assert free_yaw_axis(pusher_arm, down) is None  # seven joints hold any orientation: nothing is freed

@@ -110,7 +110,8 @@ def test_an_arm_that_cannot_reach_the_start_pose_is_named_with_how_far_it_stays(
         '<limit lower="0" upper="0.3" effort="1" velocity="1"/></joint></robot>')
     twin = types.SimpleNamespace(robot=load_robot(tmp_path / "slide.urdf", load_meshes=False))
     task = PushTTask()
-    far = (r"push-t: the task's start pose \(end effector 'tip' at \(0.3, -0.2, 0.005\) m .* is not "
-           r"reachable by slide \(the closest configuration found is 360.6 mm and 180.0 deg away\)")
+    far = (r"push-t: the task's start pose \(end effector 'tip' at \(0.3, -0.2, 0.005\) m .* orientation "
+           r"wxyz \(0.0, 1.0, 0.0, 0.0\), any turn about the vertical\) is not reachable by slide "
+           r"\(the closest configuration found is 360.6 mm and 180.0 deg away\)")
     with pytest.raises(ValueError, match=far):
         task.start_configuration(twin, (0.3, -0.2, 0.005), (0.0, 1.0, 0.0, 0.0))

@@ -14,7 +14,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from twinbench.robot.ik import IKResult, solve_ik, weighted_error
+from twinbench.robot.ik import IKResult, free_yaw_axis, solve_ik, weighted_error
 from twinbench.robot.model import RobotModel
 from twinbench.transforms import matrix_to_quat, pose_matrix, rotvec_to_matrix
 
@@ -94,6 +94,9 @@ class RobotController:
     ):
         self.model = model
         self.config = config or ControllerConfig()
+        # planar pushing with an arm of fewer than 6 joints: the turn about the vertical is left free
+        self.free_axis = (free_yaw_axis(model, self.config.planar_quat)
+                          if self.config.action_mode == "planar" else None)
         self.reset(q0)
 
     def initial_state(self, q0: np.ndarray | None = None) -> ControllerState:
@@ -180,7 +183,7 @@ class RobotController:
         model = self.model
         goals = [self.target_from_action(a, s) for s, a in zip(states, actions, strict=True)]
         batch = solve_ik(model, np.stack([t for t, _ in goals]), np.stack([s.q for s in states]),
-                         max_iters=cfg.ik_max_iters, restarts=0)
+                         max_iters=cfg.ik_max_iters, restarts=0, free_axis=self.free_axis)
         cmds = []
         for i, (state, (target, g_cmd), forces) in enumerate(zip(states, goals, finger_forces, strict=True)):
             warm = IKResult(batch.q[i], bool(batch.converged[i]), batch.pos_err[i], batch.rot_err[i],
@@ -237,7 +240,8 @@ class RobotController:
         if cached is None or not np.array_equal(cached[0], target):
             cached = (
                 target.copy(),
-                solve_ik(self.model, target, state.q, max_iters=cfg.ik_max_iters, restarts=cfg.ik_restarts),
+                solve_ik(self.model, target, state.q, max_iters=cfg.ik_max_iters, restarts=cfg.ik_restarts,
+                         free_axis=self.free_axis),
             )
             state.restart_cache = cached
         best = cached[1]

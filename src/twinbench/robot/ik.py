@@ -14,7 +14,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from twinbench.robot.model import RobotModel
-from twinbench.transforms import matrix_to_rotvec
+from twinbench.transforms import matrix_to_rotvec, quat_to_matrix
 
 DEFAULT_ROT_WEIGHT = 0.25  # metres of position error equivalent to one radian of rotation error
 
@@ -30,12 +30,51 @@ class IKResult:
     iterations: int
 
 
-def pose_error(ee: np.ndarray, target: np.ndarray, rot_weight: float = 1.0) -> np.ndarray:
-    """(B, 6) error [p_t - p, rot_weight * rotvec(R_t R^T)] between (B, 4, 4) poses."""
+def pose_error(ee: np.ndarray, target: np.ndarray, rot_weight: float = 1.0,
+               free_axis: np.ndarray | None = None) -> np.ndarray:
+    """(B, 6) error [p_t - p, rot_weight * rotvec(R_t R^T)] between (B, 4, 4) poses.
+
+    With `free_axis` (a unit vector in the end-effector frame) the rotation about that axis is free: the
+    rotation part is the smallest rotation taking the end effector's axis (R a) onto the target's (R_t a),
+    as a rotation vector (its angle is the angle between the two axes)."""
     ep = target[:, :3, 3] - ee[:, :3, 3]
-    rel = target[:, :3, :3] @ np.swapaxes(ee[:, :3, :3], -1, -2)
-    er = matrix_to_rotvec(rel)
+    if free_axis is None:
+        rel = target[:, :3, :3] @ np.swapaxes(ee[:, :3, :3], -1, -2)
+        er = matrix_to_rotvec(rel)
+    else:
+        a, t = ee[:, :3, :3] @ free_axis, target[:, :3, :3] @ free_axis
+        cross = np.cross(a, t)
+        sin = np.linalg.norm(cross, axis=1)
+        angle = np.arctan2(sin, np.einsum("bi,bi->b", a, t))
+        # antiparallel axes (angle pi, no unique axis): turn about any axis normal to a
+        normal = np.cross(a, np.where(np.abs(a[:, :1]) < 0.9, [[1.0, 0.0, 0.0]], [[0.0, 1.0, 0.0]]))
+        axis = np.where(sin[:, None] > 1e-12, cross, normal)
+        er = axis / np.linalg.norm(axis, axis=1, keepdims=True) * angle[:, None]
     return np.concatenate([ep, rot_weight * er], axis=1)
+
+
+def _free_jacobian(ee: np.ndarray, jac: np.ndarray, free_axis: np.ndarray | None) -> np.ndarray:
+    """The pose Jacobian (B, 6, n) with the angular rows' component along the end effector's free axis
+    removed (turning about it changes nothing `pose_error` measures)."""
+    if free_axis is None:
+        return jac
+    a = ee[:, :3, :3] @ free_axis
+    out = jac.copy()
+    out[:, 3:] -= a[:, :, None] * np.einsum("bi,bin->bn", a, jac[:, 3:])[:, None, :]
+    return out
+
+
+FULL_ORIENTATION_JOINTS = 6  # an arm with fewer joints cannot hold every orientation at every position
+
+
+def free_yaw_axis(model: RobotModel, quat) -> np.ndarray | None:
+    """For an arm of fewer than 6 joints (SO-100/101), the axis of its end-effector frame that points
+    straight up or down when the end effector is at orientation `quat` (wxyz): the rotation about it, a
+    turn about the vertical, is left free when such a tool points down (a pusher, a gripper reaching
+    down); None for arms that can hold the whole orientation."""
+    if model.arm_q_indices.size >= FULL_ORIENTATION_JOINTS:
+        return None
+    return quat_to_matrix(np.asarray(quat, dtype=np.float64)).T @ np.array([0.0, 0.0, 1.0])
 
 
 def weighted_error(pos_err, rot_err, rot_weight: float = DEFAULT_ROT_WEIGHT):
@@ -71,6 +110,7 @@ def _lm(
     pos_tol: float,
     rot_tol: float,
     rot_weight: float,
+    free_axis: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, int]:
     """Run LM on all rows; returns q, position error, rotation error, iterations used."""
     arm = model.arm_q_indices
@@ -78,7 +118,8 @@ def _lm(
     b, n = q.shape[0], arm.size
     lam = np.full(b, 1e-2)
     ee, jac = model.ee_pose_and_jacobian(q)
-    err = pose_error(ee, target, rot_weight)
+    jac = _free_jacobian(ee, jac, free_axis)
+    err = pose_error(ee, target, rot_weight, free_axis)
     cost = np.einsum("bi,bi->b", err, err)
     w = np.array([1.0, 1.0, 1.0, rot_weight, rot_weight, rot_weight])
     eye = np.eye(n)
@@ -100,7 +141,8 @@ def _lm(
         qc = q[idx].copy()
         qc[:, arm] = np.clip(qc[:, arm] + dq, lo, hi)
         ee_c, jac_c = model.ee_pose_and_jacobian(qc)
-        err_c = pose_error(ee_c, target[idx], rot_weight)
+        jac_c = _free_jacobian(ee_c, jac_c, free_axis)
+        err_c = pose_error(ee_c, target[idx], rot_weight, free_axis)
         cost_c = np.einsum("bi,bi->b", err_c, err_c)
         ok = (cost_c < cost[idx]) & np.all(np.isfinite(qc), axis=1) & np.isfinite(cost_c)
         acc = idx[ok]
@@ -124,13 +166,21 @@ def solve_ik(
     rot_weight: float = DEFAULT_ROT_WEIGHT,
     restarts: int = 16,
     seed: int = 0,
+    free_axis=None,
 ) -> IKResult:
     """Solve for configurations whose end-effector pose matches `target` ((4, 4) or (B, 4, 4)).
 
     `q_init` ((n_q,) or (B, n_q), default `model.home_q`) warm-starts the solve; non-arm joints (gripper)
     are copied from it. Never returns NaN: unreachable targets give the closest solution found
-    (smallest weighted error) with `converged=False`.
+    (smallest weighted error) with `converged=False`. `free_axis` (3 numbers, an axis of the end-effector
+    frame): the rotation about it is left free (a 5-joint arm holding a symmetric tool along it); the
+    rotation error is then the angle between that axis and the target's.
     """
+    if free_axis is not None:
+        free_axis = np.asarray(free_axis, dtype=np.float64).reshape(3)
+        if not np.all(np.isfinite(free_axis)) or not np.linalg.norm(free_axis) > 1e-9:
+            raise ValueError(f"free_axis: expected a nonzero 3-vector, got {free_axis.tolist()}")
+        free_axis = free_axis / np.linalg.norm(free_axis)
     if model.arm_q_indices.size == 0:
         raise ValueError(
             f"model {model.name!r}: no actuated joint between the root and ee_link {model.ee_link!r}"
@@ -144,7 +194,7 @@ def solve_ik(
     if q0.shape[0] != b:
         raise ValueError(f"q_init: batch {q0.shape[0]} does not match target batch {b}")
     q0 = model.clip_q(q0)
-    q, pe, re, iters = _lm(model, t, q0, max_iters, pos_tol, rot_tol, rot_weight)
+    q, pe, re, iters = _lm(model, t, q0, max_iters, pos_tol, rot_tol, rot_weight, free_axis)
     conv = (pe <= pos_tol) & (re <= rot_tol)
     rng = np.random.default_rng(seed)
     for _ in range(restarts):
@@ -153,7 +203,7 @@ def solve_ik(
             break
         qr = q0[todo].copy()
         qr[:, model.arm_q_indices] = random_configurations(model, todo.size, rng)[:, model.arm_q_indices]
-        qn, pen, ren, _ = _lm(model, t[todo], qr, max_iters, pos_tol, rot_tol, rot_weight)
+        qn, pen, ren, _ = _lm(model, t[todo], qr, max_iters, pos_tol, rot_tol, rot_weight, free_axis)
         better = weighted_error(pen, ren, rot_weight) < weighted_error(pe[todo], re[todo], rot_weight)
         sel = todo[better]
         q[sel], pe[sel], re[sel] = qn[better], pen[better], ren[better]

@@ -203,17 +203,20 @@ class TwinTask:
         return next(c.pose for c in twin.spec.colliders if c.name == name)
 
     def start_configuration(self, twin, position, quat) -> np.ndarray:
-        """The robot configuration (IK from home) with its end-effector at `position`, `quat` (wxyz)."""
-        from twinbench.robot.ik import solve_ik
+        """The robot configuration (IK from home) with its end-effector at `position`, `quat` (wxyz); for
+        an arm of fewer than 6 joints the turn about the vertical is free (`free_yaw_axis`)."""
+        from twinbench.robot.ik import free_yaw_axis, solve_ik
         from twinbench.transforms import pose_matrix
 
         target = pose_matrix(np.asarray(position, np.float64), np.asarray(quat, np.float64))
-        res = solve_ik(twin.robot, target, twin.robot.home_q)
+        free = free_yaw_axis(twin.robot, quat)
+        res = solve_ik(twin.robot, target, twin.robot.home_q, free_axis=free)
         if not res.converged:
+            turn = ", any turn about the vertical" if free is not None else ""
             raise ValueError(
                 f"{self.name}: the task's start pose (end effector {twin.robot.ee_link!r} at "
                 f"{tuple(float(v) for v in position)} m in the robot's base frame, orientation wxyz "
-                f"{tuple(float(v) for v in quat)}) is not reachable by {twin.robot.name} (the closest "
+                f"{tuple(float(v) for v in quat)}{turn}) is not reachable by {twin.robot.name} (the closest "
                 f"configuration found is {1000 * float(res.pos_err):.1f} mm and "
                 f"{np.degrees(float(res.rot_err)):.1f} deg away); the task needs an arm that reaches it")
         return res.q
