@@ -7,7 +7,9 @@ Prints `name value unit` lines, per device (`cpu`, and `cuda:0` when present) an
   interpolation and BVH refit, no graph capture);
 - peak resident memory of the process (MiB) after the model's runs;
 - one world on two CPU cores (each frame split with a helper process, bit-identical): ms per frame
-  (the lines above are one core), and two worlds of one model on 1 and 2 threads (ms per world-frame).
+  (the lines above are one core), and two worlds of one model on 1 and 2 threads (ms per world-frame);
+- a heavy kinematic mesh (a CAD-like 20,480-face ball as the finger, rope-sized model, CPU) against its
+  simplified convex hull (`robot.contact_mesh: "convex_hull"`): ms per frame of each.
 
 Usage: python benchmarks/physics.py [--device cpu|cuda:0|all] [--frames N]
 """
@@ -33,7 +35,7 @@ MODELS = {
 }
 
 
-def _build(name: str, device: str, with_mesh: bool, num_worlds: int = 1):
+def _build(name: str, device: str, with_mesh: bool, num_worlds: int = 1, finger=None):
     spec = MODELS[name]
     s = spec["spacing"]
     body = lattice(*spec["shape"], s, (0.0, 0.0, 0.0))
@@ -44,7 +46,7 @@ def _build(name: str, device: str, with_mesh: bool, num_worlds: int = 1):
     b.add_body(lattice(3, 3, 3, s, (0.0, 0.0, top + 1.2 * s)), radius=spec["radius"])
     mesh = None
     if with_mesh:
-        box = trimesh.creation.box(extents=(0.02, 0.02, 0.02))
+        box = trimesh.creation.box(extents=(0.02, 0.02, 0.02)) if finger is None else finger
         verts = np.asarray(box.vertices) + (-0.0105 - 0.002, 0.01, 0.01)
         mesh = (b.add_kinematic_mesh(verts, box.faces, restitution=0.0, friction=0.5), verts)
     model = b.finalize(device, num_worlds=num_worlds)
@@ -105,6 +107,22 @@ def main() -> None:
                     med = statistics.median(_time_frames(model, None, args.frames, threads=threads))
                     label = f"physics_{name}_cpu_2worlds_{threads}threads"
                     print(f"{label}_ms_per_world_frame {med * 1e3 / 2:.1f} ms")
+        if dev == "cpu":
+            _heavy_mesh(args.frames)
+
+
+def _heavy_mesh(frames: int) -> None:
+    """The rope-sized model pushed by a 20,480-face ball and by its simplified convex hull."""
+    from twinbench.robot.model import convex_contact_mesh
+
+    ball = trimesh.creation.icosphere(subdivisions=5, radius=0.01)
+    hull, moved = convex_contact_mesh(ball)
+    print(f"physics_heavy_mesh_hull_faces {len(hull.faces)} count ({len(ball.faces)} in the mesh; "
+          f"the hull within {moved * 1e3:.2f} mm)")
+    for label, finger in (("mesh", ball), ("convex_hull", hull)):
+        model, mesh = _build("rope", "cpu", True, finger=finger)
+        med = statistics.median(_time_frames(model, mesh, frames))
+        print(f"physics_rope_cpu_heavy_{label}_ms_per_frame {med * 1e3:.1f} ms")
 
 if __name__ == "__main__":
     main()
