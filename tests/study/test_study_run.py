@@ -159,3 +159,41 @@ def test_user_policies_are_checked_before_a_study_runs():
         with_user_policies("push-t", study, ["expert@0.3", "expert@0.3"])
     with pytest.raises(InputError, match=r"policy name 'my policy'"):
         with_user_policies("push-t", study, ["my policy=expert"])
+
+
+def test_a_moved_study_folder_keeps_its_stages_read_from_where_it_is_now(tmp_path):
+    """A study folder moved (or copied) elsewhere: `study run` there keeps the finished stages and reads
+    their twins and policies from the new folder, not the old one (gone, or a stale copy). Records from
+    before the `root` field (the make-real stage's DIR/real tells their folder) too."""
+    import shutil
+
+    from twinbench.study.run import _Timer
+
+    old = tmp_path / "a" / "study"
+    for sub in ("real", "twins/full", "policies"):
+        (old / sub).mkdir(parents=True)
+    args = {"task": "push-t", "seed": 0}
+    timer = _Timer(lambda line: None, old / "stages.json", args)
+    timer("make-real", lambda: old / "real")
+    timer("reconstruct", lambda: {"full": old / "twins" / "full"})
+    timer("policies", lambda: [f"p0=perceive:{old}/policies/p0.json", "mine=expert@0.5"])
+    legacy = json.loads((old / "stages.json").read_text())
+    assert legacy.pop("root") == str(old)
+    for where, doc in (("b", None), ("c", legacy)):
+        new = tmp_path / where / "study"
+        shutil.copytree(old, new)
+        if doc is not None:  # a record written before the root field
+            (new / "stages.json").write_text(json.dumps(doc))
+        lines = []
+        again = _Timer(lines.append, new / "stages.json", args)
+        assert again("make-real", _never) == new / "real"
+        assert again("reconstruct", _never) == {"full": new / "twins" / "full"}
+        assert again("policies", _never) == [f"p0=perceive:{new}/policies/p0.json", "mine=expert@0.5"]
+        assert all("kept" in line for line in lines)
+    shutil.rmtree(old)  # the original gone: the copy still keeps its stages
+    assert _Timer(lambda line: None, tmp_path / "b" / "study" / "stages.json", args)(
+        "make-real", lambda: None) == tmp_path / "b" / "study" / "real"
+
+
+def _never():
+    raise AssertionError("a kept stage ran again")

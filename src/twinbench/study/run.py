@@ -12,7 +12,8 @@
 Started again with the same arguments (after Ctrl-C or a killed machine), a run keeps the stages it
 finished (their results recorded in DIR/stages.json and their files still there) and goes on from the first
 one that did not finish; the evaluation resumes by itself (finished episodes are kept). Other arguments
-in the same DIR are refused.
+in the same DIR are refused. A study folder moved or copied elsewhere keeps its stages there (the record's
+paths are read under the folder's new place).
 """
 
 from __future__ import annotations
@@ -52,6 +53,7 @@ class _Timer:
             except (ValueError, KeyError, TypeError) as err:
                 raise InputError(f"{record}: not a study run's stage record ({err}); remove it to start the "
                                  "study in this folder again from its first stage") from None
+            self.done = _moved(self.done, _recorded_root(doc), str(record.parent.resolve()))
             if before != args:
                 changed = sorted(k for k in set(before) | set(args) if before.get(k) != args.get(k))
                 raise InputError(f"{record.parent} holds a study run with other arguments ("
@@ -85,8 +87,32 @@ class _Timer:
 
     def _save(self) -> None:
         tmp = self.record.with_suffix(".json.partial")
-        tmp.write_text(json.dumps({"args": self.args, "done": self.done}, indent=1) + "\n")
+        doc = {"args": self.args, "root": str(self.record.parent.resolve()), "done": self.done}
+        tmp.write_text(json.dumps(doc, indent=1) + "\n")
         tmp.replace(self.record)
+
+
+def _recorded_root(doc: dict) -> str | None:
+    """The study folder a stage record was written in: its `root`, or for a record from before that field,
+    the folder holding the make-real stage's result (DIR/real)."""
+    if isinstance(doc.get("root"), str):
+        return doc["root"]
+    real = doc["done"].get("make-real", {}).get("result")
+    return str(Path(real).parent) if isinstance(real, str) and Path(real).name == "real" else None
+
+
+def _moved(value, old: str | None, new: str):
+    """`value` (a stage record's results) with every path under the folder `old` moved under `new` (a study
+    folder moved or copied elsewhere: its twins, policies and evidence are read from where it is now)."""
+    if old is None or old == new:
+        return value
+    if isinstance(value, dict):
+        return {k: _moved(v, old, new) for k, v in value.items()}
+    if isinstance(value, list):
+        return [_moved(v, old, new) for v in value]
+    if isinstance(value, str):
+        return new if value == old else value.replace(old.rstrip("/") + "/", new.rstrip("/") + "/")
+    return value
 
 
 def run_study(task: str, out: Path, size: str = "small", seed: int = 0, workers: int = 1,
@@ -123,7 +149,7 @@ def run_study(task: str, out: Path, size: str = "small", seed: int = 0, workers:
                          "`twinbench study make-real / evidence / reconstruct` take any built-in task")
     user = list(policies)
     with_user_policies(task, None, user)  # a bad spec is refused before hours of stages
-    out = Path(out)
+    out = Path(out).resolve()  # recorded results are absolute; a moved folder is remapped (_moved)
     variants = tuple(variants or VARIANTS)
     out.mkdir(parents=True, exist_ok=True)
     args = {"task": task, "size": size, "seed": int(seed), "variants": list(variants), "bc": bool(bc),
