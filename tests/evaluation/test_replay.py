@@ -72,6 +72,9 @@ def test_replay_lerobot_v3_folder(tmp_path):
     np.testing.assert_array_equal(eps[1].actions, BAD)
     store = ResultsStore(tmp_path / "r.sqlite")
     pairs = replay_episodes("point-reach", eps, store, "rp")
+    spent = store.run_seconds("rp")
+    assert spent > 0  # the run's wall time (kept across sessions): a resumed replay with none left adds none
+    assert replay_episodes("point-reach", eps, store, "rp") == pairs and store.run_seconds("rp") == spent
     assert [(real.success, rep.success) for real, rep in pairs] == [
         (True, True), (True, False), (False, True), (False, False), (True, True)]
     assert pairs[0][1].steps == 12 and pairs[1][1].steps == 14  # success terminates; else actions run out

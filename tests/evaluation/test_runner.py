@@ -36,10 +36,12 @@ def test_two_workers_grid_and_resume(tmp_path):
     assert all(r.train_step == 0 and r.status == "ok" for r in bad) and sum(r.success for r in bad) < 8
     info = json.loads((tmp_path / "eval" / "run1" / "expert" / "eval_info.json").read_text())
     assert info["aggregated"]["pc_success"] == 100.0 and len(info["per_episode"]) == 8
-    # same run again: nothing re-run, the very same records come back
+    spent = store.run_seconds("run1")
+    assert spent > 0 and store.run_seconds("never") is None
+    # same run again: nothing re-run, the very same records come back (and no time is added)
     recs2 = evaluate("point-reach", ["expert", "expert@1.0"], "grid", 2, "run1", store, output_dir=tmp_path,
                      log=logs.append)
-    assert "16 already finished, 0 to run" in logs[-1]
+    assert "16 already finished, 0 to run" in logs[-1] and store.run_seconds("run1") == spent
     assert [r.metrics["started_at"] for r in recs2] == [r.metrics["started_at"] for r in recs]
     # the same run with fewer policies runs nothing new; with more, it is extended by their episodes only
     assert evaluate("point-reach", ["expert"], "grid", 0, "run1", store, output_dir=tmp_path) == expert
@@ -48,6 +50,7 @@ def test_two_workers_grid_and_resume(tmp_path):
                     output_dir=tmp_path, log=logs.append)
     assert "adding 1 policies" in logs[0] and "24 episodes, 16 already finished, 8 to run" in logs[1]
     assert more[:16] == recs and len(store.episodes("run1")) == 24  # job order: the policies' order
+    assert store.run_seconds("run1") > spent  # the extension's time adds to the run's
     assert store.run_protocol("run1")["policies"] == ["expert", "expert@1.0", "expert@0.5"]
     # any other difference of protocol under the same run id is refused (here the episodes)
     keys = r"\['episodes', 'init_states', 'policies', 'seeds'\]"

@@ -198,3 +198,20 @@ def test_a_full_file_system_keeps_what_was_stored(tmp_path):
         assert store.episodes()[-1].seed == 500
     finally:
         subprocess.run(["umount", str(disk)], capture_output=True)
+
+
+def test_run_seconds_add_up_and_a_store_from_before_them_gains_the_table(tmp_path):
+    """Each session's time on a run adds to its total (a study resumed over days reports all of it); a
+    results file written before the store kept times (no run_seconds table) opens and gains it."""
+    path = tmp_path / "old.sqlite"
+    con = sqlite3.connect(path)
+    con.executescript("CREATE TABLE runs (run_id TEXT PRIMARY KEY, task TEXT NOT NULL, protocol TEXT NOT "
+                      "NULL, created REAL NOT NULL);")
+    con.close()
+    store = ResultsStore(path)
+    store.record_episode(_rec())  # the episodes table was created too
+    assert store.run_seconds("r1") is None
+    store.add_run_seconds("r1", 12.5)
+    store.add_run_seconds("r1", 7.25)
+    store.add_run_seconds("r2", 1.0)
+    assert store.run_seconds("r1") == 19.75 and ResultsStore(path).run_seconds("r2") == 1.0

@@ -384,11 +384,17 @@ def replay_episodes(task: str, episodes: list[RecordedEpisode], store: ResultsSt
     episode's actions go to them as an `actions:FILE.npy` policy), 0 in this process. Episodes whose
     replay run `run_id` already holds (status ok) are not replayed again: an interrupted replay resumes."""
     import tempfile
+    import time
 
     from twinbench.evaluation.backends import refuse_in_worker_import, run_local
     from twinbench.evaluation.grids import grid_info, map_index, read_index_map
     from twinbench.evaluation.rollout import EpisodeBatch, EpisodeJob, run_episode
-    from twinbench.evaluation.runner import _check_counts, _twin_hash, moved_twin_keys
+    from twinbench.evaluation.runner import (
+        _check_counts,
+        _twin_hash,
+        add_run_seconds_quietly,
+        moved_twin_keys,
+    )
     from twinbench.policies.base import OpenLoopPolicy
     from twinbench.tasks import get_task
 
@@ -453,29 +459,36 @@ def replay_episodes(task: str, episodes: list[RecordedEpisode], store: ResultsSt
     pairs = {key(ep): (real_done[key(ep)], done[key(ep)]) for ep in episodes
              if key(ep) in real_done and key(ep) in done and done[key(ep)].status == "ok"}
     todo = [ep for ep in episodes if key(ep) not in pairs]
-    if not workers:
-        for ep in todo:
-            options = None if ep.object_poses is None else {"object_poses": ep.object_poses}
-            out = run_episode(env, OpenLoopPolicy(ep.actions), init_state=ep.init_state, seed=ep.key_seed,
-                              max_steps=len(ep.actions), reset_options=options)
-            pairs[key(ep)] = pair(ep, out.success, out.status, out.steps, out.wall_time_s, out.metrics())
-    elif todo:
-        with tempfile.TemporaryDirectory(prefix="twinbench-replay-") as tmp:
-            by_file, batches = {}, []
-            for i, ep in enumerate(todo):
-                path = Path(tmp) / f"ep{i}.npy"
-                np.save(path, np.asarray(ep.actions), allow_pickle=False)
-                by_file[path.stem] = ep
+    t0 = time.perf_counter()
+    try:
+        if not workers:
+            for ep in todo:
                 options = None if ep.object_poses is None else {"object_poses": ep.object_poses}
-                batches.append(EpisodeBatch((EpisodeJob(
-                    task, f"actions:{path}", ep.init_state, ep.key_seed, run_id, dict(env_kwargs or {}),
-                    max_steps=len(ep.actions), reset_options=options),)))
+                out = run_episode(env, OpenLoopPolicy(ep.actions), init_state=ep.init_state,
+                                  seed=ep.key_seed, max_steps=len(ep.actions), reset_options=options)
+                pairs[key(ep)] = pair(ep, out.success, out.status, out.steps, out.wall_time_s,
+                                      out.metrics())
+        elif todo:
+            with tempfile.TemporaryDirectory(prefix="twinbench-replay-") as tmp:
+                by_file, batches = {}, []
+                for i, ep in enumerate(todo):
+                    path = Path(tmp) / f"ep{i}.npy"
+                    np.save(path, np.asarray(ep.actions), allow_pickle=False)
+                    by_file[path.stem] = ep
+                    options = None if ep.object_poses is None else {"object_poses": ep.object_poses}
+                    batches.append(EpisodeBatch((EpisodeJob(
+                        task, f"actions:{path}", ep.init_state, ep.key_seed, run_id,
+                        dict(env_kwargs or {}), max_steps=len(ep.actions), reset_options=options),)))
 
-            def on_done(rec: EpisodeRecord) -> None:
-                ep = by_file[rec.checkpoint]
-                pairs[key(ep)] = pair(ep, rec.success, rec.status, rec.steps, rec.wall_time_s, rec.metrics)
+                def on_done(rec: EpisodeRecord) -> None:
+                    ep = by_file[rec.checkpoint]
+                    pairs[key(ep)] = pair(ep, rec.success, rec.status, rec.steps, rec.wall_time_s,
+                                          rec.metrics)
 
-            run_local(batches, int(workers), on_done)
+                run_local(batches, int(workers), on_done)
+    finally:
+        if todo:
+            add_run_seconds_quietly(store, run_id, time.perf_counter() - t0)
     return [pairs[key(ep)] for ep in episodes]
 
 

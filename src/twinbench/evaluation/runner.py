@@ -15,12 +15,13 @@ Seeds: grid episodes use init_state i with seed `seed + i`; `episodes=N` samples
 
 from __future__ import annotations
 
+import time
 from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
 
-from twinbench.errors import InputError
+from twinbench.errors import InputError, StorageError
 from twinbench.evaluation.backends import (
     SigTerm,
     refuse_in_worker_import,
@@ -161,6 +162,15 @@ def _twin_hash(task: str, env_kwargs: dict, run_id: str, store: ResultsStore) ->
     return now
 
 
+def add_run_seconds_quietly(store: ResultsStore, run_id: str, seconds: float) -> None:
+    """`store.add_run_seconds`, except that a store that cannot be written (a full disk) loses the time
+    rather than hiding the error the run is ending with."""
+    try:
+        store.add_run_seconds(run_id, seconds)
+    except (StorageError, InputError):
+        pass
+
+
 def moved_twin_keys(store: ResultsStore, run_id: str, protocol: dict) -> tuple[str, ...]:
     """("env_kwargs",) when run `run_id` was started on the same twin (equal `twin_hash`) at another path,
     with its other env settings equal: a moved study or results folder, or a twin named relative to
@@ -295,6 +305,7 @@ def evaluate(task: str, policies: Sequence[str], episodes: str | int = "grid", w
             wins, errors = sum(r.success for r in finished), len(results) - len(finished)
             return f"{wins} success{'es' * (wins != 1)}, {errors} error{'s' * (errors != 1)}"
 
+        t0 = time.perf_counter()
         try:
             with sigterm_as_interrupt():
                 if backend == "ray":
@@ -309,6 +320,9 @@ def evaluate(task: str, policies: Sequence[str], episodes: str | int = "grid", w
             msg = (f"{what}: {done_count[0]} of {len(jobs)} episodes of run {run_id!r} are in "
                    f"{store.path}; re-run the same command (same --run-id) to resume the remaining {left}")
             raise exc(msg, done_count[0], len(jobs)) from None
+        finally:
+            if todo:
+                add_run_seconds_quietly(store, run_id, time.perf_counter() - t0)
     missing = [r for r in results.values() if r.metrics.get("video_error")]
     for r in missing:
         log(f"warning: video missing for {r.policy} init_state {r.init_state} seed {r.seed}: "

@@ -108,6 +108,10 @@ CREATE TABLE IF NOT EXISTS episodes (
     recorded REAL NOT NULL,
     PRIMARY KEY (run_id, domain, policy, checkpoint, init_state, seed)
 );
+CREATE TABLE IF NOT EXISTS run_seconds (
+    run_id TEXT PRIMARY KEY,
+    seconds REAL NOT NULL
+);
 """
 
 _COLUMNS = (
@@ -296,6 +300,20 @@ class ResultsStore:
         with self._connect() as con:
             rows = con.execute("SELECT run_id FROM runs UNION SELECT run_id FROM episodes").fetchall()
         return sorted(r[0] for r in rows)
+
+    def add_run_seconds(self, run_id: str, seconds: float) -> None:
+        """Add `seconds` of wall time spent running run `run_id`'s episodes (each evaluation or replay
+        call that ran some adds its own, so a run resumed over several sessions keeps its total)."""
+        with self._connect() as con:
+            con.execute("INSERT INTO run_seconds VALUES (?, ?) ON CONFLICT(run_id) DO UPDATE SET "
+                        "seconds = seconds + excluded.seconds", (run_id, float(seconds)))
+
+    def run_seconds(self, run_id: str) -> float | None:
+        """The wall time (s) recorded by `add_run_seconds` for run `run_id`; None where none was (a run
+        stored before the store kept times, or one copied rather than run)."""
+        with self._connect() as con:
+            row = con.execute("SELECT seconds FROM run_seconds WHERE run_id = ?", (run_id,)).fetchone()
+        return None if row is None else float(row[0])
 
     # ---- episodes ---------------------------------------------------------------------------------
     def record_episode(self, rec: EpisodeRecord) -> None:

@@ -148,7 +148,7 @@ def run_evaluations(task: str, real_world: Path, twins: dict[str, Path], policie
     """Every policy on the real workcell (a second time with other episode seeds where `real_again`, by
     default the size's) and on each twin (resumable: the runner skips finished episodes, and those that
     ended in an error unless `retry_errors`), then the real rollouts replayed in each twin. Returns the
-    wall time (s) of each evaluation."""
+    wall time (s) of each evaluation, over every session that ran some of its episodes."""
     sz = study_size(size)
     store = ResultsStore(out / "results" / "results.sqlite")
     times = {}
@@ -162,10 +162,10 @@ def run_evaluations(task: str, real_world: Path, twins: dict[str, Path], policie
                         store=store, env_kwargs=env_kwargs(world, sz), output_dir=out / "results", log=log,
                         record_actions=run_id == REAL_ROLLOUTS, retry_errors=retry_errors, seed=seed,
                         progress=True)  # a bar in a terminal, else a line a minute (a study runs for hours)
-        times[run_id] = time.perf_counter() - t0
+        times[run_id] = _run_seconds(store, run_id, time.perf_counter() - t0)
         bad = [r for r in recs if r.status != "ok"]
         log(f"{run_id}: {sum(r.success for r in recs)}/{len(recs)} successes, {len(bad)} errors, "
-            f"{times[run_id]:.0f} s")
+            f"{time.perf_counter() - t0:.0f} s ({times[run_id]:.0f} s in all)")
         if run_id == REAL_ROLLOUTS:
             _real_records(store, task, recs)
     return times | replay_in_twins(task, store, out / "results", twins, sz, log, workers)
@@ -189,8 +189,15 @@ def replay_in_twins(task: str, store: ResultsStore, results: Path, twins: dict[s
             copy_replays(store, same, variant)  # (only when the source holds replays the copy lacks)
             log(f"{replay_run_id(variant)}: the twin differs from {same!r} only in appearance and a replay "
                 f"renders no camera: {replay_run_id(same)}'s outcomes, not run again")
-        times[replay_run_id(variant)] = time.perf_counter() - t0
+        times[replay_run_id(variant)] = _run_seconds(store, replay_run_id(variant), time.perf_counter() - t0)
     return times
+
+
+def _run_seconds(store: ResultsStore, run_id: str, now: float) -> float:
+    """The wall time spent on a run over every session that ran its episodes (the store's record), or for a
+    run from before the store kept it (or a copied one), what this call spent."""
+    total = store.run_seconds(run_id)
+    return now if total is None else total
 
 
 def _copied_from(store: ResultsStore, run_id: str) -> str | None:
