@@ -99,7 +99,8 @@ def test_study_json_table_and_page(study):
     assert training == [{"policy": "c", "checkpoint": "c.json", "arch": "cnn", "demos": 8, "frames": 1200,
                          "epochs": 40, "loss": 0.0123, "train_seconds": 61.0}]
     doc = E.write_study_json(study, "push-t", "small", ["full", "no-color", "neither"],
-                             {"make-real": 1.0, "evaluate": 2.0}, {"training": training})
+                             {"make-real": 1.0, "evaluate": 2.0},
+                             {"training": training, "user_policies": ["d=perceive:mine.json"]})
     assert json.loads((study / "study.json").read_text()) == doc
     table = E.format_table(doc)
     assert "| push-t | full | 1.000 [1.00, 1.00] | 0.000 [0.000, " in table and "| 4 | 16 / 16 |" in table
@@ -119,6 +120,12 @@ def test_study_json_table_and_page(study):
     assert "<td>r over the states</td><td></td><td>1.000</td><td>1.000</td>" in text
     assert "<td>real again</td><td>0.800 [" in text and "evaluated a second time" in text
     # c: real 0.75, full 0.75 (the same outcomes), no-color 0.25 (b's, backwards), neither 1
+    # per policy: d (the user's) real 1 in 4 episodes, full 1, no-color 0 (a's, backwards), neither 1, and
+    # in the second real evaluation 0.75
+    assert "Success per policy" in text
+    assert ("<td>d (yours)</td><td>d.json</td><td>1.00 (4)</td><td>1.00</td><td>0.00</td><td>1.00</td>"
+            "<td>0.75</td>") in text
+    assert "<td>a</td><td>a.json</td><td>0.00 (4)</td>" in text
     assert "Behaviour-cloned checkpoints" in text
     assert ("<td>c</td><td>cnn</td><td>8</td><td>1200</td><td>40</td><td>0.0123</td><td>61</td><td>0.75</td>"
             "<td>0.75</td><td>0.25</td><td>1.00</td>") in text

@@ -68,6 +68,34 @@ def _states_section(doc: dict) -> str:
         "workcell does and still succeed from the wrong states (or the other way round).")
 
 
+def _policies_section(doc: dict) -> str:
+    """Each policy's success rate, real and in each twin (and the real workcell again): which policies a
+    twin over- or under-rates. The user's own (`--policy`) are marked."""
+    from twinbench.policies import parse_policy_spec
+    from twinbench.study.evaluate import table_rows
+
+    rows = table_rows(doc)
+    if not rows or not rows[0].get("policies"):
+        return ""
+    yours = set()
+    for text in doc.get("user_policies", []):
+        try:
+            yours.add(parse_policy_spec(text).name)
+        except ValueError:
+            pass
+    keys = sorted({(d["policy"], d["checkpoint"]) for row in rows for d in row["policies"]})
+    sim = {row["variant"]: {(d["policy"], d["checkpoint"]): d["sim"] for d in row["policies"]}
+           for row in rows}
+    real = {(d["policy"], d["checkpoint"]): d for row in rows for d in row["policies"]}
+    body = [[_e(p) + (" (yours)" if p in yours else ""), _e(c),
+             f"{real[(p, c)]['real']:.2f} ({real[(p, c)]['n_real']})",
+             *[_num(sim[v].get((p, c)), ".2f") for v in sim]] for p, c in keys]
+    return "<h2>Success per policy</h2>" + _table(
+        ["policy", "checkpoint", "real (episodes)", *[_e(v) for v in sim]], body) + _note(
+        "Each policy's success rate over the grid states, real and in each twin: the points of the scatter "
+        "above.")
+
+
 def _training_section(doc: dict) -> str:
     """The behaviour-cloned checkpoints: training record and success, real and in each twin."""
     rates = {(d["policy"], d["checkpoint"]): {} for d in doc.get("training", [])}
@@ -198,7 +226,7 @@ def write_study_report(out: Path, doc: dict, frames: bool = True,
         write_report(store, twin_run_id(variant), out / "reports" / f"{variant}.html", real_run_id=REAL)
     stages = "".join(f"<tr><td>{_e(k)}</td><td>{v:.0f} s</td></tr>" for k, v in doc["stage_seconds"].items())
     body = [f"<h1>twinbench study — {_e(doc['task'])} ({_e(doc['size'])})</h1>",
-            _table_section(doc), _scatter_section(doc), _states_section(doc)]
+            _table_section(doc), _scatter_section(doc), _policies_section(doc), _states_section(doc)]
     if doc.get("training"):
         body.append(_training_section(doc))
     body.append(_camera_section(doc))
