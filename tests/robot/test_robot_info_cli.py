@@ -37,7 +37,7 @@ def test_robot_info_builtin(capsys, arm):
 def test_robot_info_pusher_and_urdf(capsys, tmp_path):
     assert main(["robot-info", "--tool", "pusher"]) == 0
     out = capsys.readouterr().out
-    assert "contact links: pusher" in out
+    assert "contact links: pusher" in out and "fewer than 6" not in out  # the xArm: 7 joints
     faces = len(load_builtin_arm("pusher").collision_meshes["pusher"].faces)  # what physics refits
     assert re.search(rf"\n  pusher  mesh: \d+ vertices  collision: {faces:,} faces\n", out)
     urdf = tmp_path / "two.urdf"
@@ -48,6 +48,7 @@ def test_robot_info_pusher_and_urdf(capsys, tmp_path):
     assert main(["robot-info", str(urdf)]) == 0
     out = capsys.readouterr().out
     assert "hinge" in out and "limits [-1.0000, +1.0000]" in out
+    assert "arm joints (root to end effector): hinge (fewer than 6: a tool pointing down turns" in out
     pos, quat = _ee_line(out)
     np.testing.assert_allclose(pos, [0, 0, 0.5])
     np.testing.assert_allclose(quat, [1, 0, 0, 0])

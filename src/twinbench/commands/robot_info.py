@@ -8,6 +8,7 @@ from typing import Annotated
 import tyro
 
 from twinbench.robot.builtin import TOOLS, load_builtin_arm
+from twinbench.robot.ik import FULL_ORIENTATION_JOINTS
 from twinbench.robot.model import RobotModel, load_robot
 from twinbench.transforms import matrix_to_quat
 
@@ -40,6 +41,11 @@ def describe(model: RobotModel) -> str:
         if j.mimic is not None:
             s += f"  mimic {j.mimic[0]} x{j.mimic[1]:g} {j.mimic[2]:+g}"
         lines.append(s)
+    arm = f"arm joints (root to end effector): {', '.join(model.arm_joints)}"
+    if model.arm_q_indices.size < FULL_ORIENTATION_JOINTS:
+        arm += (f" (fewer than {FULL_ORIENTATION_JOINTS}: a tool pointing down turns about the vertical as "
+                "the arm gives it; the planar controller and the tasks' start poses leave that turn free)")
+    lines.append(arm)
     home = model.home_q
     ee = model.ee_pose(home)
     quat = matrix_to_quat(ee[:3, :3])
