@@ -162,10 +162,12 @@ def run_evaluations(task: str, real_world: Path, twins: dict[str, Path], policie
                         store=store, env_kwargs=env_kwargs(world, sz), output_dir=out / "results", log=log,
                         record_actions=run_id == REAL_ROLLOUTS, retry_errors=retry_errors, seed=seed,
                         progress=True)  # a bar in a terminal, else a line a minute (a study runs for hours)
-        times[run_id] = _run_seconds(store, run_id, time.perf_counter() - t0)
+        now = time.perf_counter() - t0
+        times[run_id] = _run_seconds(store, run_id, now)
         bad = [r for r in recs if r.status != "ok"]
+        total = f" ({times[run_id]:.0f} s over every session)" if times[run_id] > now + 1 else ""
         log(f"{run_id}: {sum(r.success for r in recs)}/{len(recs)} successes, {len(bad)} errors, "
-            f"{time.perf_counter() - t0:.0f} s ({times[run_id]:.0f} s in all)")
+            f"{now:.0f} s{total}")
         if run_id == REAL_ROLLOUTS:
             _real_records(store, task, recs)
     return times | replay_in_twins(task, store, out / "results", twins, sz, log, workers)
