@@ -634,10 +634,14 @@ def twin_dir_hash(folder) -> str:
 
 
 def _feed(h, value) -> None:
-    """Feed `value` (dataclasses, dicts, sequences, arrays, scalars) into hash `h`, typed and delimited."""
+    """Feed `value` (dataclasses, dicts, sequences, arrays, scalars) into hash `h`, typed and delimited. A
+    dataclass field added after hashes were first kept (metadata `hash_unless_default`) is left out at its
+    default, so that what was built before hashes as it did (a resumed run's twin check)."""
     if dataclasses.is_dataclass(value):
         h.update(f"<{type(value).__name__}".encode())
         for f in dataclasses.fields(value):
+            if f.metadata.get("hash_unless_default") and getattr(value, f.name) == f.default:
+                continue
             h.update(f"{f.name}=".encode())
             _feed(h, getattr(value, f.name))
         h.update(b">")

@@ -112,7 +112,8 @@ class RobotSpec:
     tool_contact: ContactSpec = field(default_factory=ContactSpec)
     color_map: ColorMap | None = None
     tool_radius: float | None = None
-    contact_mesh: str = "collision"
+    # added after twins were hashed: left out of `twin_spec_hash` at its default, so hashes stay as they were
+    contact_mesh: str = field(default="collision", metadata={"hash_unless_default": True})
 
     def __post_init__(self) -> None:
         if self.contact_mesh not in CONTACT_MESHES:
