@@ -147,6 +147,8 @@ def test_a_run_resumes_on_its_twin_moved_elsewhere_and_a_policy_file_moved_with_
     run(second, ["mine=remote:ws://127.0.0.1:9?io=" + str(tmp_path / "b" / "p.json")])
     assert store.run_protocol("R")["env_kwargs"]["twin"] == str(second) and moved
     assert not [line for line in logs if "adding" in line]
+    said = f"run 'R': its twin is at {second} now (the same files as where the run started: {first})"
+    assert said in logs[0]
     with pytest.raises(InputError, match=r"different protocol keys \['env_kwargs'"):
         runner.evaluate("push-t", ["mine=remote:ws://127.0.0.1:9"], "grid:0", 0, "R", store,
                         output_dir=tmp_path / "out", env_kwargs={"twin": str(second), "cameras": ""})

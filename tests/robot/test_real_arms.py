@@ -53,6 +53,9 @@ def test_so101s_cad_gripper_and_jaw_collide_through_hulls_within_a_millimetre():
     urdf = ROBOTS / "so_arm_description/urdf/so101.urdf"
     model = load_robot(urdf, gripper_joint="gripper", contact_links=links)
     convex = model.with_convex_contacts()
+    from twinbench.commands.robot_info import describe
+
+    assert "(collision meshes over 5,000 faces: base_link, " in describe(model)  # robot-info says so
     for link in links:
         assert len(model.contact_faces(link)) > 20_000 and len(convex.contact_faces(link)) <= 1000
         assert 0 < convex.convex_contact_moved[link] < 0.001

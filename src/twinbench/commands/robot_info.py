@@ -9,7 +9,7 @@ import tyro
 
 from twinbench.robot.builtin import TOOLS, load_builtin_arm
 from twinbench.robot.ik import FULL_ORIENTATION_JOINTS
-from twinbench.robot.model import RobotModel, load_robot
+from twinbench.robot.model import HEAVY_CONTACT_FACES, RobotModel, load_robot
 from twinbench.transforms import matrix_to_quat
 
 
@@ -33,6 +33,11 @@ def describe(model: RobotModel) -> str:
         if col is not None:  # a contact link's collision mesh is refitted every physics substep
             extra += f"  collision: {len(col.faces):,} faces"
         lines.append(f"  {name}{extra}")
+    heavy = [n for n, m in model.collision_meshes.items() if len(m.faces) > HEAVY_CONTACT_FACES]
+    if heavy:
+        lines.append(f"  (collision meshes over {HEAVY_CONTACT_FACES:,} faces: {', '.join(heavy)}; as "
+                     'contact links they slow every physics step: robot.contact_mesh "convex_hull" collides '
+                     "through their simplified hulls)")
     lines.append(f"joints ({len(model.joints)}, {model.n_q} actuated):")
     for j in model.joints:
         s = f"  {j.name:<22} {j.type:<10} {j.parent} -> {j.child}"

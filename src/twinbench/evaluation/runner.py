@@ -245,8 +245,11 @@ def evaluate(task: str, policies: Sequence[str], episodes: str | int = "grid", w
     if spec_task.task_cls is not None:  # a twin (directory or built-in cell): resuming needs the same one
         protocol["twin_hash"] = _twin_hash(task, env_kwargs, run_id, store)
     known = {(s.name, s.checkpoint) for s in _parsed(_stored_policies(store, run_id))}
-    added = store.start_run(run_id, task, protocol,
-                            grow=("policies", *moved_twin_keys(store, run_id, protocol)))
+    moved = moved_twin_keys(store, run_id, protocol)
+    if moved and log is not None:
+        log(f"run {run_id!r}: its twin is at {env_kwargs.get('twin')} now (the same files as where the run "
+            f"started: {store.run_protocol(run_id)['env_kwargs'].get('twin')}); resuming there")
+    added = store.start_run(run_id, task, protocol, grow=("policies", *moved))
     new = [p for p in _parsed(added) if (p.name, p.checkpoint) not in known]
     if new and log is not None:  # a resumed run extended with more policies (other settings unchanged)
         log(f"run {run_id!r}: adding {len(new)} policies to those it was started with")

@@ -26,6 +26,7 @@ class URDFError(InputError):
 
 
 CONVEX_CONTACT_FACES = 1000  # faces of a simplified convex contact mesh (`convex_contact_mesh`)
+HEAVY_CONTACT_FACES = 5000  # a contact mesh above this makes physics steps slow: warned at build
 _FK_MEMO = 256  # configurations RobotModel.fk remembers (a step of 64 worlds asks for a few per world)
 
 

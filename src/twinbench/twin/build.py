@@ -49,7 +49,7 @@ from twinbench.physics import (
 )
 from twinbench.robot.controller import ControllerState, RobotCommand, RobotController
 from twinbench.robot.gaussians import RobotGaussians, sample_robot_scan
-from twinbench.robot.model import RobotModel
+from twinbench.robot.model import HEAVY_CONTACT_FACES, RobotModel
 from twinbench.transforms import fit_rigid_transform, transform_points
 from twinbench.twin.spec import CameraSpec, RobotSpec, TwinSpec, with_color_map
 
@@ -131,9 +131,6 @@ def load_spec_robot(spec: RobotSpec) -> RobotModel:
             home_q=None if spec.home_q is None else np.asarray(spec.home_q, dtype=np.float64),
         )
     return model.with_convex_contacts() if spec.contact_mesh == "convex_hull" else model
-
-
-HEAVY_CONTACT_FACES = 5000  # a contact mesh above this makes physics steps slow: warned at build
 
 
 def warn_heavy_contact_mesh(model: RobotModel, link: str) -> None:
