@@ -50,7 +50,8 @@ COMMANDS: dict[str, tuple[str, str, str, str]] = {
     "mesh-to-object": ("twinbench.commands.mesh_to_object", "MeshToObjectConfig", "main",
                        "a rigid spring-mass object with surface Gaussians from a closed mesh"),
     "study": ("twinbench.commands.study", "StudyCommand", "main",
-              "sim-vs-real study on a hidden real workcell (make-real|evidence|reconstruct|evaluate|run)"),
+              "sim-vs-real study on a hidden real workcell "
+              "(make-real|evidence|reconstruct|evaluate|run|combine)"),
 }
 
 

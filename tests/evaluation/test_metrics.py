@@ -12,6 +12,7 @@ from twinbench.evaluation.metrics import (
     beta_posterior,
     clopper_pearson,
     jeffreys,
+    mean_mmrv_bootstrap,
     mmrv,
     mmrv_bootstrap,
     pearson,
@@ -253,6 +254,48 @@ def test_mmrv_bootstrap():
         mmrv_bootstrap(sim=[[0.5]], real=[[1]])
     with pytest.raises(ValueError, match="same non-zero number"):
         mmrv_bootstrap(sim=[], real=[])
+
+
+def test_partial_pearson_over_groups():
+    # rates centred per group are the residuals of a regression on group indicators: r of those residuals
+    # is the partial correlation, its Fisher interval with n - 3 - (groups - 1) degrees of freedom
+    rng = np.random.default_rng(5)
+    g = np.repeat([0, 1, 2], 6)
+    x = rng.random(18) + g
+    y = x + rng.normal(0, 0.3, 18) - 2 * g
+    dummies = np.eye(3)[g]
+    rx = x - dummies @ np.linalg.lstsq(dummies, x, rcond=None)[0]
+    ry = y - dummies @ np.linalg.lstsq(dummies, y, rcond=None)[0]
+    res = pearson(sim=rx, real=ry, controls=2)
+    want = float(np.corrcoef(rx, ry)[0, 1])
+    half = stats.norm.ppf(0.975) / np.sqrt(18 - 3 - 2)
+    assert res.r == pytest.approx(want) and res.n == 18
+    assert (res.low, res.high) == pytest.approx((np.tanh(np.arctanh(want) - half),
+                                                 np.tanh(np.arctanh(want) + half)))
+    assert pearson(sim=rx, real=ry, controls=2).high > pearson(sim=rx, real=ry).high  # wider
+    assert (pearson(sim=[0, 1, 2, 4], real=[0, 2, 1, 4], controls=1).low, ) == (-1.0, )  # 3 left
+    with pytest.raises(ValueError, match="beyond the 2 variables"):
+        pearson(sim=[0, 1, 2, 4], real=[0, 2, 1, 4], controls=2)
+    with pytest.raises(ValueError, match="controls"):
+        pearson(sim=[0, 1, 2, 4], real=[0, 2, 1, 4], controls=-1)
+
+
+def test_mean_mmrv_bootstrap_over_groups():
+    a = ([[1, 1, 1, 0], [1, 0, 0, 0, 0], [1, 1, 1, 1, 1, 0]], [[1, 0, 0], [1, 1, 0, 1], [1, 1, 1, 1]])
+    b = ([[0, 0], [1, 1]], [[1, 1], [0, 0]])  # ranked backwards, no episode spread: MMRV 1 in every replicate
+    one = mean_mmrv_bootstrap([a], n_boot=300, seed=2)
+    assert one == mmrv_bootstrap(sim=a[0], real=a[1], n_boot=300, seed=2)  # one group: the same draws
+    both = mean_mmrv_bootstrap([a, b], n_boot=300, seed=2)
+    assert both.value == pytest.approx((one.value + 1.0) / 2)  # policies ranked within their group only
+    # the replicates: (group a's replicate + 1) / 2, so the interval is a's, mapped; a's draws come first in
+    # each chunk and b draws the same amount, so chunk 1 (< 500) matches a alone
+    assert (both.low, both.high) == pytest.approx(((one.low + 1) / 2, (one.high + 1) / 2))
+    det = mean_mmrv_bootstrap([b, ([[1, 1], [0]], [[1], [0, 0]])], n_boot=50)
+    assert det.value == det.low == det.high == pytest.approx(0.5)
+    with pytest.raises(ValueError, match="no groups"):
+        mean_mmrv_bootstrap([])
+    with pytest.raises(ValueError, match="sim and real of group 1 need"):
+        mean_mmrv_bootstrap([a, ([[1]], [[1], [0]])])
 
 
 def test_mmrv_zero_iff_rankings_agree_exhaustive():

@@ -1,12 +1,15 @@
-"""`twinbench study make-real | evidence | reconstruct | evaluate | run`: a predictive-validity study on a
-hidden "real" workcell (twinbench.study). `run` does every stage into one folder:
+"""`twinbench study make-real | evidence | reconstruct | evaluate | run | combine`: a predictive-validity
+study on a hidden "real" workcell (twinbench.study). `run` does every stage into one folder:
 
     twinbench study run --task push-t --out study_pusht --size small
     twinbench study run --task rope-routing --out study_rope --size small
 
 Tasks: push-t, rope-routing and toy-packing, every stage (each has its perception controllers); another
 task goes through make-real, evidence and reconstruct, and `evaluate` / `run` refuse it, naming the tasks
-that have them. `--policy NAME=SPEC` adds your own policies to `evaluate` and `run`.
+that have them. `--policy NAME=SPEC` adds your own policies to `evaluate` and `run`. `combine` reads
+finished studies of one task on other workcells (seeds) as one table:
+
+    twinbench study combine study_s0 study_s1 study_s2 --out combined.json
 """
 
 from __future__ import annotations
@@ -116,12 +119,25 @@ class RunConfig:
     see: the front camera and the robot state"""
 
 
+@dataclass(frozen=True)
+class CombineConfig:
+    """Finished studies of a task, each on its own hidden workcell (`study run --seed S`), as one table:
+    per variant the pooled r over every (workcell, policy), r within workcells, the mean MMRV, each
+    workcell's r and MMRV and how many meet the aims (twinbench.study.combine)."""
+
+    studies: tyro.conf.Positional[tuple[Path, ...]]
+    """study folders (or their study.json), one size; several tasks give one table per task"""
+    out: Path | None = None
+    """also write the figures as JSON to this file"""
+
+
 StudyCommand = (
     Annotated[MakeRealConfig, tyro.conf.subcommand("make-real")]
     | Annotated[EvidenceConfig, tyro.conf.subcommand("evidence")]
     | Annotated[ReconstructConfig, tyro.conf.subcommand("reconstruct")]
     | Annotated[EvaluateConfig, tyro.conf.subcommand("evaluate")]
     | Annotated[RunConfig, tyro.conf.subcommand("run")]
+    | Annotated[CombineConfig, tyro.conf.subcommand("combine")]
 )
 
 
@@ -182,6 +198,17 @@ def main(cfg) -> int:
             print(f"{variant}: {path}")
     elif isinstance(cfg, EvaluateConfig):
         return _evaluate(cfg)
+    elif isinstance(cfg, CombineConfig):
+        import json
+
+        from twinbench.study.combine import combine_studies, format_combined, load_study
+
+        tasks = combine_studies([load_study(p) for p in cfg.studies])
+        print(format_combined(tasks))
+        if cfg.out is not None:
+            cfg.out.parent.mkdir(parents=True, exist_ok=True)
+            cfg.out.write_text(json.dumps(tasks, indent=1))
+            print(f"wrote {cfg.out}")
     else:
         from twinbench.study.evaluate import format_table
         from twinbench.study.run import run_study

@@ -139,28 +139,36 @@ class PearsonResult:
     confidence: float = 0.95
 
 
-def pearson(*, sim: Sequence[float], real: Sequence[float], confidence: float = 0.95) -> PearsonResult:
+def pearson(*, sim: Sequence[float], real: Sequence[float], confidence: float = 0.95,
+            controls: int = 0) -> PearsonResult:
     """Pearson correlation of paired (sim, real) success rates with a Fisher-z interval
-    tanh(atanh(r) -+ z_{1-alpha/2} / sqrt(n - 3)).
+    tanh(atanh(r) -+ z_{1-alpha/2} / sqrt(n - 3 - controls)).
 
-    Raises ValueError for n < 3 (r is +-1 or undefined, no information) and for a constant vector (r is
-    0/0, undefined: e.g. every policy at 100% in sim). At n = 3 the interval is (-1, 1)."""
+    `controls`: how many variables were partialled out of both vectors before (a partial correlation, e.g.
+    rates centred per group: one fewer than the groups), each costing the interval a degree of freedom.
+    Raises ValueError for n - controls < 3 (r is +-1 or undefined, no information) and for a constant
+    vector (r is 0/0, undefined: e.g. every policy at 100% in sim). At n - controls = 3 the interval is
+    (-1, 1)."""
     s, r = _paired(sim, real)
     conf = _check_confidence(confidence)
-    n = s.size
+    if controls < 0:
+        raise ValueError(f"controls={controls} must be >= 0")
+    n = s.size - controls
     if n < 3:
-        raise ValueError(f"Pearson r needs at least 3 paired policies, got {n}")
+        raise ValueError(f"Pearson r needs at least 3 paired policies"
+                         f"{f' beyond the {controls} variables partialled out' if controls else ''}, "
+                         f"got {s.size}")
     for name, v in (("sim", s), ("real", r)):
         if np.ptp(v) == 0:
             raise ValueError(f"Pearson r is undefined: all {name} values equal {v[0]:g} (zero variance)")
     ds, dr = s - s.mean(), r - r.mean()
     rho = float(np.clip(np.dot(ds, dr) / np.sqrt(np.dot(ds, ds) * np.dot(dr, dr)), -1.0, 1.0))
     if n == 3:
-        return PearsonResult(rho, -1.0, 1.0, n, conf)
+        return PearsonResult(rho, -1.0, 1.0, s.size, conf)
     if abs(rho) == 1.0:
-        return PearsonResult(rho, rho, rho, n, conf)
+        return PearsonResult(rho, rho, rho, s.size, conf)
     z, half = np.arctanh(rho), stats.norm.ppf(0.5 + conf / 2) / np.sqrt(n - 3)
-    return PearsonResult(rho, float(np.tanh(z - half)), float(np.tanh(z + half)), n, conf)
+    return PearsonResult(rho, float(np.tanh(z - half)), float(np.tanh(z + half)), s.size, conf)
 
 
 def _mmrv_batch(s: np.ndarray, r: np.ndarray) -> np.ndarray:
@@ -204,20 +212,35 @@ def mmrv_bootstrap(*, sim: Sequence[Sequence[float]], real: Sequence[Sequence[fl
 
     `sim[i]` / `real[i]` hold policy i's episode outcomes (0/1) in each domain. Each bootstrap replicate
     resamples episodes with replacement within each policy and domain (seeded, reproducible)."""
-    s_arr = _outcome_arrays(sim, "sim")
-    r_arr = _outcome_arrays(real, "real")
-    if len(s_arr) != len(r_arr) or not s_arr:
-        raise ValueError(f"sim and real need the same non-zero number of policies, got {len(s_arr)} "
-                         f"and {len(r_arr)}")
+    return mean_mmrv_bootstrap([(sim, real)], n_boot=n_boot, confidence=confidence, seed=seed)
+
+
+def mean_mmrv_bootstrap(groups: Sequence[tuple[Sequence[Sequence[float]], Sequence[Sequence[float]]]], *,
+                        n_boot: int = 2000, confidence: float = 0.95, seed: int = 0) -> Estimate:
+    """The mean over groups of each group's MMRV (policies ranked only against the others of their group,
+    e.g. of one workcell) with a percentile bootstrap interval; `groups[g]` = (sim, real) as
+    `mmrv_bootstrap` takes them. Each replicate resamples episodes within each group, policy and domain."""
+    if not groups:
+        raise ValueError("no groups: need at least one (sim, real) pair of outcome lists")
+    arrays = []
+    for g, (sim, real) in enumerate(groups):
+        where = f" of group {g}" if len(groups) > 1 else ""
+        s_arr = _outcome_arrays(sim, f"sim{where}")
+        r_arr = _outcome_arrays(real, f"real{where}")
+        if len(s_arr) != len(r_arr) or not s_arr:
+            raise ValueError(f"sim and real{where} need the same non-zero number of policies, got "
+                             f"{len(s_arr)} and {len(r_arr)}")
+        arrays.append((s_arr, r_arr))
     if n_boot < 1:
         raise ValueError(f"n_boot={n_boot} must be >= 1")
     conf = _check_confidence(confidence)
-    value = mmrv(sim=[a.mean() for a in s_arr], real=[a.mean() for a in r_arr])
+    value = float(np.mean([mmrv(sim=[a.mean() for a in s], real=[a.mean() for a in r]) for s, r in arrays]))
     rng = np.random.default_rng(seed)
     boots = []
     for start in range(0, n_boot, 500):  # chunks bound the (B, N, N) temporaries
         b = min(500, n_boot - start)
-        boots.append(_mmrv_batch(_resampled_rates(s_arr, b, rng), _resampled_rates(r_arr, b, rng)))
+        boots.append(np.mean([_mmrv_batch(_resampled_rates(s, b, rng), _resampled_rates(r, b, rng))
+                              for s, r in arrays], axis=0))
     boot = np.concatenate(boots)
     low, high = np.quantile(boot, [(1 - conf) / 2, (1 + conf) / 2])
     return Estimate(value, float(low), float(high), conf)

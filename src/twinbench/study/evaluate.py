@@ -331,7 +331,7 @@ def write_study_json(out: Path, task: str, size: str | StudySize, variants, stag
                      extra: dict | None = None) -> dict:
     """DIR/study.json: the table (per variant r with interval, MMRV with interval, n policies, n episodes)
     from the store, the same for a second real evaluation (`real_again`, null without one), the per-stage
-    wall times, the study's settings and what the fits of DIR/twins reached
+    wall times, the study's settings, the real workcell's content hash and what the fits of DIR/twins reached
     (`reconstruct.fit_summary`, `reconstruct.camera_summary`)."""
     from twinbench.study.reconstruct import camera_summary, fit_summary
 
@@ -340,10 +340,19 @@ def write_study_json(out: Path, task: str, size: str | StudySize, variants, stag
            "settings": asdict(study_size(size)), "variants": study_table(store, variants),
            "real_again": real_again_metrics(store),
            "stage_seconds": {k: round(v, 1) for k, v in stages.items()}, "sysid": fit_summary(out / "twins"),
-           "cameras": camera_summary(out / "twins"), **(extra or {})}
+           "cameras": camera_summary(out / "twins"), "real_world": real_world_hash(out), **(extra or {})}
     text = json.dumps(doc, indent=1)
     (out / "study.json").write_text(text)
     return json.loads(text)  # as a reader of study.json sees it (lists, not tuples)
+
+
+def real_world_hash(out: Path) -> str | None:
+    """The content hash of the study's real workcell DIR/real/world (None without one): which hidden
+    workcell a study was run on, whatever its folder is called (`study combine` refuses one twice)."""
+    from twinbench.twin.files import twin_dir_hash
+
+    world = Path(out) / "real" / "world"
+    return twin_dir_hash(world) if world.is_dir() else None
 
 
 def training_records(policies: list[str]) -> list[dict]:
