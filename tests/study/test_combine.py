@@ -4,6 +4,7 @@ known answers from the rates themselves."""
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -12,6 +13,7 @@ from scipy import stats
 from twinbench.cli import main as cli_main
 from twinbench.errors import InputError
 from twinbench.evaluation import metrics
+from twinbench.evaluation.report_browser import CHROMIUM, check_page
 from twinbench.study import combine as C
 from twinbench.study import evaluate as E
 from twinbench.twin.files import twin_dir_hash
@@ -113,13 +115,25 @@ def test_a_study_without_its_recorded_workcell_reads_it_off_the_folder(two):
     assert E.real_world_hash(two / "B") is None
 
 
-def test_cli_prints_the_table_and_writes_json(two, capsys):
-    out = two / "summary" / "combined.json"
+def test_cli_prints_the_table_and_writes_json_and_a_page(two, capsys):
+    out = two / "summary"
     assert cli_main(["study", "combine", str(two / "A"), str(two / "B"), "--out", str(out)]) == 0
     printed = capsys.readouterr().out
-    assert "| push-t | real again | 2 (9) | " in printed and f"wrote {out}" in printed
-    (task,) = json.loads(out.read_text())
-    assert task["variants"][0]["pooled"]["r"] == pytest.approx(
+    assert "| push-t | real again | 2 (9) | " in printed and f"wrote {out / 'combined.json'}" in printed
+    (task,) = json.loads((out / "combined.json").read_text())
+    full = task["variants"][0]
+    assert full["pooled"]["r"] == pytest.approx(
         np.corrcoef([*REAL_A.values(), *FULL_B.values()], [*REAL_A.values(), *REAL_B.values()])[0, 1])
+    assert full["points_by_workcell"][1] == {"sim": list(FULL_B.values()), "real": list(REAL_B.values())}
+    text = (out / "combined.html").read_text()
+    assert "push-t (medium): 2 workcells" in text and "A (seed 0), B (seed 1)" in text
+    assert "<td>full</td><td>2 (9)</td>" in text and "<td>1 of 2</td>" in text
+    assert "mine: left out, not in B" in text and "data:image/png;base64," in text
+    if Path(CHROMIUM).exists():
+        res = check_page(out / "combined.html")
+        assert res.errors == []
+        assert len(res.images) == 1 and res.images[0]["naturalWidth"] > 0  # the scatter
     assert cli_main(["study", "combine", str(two / "A"), str(two / "A")]) == 2
     assert "same hidden workcell" in capsys.readouterr().err
+    assert cli_main(["study", "combine", str(two / "A"), "--out", str(two / "A" / "study.json")]) == 2
+    assert "give a folder" in capsys.readouterr().err

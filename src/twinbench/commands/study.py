@@ -9,7 +9,7 @@ task goes through make-real, evidence and reconstruct, and `evaluate` / `run` re
 that have them. `--policy NAME=SPEC` adds your own policies to `evaluate` and `run`. `combine` reads
 finished studies of one task on other workcells (seeds) as one table:
 
-    twinbench study combine study_s0 study_s1 study_s2 --out combined.json
+    twinbench study combine study_s0 study_s1 study_s2 --out combined
 """
 
 from __future__ import annotations
@@ -128,7 +128,8 @@ class CombineConfig:
     studies: tyro.conf.Positional[tuple[Path, ...]]
     """study folders (or their study.json), one size; several tasks give one table per task"""
     out: Path | None = None
-    """also write the figures as JSON to this file"""
+    """also write OUT/combined.json (the figures) and OUT/combined.html (the table and a scatter per
+    variant, each workcell in its colour)"""
 
 
 StudyCommand = (
@@ -202,13 +203,20 @@ def main(cfg) -> int:
         import json
 
         from twinbench.study.combine import combine_studies, format_combined, load_study
+        from twinbench.study.report import write_combined_report
 
         tasks = combine_studies([load_study(p) for p in cfg.studies])
         print(format_combined(tasks))
         if cfg.out is not None:
-            cfg.out.parent.mkdir(parents=True, exist_ok=True)
-            cfg.out.write_text(json.dumps(tasks, indent=1))
-            print(f"wrote {cfg.out}")
+            if cfg.out.exists() and not cfg.out.is_dir():
+                from twinbench.errors import InputError
+
+                raise InputError(f"--out {cfg.out}: a file; give a folder (it gets combined.json and "
+                                 "combined.html)")
+            cfg.out.mkdir(parents=True, exist_ok=True)
+            (cfg.out / "combined.json").write_text(json.dumps(tasks, indent=1))
+            page = write_combined_report(cfg.out / "combined.html", tasks)
+            print(f"wrote {cfg.out / 'combined.json'} and {page}")
     else:
         from twinbench.study.evaluate import format_table
         from twinbench.study.run import run_study

@@ -113,7 +113,9 @@ def combine_variant(label: str, studies: list[tuple[str, dict, dict]]) -> dict:
     return {"variant": label, "workcells": len(studies), "points": int(s.size),
             "pooled": _pearson(s, r), "within": _pearson(s_in, r_in, controls=len(studies) - 1),
             "mmrv": {"value": est.value, "low": est.low, "high": est.high},
-            "aims_met": sum(p["aims_met"] for p in per), "per_workcell": per}
+            "aims_met": sum(p["aims_met"] for p in per), "per_workcell": per,
+            "points_by_workcell": [{"sim": s[grp == g].tolist(), "real": r[grp == g].tolist()}
+                                   for g in range(len(studies))]}
 
 
 def combine_studies(studies: list[tuple[str, dict]]) -> list[dict]:

@@ -240,3 +240,76 @@ def write_study_report(out: Path, doc: dict, frames: bool = True,
     path = out / "report.html"
     path.write_text(page, encoding="utf-8")
     return path
+
+
+def _combined_table(task: dict) -> str:
+    rows = []
+    for v in task["variants"]:
+        p, w, m = v["pooled"], v["within"], v["mmrv"]
+        per = "; ".join(f"{_e(str(d['study']))}: {_num(d['r'], '.2f')} / {_num(d['mmrv'])}"
+                        for d in v["per_workcell"])
+        rows.append([_e(v["variant"]), f"{v['workcells']} ({v['points']})",
+                     _e(p.get("why", "undefined")) if p["r"] is None
+                     else f"{p['r']:.3f} [{p['low']:.2f}, {p['high']:.2f}]",
+                     _e(w.get("why", "undefined")) if w["r"] is None
+                     else f"{w['r']:.3f} [{w['low']:.2f}, {w['high']:.2f}]",
+                     f"{m['value']:.3f} [{m['low']:.3f}, {m['high']:.3f}]", per,
+                     f"{v['aims_met']} of {v['workcells']}"])
+    missing = "".join(_note(f"{name}: left out, not in {', '.join(studies)}")
+                      for name, studies in task["missing"].items())
+    return _table(["variant", "workcells (points)", "pooled r [95% CI]", "within-workcell r [95% CI]",
+                   "mean MMRV [95% bootstrap CI]", "per workcell: r / MMRV", "aims met"], rows) + missing
+
+
+def _combined_scatter(task: dict) -> str:
+    import matplotlib.pyplot as plt
+
+    rows = task["variants"]
+    if not rows:
+        return ""
+    fig, axes = plt.subplots(1, len(rows), figsize=(3.2 * len(rows), 3.4), squeeze=False)
+    for ax, row in zip(axes[0], rows, strict=True):
+        ax.plot([0, 1], [0, 1], color="0.7", lw=1)
+        for k, (w, st) in enumerate(zip(row["per_workcell"], row["points_by_workcell"], strict=True)):
+            ax.scatter(st["sim"], st["real"], s=24, color=f"C{k % 10}", label=str(w["study"]))
+        ax.set_title(f"{row['variant']}  pooled r={_num(row['pooled']['r'], '.2f')}", fontsize=9)
+        ax.set_xlim(-0.05, 1.05)
+        ax.set_ylim(-0.05, 1.05)
+        ax.set_xlabel("second real evaluation" if row["variant"] == "real again" else "twin success rate")
+        ax.set_ylabel("real success rate")
+    axes[0][0].legend(fontsize=7, loc="upper left")
+    fig.tight_layout()
+    return _fig_html(fig, f"{task['task']}: sim vs real per variant, coloured by workcell")
+
+
+def write_combined_report(path: Path, tasks: list[dict]) -> Path:
+    """One page for `study combine`: per task the table and a sim-vs-real scatter per variant, each
+    workcell's policies in their own colour."""
+    import matplotlib
+
+    from twinbench.study.combine import AIM_MMRV, AIM_R
+
+    matplotlib.use("Agg")
+    body = ["<h1>twinbench study — workcells combined</h1>"]
+    for t in tasks:
+        names = ", ".join(f"{s['study']}" + (f" (seed {s['seed']})" if s.get("seed") is not None else "")
+                          for s in t["studies"])
+        n = len(t["studies"])
+        body += [f"<h2>{_e(t['task'])} ({_e(t['size'])}): {n} workcell{'s' if n > 1 else ''}</h2>",
+                 _note(f"Studies: {names}."), _combined_table(t), _combined_scatter(t)]
+    body.append(_note(
+        "Pooled r: Pearson r over every (workcell, policy) point, Fisher-z interval; it credits a twin for "
+        "telling which workcells are hard as well as which policies are better. Within-workcell r: the same "
+        "with each workcell's mean rate removed from sim and real (workcell partialled out; the interval "
+        "loses a degree of freedom per workcell after the first). Mean MMRV: each workcell's MMRV (policies "
+        "ranked against the others of their workcell), averaged; the interval resamples episodes within "
+        "every workcell, policy and domain (a percentile interval of a statistic that sampling noise "
+        "raises: it can lie above the value). Aims met: workcells with r >= "
+        f"{AIM_R} and MMRV <= {AIM_MMRV}."))
+    page = ("<!DOCTYPE html>\n<html lang=\"en\"><head><meta charset=\"utf-8\">"
+            "<title>twinbench study — workcells combined</title><link rel=\"icon\" href=\"data:,\">"
+            f"<style>{_CSS}</style></head><body>\n" + "\n".join(body) + "\n</body></html>\n")
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(page, encoding="utf-8")
+    return path
