@@ -89,6 +89,11 @@ def test_combine_refuses_what_would_mislead(two, tmp_path):
     no_world = {**a[1], "real_world": None}
     with pytest.raises(InputError, match="the same seed"):
         C.combine_studies([("x", no_world), ("y", dict(no_world))])
+    # a variant whose twin run has no episode yet counts as missing there, not as a workcell without points
+    empty = _doc(REAL_B, {"full": REAL_B, "mine": {}}, seed=7, world="hash-d")
+    (task,) = C.combine_studies([a, ("E", empty)])
+    assert task["missing"] == {"mine": ["E"], "real again": ["E"]}
+    assert [v["variant"] for v in task["variants"]] == ["full"] and task["variants"][0]["points"] == 9
     small = _doc(REAL_A, {"full": REAL_A}, size="small", seed=5, world="hash-c")
     with pytest.raises(InputError, match=r"sizes \['medium', 'small'\].*one size"):
         C.combine_studies([a, ("S", small)])

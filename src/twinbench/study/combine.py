@@ -72,10 +72,11 @@ def _outcomes(rate: float, n: int) -> list[int]:
 
 
 def _rows(doc: dict) -> dict[str, dict]:
+    """The study's rows by label, those with at least one policy evaluated in both domains."""
     rows = {row["variant"]: row for row in doc["variants"]}
     if doc.get("real_again"):
         rows[REAL_AGAIN_LABEL] = doc["real_again"]
-    return rows
+    return {k: row for k, row in rows.items() if any(p["n_sim"] and p["n_real"] for p in row["policies"])}
 
 
 def _r(p: metrics.PearsonResult | None, why: str = "") -> dict:
