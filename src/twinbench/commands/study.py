@@ -226,4 +226,6 @@ def main(cfg) -> int:
         print(format_table(doc))
         print("stage wall times: " + ", ".join(f"{k} {v:.0f} s" for k, v in doc["stage_seconds"].items()))
         print(f"wrote {cfg.out / 'study.json'} and {cfg.out / 'report.html'}")
+        print(f"other workcells (--seed) read with this one as one table: twinbench study combine {cfg.out} "
+              "OTHER_DIR ...")
     return 0
