@@ -123,7 +123,8 @@ def combine_studies(studies: list[tuple[str, dict]]) -> list[dict]:
     """Per task (in the order first given): its studies, and per variant (and the second real evaluation)
     that every one of them has, `combine_variant`; variants some lack are listed in `missing`."""
     if not studies:
-        raise InputError("no studies given: name the study folders to combine (`twinbench study combine A B`)")
+        raise InputError("no studies given: name the study folders to combine "
+                         "(`twinbench study combine A B`)")
     by_task: dict[str, list[tuple[str, dict]]] = {}
     for name, doc in studies:
         by_task.setdefault(doc["task"], []).append((name, doc))
