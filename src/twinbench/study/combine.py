@@ -27,7 +27,7 @@ import numpy as np
 
 from twinbench.errors import InputError
 from twinbench.evaluation import metrics
-from twinbench.study.evaluate import real_world_hash
+from twinbench.study.evaluate import format_r, pearson_entry, real_world_hash
 
 AIM_R, AIM_MMRV = 0.95, 0.05  # the predictive-validity aims (README, results table)
 REAL_AGAIN_LABEL = "real again"
@@ -79,18 +79,6 @@ def _rows(doc: dict) -> dict[str, dict]:
     return {k: row for k, row in rows.items() if any(p["n_sim"] and p["n_real"] for p in row["policies"])}
 
 
-def _r(p: metrics.PearsonResult | None, why: str = "") -> dict:
-    return {"r": None, "low": None, "high": None, "why": why} if p is None else {
-        "r": p.r, "low": p.low, "high": p.high, "n": p.n}
-
-
-def _pearson(sim: np.ndarray, real: np.ndarray, controls: int = 0) -> dict:
-    try:
-        return _r(metrics.pearson(sim=sim, real=real, controls=controls))
-    except ValueError as err:  # too few points or one side constant: undefined, said why
-        return _r(None, str(err))
-
-
 def combine_variant(label: str, studies: list[tuple[str, dict, dict]]) -> dict:
     """One variant over the workcells: `studies` = [(name, study.json, its row for `label`)]."""
     sim, real, group, groups, per = [], [], [], [], []
@@ -112,7 +100,7 @@ def combine_variant(label: str, studies: list[tuple[str, dict, dict]]) -> dict:
     r_in = r - np.array([means[g][1] for g in group])
     est = metrics.mean_mmrv_bootstrap(groups)
     return {"variant": label, "workcells": len(studies), "points": int(s.size),
-            "pooled": _pearson(s, r), "within": _pearson(s_in, r_in, controls=len(studies) - 1),
+            "pooled": pearson_entry(s, r), "within": pearson_entry(s_in, r_in, controls=len(studies) - 1),
             "mmrv": {"value": est.value, "low": est.low, "high": est.high},
             "aims_met": sum(p["aims_met"] for p in per), "per_workcell": per,
             "points_by_workcell": [{"sim": s[grp == g].tolist(), "real": r[grp == g].tolist()}
@@ -147,10 +135,6 @@ def combine_studies(studies: list[tuple[str, dict]]) -> list[dict]:
     return out
 
 
-def _fmt_r(p: dict) -> str:
-    return "undefined" if p["r"] is None else f"{p['r']:.3f} [{p['low']:.2f}, {p['high']:.2f}]"
-
-
 def format_combined(tasks: list[dict]) -> str:
     """The combined table as Markdown, one row per task and variant."""
     lines = ["| task | variant | workcells (points) | pooled r [95% CI] | within-workcell r [95% CI] | "
@@ -161,7 +145,7 @@ def format_combined(tasks: list[dict]) -> str:
             per = "; ".join(("-" if p["r"] is None else f"{p['r']:.2f}") + f" / {p['mmrv']:.3f}"
                             for p in v["per_workcell"])
             lines.append(f"| {t['task']} | {v['variant']} | {v['workcells']} ({v['points']}) | "
-                         f"{_fmt_r(v['pooled'])} | {_fmt_r(v['within'])} | {m['value']:.3f} "
+                         f"{format_r(v['pooled'])} | {format_r(v['within'])} | {m['value']:.3f} "
                          f"[{m['low']:.3f}, {m['high']:.3f}] | {per} | {v['aims_met']} of {v['workcells']} |")
     notes = [f"{t['task']}: {v} left out (not in {', '.join(names)})"
              for t in tasks for v, names in t["missing"].items()]

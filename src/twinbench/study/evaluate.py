@@ -288,9 +288,10 @@ def _scored(store: ResultsStore, label: str, outcomes: tuple[dict, dict]) -> dic
     return row
 
 
-def _pearson(sim: list[float], real: list[float]) -> dict:
+def pearson_entry(sim, real, controls: int = 0) -> dict:
+    """`metrics.pearson` as study.json keeps it: r with its interval, or None and why it is undefined."""
     try:
-        pr = metrics.pearson(sim=sim, real=real)
+        pr = metrics.pearson(sim=sim, real=real, controls=controls)
         return {"r": pr.r, "low": pr.low, "high": pr.high}
     except ValueError as err:  # fewer than 3 values or a constant vector: r is undefined, said why
         return {"r": None, "low": None, "high": None, "why": str(err)}
@@ -303,7 +304,7 @@ def _state_agreement(sim: dict, real: dict) -> dict:
     keys = sorted(set(sim) & set(real))
     rates = [{"init_state": k, "sim": float(np.mean(sim[k])), "real": float(np.mean(real[k])),
               "n_sim": len(sim[k]), "n_real": len(real[k])} for k in keys]
-    return {"rates": rates, "pearson": _pearson([d["sim"] for d in rates], [d["real"] for d in rates])}
+    return {"rates": rates, "pearson": pearson_entry([d["sim"] for d in rates], [d["real"] for d in rates])}
 
 
 def _agreement(variant: str, sim: dict, real: dict) -> dict:
@@ -314,7 +315,7 @@ def _agreement(variant: str, sim: dict, real: dict) -> dict:
                  "policies": [{"policy": p, "checkpoint": c, "sim": float(np.mean(sim[(p, c)])),
                                "real": float(np.mean(real[(p, c)])), "n_sim": len(sim[(p, c)]),
                                "n_real": len(real[(p, c)])} for p, c in keys]}
-    row["pearson"] = _pearson([d["sim"] for d in row["policies"]], [d["real"] for d in row["policies"]])
+    row["pearson"] = pearson_entry([d["sim"] for d in row["policies"]], [d["real"] for d in row["policies"]])
     if keys:
         est = metrics.mmrv_bootstrap(sim=[sim[k] for k in keys], real=[real[k] for k in keys])
         row["mmrv"] = {"value": est.value, "low": est.low, "high": est.high}
@@ -378,13 +379,18 @@ def table_rows(doc: dict) -> list[dict]:
     return [*doc["variants"], *([doc["real_again"]] if doc.get("real_again") else [])]
 
 
+def format_r(p: dict) -> str:
+    """A `pearson_entry` as the tables print it: r [low, high], or "undefined"."""
+    return "undefined" if p["r"] is None else f"{p['r']:.3f} [{p['low']:.2f}, {p['high']:.2f}]"
+
+
 def format_table(doc: dict) -> str:
     """The study table as Markdown (the README's form); the second real evaluation, if any, last."""
     lines = ["| task | variant | Pearson r [95% CI] | MMRV [95% CI] | policies | episodes (sim / real) | "
              "replay agrees (TP/FP/FN/TN) |", "|---|---|---|---|---|---|---|"]
     for row in table_rows(doc):
         p, m = row["pearson"], row["mmrv"]
-        r = "undefined" if p["r"] is None else f"{p['r']:.3f} [{p['low']:.2f}, {p['high']:.2f}]"
+        r = format_r(p)
         mm = "-" if m["value"] is None else f"{m['value']:.3f} [{m['low']:.3f}, {m['high']:.3f}]"
         rp = row.get("replay")
         rep = "-" if not rp else (f"{rp['accuracy']:.2f} ({rp['tp']}/{rp['fp']}/{rp['fn']}/{rp['tn']})")

@@ -20,14 +20,19 @@ def _num(x, fmt: str = ".3f") -> str:
     return "–" if x is None else format(x, fmt)
 
 
+def _r_cell(p: dict) -> str:
+    """A study.json Pearson entry as a table cell: r [low, high], or why it is undefined."""
+    return (_e(p.get("why", "undefined")) if p["r"] is None
+            else f"{p['r']:.3f} [{_num(p['low'], '.2f')}, {_num(p['high'], '.2f')}]")
+
+
 def _table_section(doc: dict) -> str:
     from twinbench.study.evaluate import table_rows
 
     rows = []
     for row in table_rows(doc):
         p, m = row["pearson"], row["mmrv"]
-        r = (_e(p.get("why", "undefined")) if p["r"] is None
-             else f"{p['r']:.3f} [{_num(p['low'], '.2f')}, {_num(p['high'], '.2f')}]")
+        r = _r_cell(p)
         mm = "–" if m["value"] is None else f"{m['value']:.3f} [{m['low']:.3f}, {m['high']:.3f}]"
         rp = row.get("replay")
         rep = "–" if not rp else f"{rp['accuracy']:.2f} ({rp['tp']} / {rp['fp']} / {rp['fn']} / {rp['tn']})"
@@ -248,11 +253,7 @@ def _combined_table(task: dict) -> str:
         p, w, m = v["pooled"], v["within"], v["mmrv"]
         per = "; ".join(f"{_e(str(d['study']))}: {_num(d['r'], '.2f')} / {_num(d['mmrv'])}"
                         for d in v["per_workcell"])
-        rows.append([_e(v["variant"]), f"{v['workcells']} ({v['points']})",
-                     _e(p.get("why", "undefined")) if p["r"] is None
-                     else f"{p['r']:.3f} [{p['low']:.2f}, {p['high']:.2f}]",
-                     _e(w.get("why", "undefined")) if w["r"] is None
-                     else f"{w['r']:.3f} [{w['low']:.2f}, {w['high']:.2f}]",
+        rows.append([_e(v["variant"]), f"{v['workcells']} ({v['points']})", _r_cell(p), _r_cell(w),
                      f"{m['value']:.3f} [{m['low']:.3f}, {m['high']:.3f}]", per,
                      f"{v['aims_met']} of {v['workcells']}"])
     missing = "".join(_note(f"{name}: left out, not in {', '.join(studies)}")
