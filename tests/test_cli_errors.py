@@ -60,6 +60,13 @@ def _case(tmp_path, name):
     if name == "eval-twin-on-point-reach":
         return (["eval", "--run-id", "r", "--task", "point-reach", "--policy", "expert", "--twin",
                  str(tmp_path / "twin"), "--db", str(db)], "--twin: task 'point-reach' has an env of its own")
+    if name == "eval-device-not-here":  # Warp's own error was an internal error from inside the episode
+        return (["eval", "--run-id", "r", "--task", "push-t", "--policy", "expert", "--episodes", "1",
+                 "--env-kwargs", '{"preset": "fast", "device": "cuda:99"}', "--db", str(db),
+                 "--output-dir", str(tmp_path)], "--env-kwargs device 'cuda:99'")
+    if name == "render-device-not-here":
+        return (["render-ply", str(tmp_path / "none.ply"), "--out", str(tmp_path / "x.png"), "--device",
+                 "cuda:99"], "--device 'cuda:99'")
     if name == "import-real-missing":
         return ["import-real", str(tmp_path / "none.csv"), "--db", str(db)], "none.csv does not exist"
     if name == "report-unknown-run":
@@ -92,7 +99,7 @@ def _case(tmp_path, name):
 CASES = ["malformed-urdf", "missing-urdf", "bad-tool", "bad-lerobot-info", "missing-replay-source",
          "replay-env-kwargs", "eval-db-under-a-file", "eval-db-not-sqlite", "eval-other-protocol",
          "eval-unknown-task", "eval-run-id-path", "eval-bad-policy", "eval-twin-on-point-reach",
-         "import-real-missing",
+         "eval-device-not-here", "render-device-not-here", "import-real-missing",
          "report-unknown-run", "render-missing", "refine-missing-calibration", "refine-no-real-image",
          "refine-scan-out-of-view"]
 

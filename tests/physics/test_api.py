@@ -12,6 +12,7 @@ from twinbench.physics import (
     SimulationDiverged,
     SpringMassSolver,
     State,
+    check_device,
     check_divergence,
 )
 from twinbench.physics.model import lattice
@@ -121,6 +122,25 @@ def test_state_and_control_are_separate_objects():
 def test_bad_builder_input_names_the_argument(call, name):
     with pytest.raises(ValueError, match=name):
         call(ModelBuilder(SimParams()))
+
+
+def test_a_device_warp_cannot_run_on_is_refused_naming_the_field_and_the_fix():
+    from twinbench.errors import InputError
+
+    assert check_device("cpu") == "cpu"
+    for bad in ("gpu", "cuda:x", "CPU", "cuda:"):
+        with pytest.raises(InputError, match=rf"--device '{bad}': expected 'cpu', 'cuda' or 'cuda:N'"):
+            check_device(bad, "--device")
+    count = wp.get_cuda_device_count()
+    with pytest.raises(InputError, match=f"{count} CUDA device" if count else "no CUDA device"):
+        check_device(f"cuda:{count + 7}")
+    b = ModelBuilder(SimParams())
+    b.add_body(lattice(2, 2, 2))
+    with pytest.raises(InputError, match="device 'cuda:"):  # before any array is made (Warp's own error is
+        b.finalize(f"cuda:{count + 7}")                      # a RuntimeError from inside a launch)
+    if count == 0:
+        with pytest.raises(InputError, match="use 'cpu'"):
+            check_device("cuda")
 
 
 def test_bad_control_input_names_the_argument():

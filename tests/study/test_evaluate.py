@@ -145,6 +145,24 @@ def test_bad_size_is_refused():
     assert E.episodes_arg(E.study_size("small")) == "grid:0,9"
 
 
+def test_a_study_resumes_its_runs_on_the_device_they_began_on(tmp_path):
+    """--device reaches the runs' env_kwargs (left out on CPU, so older studies' runs resume as they are),
+    and a run begun on one device is not resumed on another: refused before any episode runs."""
+    from twinbench.errors import InputError
+
+    small = E.study_size("small")
+    assert "device" not in E.env_kwargs(tmp_path, small)
+    assert E.env_kwargs(tmp_path, small, "cuda:1")["device"] == "cuda:1"
+    store = ResultsStore(tmp_path / "results" / "results.sqlite")
+    store.start_run(E.replay_run_id("full"), "push-t", {"task": "push-t", "env_kwargs": {"device": "cuda"}})
+    E.check_run_devices(store, [E.twin_run_id("full"), E.replay_run_id("full")], "cuda")
+    with pytest.raises(InputError, match="run 'replay-full' was started with --device cuda; resume the study "
+                                         "with --device cuda"):
+        E.run_evaluations("push-t", tmp_path / "real", {"full": tmp_path / "full"}, ["expert"], tmp_path,
+                          "small", device="cpu")
+    assert store.episodes(E.REAL_ROLLOUTS) == []  # nothing ran
+
+
 def test_a_twin_that_differs_only_in_appearance_takes_the_replays_of_its_physics_twin(tmp_path):
     """`no-color` (the fast cell with a colour map and another name) has `full`'s physics: its replay run is
     `full`'s records, copied with a protocol naming the source, and no replay is run; a replay run that

@@ -23,6 +23,9 @@ def test_study_evaluate_needs_the_study_folder(tmp_path, capsys):
     assert cli_main(["study", "run", "--out", str(out), "--policy", "mine=expert", "--policy", "nope:x"]) == 2
     assert "policy spec 'nope:x': unknown policy kind 'nope'" in capsys.readouterr().err
     assert not out.exists()  # refused before any stage
+    assert cli_main(["study", "run", "--out", str(out), "--device", "cuda:99"]) == 2  # a GPU it lacks
+    assert "--device 'cuda:99'" in capsys.readouterr().err
+    assert not out.exists()
 
 
 @pytest.mark.slow

@@ -57,6 +57,9 @@ def check_config(config: RenderPlyConfig) -> None:
     bg = np.asarray(config.background, dtype=np.float64)
     if not np.all((bg >= 0) & (bg <= 1)):
         raise InputError(f"--background {tuple(bg)}: each channel must be in [0, 1]")
+    from twinbench.physics import check_device
+
+    check_device(config.device, "--device")
 
 
 def main(config: RenderPlyConfig) -> int:

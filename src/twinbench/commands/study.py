@@ -75,6 +75,9 @@ class EvaluateConfig:
     checkpoints (needs the lerobot extra: pip install 'twinbench[lerobot]')"""
     bc_dp: bool = False
     """--bc and also LeRobot Diffusion Policy policies trained on the same demonstrations (as --bc-act)"""
+    device: str = "cpu"
+    """Warp device of the evaluations' physics and rendering: cpu | cuda | cuda:N (the twins are built on
+    CPU either way); a study's runs resume on the device they began on"""
     retry_errors: bool = False
     """run again the episodes the store holds as errors (e.g. a worker process killed), not only the
     missing ones"""
@@ -101,6 +104,9 @@ class RunConfig:
     seed: int = 0
     workers: int = 1
     """evaluation worker processes"""
+    device: str = "cpu"
+    """Warp device of the evaluations' physics and rendering: cpu | cuda | cuda:N (the twins are built on
+    CPU either way); a study's runs resume on the device they began on"""
     bc: bool = False
     """also train small CNN policies by behaviour cloning on expert demonstrations recorded in the real
     workcell (study.bc; needs the torch extra: pip install 'twinbench[torch]')"""
@@ -161,7 +167,10 @@ def _evaluate(cfg: EvaluateConfig) -> int:
     if not real.is_dir() or not twins:
         raise InputError(f"{cfg.out}: needs real/world (study make-real) and twins/<variant> (study "
                          "reconstruct); `twinbench study run` makes them")
-    with_user_policies(cfg.task, None, cfg.policy)  # before the calibration and training
+    from twinbench.physics import check_device
+
+    check_device(cfg.device, "--device")  # before the calibration and training, as the specs below
+    with_user_policies(cfg.task, None, cfg.policy)
     rank = {v: i for i, v in enumerate(VARIANTS)}
     twins = dict(sorted(twins.items(), key=lambda kv: (rank.get(kv[0], len(rank)), kv[0])))
     policies = make_policies(cfg.task, real, cfg.out / "policies", cfg.size,
@@ -173,10 +182,11 @@ def _evaluate(cfg: EvaluateConfig) -> int:
                                      dp=cfg.bc_dp)
     policies = with_user_policies(cfg.task, policies, cfg.policy)
     times = run_evaluations(cfg.task, real, twins, policies, cfg.out, cfg.size, cfg.workers,
-                            retry_errors=cfg.retry_errors, real_again=cfg.real_again or None)
+                            retry_errors=cfg.retry_errors, real_again=cfg.real_again or None,
+                            device=cfg.device)
     doc = write_study_json(cfg.out, cfg.task, cfg.size, list(twins), times,
                            {"policies": policies, "user_policies": list(cfg.policy),
-                            "training": training_records(policies)})
+                            "training": training_records(policies), "device": cfg.device})
     write_study_report(cfg.out, doc)
     print(format_table(doc))
     print(f"wrote {cfg.out / 'study.json'} and {cfg.out / 'report.html'}")
@@ -222,7 +232,8 @@ def main(cfg) -> int:
         from twinbench.study.run import run_study
 
         doc = run_study(cfg.task, cfg.out, cfg.size, cfg.seed, cfg.workers, bc=cfg.bc, bc_act=cfg.bc_act,
-                        bc_dp=cfg.bc_dp, real_again=cfg.real_again or None, policies=cfg.policy)
+                        bc_dp=cfg.bc_dp, real_again=cfg.real_again or None, policies=cfg.policy,
+                        device=cfg.device)
         print(format_table(doc))
         print("stage wall times: " + ", ".join(f"{k} {v:.0f} s" for k, v in doc["stage_seconds"].items()))
         print(f"wrote {cfg.out / 'study.json'} and {cfg.out / 'report.html'}")

@@ -236,6 +236,10 @@ def evaluate(task: str, policies: Sequence[str], episodes: str | int = "grid", w
         raise ValueError(f"policies {list(policies)} map to duplicate (policy, checkpoint) labels {keys}; "
                          "give distinct specs or names (NAME=SPEC)")
     env_kwargs = dict(env_kwargs or {})
+    if "device" in env_kwargs:  # a device this machine lacks: refused before the run is registered
+        from twinbench.physics import check_device
+
+        check_device(env_kwargs["device"], "--env-kwargs device")
     states = episode_set(spec_task.n_grid_states, episodes, int(seed))
     store = store if isinstance(store, ResultsStore) else ResultsStore(store)
     protocol = {"task": task, "episodes": episodes if str(episodes).startswith("grid") else int(episodes),

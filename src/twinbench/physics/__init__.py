@@ -19,7 +19,7 @@
 The golden PhysTwin trajectories are reproduced bitwise on CPU (tests/physics/test_golden.py).
 """
 
-from .model import Control, MeshInfo, ModelBuilder, SpringMassModel, State, radius_springs
+from .model import Control, MeshInfo, ModelBuilder, SpringMassModel, State, check_device, radius_springs
 from .params import SimParams
 from .solver import SimulationDiverged, SpringMassSolver, check_divergence
 
@@ -32,6 +32,7 @@ __all__ = [
     "SpringMassModel",
     "SpringMassSolver",
     "State",
+    "check_device",
     "check_divergence",
     "radius_springs",
 ]

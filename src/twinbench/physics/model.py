@@ -8,7 +8,30 @@ import numpy as np
 import warp as wp
 from scipy.spatial import cKDTree
 
+from twinbench.errors import InputError
+
 from .params import SimParams
+
+
+def check_device(device: str, field: str = "device") -> str:
+    """`device` if Warp can run on it ("cpu", "cuda" or "cuda:N"), else InputError naming `field` and the fix:
+    a machine without an NVIDIA driver or GPU, or fewer GPUs than N (Warp's own error there is a RuntimeError
+    from inside a launch)."""
+    name = str(device)
+    head, sep, index = name.partition(":")
+    if name == "cpu":
+        return name
+    if head != "cuda" or (sep and not index.isdigit()):
+        raise InputError(f"{field} {name!r}: expected 'cpu', 'cuda' or 'cuda:N'")
+    wp.init()
+    count = wp.get_cuda_device_count()
+    if count == 0:
+        raise InputError(f"{field} {name!r}: Warp finds no CUDA device on this machine (no NVIDIA GPU or "
+                         "driver); use 'cpu' (every path runs there)")
+    if sep and int(index) >= count:
+        raise InputError(f"{field} {name!r}: this machine has {count} CUDA device(s), cuda:0 to "
+                         f"cuda:{count - 1}")
+    return name
 
 RADIUS_SLACK = 1e-6  # inclusive radius with relative slack (golden README)
 TIE_DECIMALS = 9  # distances equal after rounding to 1e-9 m are ties, broken by lower index
@@ -471,6 +494,7 @@ class ModelBuilder:
         """
         if self._n == 0:
             raise ValueError("the builder has no particles: call add_body first")
+        check_device(device)
         worlds = _count("num_worlds", num_worlds)
         nw, cw = self._n, self._nc
         n = nw * worlds

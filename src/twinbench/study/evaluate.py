@@ -43,11 +43,27 @@ def episodes_arg(size: StudySize) -> str:
 OBSERVED = "front"  # the camera the study's policies see: the only one rendered (TwinEnv's `cameras`)
 
 
-def env_kwargs(world: Path, size: StudySize) -> dict:
+def env_kwargs(world: Path, size: StudySize, device: str = "cpu") -> dict:
     out = {"twin": str(world), "cameras": OBSERVED}
     if size.episode_seconds is not None:
         out["episode_seconds"] = float(size.episode_seconds)
+    if device != "cpu":  # left out on CPU, so that the runs of studies from before --device resume
+        out["device"] = device
     return out
+
+
+def check_run_devices(store: ResultsStore, run_ids, device: str) -> None:
+    """Refuse to resume a study's runs on another device than they began on (InputError naming --device):
+    an episode's outcome depends on the device's floating-point order, so one run keeps one device."""
+    for run_id in run_ids:
+        try:
+            began = store.run_protocol(run_id).get("env_kwargs", {}).get("device", "cpu")
+        except KeyError:  # not started yet
+            continue
+        if began != device:
+            raise InputError(f"{store.path}: run {run_id!r} was started with --device {began}; resume the "
+                             f"study with --device {began} (an episode's outcome depends on the device), or "
+                             "start it in a new folder")
 
 
 def twin_run_id(variant: str) -> str:
@@ -144,23 +160,29 @@ def _real_records(store: ResultsStore, task: str, recs) -> None:
 
 def run_evaluations(task: str, real_world: Path, twins: dict[str, Path], policies: list[str], out: Path,
                     size: str | StudySize = "small", workers: int = 1, log=print,
-                    retry_errors: bool = False, real_again: bool | None = None) -> dict[str, float]:
+                    retry_errors: bool = False, real_again: bool | None = None,
+                    device: str = "cpu") -> dict[str, float]:
     """Every policy on the real workcell (a second time with other episode seeds where `real_again`, by
     default the size's) and on each twin (resumable: the runner skips finished episodes, and those that
-    ended in an error unless `retry_errors`), then the real rollouts replayed in each twin. Returns the
-    wall time (s) of each evaluation, over every session that ran some of its episodes."""
+    ended in an error unless `retry_errors`), then the real rollouts replayed in each twin, all with
+    physics and rendering on Warp device `device` (every run resumes on the device it began on). Returns
+    the wall time (s) of each evaluation, over every session that ran some of its episodes."""
+    from twinbench.physics import check_device
+
     sz = study_size(size)
+    check_device(device, "--device")
     store = ResultsStore(out / "results" / "results.sqlite")
     times = {}
     if real_again is None:
         real_again = sz.real_again
     again = [(REAL_AGAIN, real_world, AGAIN_SEED)] if real_again else []
     runs = [(REAL_ROLLOUTS, real_world, 0), *again, *((twin_run_id(v), p, 0) for v, p in twins.items())]
+    check_run_devices(store, [r for r, _, _ in runs] + [replay_run_id(v) for v in twins], device)
     for run_id, world, seed in runs:
         t0 = time.perf_counter()
         recs = evaluate(task, policies, episodes=episodes_arg(sz), workers=workers, run_id=run_id,
-                        store=store, env_kwargs=env_kwargs(world, sz), output_dir=out / "results", log=log,
-                        record_actions=run_id == REAL_ROLLOUTS, retry_errors=retry_errors, seed=seed,
+                        store=store, env_kwargs=env_kwargs(world, sz, device), output_dir=out / "results",
+                        log=log, record_actions=run_id == REAL_ROLLOUTS, retry_errors=retry_errors, seed=seed,
                         progress=True)  # a bar in a terminal, else a line a minute (a study runs for hours)
         now = time.perf_counter() - t0
         times[run_id] = _run_seconds(store, run_id, now)
@@ -170,11 +192,11 @@ def run_evaluations(task: str, real_world: Path, twins: dict[str, Path], policie
             f"{now:.0f} s{total}")
         if run_id == REAL_ROLLOUTS:
             _real_records(store, task, recs)
-    return times | replay_in_twins(task, store, out / "results", twins, sz, log, workers)
+    return times | replay_in_twins(task, store, out / "results", twins, sz, log, workers, device)
 
 
 def replay_in_twins(task: str, store: ResultsStore, results: Path, twins: dict[str, Path], size: StudySize,
-                    log=print, workers: int = 1) -> dict[str, float]:
+                    log=print, workers: int = 1, device: str = "cpu") -> dict[str, float]:
     """`replay_in_twin` for each twin, except that a twin whose physics equals an earlier one's
     (`twin_physics_hash`: it differs only in appearance, as `no-color` from `full`) gets that twin's replays
     copied (`copy_replays`; again when the source gains replays): a replay renders no camera. A replay run
@@ -186,7 +208,7 @@ def replay_in_twins(task: str, store: ResultsStore, results: Path, twins: dict[s
         t0 = time.perf_counter()
         same = physics.setdefault(twin_physics_hash(load_twin(world)), variant)
         if same == variant or _copied_from(store, replay_run_id(variant)) not in (None, replay_run_id(same)):
-            replay_in_twin(task, store, results, variant, world, size, log, workers)
+            replay_in_twin(task, store, results, variant, world, size, log, workers, device)
         elif len(store.episodes(replay_run_id(variant))) != len(store.episodes(replay_run_id(same))):
             copy_replays(store, same, variant)  # (only when the source holds replays the copy lacks)
             log(f"{replay_run_id(variant)}: the twin differs from {same!r} only in appearance and a replay "
@@ -222,7 +244,7 @@ def copy_replays(store: ResultsStore, source: str, variant: str) -> None:
 
 
 def replay_in_twin(task: str, store: ResultsStore, results: Path, variant: str, world: Path,
-                   size: StudySize, log=print, workers: int = 1) -> None:
+                   size: StudySize, log=print, workers: int = 1, device: str = "cpu") -> None:
     """The real rollouts' recorded actions replayed open loop in twin `variant` (run `replay-<variant>`,
     in `workers` processes); skipped when that run already holds every replay."""
     from twinbench.evaluation.replay import RecordedEpisode, replay_episodes
@@ -240,7 +262,7 @@ def replay_in_twin(task: str, store: ResultsStore, results: Path, variant: str, 
                              "from an empty results folder")
         episodes.append(RecordedEpisode(i, r.init_state, np.load(path, allow_pickle=False), r.success,
                                         r.policy, r.checkpoint, train_step=r.train_step, seed=r.seed))
-    blind = {**env_kwargs(world, size), "cameras": ""}  # open loop: nothing looks at images, none rendered
+    blind = {**env_kwargs(world, size, device), "cameras": ""}  # open loop: nothing looks at images
     pairs = replay_episodes(task, episodes, store, run_id, env_kwargs=blind, workers=workers)
     agree = sum(rl.success == rep.success for rl, rep in pairs if rep.status == "ok")
     log(f"{run_id}: {len(pairs)} real rollouts replayed, outcomes agree in {agree}")

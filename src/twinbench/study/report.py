@@ -238,7 +238,8 @@ def write_study_report(out: Path, doc: dict, frames: bool = True,
     body.append(_sysid_section(doc))
     if frames and (out / "real" / "world").is_dir() and all(p.is_dir() for p in twins.values()):
         body.append(_frames_section(doc["task"], out / "real" / "world", twins))
-    body.append(f"<h2>Stage wall times</h2><table><tbody>{stages}</tbody></table>")
+    device = _e(doc.get("device", "cpu"))  # (studies from before --device ran on CPU)
+    body.append(f"<h2>Stage wall times (evaluations on {device})</h2><table><tbody>{stages}</tbody></table>")
     page = ("<!DOCTYPE html>\n<html lang=\"en\"><head><meta charset=\"utf-8\">"
             f"<title>twinbench study — {_e(doc['task'])}</title><link rel=\"icon\" href=\"data:,\">"
             f"<style>{_CSS}</style></head><body>\n" + "\n".join(body) + "\n</body></html>\n")

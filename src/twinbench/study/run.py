@@ -118,12 +118,15 @@ def _moved(value, old: str | None, new: str):
 def run_study(task: str, out: Path, size: str = "small", seed: int = 0, workers: int = 1,
               variants: tuple[str, ...] | None = None, log=print, bc: bool = False,
               bc_act: bool = False, bc_dp: bool = False, real_again: bool | None = None,
-              policies=()) -> dict:
+              policies=(), device: str = "cpu") -> dict:
     """Every stage of a study of `task` into `out`; returns study.json's content. `bc`: also the CNN
     behaviour-cloning policies (study.bc; the torch extra); `bc_act` / `bc_dp`: those and LeRobot ACT /
     Diffusion Policy policies trained on the same demonstrations (the lerobot extra). `real_again`: evaluate
     the real workcell a second time (None: as the size says; `small` does not). `policies`: the user's own
-    policy specs, evaluated beside the study's (not a stage argument: a run started again may add some)."""
+    policy specs, evaluated beside the study's (not a stage argument: a run started again may add some).
+    `device`: the Warp device of the evaluations (physics and rendering; `cpu`, `cuda`, `cuda:N`); the
+    hidden workcell, its evidence and the reconstruction run on CPU whatever it is, so a study's twins are
+    the same on every machine."""
     from twinbench.evaluation.backends import refuse_in_worker_import
     from twinbench.study.evaluate import (
         make_policies,
@@ -142,6 +145,9 @@ def run_study(task: str, out: Path, size: str = "small", seed: int = 0, workers:
     refuse_in_worker_import("run_study")
     study_size(size)  # a bad --size is refused before anything runs
     from twinbench.errors import InputError
+    from twinbench.physics import check_device
+
+    check_device(device, "--device")  # ... and a device this machine does not have
     from twinbench.study.policies import LEVELS
 
     if task not in LEVELS:  # ... and a task without perception controllers (before hours of stages)
@@ -168,10 +174,10 @@ def run_study(task: str, out: Path, size: str = "small", seed: int = 0, workers:
                           act=bc_act, dp=bc_dp)
     policies = with_user_policies(task, policies, user)
     eval_times = timer("evaluate", run_evaluations, task, world, twins, policies, out, size, workers, log,
-                       real_again=real_again)
+                       real_again=real_again, device=device)
     timer.seconds["evaluate"] = max(timer.seconds["evaluate"], sum(eval_times.values()))  # all sessions'
     extra = {"evaluation_seconds": eval_times, "policies": policies, "user_policies": user, "seed": seed,
-             "training": training_records(policies)}
+             "training": training_records(policies), "device": device}
     doc = write_study_json(out, task, size, list(twins), timer.seconds, extra)
     timer("report", write_study_report, out, doc)
     return write_study_json(out, task, size, list(twins), timer.seconds, extra)  # with the report's time

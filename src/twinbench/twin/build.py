@@ -45,6 +45,7 @@ from twinbench.physics import (
     SpringMassModel,
     SpringMassSolver,
     State,
+    check_device,
     check_divergence,
 )
 from twinbench.robot.controller import ControllerState, RobotCommand, RobotController
@@ -176,7 +177,7 @@ class Twin:
 
     def __init__(self, spec: TwinSpec, device: str = "cpu", num_worlds: int = 1):
         self.spec = spec
-        self.device = device
+        self.device = check_device(device)
         self.robot: RobotModel = load_spec_robot(spec.robot)
         self.controller = RobotController(self.robot, spec.controller)
         for cam in spec.cameras:
