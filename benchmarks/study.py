@@ -4,6 +4,7 @@ Runs the study (or reads DIR/study.json of one already run with --read) and prin
 each evaluation's time, the table, and the machine's core count.
 
 Usage: python benchmarks/study.py [--task push-t] [--out /tmp/study_pusht] [--size small] [--workers 2]
+                                  [--device cpu|cuda]
        python benchmarks/study.py --read /tmp/study_pusht
 """
 
@@ -22,6 +23,7 @@ def main() -> None:
     ap.add_argument("--out", type=Path, default=Path("/tmp/study_pusht"))
     ap.add_argument("--size", default="small")
     ap.add_argument("--workers", type=int, default=2)
+    ap.add_argument("--device", default="cpu", help="the evaluations' Warp device (cpu, cuda, cuda:N)")
     ap.add_argument("--read", type=Path, default=None, help="print the figures of a finished study folder")
     args = ap.parse_args()
 
@@ -36,9 +38,10 @@ def main() -> None:
         from twinbench.study.run import run_study
 
         t0 = time.perf_counter()
-        doc = run_study(args.task, args.out, args.size, workers=args.workers)
+        doc = run_study(args.task, args.out, args.size, workers=args.workers, device=args.device)
         total = time.perf_counter() - t0
-    print(f"task {doc['task']} size {doc['size']} cores {os.cpu_count()} settings {doc['settings']}")
+    print(f"task {doc['task']} size {doc['size']} cores {os.cpu_count()} device {doc.get('device', 'cpu')} "
+          f"settings {doc['settings']}")
     for stage, s in doc["stage_seconds"].items():
         print(f"stage {stage} {s:.0f} s")
     for run_id, s in doc.get("evaluation_seconds", {}).items():
