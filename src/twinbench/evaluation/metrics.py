@@ -211,7 +211,11 @@ def mmrv_bootstrap(*, sim: Sequence[Sequence[float]], real: Sequence[Sequence[fl
     """MMRV of per-policy success rates with a percentile bootstrap interval.
 
     `sim[i]` / `real[i]` hold policy i's episode outcomes (0/1) in each domain. Each bootstrap replicate
-    resamples episodes with replacement within each policy and domain (seeded, reproducible)."""
+    resamples episodes with replacement within each policy and domain (seeded, reproducible): the
+    interval is the range of the MMRV that a second evaluation with as many episodes would measure if the
+    measured rates were the true ones (the reports' "re-run range"). Noise only adds rank violations where
+    the rankings agree, so it can lie above the value; it is not a confidence interval for the MMRV of the
+    true rates."""
     return mean_mmrv_bootstrap([(sim, real)], n_boot=n_boot, confidence=confidence, seed=seed)
 
 

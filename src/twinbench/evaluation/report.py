@@ -35,6 +35,14 @@ from twinbench.evaluation.store import EpisodeRecord, ResultsStore
 
 Key = tuple[str, str]  # (policy, checkpoint)
 
+# MMRV's interval (metrics.mmrv_bootstrap), as every table labels and explains it
+MMRV_RANGE = "95% re-run range"
+MMRV_RANGE_NOTE = ("MMRV's range: where 95 % of the MMRVs fall that a second evaluation with as many "
+                   "episodes per policy would measure if the measured success rates were the true ones "
+                   "(2,000 episode resamples, seed 0). Sampling noise can only add rank violations where "
+                   "the rankings agree, so the range can lie above the measured value: it says how far the "
+                   "figure would move on a re-run, not where the MMRV of the true rates lies.")
+
 VIDEO_MIME = {".mp4": "video/mp4", ".m4v": "video/mp4", ".webm": "video/webm"}
 # codecs Chromium plays natively; anything else is transcoded to H.264 yuv420p
 _PLAYABLE = {("video/mp4", "h264"), ("video/webm", "vp8"), ("video/webm", "vp9"), ("video/webm", "av1"),
@@ -206,8 +214,7 @@ def _sim_real_section(sim: dict[Key, Cell], real: dict[Key, Cell], real_source: 
         stats_rows.append(["Pearson r", f"undefined: {_e(err)}"])
     mm = metrics.mmrv_bootstrap(sim=[sim[k].outcomes for k in keys], real=[real[k].outcomes for k in keys],
                                 n_boot=2000, seed=0)
-    stats_rows.append(["MMRV (95% bootstrap interval, 2000 episode resamples, seed 0)",
-                       f"{mm.value:.3f} [{mm.low:.3f}, {mm.high:.3f}]"])
+    stats_rows.append([f"MMRV [{MMRV_RANGE}]", f"{mm.value:.3f} [{mm.low:.3f}, {mm.high:.3f}]"])
     stats_rows.append(["paired policy/checkpoints", str(len(keys))])
     if len(keys) < 2:
         stats_rows.append(["note", "MMRV needs at least two policies to rank; with one it is 0."])
@@ -235,6 +242,7 @@ def _sim_real_section(sim: dict[Key, Cell], real: dict[Key, Cell], real_source: 
     extra = ""
     if missing:
         extra = _note(f"Sim entries without real outcomes (not in r / MMRV): {', '.join(missing)}.")
+    extra += _note(MMRV_RANGE_NOTE)
     return (head + f"<p>Real outcomes from {_e(real_source)}. Error bars: 95% Clopper-Pearson on both "
             "axes.</p>"
             + _table(["statistic", "value"], stats_rows, "kv") + _fig_html(fig, "sim vs real success rates")

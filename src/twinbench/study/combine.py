@@ -137,8 +137,10 @@ def combine_studies(studies: list[tuple[str, dict]]) -> list[dict]:
 
 def format_combined(tasks: list[dict]) -> str:
     """The combined table as Markdown, one row per task and variant."""
+    from twinbench.evaluation.report import MMRV_RANGE
+
     lines = ["| task | variant | workcells (points) | pooled r [95% CI] | within-workcell r [95% CI] | "
-             "mean MMRV [95% CI] | per workcell r / MMRV | aims met |", "|---|---|---|---|---|---|---|---|"]
+             f"mean MMRV [{MMRV_RANGE}] | per workcell r / MMRV | aims met |", "|---" * 8 + "|"]
     for t in tasks:
         for v in t["variants"]:
             m = v["mmrv"]

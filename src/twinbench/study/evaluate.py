@@ -408,8 +408,10 @@ def format_r(p: dict) -> str:
 
 def format_table(doc: dict) -> str:
     """The study table as Markdown (the README's form); the second real evaluation, if any, last."""
-    lines = ["| task | variant | Pearson r [95% CI] | MMRV [95% CI] | policies | episodes (sim / real) | "
-             "replay agrees (TP/FP/FN/TN) |", "|---|---|---|---|---|---|---|"]
+    from twinbench.evaluation.report import MMRV_RANGE
+
+    lines = [f"| task | variant | Pearson r [95% CI] | MMRV [{MMRV_RANGE}] | policies | "
+             "episodes (sim / real) | replay agrees (TP/FP/FN/TN) |", "|---|---|---|---|---|---|---|"]
     for row in table_rows(doc):
         p, m = row["pearson"], row["mmrv"]
         r = format_r(p)

@@ -12,7 +12,16 @@ from pathlib import Path
 
 import numpy as np
 
-from twinbench.evaluation.report import _CSS, _e, _fig_html, _note, _table, write_report
+from twinbench.evaluation.report import (
+    _CSS,
+    MMRV_RANGE,
+    MMRV_RANGE_NOTE,
+    _e,
+    _fig_html,
+    _note,
+    _table,
+    write_report,
+)
 from twinbench.evaluation.store import ResultsStore
 
 
@@ -41,7 +50,7 @@ def _table_section(doc: dict) -> str:
         rows.append([_e(row["variant"]), r, mm, str(row["n_policies"]),
                      f"{row['n_episodes']['sim']} / {row['n_episodes']['real']}", rep, link])
     return ("<h2>Sim vs real, per twin variant</h2>" + _table(
-        ["variant", "Pearson r [95% CI]", "MMRV [95% bootstrap CI]", "policies", "episodes sim / real",
+        ["variant", "Pearson r [95% CI]", f"MMRV [{MMRV_RANGE}]", "policies", "episodes sim / real",
          "replay agrees (TP / FP / FN / TN)", ""],
         rows) + _note("r: Fisher-z interval over the policies' success rates; MMRV: mean maximum rank "
                       "violation, 0 = the twin ranks the policies as the real workcell does. Replay: the "
@@ -49,7 +58,8 @@ def _table_section(doc: dict) -> str:
                       "matches the real one, and the confusion matrix (positive = success)."
                       + (" Real again: the real workcell evaluated a second time with other episode seeds "
                          "against the first, what a twin with exactly the real success rates would score "
-                         "at this number of episodes." if doc.get("real_again") else "")))
+                         "at this number of episodes." if doc.get("real_again") else ""))
+        + _note(MMRV_RANGE_NOTE))
 
 
 def _states_section(doc: dict) -> str:
@@ -260,7 +270,7 @@ def _combined_table(task: dict) -> str:
     missing = "".join(_note(f"{name}: left out, not in {', '.join(studies)}")
                       for name, studies in task["missing"].items())
     return _table(["variant", "workcells (points)", "pooled r [95% CI]", "within-workcell r [95% CI]",
-                   "mean MMRV [95% bootstrap CI]", "per workcell: r / MMRV", "aims met"], rows) + missing
+                   f"mean MMRV [{MMRV_RANGE}]", "per workcell: r / MMRV", "aims met"], rows) + missing
 
 
 def _combined_scatter(task: dict) -> str:
