@@ -37,8 +37,12 @@ def make(spec, task, env, *, seed):
 
 @pytest.fixture
 def kinds(monkeypatch):
-    """A private copy of the registry, so kinds registered or loaded here vanish after the test."""
-    monkeypatch.setattr(spec_module, "POLICY_KINDS", dict(spec_module.POLICY_KINDS))
+    """A private copy of the registry, so kinds registered or loaded here vanish after the test; without the
+    kinds that an earlier test in this process loaded from entry points (the study's `perceive`), so that
+    what a test sees does not depend on which tests ran before it."""
+    offered = spec_module._entry_points()
+    own = {k: v for k, v in spec_module.POLICY_KINDS.items() if k not in offered}
+    monkeypatch.setattr(spec_module, "POLICY_KINDS", own)
     return spec_module.POLICY_KINDS
 
 
