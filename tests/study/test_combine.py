@@ -81,6 +81,25 @@ def test_pooled_within_and_mean_mmrv(two):
     assert "1.00 / 0.000; " in table and "push-t: mine left out (not in B)" in table
 
 
+def test_a_workcell_without_a_real_order_is_left_out_of_the_mean_mmrv(two):
+    """Workcell Z: every policy fails for real, so its MMRV is 0 whatever the twin does (here the twin
+    succeeds with two of them) and its r undefined: the mean MMRV is A's and B's, Z named; Z's points
+    stay in the pooled r."""
+    z = _doc({"a": 0.0, "b": 0.0, "c": 0.0}, {"full": {"a": 0.0, "b": 0.5, "c": 1.0}}, seed=4, world="hash-z")
+    (two / "Z").mkdir()
+    (two / "Z" / "study.json").write_text(json.dumps(z))
+    with_z, = C.combine_studies([C.load_study(two / n) for n in ("A", "B", "Z")])
+    without, = C.combine_studies([C.load_study(two / n) for n in ("A", "B")])
+    full, base = with_z["variants"][0], without["variants"][0]
+    per = {p["study"]: p for p in full["per_workcell"]}
+    assert per["Z"]["mmrv"] == 0.0 and per["Z"]["r"] is None and not per["Z"]["aims_met"]
+    assert full["mmrv"]["left_out"] == ["Z"] and full["mmrv"]["workcells"] == 2
+    assert full["mmrv"]["value"] == pytest.approx(base["mmrv"]["value"]) == pytest.approx(0.05)  # not 0.1/3
+    assert full["points"] == 12 and full["pooled"]["r"] != pytest.approx(base["pooled"]["r"])
+    assert "in Z every real success rate is the same" in C.format_combined([with_z])
+    assert C.flat_note(without) is None and "left_out" in base["mmrv"] and base["mmrv"]["left_out"] == []
+
+
 def test_combine_refuses_what_would_mislead(two, tmp_path):
     a = C.load_study(two / "A")
     with pytest.raises(InputError, match="A and copy are studies of the same hidden workcell"):

@@ -10,7 +10,9 @@ workcell. Over W workcells, per variant:
   partial correlation, workcell partialled out: the interval loses W - 1 degrees of freedom): how well the
   twins rank policies inside their workcell;
 - mean MMRV: the mean of the workcells' MMRVs (a policy is ranked only against the others of its
-  workcell), its interval by resampling episodes within every workcell, policy and domain;
+  workcell), its interval by resampling episodes within every workcell, policy and domain. A workcell
+  whose real rates are all equal (every policy fails there, say) is left out of it and named: its MMRV is
+  0 whatever the twin does (there is no real order to violate), which would flatter the mean;
 - each workcell's r and MMRV, and in how many both aims hold (r >= AIM_R, MMRV <= AIM_MMRV).
 
 Everything is read from each study's study.json (per policy: the rates and episode counts in the twin and
@@ -98,10 +100,13 @@ def combine_variant(label: str, studies: list[tuple[str, dict, dict]]) -> dict:
     means = {g: (s[grp == g].mean(), r[grp == g].mean()) for g in set(group)}
     s_in = s - np.array([means[g][0] for g in group])
     r_in = r - np.array([means[g][1] for g in group])
-    est = metrics.mean_mmrv_bootstrap(groups)
+    flat = [g for g in range(len(studies)) if np.ptp(r[grp == g]) == 0]  # no real order: MMRV 0 by definition
+    ranked = [groups[g] for g in range(len(studies)) if g not in flat]
+    est = metrics.mean_mmrv_bootstrap(ranked or groups)
     return {"variant": label, "workcells": len(studies), "points": int(s.size),
             "pooled": pearson_entry(s, r), "within": pearson_entry(s_in, r_in, controls=len(studies) - 1),
-            "mmrv": {"value": est.value, "low": est.low, "high": est.high},
+            "mmrv": {"value": est.value, "low": est.low, "high": est.high, "workcells": len(ranked or groups),
+                     "left_out": [per[g]["study"] for g in flat] if ranked else []},
             "aims_met": sum(p["aims_met"] for p in per), "per_workcell": per,
             "points_by_workcell": [{"sim": s[grp == g].tolist(), "real": r[grp == g].tolist()}
                                    for g in range(len(studies))]}
@@ -151,4 +156,15 @@ def format_combined(tasks: list[dict]) -> str:
                          f"[{m['low']:.3f}, {m['high']:.3f}] | {per} | {v['aims_met']} of {v['workcells']} |")
     notes = [f"{t['task']}: {v} left out (not in {', '.join(names)})"
              for t in tasks for v, names in t["missing"].items()]
+    notes += [f"{t['task']}: {note}" for t in tasks if (note := flat_note(t))]
     return "\n".join(lines + ([""] + notes if notes else []))
+
+
+def flat_note(task: dict) -> str | None:
+    """What the mean MMRV left out of a task's combination: the workcells whose real rates are all equal."""
+    names = sorted({n for v in task["variants"] for n in v["mmrv"].get("left_out", [])})
+    if not names:
+        return None
+    return (f"mean MMRV over the other workcells: in {', '.join(names)} every real success rate is the same, "
+            "so its MMRV is 0 whatever the twin does (no real order to violate) and its r undefined; its "
+            "points stay in the pooled and within-workcell r")

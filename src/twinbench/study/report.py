@@ -267,8 +267,12 @@ def _combined_table(task: dict) -> str:
         rows.append([_e(v["variant"]), f"{v['workcells']} ({v['points']})", _r_cell(p), _r_cell(w),
                      f"{m['value']:.3f} [{m['low']:.3f}, {m['high']:.3f}]", per,
                      f"{v['aims_met']} of {v['workcells']}"])
+    from twinbench.study.combine import flat_note
+
     missing = "".join(_note(f"{name}: left out, not in {', '.join(studies)}")
                       for name, studies in task["missing"].items())
+    if flat_note(task):
+        missing += _note(flat_note(task).capitalize() + ".")
     return _table(["variant", "workcells (points)", "pooled r [95% CI]", "within-workcell r [95% CI]",
                    f"mean MMRV [{MMRV_RANGE}]", "per workcell: r / MMRV", "aims met"], rows) + missing
 
