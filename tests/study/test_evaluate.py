@@ -107,6 +107,15 @@ def test_study_json_table_and_page(study):
     assert "| push-t | neither | undefined |" in table
     assert "| 0.50 (8/8/0/0) |" in table and table.count("| - |") == 3
     assert table.splitlines()[-1].startswith("| push-t | real again | 0.800 [")  # the yardstick, last
+    assert E.no_real_order(doc) is None
+    flat = json.loads(json.dumps(doc))  # every policy fails for real: no twin can be told apart by r / MMRV
+    for row in flat["variants"]:
+        for p in row["policies"]:
+            p["real"] = 0.0
+    assert E.format_table(flat).endswith("Every policy's real success rate is 0.000: with no real order to "
+                                         "violate, every twin's MMRV is 0 and its r undefined here, so this "
+                                         "workcell cannot rank twins (the twins' own rates still show which "
+                                         "predict it); `study combine` leaves it out of the mean MMRV.")
 
     from twinbench.study.report import write_study_report
 

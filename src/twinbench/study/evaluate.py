@@ -420,4 +420,16 @@ def format_table(doc: dict) -> str:
         rep = "-" if not rp else (f"{rp['accuracy']:.2f} ({rp['tp']}/{rp['fp']}/{rp['fn']}/{rp['tn']})")
         lines.append(f"| {doc['task']} | {row['variant']} | {r} | {mm} | {row['n_policies']} | "
                      f"{row['n_episodes']['sim']} / {row['n_episodes']['real']} | {rep} |")
-    return "\n".join(lines)
+    note = no_real_order(doc)
+    return "\n".join(lines + ([f"\n{note}"] if note else []))
+
+
+def no_real_order(doc: dict) -> str | None:
+    """The warning for a study whose real success rates are all equal (every policy fails, say), else None:
+    there every twin's MMRV is 0 and its r undefined, so the table cannot tell twins apart."""
+    rates = {p["real"] for row in doc["variants"] for p in row["policies"] if p["n_real"]}
+    if len(rates) != 1:
+        return None
+    return (f"Every policy's real success rate is {rates.pop():.3f}: with no real order to violate, every "
+            "twin's MMRV is 0 and its r undefined here, so this workcell cannot rank twins (the twins' own "
+            "rates still show which predict it); `study combine` leaves it out of the mean MMRV.")

@@ -36,7 +36,7 @@ def _r_cell(p: dict) -> str:
 
 
 def _table_section(doc: dict) -> str:
-    from twinbench.study.evaluate import table_rows
+    from twinbench.study.evaluate import no_real_order, table_rows
 
     rows = []
     for row in table_rows(doc):
@@ -59,7 +59,7 @@ def _table_section(doc: dict) -> str:
                       + (" Real again: the real workcell evaluated a second time with other episode seeds "
                          "against the first, what a twin with exactly the real success rates would score "
                          "at this number of episodes." if doc.get("real_again") else ""))
-        + _note(MMRV_RANGE_NOTE))
+        + _note(MMRV_RANGE_NOTE) + (_note(no_real_order(doc)) if no_real_order(doc) else ""))
 
 
 def _states_section(doc: dict) -> str:
