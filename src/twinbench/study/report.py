@@ -272,7 +272,8 @@ def _combined_table(task: dict) -> str:
     missing = "".join(_note(f"{name}: left out, not in {', '.join(studies)}")
                       for name, studies in task["missing"].items())
     if flat_note(task):
-        missing += _note(flat_note(task).capitalize() + ".")
+        note = flat_note(task)
+        missing += _note(note[0].upper() + note[1:] + ".")
     return _table(["variant", "workcells (points)", "pooled r [95% CI]", "within-workcell r [95% CI]",
                    f"mean MMRV [{MMRV_RANGE}]", "per workcell: r / MMRV", "aims met"], rows) + missing
 
@@ -318,9 +319,10 @@ def write_combined_report(path: Path, tasks: list[dict]) -> Path:
         "telling which workcells are hard as well as which policies are better. Within-workcell r: the same "
         "with each workcell's mean rate removed from sim and real (workcell partialled out; the interval "
         "loses a degree of freedom per workcell after the first). Mean MMRV: each workcell's MMRV (policies "
-        "ranked against the others of their workcell), averaged; the interval resamples episodes within "
-        "every workcell, policy and domain (a percentile interval of a statistic that sampling noise "
-        "raises: it can lie above the value). Aims met: workcells with r >= "
+        "ranked against the others of their workcell), averaged over the workcells with a real order; its "
+        "re-run range resamples episodes within every workcell, policy and domain (where a second "
+        "evaluation would put it if the measured rates were true: it can lie above the value). Aims met: "
+        "workcells with r >= "
         f"{AIM_R} and MMRV <= {AIM_MMRV}."))
     page = ("<!DOCTYPE html>\n<html lang=\"en\"><head><meta charset=\"utf-8\">"
             "<title>twinbench study — workcells combined</title><link rel=\"icon\" href=\"data:,\">"
