@@ -12,6 +12,10 @@ from twinbench.errors import InputError
 
 from .params import SimParams
 
+RADIUS_SLACK = 1e-6  # inclusive radius with relative slack (golden README)
+TIE_DECIMALS = 9  # distances equal after rounding to 1e-9 m are ties, broken by lower index
+MIN_REST_LENGTH = 1e-4
+
 
 def check_device(device: str, field: str = "device") -> str:
     """`device` if Warp can run on it ("cpu", "cuda" or "cuda:N"), else InputError naming `field` and the fix:
@@ -32,10 +36,6 @@ def check_device(device: str, field: str = "device") -> str:
         raise InputError(f"{field} {name!r}: this machine has {count} CUDA device(s), cuda:0 to "
                          f"cuda:{count - 1}")
     return name
-
-RADIUS_SLACK = 1e-6  # inclusive radius with relative slack (golden README)
-TIE_DECIMALS = 9  # distances equal after rounding to 1e-9 m are ties, broken by lower index
-MIN_REST_LENGTH = 1e-4
 
 
 # ----------------------------------------------------------------------------------------------
