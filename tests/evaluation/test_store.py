@@ -215,3 +215,41 @@ def test_run_seconds_add_up_and_a_store_from_before_them_gains_the_table(tmp_pat
     store.add_run_seconds("r1", 7.25)
     store.add_run_seconds("r2", 1.0)
     assert store.run_seconds("r1") == 19.75 and ResultsStore(path).run_seconds("r2") == 1.0
+
+
+def test_an_interrupt_right_after_commit_propagates_as_itself(tmp_path, monkeypatch):
+    """SIGTERM / Ctrl-C landing once COMMIT has finished: the interrupt propagates (it was hidden by
+    sqlite's "cannot rollback - no transaction is active", an internal error in `twinbench eval`), and the
+    committed episode is kept."""
+    from contextlib import contextmanager
+
+    store = ResultsStore(tmp_path / "r.sqlite")
+    store.start_run("r1", "push-t", {"task": "push-t"})
+    connect = ResultsStore._connect
+
+    class InterruptAfterCommit:
+        def __init__(self, con):
+            self._con = con
+
+        def __getattr__(self, name):
+            return getattr(self._con, name)
+
+        def execute(self, sql, *args):
+            out = self._con.execute(sql, *args)
+            if sql == "COMMIT":
+                raise KeyboardInterrupt
+            return out
+
+    @contextmanager
+    def interrupted(self):
+        with connect(self) as con:
+            yield InterruptAfterCommit(con)
+
+    monkeypatch.setattr(ResultsStore, "_connect", interrupted)
+    with pytest.raises(KeyboardInterrupt):
+        store.record_episode(_rec())
+    with pytest.raises(KeyboardInterrupt):
+        store.start_run("r2", "push-t", {"task": "push-t"})
+    monkeypatch.undo()
+    assert [r.run_id for r in store.episodes("r1")] == ["r1"]
+    assert store.run_protocol("r2") == {"task": "push-t"}

@@ -171,6 +171,13 @@ def _dumps(obj, what: str) -> str:
         raise ValueError(f"{what} must be JSON-serialisable (plain values, lists, dicts): {err}") from err
 
 
+def _rollback(con: sqlite3.Connection) -> None:
+    """Undo the open transaction, if one is open: a signal (Ctrl-C, SIGTERM) that lands once COMMIT has
+    finished leaves none, and ROLLBACK would then raise "no transaction is active" over the interrupt."""
+    if con.in_transaction:
+        con.execute("ROLLBACK")
+
+
 class ResultsStore:
     """SQLite results store (WAL journal); one connection per call, so it is safe across processes."""
 
@@ -275,7 +282,7 @@ class ResultsStore:
                 self._insert_episodes(con, rows)
                 con.execute("COMMIT")
             except BaseException:
-                con.execute("ROLLBACK")
+                _rollback(con)
                 raise
         return added
 
@@ -329,7 +336,7 @@ class ResultsStore:
                 self._insert_episodes(con, rows)
                 con.execute("COMMIT")
             except BaseException:
-                con.execute("ROLLBACK")
+                _rollback(con)
                 raise
 
     @staticmethod
