@@ -59,7 +59,7 @@ def _table_section(doc: dict) -> str:
                       + (" Real again: the real workcell evaluated a second time with other episode seeds "
                          "against the first, what a twin with exactly the real success rates would score "
                          "at this number of episodes." if doc.get("real_again") else ""))
-        + _note(MMRV_RANGE_NOTE) + (_note(no_real_order(doc)) if no_real_order(doc) else ""))
+        + _note(MMRV_RANGE_NOTE) + (_note(flat) if (flat := no_real_order(doc)) else ""))
 
 
 def _states_section(doc: dict) -> str:
