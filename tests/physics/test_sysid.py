@@ -619,3 +619,43 @@ def test_new_contact_coefficients_reach_a_captured_frame():
     fresh = b2.finalize()
     assert not np.array_equal(before, after)
     assert np.array_equal(after, frame(fresh, SpringMassSolver(fresh)))
+
+
+@pytest.mark.parametrize("y, dashpot", [(1.0, 400.0), (3e4, 100.0), (3e4, 2000.0)])
+def test_stable_substeps_step_a_damped_spring_inside_its_exact_stability_limit(y, dashpot):
+    """Two unit masses joined by one spring: their separation is one mode, omega^2 = 2 Y / (L m),
+    gamma = 2 c / m, exactly the bounds `stability_rates` gives, and the semi-implicit step (the dashpot on
+    the old velocity) is stable exactly when (dt omega)^2 + 2 dt gamma < 4. The substeps chosen keep it
+    inside with the margin (<= 2.25) and the stretched spring settles; 1.2 x the limiting step, which the
+    old bound dt (omega + gamma / 2) <= 1.5 allowed where the dashpot dominates, blows up."""
+    from twinbench.errors import SimulationDiverged
+    from twinbench.physics.model import ModelBuilder
+    from twinbench.physics.sysid import rollout, stability_rates, stable_substeps
+
+    rest, fps = 0.01, 30.0
+
+    def model(substeps):
+        sim = SimParams(dt=1.0 / (fps * substeps), substeps=substeps, gravity=(0.0, 0.0, 0.0), ground=False,
+                        drag_damping=0.0, dashpot_damping=dashpot)
+        b = ModelBuilder(sim)
+        b.add_body(np.array([[0.0, 0.0, 0.5], [1.2 * rest, 0.0, 0.5]]), springs=np.array([[0, 1]]),
+                   rest_lengths=np.array([rest]), spring_Y=y, mass=1.0)
+        return b.finalize()
+
+    omega, gamma = stability_rates(model(1), y, dashpot)
+    assert omega == pytest.approx(np.sqrt(2.0 * y / rest)) and gamma == pytest.approx(2.0 * dashpot)
+    n = stable_substeps(model(1), y, dashpot, fps)
+    dt = 1.0 / (fps * n)
+    assert (dt * omega) ** 2 + 2.0 * dt * gamma <= 2.25 + 1e-9
+    xs = rollout(model(n), np.zeros((3, 0, 3)), 2)[0]
+    gap = np.linalg.norm(xs[:, 1] - xs[:, 0], axis=1)
+    assert np.all(np.isfinite(gap)) and abs(gap[-1] - rest) < abs(gap[0] - rest)
+    limit = 4.0 / (gamma + np.sqrt(gamma ** 2 + 4.0 * omega ** 2))  # the root of the exact limit
+    n_bad = max(int(np.floor(1.0 / (fps * 1.2 * limit))), 1)
+    assert 1.0 / (fps * n_bad) > 1.15 * limit
+    try:
+        xs = rollout(model(n_bad), np.zeros((21, 0, 3)), 20)[0]
+        gap = np.linalg.norm(xs[:, 1] - xs[:, 0], axis=1)
+        assert not np.all(np.isfinite(gap)) or abs(gap[-1] - rest) > 10 * abs(gap[0] - rest)
+    except SimulationDiverged:
+        pass

@@ -420,12 +420,10 @@ def build_model(data: SysIdData, params: GlobalParams, base: SimParams, device: 
     return model
 
 
-def stable_substeps(model: SpringMassModel, y_max: float, dashpot: float, fps: float,
-                    max_substeps: int = 2000) -> int:
-    """The fewest substeps per frame (dt = 1 / (fps substeps)) at which the semi-implicit Euler step is
-    stable with every spring of ``model`` at stiffness ``y_max`` and the dashpot at ``dashpot``, with
-    margin: per particle, the stiffness eigenvalue is bounded by Gershgorin's 2 sum(Y / L) / m
-    and the dashpot's by 2 n c / m; dt (omega + damp / 2) <= 1.5 (the undamped limit is dt omega < 2)."""
+def stability_rates(model: SpringMassModel, y_max: float, dashpot: float) -> tuple[float, float]:
+    """Bounds (1/s) on the fastest stiffness and dashpot rates of ``model`` with every spring at stiffness
+    ``y_max`` and the dashpot at ``dashpot``: per particle (Gershgorin) omega^2 <= 2 sum(Y / L) / m and
+    gamma <= 2 n c / m over its n springs; returns (omega, gamma), each the largest over the particles."""
     n = model.num_particles
     sp = model.springs_np.astype(np.int64)
     k = float(y_max) / np.maximum(model.rest_lengths_np.astype(np.float64), 1e-6)
@@ -436,9 +434,21 @@ def stable_substeps(model: SpringMassModel, y_max: float, dashpot: float, fps: f
         np.add.at(stiff, sp[ok, end], k[ok])
         np.add.at(count, sp[ok, end], 1.0)
     m = model.masses_np.astype(np.float64)[:n]
-    omega = math.sqrt(float(np.max(2.0 * stiff / m)))
-    damp = float(np.max(2.0 * count * max(float(dashpot), 0.0) / m))
-    dt = 1.5 / max(omega + 0.5 * damp, 1e-9)
+    return (math.sqrt(float(np.max(2.0 * stiff / m))),
+            float(np.max(2.0 * count * max(float(dashpot), 0.0) / m)))
+
+
+def stable_substeps(model: SpringMassModel, y_max: float, dashpot: float, fps: float,
+                    max_substeps: int = 2000) -> int:
+    """The fewest substeps per frame (dt = 1 / (fps substeps)) at which the semi-implicit Euler step is
+    stable, with margin, at the rates of `stability_rates`. A mode x'' = -omega^2 x - gamma x' under this
+    step (velocity first, the dashpot on the old velocity) is stable when (dt omega)^2 + 2 dt gamma < 4 (its
+    matrix has determinant 1 - dt gamma and trace 2 - (dt omega)^2 - dt gamma); the margin is that of
+    dt omega <= 1.5 undamped: (dt omega)^2 + 2 dt gamma <= 2.25, so dt gamma <= 1.125 with no stiffness.
+    (A bound dt (omega + gamma / 2) <= 1.5 allowed dt gamma up to 3, past the limit 2 where the dashpot
+    dominates.)"""
+    omega, gamma = stability_rates(model, y_max, dashpot)
+    dt = 2.25 / max(gamma + math.sqrt(gamma * gamma + 2.25 * omega * omega), 1e-9)  # the bound's root
     return int(min(max(math.ceil(1.0 / (fps * dt)), 1), max_substeps))
 
 

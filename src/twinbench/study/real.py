@@ -9,7 +9,7 @@ Derived from the task's built-in cell (the size's preset: "fast" for "small" and
   produce it), explicit springs whose stiffness varies over 3 spatial regions along the object's long
   axis (factors 0.3-3x the cell's), another total mass, ground friction / restitution, drag and dashpot
   damping, tool (and collider) friction, inelastic self contact; substeps as many as its stiffest springs
-  need;
+  and its dashpot on its lightest particles need;
 - appearance: each camera has a `CameraResponse` (colour matrix + offset, gamma, white balance,
   vignetting, sensor noise, slight blur), and the robot's Gaussians are finer than the cell's;
 - geometry: the cameras sit slightly off the cell's poses (known to a user only through calibration).
@@ -121,12 +121,22 @@ def _scan_color_space(rng) -> np.ndarray:
     return m
 
 
+def body_rates(points, spring_y, mass, dashpot: float, **springs_rule) -> np.ndarray:
+    """`physics.sysid.stability_rates` (omega, gamma) of a body: POINTS with springs by `springs_rule`
+    (ModelBuilder.add_body's `springs=` or `radius=`, `max_neighbors=`) at SPRING_Y, MASS, DASHPOT."""
+    from twinbench.physics import SimParams
+    from twinbench.physics.model import ModelBuilder
+    from twinbench.physics.sysid import stability_rates
+
+    b = ModelBuilder(SimParams())
+    b.add_body(points, spring_Y=spring_y, mass=mass, **springs_rule)
+    return np.asarray(stability_rates(b.finalize(), float(np.max(spring_y)), dashpot))
+
+
 def make_real(task: str, seed: int, out: Path, size: str = "small") -> Path:
     """Write OUT/world/ (the real workcell, a twin directory) and OUT/hidden.json; returns OUT."""
     from twinbench.construct.sysid_io import sim_dict
-    from twinbench.physics import SimParams
-    from twinbench.physics.model import ModelBuilder, radius_springs
-    from twinbench.physics.sysid import stable_substeps
+    from twinbench.physics.model import radius_springs
     from twinbench.study.sizes import size_name
     from twinbench.twin import save_twin
 
@@ -165,20 +175,18 @@ def make_real(task: str, seed: int, out: Path, size: str = "small") -> Path:
         # diverged). Not drawn, so the other draws of a seed are unchanged.
         object_restitution=0.0,
     )
-    # substeps: the cell's preset, times what the real object's stiffest springs and lighter particles need
-    # more than the cell's object by the stability bound (the presets run below that conservative bound)
+    # substeps: the cell's preset, times how much faster the real object's stiffest springs and its dashpot
+    # on lighter particles are than the cell's object's (each bound of `stability_rates` on its own: the
+    # presets run below those conservative bounds, and a dashpot twice the cell's on particles a third of its
+    # mass, stepped at the ratio of a combined bound, jittered: seed 4's T crept on along the table after a
+    # push, and every push-T policy failed)
     frame_dt = sim0.dt * sim0.substeps
 
-    def bound(points, y, m, **springs_rule) -> int:
-        b = ModelBuilder(SimParams())
-        b.add_body(points, spring_Y=y, mass=m, **springs_rule)
-        return stable_substeps(b.finalize(), float(np.max(y)), sim.dashpot_damping, 1.0 / frame_dt, 100000)
-
-    need = bound(pts, spring_y, mass, springs=springs)
-    cell_need = bound(base.particles, base.spring_Y, base.mass, radius=base.spring_radius,
-                      max_neighbors=base.max_neighbors) if base.springs is None else \
-        bound(base.particles, base.spring_Y, base.mass, springs=base.springs)
-    substeps = max(sim0.substeps, math.ceil(sim0.substeps * need / cell_need))
+    need = body_rates(pts, spring_y, mass, sim.dashpot_damping, springs=springs)
+    rule = {"radius": base.spring_radius, "max_neighbors": base.max_neighbors} if base.springs is None \
+        else {"springs": base.springs}
+    cell_need = body_rates(base.particles, base.spring_Y, base.mass, sim0.dashpot_damping, **rule)
+    substeps = max(sim0.substeps, math.ceil(sim0.substeps * float(np.max(need / cell_need))))
     sim = dataclasses.replace(sim, substeps=substeps, dt=frame_dt / substeps)
     real_obj = dataclasses.replace(obj, springs=springs.astype(np.int32), rest_lengths=None,
                                    spring_Y=spring_y, mass=mass)
