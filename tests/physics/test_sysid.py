@@ -651,8 +651,7 @@ def test_stable_substeps_step_a_damped_spring_inside_its_exact_stability_limit(y
     gap = np.linalg.norm(xs[:, 1] - xs[:, 0], axis=1)
     assert np.all(np.isfinite(gap)) and abs(gap[-1] - rest) < abs(gap[0] - rest)
     limit = 4.0 / (gamma + np.sqrt(gamma ** 2 + 4.0 * omega ** 2))  # the root of the exact limit
-    n_bad = max(int(np.floor(1.0 / (fps * 1.2 * limit))), 1)
-    assert 1.0 / (fps * n_bad) > 1.15 * limit
+    n_bad = int(np.floor(1.0 / (fps * 1.2 * limit)))  # a step of at least 1.2x the limit (n_bad >= 3 here)
     try:
         xs = rollout(model(n_bad), np.zeros((21, 0, 3)), 20)[0]
         gap = np.linalg.norm(xs[:, 1] - xs[:, 0], axis=1)
