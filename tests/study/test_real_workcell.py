@@ -60,16 +60,12 @@ def test_real_steps_as_stably_as_the_cell(seed, tmp_path):
     preset. Seed 4 (dashpot 1.8x the cell's on particles of 0.38 the mass) got 317 substeps from a combined
     bound, its dashpot rate 1.5x the cell's per substep: the T jittered and crept along the table after
     every push (at twice the substeps, or at the cell's dashpot, it stopped where the push left it)."""
-    from twinbench.study.real import body_rates
+    from twinbench.study.real import object_rates
 
     real = make_real("push-t", seed, tmp_path / "REAL", "medium")
     spec, cell = load_twin(real / "world"), task_cell("push-t", "medium")
-    obj, cell_obj = spec.objects[0], cell.objects[0]
-    rates = body_rates(obj.particles, obj.spring_Y, obj.mass, spec.sim.dashpot_damping, springs=obj.springs)
-    rule = {"springs": cell_obj.springs} if cell_obj.springs is not None else \
-        {"radius": cell_obj.spring_radius, "max_neighbors": cell_obj.max_neighbors}
-    cell_rates = body_rates(cell_obj.particles, cell_obj.spring_Y, cell_obj.mass, cell.sim.dashpot_damping,
-                            **rule)
+    rates = object_rates(spec.objects[0], spec.sim.dashpot_damping)
+    cell_rates = object_rates(cell.objects[0], cell.sim.dashpot_damping)
     assert np.all(spec.sim.dt * rates <= cell.sim.dt * cell_rates * (1 + 1e-9))
     assert spec.sim.dt * rates[1] > 0.9 * cell.sim.dt * cell_rates[1]  # the dashpot sets this seed's step
     assert spec.sim.substeps > 1.4 * 317

@@ -121,16 +121,18 @@ def _scan_color_space(rng) -> np.ndarray:
     return m
 
 
-def body_rates(points, spring_y, mass, dashpot: float, **springs_rule) -> np.ndarray:
-    """`physics.sysid.stability_rates` (omega, gamma) of a body: POINTS with springs by `springs_rule`
-    (ModelBuilder.add_body's `springs=` or `radius=`, `max_neighbors=`) at SPRING_Y, MASS, DASHPOT."""
+def object_rates(obj, dashpot: float) -> np.ndarray:
+    """`physics.sysid.stability_rates` (omega, gamma) of an ObjectSpec's body (its explicit springs, or
+    its radius rule) at the dashpot DASHPOT."""
     from twinbench.physics import SimParams
     from twinbench.physics.model import ModelBuilder
     from twinbench.physics.sysid import stability_rates
 
+    rule = {"radius": obj.spring_radius, "max_neighbors": obj.max_neighbors} if obj.springs is None \
+        else {"springs": obj.springs}
     b = ModelBuilder(SimParams())
-    b.add_body(points, spring_Y=spring_y, mass=mass, **springs_rule)
-    return np.asarray(stability_rates(b.finalize(), float(np.max(spring_y)), dashpot))
+    b.add_body(obj.particles, spring_Y=obj.spring_Y, mass=obj.mass, **rule)
+    return np.asarray(stability_rates(b.finalize(), float(np.max(obj.spring_Y)), dashpot))
 
 
 def make_real(task: str, seed: int, out: Path, size: str = "small") -> Path:
@@ -182,14 +184,11 @@ def make_real(task: str, seed: int, out: Path, size: str = "small") -> Path:
     # push, and every push-T policy failed)
     frame_dt = sim0.dt * sim0.substeps
 
-    need = body_rates(pts, spring_y, mass, sim.dashpot_damping, springs=springs)
-    rule = {"radius": base.spring_radius, "max_neighbors": base.max_neighbors} if base.springs is None \
-        else {"springs": base.springs}
-    cell_need = body_rates(base.particles, base.spring_Y, base.mass, sim0.dashpot_damping, **rule)
-    substeps = max(sim0.substeps, math.ceil(sim0.substeps * float(np.max(need / cell_need))))
-    sim = dataclasses.replace(sim, substeps=substeps, dt=frame_dt / substeps)
     real_obj = dataclasses.replace(obj, springs=springs.astype(np.int32), rest_lengths=None,
                                    spring_Y=spring_y, mass=mass)
+    need = object_rates(real_obj, sim.dashpot_damping) / object_rates(base, sim0.dashpot_damping)
+    substeps = max(sim0.substeps, math.ceil(sim0.substeps * float(np.max(need))))
+    sim = dataclasses.replace(sim, substeps=substeps, dt=frame_dt / substeps)
 
     def friction(c):
         return dataclasses.replace(c, friction=float(np.clip(c.friction * _uniform(rng, 0.7, 1.4), 0.05, 2)))

@@ -271,8 +271,7 @@ def _combined_table(task: dict) -> str:
 
     missing = "".join(_note(f"{name}: left out, not in {', '.join(studies)}")
                       for name, studies in task["missing"].items())
-    if flat_note(task):
-        note = flat_note(task)
+    if note := flat_note(task):
         missing += _note(note[0].upper() + note[1:] + ".")
     return _table(["variant", "workcells (points)", "pooled r [95% CI]", "within-workcell r [95% CI]",
                    f"mean MMRV [{MMRV_RANGE}]", "per workcell: r / MMRV", "aims met"], rows) + missing
