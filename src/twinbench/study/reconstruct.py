@@ -8,8 +8,9 @@ The chain (each command printed as typed): `twinbench segment` (scan -> robot / 
 refine-cameras` (the calibration corrected so that the scan's render lines up with each real image: the
 twins' cameras), `twinbench align-color` (the scan's colours -> the real cameras' colours), `twinbench sysid`
 (each object's physics from its tracked motion; once with the fit, once at its initial guess; with the fit,
-the tool's friction from a push recording, the object's other values held, adopted only where it tracks the
-push better than the task's value), then one build config per variant and `twinbench twin build`.
+the tool's friction and the object's ground friction and drag from a push recording, the object's other
+values held, adopted only where they track the push better and the probe not much worse: `_push_fit`), then
+one build config per variant and `twinbench twin build`.
 Between sysid and the build, the identified object (particles in the world frame) is put in its own frame at
 the rest pose found by registering the task's object template to the segmented scan (`estimate_rest_pose`;
 colours tell a rope's marked end from its other end); the task's public definition supplies what the evidence
@@ -217,26 +218,70 @@ def _collider_entry(cell, name: str, scanned_file: Path, work: Path, log) -> dic
     return entry
 
 
-def _tool_friction(run, push: Path, report: Path, out: Path, mesh_margin: float, prior: float,
-                   log: Callable[[str], None]) -> float:
-    """`twinbench sysid` of a push recording: the tool's friction on a line of 16 values in [0, 1.5] from
-    `prior` (the task's value), the object's global values held at its fit (`report`), the tool's contact
-    distance the twin's. The fitted value is adopted only when it tracks the push better than `prior` on
-    both the fitted and the held-out frames (`adopt_tool_fit`); else `prior` is kept. The choice is
-    written to OUT/choice.json and logged."""
+# what a push recording fits: the tool's friction, with the object's ground friction and drag where its
+# probe fit left them unconstrained (both resist its sliding; a probe's lift and drag can trade one for the
+# other)
+PUSH_SEARCH = ("tool_friction", "ground_friction", "drag_damping")
+PUSH_BUDGET = {1: 16, 2: 30, 3: 40}  # CMA-ES evaluations of the push fit, by the number of values it searches
+
+
+def push_search(probe_report: dict) -> tuple[str, ...]:
+    """The values a push fit searches: the tool's friction, and those of the object's ground friction and drag
+    that its probe fit (`probe_report`, a `twinbench sysid` report) did not constrain (its `identifiability`:
+    a value the probe's motion pins down keeps it)."""
+    known = probe_report.get("identifiability", {})
+    return ("tool_friction", *(n for n in PUSH_SEARCH[1:] if not known.get(n, {}).get("constrained", False)))
+
+
+def _push_fit(run, push: Path, probe: Path, report: Path, out: Path, mesh_margin: float, cell: dict,
+              log: Callable[[str], None]) -> dict:
+    """`twinbench sysid` of a push recording: the tool's friction (in [0, 1.5]) and the object's ground
+    friction and drag where its probe fit (`report`) left them unconstrained (`push_search`), the object's
+    other global values held at that fit, the tool's contact distance the twin's. Two starts: the probe fit's
+    values with the task cell's tool friction (`cell`: {name: value} of PUSH_SEARCH), and the cell's values
+    (a probe fit in a corner of the ranges held the search there); the one tracking the push's fitted frames
+    best is kept. Adopted (`adopt_push_fit`) only when it tracks the push better than the first start (what
+    the twin has otherwise) on the fitted and the held-out frames; else the tool's friction alone is fitted
+    under the same rule; else the cell's is kept. Where it moves the object's values, the probe recording's
+    tracking error at them and at the probe fit's (one uniform stiffness, as the push fit) is recorded. The
+    choice goes to OUT/choice.json (chosen, fitted and prior values, errors) and the log."""
     from twinbench.construct._json import write_json
 
-    fitted = json.loads(report.read_text())["global_params"]
-    held = [a for k, v in fitted.items() if not k.startswith("tool_")
-            for a in (f"--initial.{k.replace('_', '-')}", str(v))]
-    run("sysid", "--data", push, "--out-dir", out, "--no-progress", "--no-guess", "--no-stage2",
-        "--no-stage3", "--cma.search", "tool_friction", "--cma.ranges", "tool_friction=0:1.5",
-        "--cma.budget", "16", "--mesh-margin", str(mesh_margin), "--initial.tool-friction", str(prior), *held)
-    result = json.loads((out / "sysid_report.json").read_text())
-    choice = adopt_tool_fit(result, prior)
+    probe_fit = json.loads(report.read_text())
+    held = {k: v for k, v in probe_fit["global_params"].items() if not k.startswith("tool_")}
+
+    def sysid(data: Path, where: Path, values: dict, *flags) -> dict:
+        run("sysid", "--data", data, "--out-dir", where, "--no-progress", "--no-guess", "--no-stage2",
+            "--no-stage3", "--mesh-margin", str(mesh_margin), *flags,
+            *[a for k, v in {**held, **values}.items() for a in (f"--initial.{k.replace('_', '-')}", str(v))])
+        return json.loads((where / "sysid_report.json").read_text())
+
+    def fit(names: tuple[str, ...]) -> dict:
+        starts = {"probe": {n: float(cell[n] if n == "tool_friction" else held[n]) for n in names},
+                  "cell": {n: float(cell[n]) for n in names}}
+        if starts["cell"] == starts["probe"]:
+            del starts["cell"]
+        runs = {label: sysid(push, out / f"{'-'.join(n.split('_')[0] for n in names)}-from-{label}", start,
+                             "--cma.search", *names, "--cma.ranges", "tool_friction=0:1.5",
+                             "--cma.budget", str(PUSH_BUDGET[len(names)]))
+                for label, start in starts.items()}
+        best = min(runs, key=lambda label: runs[label]["evaluations"]["final"]["train_error_m"])
+        before = tracking_errors(runs["probe"])["initial"]
+        return {**adopt_push_fit(runs[best], starts["probe"], before), "start": best}
+
+    names = push_search(probe_fit)
+    choice = fit(names)
+    if len(names) > 1 and not choice["adopted"]:
+        choice = {**fit(("tool_friction",)), "rejected": choice}
+    moved = {k: v for k, v in choice["chosen"].items() if k != "tool_friction" and v != held[k]}
+    if moved:  # what the probe recording says of them (for the record: the probe did not constrain them)
+        choice["probe_errors_m"] = {
+            name: tracking_errors(sysid(probe, out / f"probe-at-{name}", values, "--no-stage1"))["final"]
+            for name, values in (("probe_fit", {}), ("push_fit", moved))}
     write_json(out / "choice.json", choice)
-    log(f"# {push.name}: tool friction {choice['chosen']:.3g} ({choice['reason']})")
-    return choice["chosen"]
+    log(f"# {push.name}: " + ", ".join(f"{k} {v:.3g}" for k, v in choice["chosen"].items())
+        + f" ({choice['reason']})")
+    return choice
 
 
 def tracking_errors(report: dict) -> dict:
@@ -247,22 +292,33 @@ def tracking_errors(report: dict) -> dict:
             for stage in ("initial", "final")}
 
 
-def adopt_tool_fit(result: dict, prior: float) -> dict:
-    """Whether a tool-friction fit (a `twinbench sysid` report whose initial values hold `prior`) is adopted:
-    only when its tracking error is lower than the prior's on the fitted frames and on the held-out ones
-    (those the report has; a lower loss alone is not enough: the Chamfer term can fall while the tracked
-    points drift). Returns the record: chosen value, fitted value, both stages' errors (m), the reason."""
-    fit = float(result["global_params"]["tool_friction"])
-    errors = tracking_errors(result)
-    a, b = errors["initial"], errors["final"]
-    known = [k for k in a if a[k] is not None and b[k] is not None]  # no held-out frames: fitted ones only
-    adopted = bool(known) and all(b[k] < a[k] for k in known)
-    span = ", ".join(f"{k.split('_')[0]} {1e3 * b[k]:.2f} against {1e3 * a[k]:.2f} mm" for k in known)
-    reason = (f"fitted {fit:.3g} adopted: it tracks the push better than {prior:.3g} ({span})" if adopted else
-              f"fitted {fit:.3g} not adopted: it does not track the push better than the task's "
-              f"{prior:.3g} on both the fitted and the held-out frames ({span})")
-    return {"chosen": fit if adopted else float(prior), "fitted": fit, "prior": float(prior),
-            "adopted": adopted, "errors_m": errors, "reason": reason}
+def _better(before: dict, after: dict) -> tuple[bool, str]:
+    """Whether tracking errors `after` are below `before` on every frame set both have (no held-out frames:
+    the fitted ones decide), and the comparison in words (mm)."""
+    known = [k for k in before if before[k] is not None and after[k] is not None]
+    ok = bool(known) and all(after[k] < before[k] for k in known)
+    return ok, ", ".join(f"{k.split('_')[0]} {1e3 * after[k]:.2f} against {1e3 * before[k]:.2f} mm"
+                         for k in known)
+
+
+def adopt_push_fit(result: dict, prior: dict, before: dict | None = None) -> dict:
+    """Whether a push fit (a `twinbench sysid` report of the values `prior` names) is adopted against `prior`
+    ({name: value}, what the twin has otherwise) whose tracking errors are `before` (default: the report's
+    initial ones, a fit started from `prior`): only when its own are lower on the fitted frames and on the
+    held-out ones (a lower loss alone is not enough: the Chamfer term can fall while the tracked points
+    drift). Returns the record: chosen, fitted and prior values ({name: value}), the errors (m) before and
+    of the fit, whether adopted and why."""
+    fit = {n: float(result["global_params"][n]) for n in prior}
+    errors = {**tracking_errors(result), **({} if before is None else {"initial": before})}
+    adopted, span = _better(errors["initial"], errors["final"])
+    said = ", ".join(f"{k} {v:.3g}" for k, v in fit.items())
+    was = ", ".join(f"{v:.3g}" for v in prior.values())
+    reason = (f"fitted {said} adopted: it tracks the push better than {was} ({span})" if adopted else
+              f"fitted {said} not adopted: it does not track the push better than {was} on both the "
+              f"fitted and the held-out frames ({span})")
+    prior = {n: float(v) for n, v in prior.items()}
+    return {"chosen": fit if adopted else prior, "fitted": fit, "prior": prior, "adopted": adopted,
+            "errors_m": errors, "reason": reason}
 
 
 def camera_summary(twins: Path) -> dict:
@@ -285,7 +341,7 @@ def fit_summary(twins: Path) -> dict:
                   "notes": report.get("notes", [])}
         choice = work / "push" / path.parent.name / "choice.json"
         if choice.is_file():
-            record["tool_friction"] = json.loads(choice.read_text())
+            record["push"] = json.loads(choice.read_text())
         summary[path.parent.name] = record
     return summary
 
@@ -347,12 +403,17 @@ def reconstruct(evidence: Path, out: Path, variants=VARIANTS, log: Callable[[str
     frame_dt = cell.sim.dt * cell.sim.substeps
     tool = {kind: dataclasses.asdict(cell.robot.tool_contact) for kind in physics}
     pushes = {o: index["push"][o] for o in objects if o in index.get("push", {})}
+    from_push = {}  # the object values a push fit chose, per object (the fitted variants)
     if "fitted" in physics and pushes:
-        prior = cell.robot.tool_contact.friction
-        fits = [_tool_friction(run, evidence / rel, work / "sysid" / "fitted" / o / "report.json",
-                               work / "sysid" / "push" / o, cell.sim.mesh_margin, prior, log)
-                for o, rel in pushes.items()]
-        tool["fitted"]["friction"] = float(np.median(fits))
+        values = {"tool_friction": cell.robot.tool_contact.friction, **{k: getattr(cell.sim, k)
+                                                                          for k in PUSH_SEARCH[1:]}}
+        choices = {o: _push_fit(run, evidence / rel, evidence / index["motion"][o],
+                                work / "sysid" / "fitted" / o / "report.json", work / "sysid" / "push" / o,
+                                cell.sim.mesh_margin, values, log) for o, rel in pushes.items()}
+        tool["fitted"]["friction"] = float(np.median([c["chosen"]["tool_friction"]
+                                                      for c in choices.values()]))
+        from_push = {o: {k: v for k, v in c["chosen"].items() if k != "tool_friction"}
+                     for o, c in choices.items()}
     write_json(work / "calibration.json", json.loads(calibration.read_text()))
     rest = {}
     for o in objects:
@@ -367,6 +428,7 @@ def reconstruct(evidence: Path, out: Path, variants=VARIANTS, log: Callable[[str
             substeps = max(int(sim["substeps"]), cell.sim.substeps)
             over = {k: getattr(cell.sim, k) for k in _CELL_SIM}
             over.update(substeps=substeps, dt=frame_dt / substeps)
+            over.update(from_push.get(o, {}) if kind == "fitted" else {})
             over = {k: (list(v) if isinstance(v, tuple) else v) for k, v in over.items()}
             _place_object(work / "sysid" / kind / o, template, rest[o], over, work / "objects" / kind / o)
 

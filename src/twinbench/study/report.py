@@ -130,6 +130,12 @@ def _training_section(doc: dict) -> str:
          "success real", *(f"success {_e(v)}" for v in variants)], rows)
 
 
+def _push_values(chosen) -> str:
+    """A push fit's chosen values ({name: value}; a study before the joint fit: the tool friction alone)."""
+    chosen = chosen if isinstance(chosen, dict) else {"tool_friction": chosen}
+    return ", ".join(f"{k.replace('_', ' ')} {v:.3g}" for k, v in chosen.items())
+
+
 def _sysid_section(doc: dict) -> str:
     """What the fitted twins' system identification reached: where the pipeline loses what it measures."""
     rows, notes = [], []
@@ -139,16 +145,16 @@ def _sysid_section(doc: dict) -> str:
 
     for name, r in doc.get("sysid", {}).items():
         a, b = r["initial"], r["final"]
-        tool = r.get("tool_friction")
+        push = r.get("push") or r.get("tool_friction")  # a study before the joint push fit: the tool's alone
         rows.append([_e(name), f"{mm(a['train_error_m'])} → {mm(b['train_error_m'])}",
                      f"{mm(a['val_error_m'])} → {mm(b['val_error_m'])}", _e(str(r.get("kept"))),
-                     "–" if tool is None else _e(f"{tool['chosen']:.3g} ({tool['reason']})")])
+                     "–" if push is None else _e(f"{_push_values(push['chosen'])} ({push['reason']})")])
         notes += [f"{name}: {n}" for n in r.get("notes", [])]
     if not rows:
         return ""
     return "<h2>System identification of the fitted twins</h2>" + _table(
         ["object", "tracking error, fitted frames (mm): initial → fit", "held-out frames (mm)", "kept stage",
-         "tool friction"], rows) + "".join(_note(n) for n in notes) + _note(
+         "from the push"], rows) + "".join(_note(n) for n in notes) + _note(
         "From each object's recorded motion (the evidence): the no-physics twins keep the initial guess.")
 
 
