@@ -71,6 +71,10 @@ def test_a_push_fit_is_adopted_only_where_it_tracks_the_push_better():
     joint = adopt_push_fit(_push_report(found, (6.2e-3, 4.5e-3), (4.5e-3, 4.4e-3)), start)
     assert joint["chosen"] == found
     assert joint["prior"] == start
+    # a fit from another start, judged against the errors of what the twin has otherwise
+    baseline = {"train_error_m": 4e-3, "val_error_m": 5e-3}
+    other = adopt_push_fit(_push_report(found, (8e-3, 9e-3), (4.5e-3, 4.4e-3)), start, baseline)
+    assert not other["adopted"] and other["chosen"] == start and other["errors_m"]["initial"] == baseline
 
 
 def test_a_push_fits_the_object_values_its_probe_left_unconstrained():
@@ -107,6 +111,12 @@ def test_fit_summary_reports_each_objects_fit_and_the_push_choice(tmp_path):
     assert "tool friction 0.3 (fitted tool_friction 0.86 not adopted" in page
     assert "tblock: stage 3 did not improve" in page
     assert fit_summary(tmp_path / "nothing") == {} and _sysid_section({"sysid": {}}) == ""
+    # where the push moved the object's values, the page says how its probe recording tracks at them
+    summary["tblock"]["push"]["probe_errors_m"] = {
+        "probe_fit": {"train_error_m": 4.57e-3, "val_error_m": 3.7e-3},
+        "push_fit": {"train_error_m": 3.67e-3, "val_error_m": 21.07e-3}}
+    page = _sysid_section({"sysid": summary})
+    assert "values tracks 3.67 / 21.07 mm (fitted / held-out frames)" in page and "4.57 / 3.70 mm" in page
     # a study written before the joint push fit (its tool friction's choice alone) still renders
     old = {**summary["tblock"], "tool_friction": {"chosen": 0.3, "reason": "fitted 0.86 not adopted"}}
     del old["push"]

@@ -8,9 +8,9 @@ The chain (each command printed as typed): `twinbench segment` (scan -> robot / 
 refine-cameras` (the calibration corrected so that the scan's render lines up with each real image: the
 twins' cameras), `twinbench align-color` (the scan's colours -> the real cameras' colours), `twinbench sysid`
 (each object's physics from its tracked motion; once with the fit, once at its initial guess; with the fit,
-the tool's friction and the object's ground friction and drag from a push recording, the object's other
-values held, adopted only where they track the push better and the probe not much worse: `_push_fit`), then
-one build config per variant and `twinbench twin build`.
+the tool's friction, and the object's ground friction and drag where its probe left them unconstrained, from
+a push recording, the object's other values held, adopted only where they track the push better: `_push_fit`),
+then one build config per variant and `twinbench twin build`.
 Between sysid and the build, the identified object (particles in the world frame) is put in its own frame at
 the rest pose found by registering the task's object template to the segmented scan (`estimate_rest_pose`;
 colours tell a rope's marked end from its other end); the task's public definition supplies what the evidence

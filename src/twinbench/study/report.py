@@ -150,6 +150,12 @@ def _sysid_section(doc: dict) -> str:
                      f"{mm(a['val_error_m'])} → {mm(b['val_error_m'])}", _e(str(r.get("kept"))),
                      "–" if push is None else _e(f"{_push_values(push['chosen'])} ({push['reason']})")])
         notes += [f"{name}: {n}" for n in r.get("notes", [])]
+        probe = (push or {}).get("probe_errors_m")
+        if probe:  # the push moved the object's values: what its probe recording says of them
+            a, b = probe["probe_fit"], probe["push_fit"]
+            notes.append(f"{name}: the probe recording (one uniform stiffness) at the push's values tracks "
+                         f"{mm(b['train_error_m'])} / {mm(b['val_error_m'])} mm (fitted / held-out frames), "
+                         f"at the probe fit's {mm(a['train_error_m'])} / {mm(a['val_error_m'])} mm")
     if not rows:
         return ""
     return "<h2>System identification of the fitted twins</h2>" + _table(
