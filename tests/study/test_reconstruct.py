@@ -210,20 +210,23 @@ def test_reconstruction_from_evidence_alone(tmp_path):
     # fitted to the push recording in the fitted variants (adopted only where they track the push better than
     # the probe fit's values with the cell's tool friction; else the tool's alone), the cell's tool and the
     # probe fit's values in the others
-    from twinbench.study.reconstruct import push_search
+    from twinbench.study.reconstruct import push_fit_dir, push_search, tracking_errors
 
     probe_fit = json.loads((work / "sysid/fitted/tblock/report.json").read_text())
     names = push_search(probe_fit)
-    where = "-".join(n.split("_")[0] for n in names) + "-from-probe"
-    pushed = json.loads((work / "sysid/push/tblock" / where / "sysid_report.json").read_text())
+    pushed = json.loads((work / "sysid/push/tblock" / push_fit_dir(names, "probe") / "sysid_report.json")
+                        .read_text())
     assert pushed["config"]["cma"]["search"] == list(names)
     prior = task_cell("push-t", "small").robot.tool_contact.friction
     start = {"tool_friction": prior, **{k: probe_fit["global_params"][k] for k in names[1:]}}
     assert {k: pushed["config"]["initial"][k] for k in names} == start  # the comparison's start
     choice = json.loads((work / "sysid/push/tblock/choice.json").read_text())
     print(f"push fit: {choice['reason']}")
-    if choice["start"] == "probe" and "rejected" not in choice:
-        assert choice == {**adopt_push_fit(pushed, start), "start": "probe"}
+    joint = choice.get("rejected", choice)  # the fit of `names`, adopted or not
+    # judged against what the twin has otherwise (the start from the probe fit), whichever start won
+    assert joint["prior"] == start and joint["errors_m"]["initial"] == tracking_errors(pushed)["initial"]
+    if joint["start"] == "probe":
+        assert joint == {**adopt_push_fit(pushed, start), "start": "probe"}
     chosen = {**probe_fit["global_params"], "tool_friction": prior, **choice["chosen"]}
     assert specs["full"].robot.tool_contact.friction == chosen["tool_friction"]
     assert specs["full"].sim.ground_friction == chosen["ground_friction"]

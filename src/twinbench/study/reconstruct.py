@@ -233,6 +233,11 @@ def push_search(probe_report: dict) -> tuple[str, ...]:
     return ("tool_friction", *(n for n in PUSH_SEARCH[1:] if not known.get(n, {}).get("constrained", False)))
 
 
+def push_fit_dir(names: tuple[str, ...], start: str) -> str:
+    """The folder (under OUT/construction/sysid/push/OBJECT) of a push fit of `names` from `start`."""
+    return f"{'-'.join(n.split('_')[0] for n in names)}-from-{start}"
+
+
 def _push_fit(run, push: Path, probe: Path, report: Path, out: Path, mesh_margin: float, cell: dict,
               log: Callable[[str], None]) -> dict:
     """`twinbench sysid` of a push recording: the tool's friction (in [0, 1.5]) and the object's ground
@@ -261,9 +266,9 @@ def _push_fit(run, push: Path, probe: Path, report: Path, out: Path, mesh_margin
                   "cell": {n: float(cell[n]) for n in names}}
         if starts["cell"] == starts["probe"]:
             del starts["cell"]
-        runs = {label: sysid(push, out / f"{'-'.join(n.split('_')[0] for n in names)}-from-{label}", start,
-                             "--cma.search", *names, "--cma.ranges", "tool_friction=0:1.5",
-                             "--cma.budget", str(PUSH_BUDGET[len(names)]))
+        search = ("--cma.search", *names, "--cma.ranges", "tool_friction=0:1.5",
+                  "--cma.budget", str(PUSH_BUDGET[len(names)]))
+        runs = {label: sysid(push, out / push_fit_dir(names, label), start, *search)
                 for label, start in starts.items()}
         best = min(runs, key=lambda label: runs[label]["evaluations"]["final"]["train_error_m"])
         before = tracking_errors(runs["probe"])["initial"]
