@@ -51,6 +51,7 @@ def report_dict(result: SysIdResult, data: SysIdData) -> dict:
         "stiffness_fit": _stiffness_fit(result),
         "region_identifiability": _jsonable(result.region_identifiability),
         "guesses": _jsonable(result.guesses),
+        "inputs": _jsonable(result.inputs),
         "selection": _jsonable(result.selection),
         "notes": list(result.notes),
         "identifiability": {k: {kk: (_finite(vv) if isinstance(vv, float) else vv) for kk, vv in v.items()}

@@ -37,7 +37,9 @@ Loss of frame ``k`` (PhysTwin's terms and weights 1, 1, 0.01):
 * acceleration: smooth-L1 of the change of the per-frame velocity change
   ``(v_k - v_{k-1}) - (v_{k-1} - v_{k-2})`` over all particles, divided by 3 * P (from frame 2 on).
 
-The last ``validation_frames`` frames are never fitted; their *tracking error* (mean Euclidean
+The control points' paths and the tool's poses are measurements: where they are noisy they are simulated
+smoothed (``FitConfig.smooth_inputs``, ``sysid_guess.smoothed_inputs``; ``SysIdResult.inputs`` says what was
+done). The last ``validation_frames`` frames are never fitted; their *tracking error* (mean Euclidean
 distance between tracked particles and motion-valid tracks, metres, simulating the whole sequence
 from frame 0) is the validation figure of the report. Stage 2 also fits the contact parameters that
 act (``AdamConfig.fit_contact``), in logit space.
@@ -306,6 +308,10 @@ class FitConfig:
     """stage 1 starts from physically scaled guesses computed from the data (stiffness from the control
     force and strain, friction from sliding, restitution from bounces: ``physics.sysid_guess``) where the
     motion shows them; off: from the ``initial`` values"""
+    smooth_inputs: bool = True
+    """simulate the control points' paths and the tool's poses smoothed where their measured noise is at
+    least ``sysid_guess.MIN_INPUT_NOISE`` (a smoothing spline per coordinate, chosen by cross-validation:
+    :func:`~twinbench.physics.sysid_guess.smoothed_inputs`); off: exactly as given"""
     ground: bool = True
     self_collision: bool = False
     mesh_margin: float = 0.005
@@ -1106,6 +1112,9 @@ class SysIdResult:
     stage3_history: list[dict] = field(default_factory=list)
     """stage 3's evaluations (as ``stage1_history``: the global parameters other than the spring rule
     searched again with stage 2's stiffness held)"""
+    inputs: dict = field(default_factory=dict)
+    """per measured kinematic input (controls, tool_translation, tool_rotation): its estimated noise,
+    whether it was smoothed before simulating and by how much it moved (``sysid_guess.smoothed_inputs``)"""
 
     @property
     def object_spring_Y(self) -> np.ndarray:
@@ -1217,7 +1226,7 @@ def identify(data: SysIdData, cfg: FitConfig, *, base: SimParams | None = None,
     lowest tracking error on the selection frames is kept, the later one on a tie. The validation frames
     neither fit nor choose; a kept stage whose validation error is worse than the stage before it is
     named in the notes."""
-    from .sysid_guess import physical_guesses, track_noise
+    from .sysid_guess import physical_guesses, smoothed_inputs, track_noise
 
     cfg.check()
     pairs = data.springs if data.springs is not None else \
@@ -1227,6 +1236,14 @@ def identify(data: SysIdData, cfg: FitConfig, *, base: SimParams | None = None,
                          f"particles lie within --initial.spring-radius {cfg.initial.spring_radius} m of "
                          "each other and more than 0.1 mm apart (are they all at one point?); check "
                          "'particles', or raise the radius")
+    inputs: dict = {}
+    if cfg.smooth_inputs:
+        data, inputs = smoothed_inputs(data)
+        for name, r in inputs.items():
+            unit, k = ("rad", 1.0) if name == "tool_rotation" else ("mm", 1e3)
+            if r["smoothed"]:
+                log(f"input {name}: noise {k * r['noise']:.3g} {unit} per axis, smoothed before simulating "
+                    f"(rms change {k * r['rms_change']:.3g} {unit})")
     topo = build_model(data, cfg.initial, SimParams(), cfg.device) if base is None and cfg.auto_substeps \
         else None
 
@@ -1430,7 +1447,7 @@ def identify(data: SysIdData, cfg: FitConfig, *, base: SimParams | None = None,
         log(f"note: {note}")
     return SysIdResult(params, params.sim_params(model.params), model.log_y_np.copy(), model, evals, history1,
                        history2, seconds, cfg, notes, ident, regions, guesses, selection, region_info,
-                       history3)
+                       history3, inputs)
 
 
 CHI3_MEAN = 2.0 * math.sqrt(2.0 / math.pi)
