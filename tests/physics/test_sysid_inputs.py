@@ -79,7 +79,7 @@ def test_noisy_tool_poses_are_smoothed_and_the_true_physics_tracks_its_motion_ag
 def test_noisy_control_paths_are_smoothed():
     data, truth = phystwin_rope_case(seed=0)
     before, after = [], []
-    for draw in range(4):  # the rope folds when lowered: one draw's held-out frames are chaotic, a mean is not
+    for draw in range(4):  # the rope folds when lowered: one draw's held-out frames are chaotic, a mean less
         rng = np.random.default_rng(100 + draw)
         noisy = replace(data, controls=data.controls + rng.normal(0.0, NOISE, data.controls.shape))
         smoothed, report = smoothed_inputs(noisy)
@@ -106,7 +106,8 @@ def test_a_tool_turning_through_full_turns_is_smoothed_on_one_hemisphere():
     assert report["tool_rotation"]["smoothed"]
     assert report["tool_rotation"]["noise"] == pytest.approx(3e-3, rel=0.3)
     rot = smoothed.tool_poses[:, :3, :3]
-    np.testing.assert_allclose(np.einsum("fij,fkj->fik", rot, rot), np.repeat(np.eye(3)[None], n, 0), atol=1e-9)
+    np.testing.assert_allclose(np.einsum("fij,fkj->fik", rot, rot), np.broadcast_to(np.eye(3), rot.shape),
+                               atol=1e-9)
     err_after = (Rotation.from_matrix(rot) * exact.inv()).magnitude()
     err_before = (noisy_rot * exact.inv()).magnitude()
     assert np.sqrt(np.mean(err_after ** 2)) < 0.6 * np.sqrt(np.mean(err_before ** 2))

@@ -310,8 +310,8 @@ class FitConfig:
     motion shows them; off: from the ``initial`` values"""
     smooth_inputs: bool = True
     """simulate the control points' paths and the tool's poses smoothed where their measured noise is at
-    least ``sysid_guess.MIN_INPUT_NOISE`` (a smoothing spline per coordinate, chosen by cross-validation:
-    :func:`~twinbench.physics.sysid_guess.smoothed_inputs`); off: exactly as given"""
+    least 0.05 mm per axis (a smoothing spline per coordinate, chosen by cross-validation; see
+    sysid_guess.smoothed_inputs); off: exactly as given"""
     ground: bool = True
     self_collision: bool = False
     mesh_margin: float = 0.005

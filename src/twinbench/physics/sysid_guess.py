@@ -45,7 +45,7 @@ MIN_IMPACT_SPEED = 0.3  # m/s
 TIGHT = 8  # control springs per control point that the stiffness guess reads
 MIN_INPUT_NOISE = 5e-5
 """a measured input path (m per axis; rad for a tool's rotation) whose estimated noise is below this is
-simulated as given: a robot's own poses, a synthetic path; above it, it is smoothed (:func:`smoothed_inputs`)"""
+simulated as given (a robot's own poses, a synthetic path); above it, it is smoothed (`smoothed_inputs`)"""
 
 
 def _tracks(data: SysIdData) -> tuple[np.ndarray, np.ndarray]:
