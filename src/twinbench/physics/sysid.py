@@ -39,7 +39,9 @@ Loss of frame ``k`` (PhysTwin's terms and weights 1, 1, 0.01):
 
 The control points' paths and the tool's poses are measurements: where they are noisy they are simulated
 smoothed (``FitConfig.smooth_inputs``, ``sysid_guess.smoothed_inputs``; ``SysIdResult.inputs`` says what was
-done). The last ``validation_frames`` frames are never fitted; their *tracking error* (mean Euclidean
+done); with the ground on, particles that lie below it at frame 0 are raised onto it
+(``sysid_guess.grounded``).
+The last ``validation_frames`` frames are never fitted; their *tracking error* (mean Euclidean
 distance between tracked particles and motion-valid tracks, metres, simulating the whole sequence
 from frame 0) is the validation figure of the report. Stage 2 also fits the contact parameters that
 act (``AdamConfig.fit_contact``), in logit space.
@@ -1113,8 +1115,10 @@ class SysIdResult:
     """stage 3's evaluations (as ``stage1_history``: the global parameters other than the spring rule
     searched again with stage 2's stiffness held)"""
     inputs: dict = field(default_factory=dict)
-    """per measured kinematic input (controls, tool_translation, tool_rotation): its estimated noise,
-    whether it was smoothed before simulating and by how much it moved (``sysid_guess.smoothed_inputs``)"""
+    """what was done to the measured input before simulating it: per kinematic input (controls,
+    tool_translation, tool_rotation) its estimated noise, whether it was smoothed and by how much it moved
+    (``sysid_guess.smoothed_inputs``); "particles_below_ground" with the ground on
+    (``sysid_guess.grounded``)"""
 
     @property
     def object_spring_Y(self) -> np.ndarray:
@@ -1226,7 +1230,7 @@ def identify(data: SysIdData, cfg: FitConfig, *, base: SimParams | None = None,
     lowest tracking error on the selection frames is kept, the later one on a tie. The validation frames
     neither fit nor choose; a kept stage whose validation error is worse than the stage before it is
     named in the notes."""
-    from .sysid_guess import physical_guesses, smoothed_inputs, track_noise
+    from .sysid_guess import grounded, physical_guesses, smoothed_inputs, track_noise
 
     cfg.check()
     pairs = data.springs if data.springs is not None else \
@@ -1237,9 +1241,16 @@ def identify(data: SysIdData, cfg: FitConfig, *, base: SimParams | None = None,
                          "each other and more than 0.1 mm apart (are they all at one point?); check "
                          "'particles', or raise the radius")
     inputs: dict = {}
+    if cfg.ground:
+        data, inputs["particles_below_ground"] = grounded(data)
+        r = inputs["particles_below_ground"]
+        if r["below"]:
+            log(f"particles: {r['below']} of {r['of']} lie below the ground (the deepest "
+                f"{1e3 * r['deepest']:.2f} mm), raised onto it")
     if cfg.smooth_inputs:
-        data, inputs = smoothed_inputs(data)
-        for name, r in inputs.items():
+        data, smoothing = smoothed_inputs(data)
+        inputs.update(smoothing)
+        for name, r in smoothing.items():
             unit, k = ("rad", 1.0) if name == "tool_rotation" else ("mm", 1e3)
             if r["smoothed"]:
                 log(f"input {name}: noise {k * r['noise']:.3g} {unit} per axis, smoothed before simulating "
