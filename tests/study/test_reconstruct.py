@@ -96,8 +96,11 @@ def test_fit_summary_reports_each_objects_fit_and_the_push_choice(tmp_path):
 
     sysid = tmp_path / "construction" / "sysid"
     report = _push_report({"tool_friction": 0.3}, (9e-3, 12e-3), (4e-3, 5e-3))
+    inputs = {"particles_below_ground": {"below": 33, "of": 124, "deepest": 1.63e-3},
+              "controls": {"noise": 4.83e-4, "smoothed": True, "rms_change": 3.84e-4}}
     write_json(sysid / "fitted" / "tblock" / "report.json",
-               {**report, "selection": {"kept": "stage3"}, "notes": ["stage 3 did not improve"]})
+               {**report, "selection": {"kept": "stage3"}, "notes": ["stage 3 did not improve"],
+                "inputs": inputs})
     choice = adopt_push_fit(_push_report({"tool_friction": 0.86}, (5.34e-3, 4.91e-3), (5.58e-3, 9.71e-3)),
                             {"tool_friction": 0.3})
     write_json(sysid / "push" / "tblock" / "choice.json", choice)
@@ -110,6 +113,9 @@ def test_fit_summary_reports_each_objects_fit_and_the_push_choice(tmp_path):
     assert "9.00 → 4.00" in page and "12.00 → 5.00" in page
     assert "tool friction 0.3 (fitted tool_friction 0.86 not adopted" in page
     assert "tblock: stage 3 did not improve" in page
+    assert summary["tblock"]["inputs"] == inputs
+    assert "tblock: 33 of its 124 particles lay below the ground (the deepest 1.63 mm): raised" in page
+    assert "control points measured with 0.48 mm of noise per axis: smoothed" in page
     assert fit_summary(tmp_path / "nothing") == {} and _sysid_section({"sysid": {}}) == ""
     # where the push moved the object's values, the page says how its probe recording tracks at them
     summary["tblock"]["push"]["probe_errors_m"] = {

@@ -336,14 +336,15 @@ def camera_summary(twins: Path) -> dict:
 def fit_summary(twins: Path) -> dict:
     """What the reconstruction's fits reached (study.json's "sysid"), per object of TWINS/construction: the
     fitted sysid's tracking error on its fitted and held-out frames at the initial guess and at the kept
-    stage, the kept stage and its notes, and the tool friction's choice where a push was fitted. Empty
+    stage, the kept stage and its notes, what it did to its measured inputs (smoothed, particles raised onto
+    the ground), and the tool friction's choice where a push was fitted. Empty
     when TWINS holds no fitted sysid."""
     work = Path(twins) / "construction" / "sysid"
     summary = {}
     for path in sorted((work / "fitted").glob("*/report.json")):
         report = json.loads(path.read_text())
         record = {**tracking_errors(report), "kept": report.get("selection", {}).get("kept"),
-                  "notes": report.get("notes", [])}
+                  "notes": report.get("notes", []), "inputs": report.get("inputs", {})}
         choice = work / "push" / path.parent.name / "choice.json"
         if choice.is_file():
             record["push"] = json.loads(choice.read_text())

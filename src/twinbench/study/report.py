@@ -136,6 +136,23 @@ def _push_values(chosen) -> str:
     return ", ".join(f"{k.replace('_', ' ')} {v:.3g}" for k, v in chosen.items())
 
 
+def _input_notes(inputs: dict) -> list[str]:
+    """What a fit did to its recording before simulating it (a sysid report's ``inputs``), in words."""
+    out = []
+    for name, r in inputs.items():
+        if name == "particles_below_ground":
+            if r["below"]:
+                out.append(f"{r['below']} of its {r['of']} particles lay below the ground (the deepest "
+                           f"{1e3 * r['deepest']:.2f} mm): raised onto it")
+        elif r.get("smoothed"):
+            unit, k = ("mrad", 1e3) if name == "tool_rotation" else ("mm", 1e3)
+            what = {"controls": "the probe's control points", "tool_translation": "the tool's position",
+                    "tool_rotation": "the tool's rotation"}.get(name, name)
+            out.append(f"{what} measured with {k * r['noise']:.2f} {unit} of noise per axis: smoothed before "
+                       f"simulating (moved {k * r['rms_change']:.2f} {unit} rms)")
+    return out
+
+
 def _sysid_section(doc: dict) -> str:
     """What the fitted twins' system identification reached: where the pipeline loses what it measures."""
     rows, notes = [], []
@@ -150,6 +167,7 @@ def _sysid_section(doc: dict) -> str:
                      f"{mm(a['val_error_m'])} → {mm(b['val_error_m'])}", _e(str(r.get("kept"))),
                      "–" if push is None else _e(f"{_push_values(push['chosen'])} ({push['reason']})")])
         notes += [f"{name}: {n}" for n in r.get("notes", [])]
+        notes += [f"{name}: {n}" for n in _input_notes(r.get("inputs", {}))]
         probe = (push or {}).get("probe_errors_m")
         if probe:  # the push moved the object's values: what its probe recording says of them
             a, b = probe["probe_fit"], probe["push_fit"]
