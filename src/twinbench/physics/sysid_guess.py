@@ -102,8 +102,8 @@ def grounded(data: SysIdData) -> tuple[SysIdData, dict]:
     a slow particle lies far in the past, so it is thrown sideways by its velocity times that time. On
     push-T seed 4's push recording 25 of 124 particles lay up to 1 mm below the ground; at the workcell's
     true contact values the reconstructed T tracked its push at 7.9 / 14.9 mm (fitted / held-out frames),
-    raised 4.2 / 3.9 mm. Raises :class:`SysIdFormatError` where particles lie deeper than :data:`MAX_BELOW_GROUND`: the
-    data's ground is not at z = 0 (or the object is not on it)."""
+    raised 4.2 / 3.9 mm. Raises :class:`SysIdFormatError` where particles lie deeper than
+    :data:`MAX_BELOW_GROUND`: the data's ground is not at z = 0 (or the object is not on it)."""
     from dataclasses import replace
 
     z = data.particles[:, 2]
