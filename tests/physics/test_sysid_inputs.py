@@ -31,6 +31,14 @@ def _errors(data, truth, log_y=None) -> tuple[float, float]:
     return ev.train_error, ev.val_error
 
 
+def _noisy_tool_block():
+    """The pushed block case, and the same with NOISE on its tool's recorded positions."""
+    data, truth = pushed_block_case(seed=0)
+    poses = data.tool_poses.copy()
+    poses[:, :3, 3] += np.random.default_rng(10).normal(0.0, NOISE, poses[:, :3, 3].shape)
+    return data, truth, replace(data, tool_poses=poses)
+
+
 @pytest.mark.parametrize("order", [2, 3, 4])
 def test_difference_noise_recovers_white_noise_on_a_moving_path(order):
     rng = np.random.default_rng(order)
@@ -59,11 +67,7 @@ def test_noise_free_inputs_are_simulated_exactly_as_given():
 
 
 def test_noisy_tool_poses_are_smoothed_and_the_true_physics_tracks_its_motion_again():
-    data, truth = pushed_block_case(seed=0)
-    rng = np.random.default_rng(10)
-    poses = data.tool_poses.copy()
-    poses[:, :3, 3] += rng.normal(0.0, NOISE, poses[:, :3, 3].shape)
-    noisy = replace(data, tool_poses=poses)
+    data, truth, noisy = _noisy_tool_block()
     smoothed, report = smoothed_inputs(noisy)
     r = report["tool_translation"]
     assert r["smoothed"] and r["noise"] == pytest.approx(NOISE, rel=0.3)
@@ -114,11 +118,7 @@ def test_a_tool_turning_through_full_turns_is_smoothed_on_one_hemisphere():
 
 
 def test_identify_simulates_the_smoothed_inputs_and_reports_them():
-    data, truth = pushed_block_case(seed=0)
-    rng = np.random.default_rng(10)
-    poses = data.tool_poses.copy()
-    poses[:, :3, 3] += rng.normal(0.0, NOISE, poses[:, :3, 3].shape)
-    noisy = replace(data, tool_poses=poses)
+    data, truth, noisy = _noisy_tool_block()
     cfg = FitConfig(stage1=False, stage2=False, stage3=False, initial=truth["params"], progress=False)
     on = identify(noisy, cfg, base=truth["sim"], log=lambda _m: None)
     off = identify(noisy, replace(cfg, smooth_inputs=False), base=truth["sim"], log=lambda _m: None)
