@@ -31,6 +31,7 @@ onto it (:func:`grounded`).
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 
 import numpy as np
 from scipy.interpolate import make_smoothing_spline
@@ -104,8 +105,6 @@ def grounded(data: SysIdData) -> tuple[SysIdData, dict]:
     true contact values the reconstructed T tracked its push at 7.9 / 14.9 mm (fitted / held-out frames),
     raised 4.2 / 3.9 mm. Raises :class:`SysIdFormatError` where particles lie deeper than
     :data:`MAX_BELOW_GROUND`: the data's ground is not at z = 0 (or the object is not on it)."""
-    from dataclasses import replace
-
     z = data.particles[:, 2]
     below = z < 0.0
     report = {"below": int(below.sum()), "of": int(z.size), "deepest": float(max(-z.min(), 0.0))}
@@ -142,8 +141,6 @@ def smoothed_inputs(data: SysIdData) -> tuple[SysIdData, dict]:
     own simulated push 6.8 / 10.1 mm (fitted / held-out frames) from its tracks, against 1.6 / 1.6 mm with
     the exact path and 1.6 / 1.6 mm with the smoothed one. Returns (data, {input: {"noise", "smoothed",
     "rms_change"}}) with noise and change in m (rad for "tool_rotation"); inputs absent are left out."""
-    from dataclasses import replace
-
     n = data.num_frames
     t = np.arange(n) / data.fps
     report: dict[str, dict] = {}
@@ -152,7 +149,7 @@ def smoothed_inputs(data: SysIdData) -> tuple[SysIdData, dict]:
         done = n >= 5 and noise >= MIN_INPUT_NOISE
         out = _smooth(t, y) if done else y
         report[name] = {"noise": noise, "smoothed": bool(done),
-                        "rms_change": scale * float(np.sqrt(np.mean((out - y) ** 2))) if y.size else 0.0}
+                        "rms_change": scale * float(np.sqrt(np.mean((out - y) ** 2)))}
         return out
 
     changes: dict = {}

@@ -145,11 +145,11 @@ def _input_notes(inputs: dict) -> list[str]:
                 out.append(f"{r['below']} of its {r['of']} particles lay below the ground (the deepest "
                            f"{1e3 * r['deepest']:.2f} mm): raised onto it")
         elif r.get("smoothed"):
-            unit, k = ("mrad", 1e3) if name == "tool_rotation" else ("mm", 1e3)
+            unit = "mrad" if name == "tool_rotation" else "mm"  # from rad or m
             what = {"controls": "the probe's control points", "tool_translation": "the tool's position",
                     "tool_rotation": "the tool's rotation"}.get(name, name)
-            out.append(f"{what} measured with {k * r['noise']:.2f} {unit} of noise per axis: smoothed before "
-                       f"simulating (moved {k * r['rms_change']:.2f} {unit} rms)")
+            out.append(f"{what} measured with {1e3 * r['noise']:.2f} {unit} of noise per axis: smoothed "
+                       f"before simulating (moved {1e3 * r['rms_change']:.2f} {unit} rms)")
     return out
 
 
