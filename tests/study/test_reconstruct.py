@@ -48,33 +48,62 @@ def _push_report(fitted: dict, initial: tuple, final: tuple) -> dict:
     return {"global_params": {**fitted, "spring_Y": 3e4}, "evaluations": stage}
 
 
+def _errors(train, val) -> dict:
+    return {"train_error_m": train, "val_error_m": val}
+
+
 def test_a_push_fit_is_adopted_only_where_it_tracks_the_push_better():
     # the two push-T medium workcells' tool-friction fits (seed 0: better on both; seed 1: a lower loss, but
     # the tracked points drift further, on the held-out frames twice as far)
     prior = {"tool_friction": 0.3}
-    seed0 = adopt_push_fit(_push_report({"tool_friction": 0.64}, (7.65e-3, 11.67e-3), (3.66e-3, 4.45e-3)),
-                           prior)
+    seed0 = adopt_push_fit({"tool_friction": 0.64}, _errors(3.66e-3, 4.45e-3), prior,
+                           _errors(7.65e-3, 11.67e-3))
     assert seed0["adopted"] and seed0["chosen"] == {"tool_friction": 0.64}
     assert "3.66 against 7.65 mm" in seed0["reason"]
-    seed1 = adopt_push_fit(_push_report({"tool_friction": 0.86}, (5.34e-3, 4.91e-3), (5.58e-3, 9.71e-3)),
-                           prior)
+    seed1 = adopt_push_fit({"tool_friction": 0.86}, _errors(5.58e-3, 9.71e-3), prior,
+                           _errors(5.34e-3, 4.91e-3))
     assert not seed1["adopted"] and seed1["chosen"] == prior and seed1["fitted"] == {"tool_friction": 0.86}
     # better on the fitted frames only, or on the held-out ones only: not adopted
     half = {"tool_friction": 0.5}
-    assert not adopt_push_fit(_push_report(half, (5e-3, 5e-3), (4e-3, 6e-3)), prior)["adopted"]
-    assert not adopt_push_fit(_push_report(half, (5e-3, 5e-3), (6e-3, 4e-3)), prior)["adopted"]
+    assert not adopt_push_fit(half, _errors(4e-3, 6e-3), prior, _errors(5e-3, 5e-3))["adopted"]
+    assert not adopt_push_fit(half, _errors(6e-3, 4e-3), prior, _errors(5e-3, 5e-3))["adopted"]
     # no held-out frames (their error null in the report): the fitted frames decide
-    assert adopt_push_fit(_push_report(half, (5e-3, None), (4e-3, None)), prior)["adopted"]
-    # the joint fit: every searched value chosen together, from the report's values of those names only
+    assert adopt_push_fit(half, _errors(4e-3, None), prior, _errors(5e-3, None))["adopted"]
+    # the joint fit: every searched value chosen together, only those the prior names
     start = {"tool_friction": 0.324, "ground_friction": 0.005, "drag_damping": 19.9}
     found = {"tool_friction": 0.356, "ground_friction": 1.18, "drag_damping": 0.02}
-    joint = adopt_push_fit(_push_report(found, (6.2e-3, 4.5e-3), (4.5e-3, 4.4e-3)), start)
+    joint = adopt_push_fit({**found, "spring_Y": 3e4}, _errors(4.5e-3, 4.4e-3), start,
+                           _errors(6.2e-3, 4.5e-3))
     assert joint["chosen"] == found
     assert joint["prior"] == start
-    # a fit from another start, judged against the errors of what the twin has otherwise
-    baseline = {"train_error_m": 4e-3, "val_error_m": 5e-3}
-    other = adopt_push_fit(_push_report(found, (8e-3, 9e-3), (4.5e-3, 4.4e-3)), start, baseline)
-    assert not other["adopted"] and other["chosen"] == start and other["errors_m"]["initial"] == baseline
+
+
+def test_the_push_point_kept_is_the_best_tracking_one_a_start_included():
+    from twinbench.study.reconstruct import best_push_point
+
+    starts = {"probe": {"tool_friction": 0.3, "ground_friction": 0.95, "drag_damping": 6.6},
+              "cell": {"tool_friction": 0.3, "ground_friction": 0.5, "drag_damping": 3.0}}
+    from_probe = _push_report({"tool_friction": 0.32, "ground_friction": 1.2, "drag_damping": 5.0},
+                              (8.16e-3, 14.52e-3), (5.38e-3, 10.13e-3))
+    # push-T seed 3 (at 48f196e): the search from the cell's values lowered its loss and tracked worse than
+    # where it started, which tracks best of all
+    from_cell = _push_report({"tool_friction": 0.226, "ground_friction": 1.53, "drag_damping": 0.711},
+                             (3.58e-3, 6.95e-3), (3.94e-3, 8.30e-3))
+    label, values, errors = best_push_point({"probe": from_probe, "cell": from_cell}, starts)
+    assert (label, values, errors) == ("cell (as started)", starts["cell"], _errors(3.58e-3, 6.95e-3))
+    choice = adopt_push_fit(values, errors, starts["probe"], _errors(8.16e-3, 14.52e-3),
+                            "the cell start's")
+    assert choice["adopted"] and choice["chosen"] == starts["cell"]
+    assert choice["reason"].startswith("the cell start's tool_friction 0.3, ground_friction 0.5, "
+                                       "drag_damping 3 adopted: it tracks the push better than 0.3, 0.95")
+    # a fit that tracks better than every start is kept; the probe start itself is never a candidate (it is
+    # what the twin has when nothing is adopted)
+    better = _push_report({"tool_friction": 0.4, "ground_friction": 0.6, "drag_damping": 2.0},
+                          (3.58e-3, 6.95e-3), (2.5e-3, 3.0e-3))
+    assert best_push_point({"probe": from_probe, "cell": better}, starts)[0] == "cell"
+    best = _push_report({"tool_friction": 0.4}, (2e-3, 2e-3), (3e-3, 3e-3))
+    assert best_push_point({"probe": best}, {"probe": {"tool_friction": 0.3}})[:2] == ("probe",
+                                                                                       {"tool_friction": 0.4})
 
 
 def test_a_push_fits_the_object_values_its_probe_left_unconstrained():
@@ -101,8 +130,8 @@ def test_fit_summary_reports_each_objects_fit_and_the_push_choice(tmp_path):
     write_json(sysid / "fitted" / "tblock" / "report.json",
                {**report, "selection": {"kept": "stage3"}, "notes": ["stage 3 did not improve"],
                 "inputs": inputs})
-    choice = adopt_push_fit(_push_report({"tool_friction": 0.86}, (5.34e-3, 4.91e-3), (5.58e-3, 9.71e-3)),
-                            {"tool_friction": 0.3})
+    choice = adopt_push_fit({"tool_friction": 0.86}, _errors(5.58e-3, 9.71e-3), {"tool_friction": 0.3},
+                            _errors(5.34e-3, 4.91e-3))
     write_json(sysid / "push" / "tblock" / "choice.json", choice)
     write_json(sysid / "initial" / "tblock" / "report.json", report)  # the no-physics fit: not summarised
     summary = fit_summary(tmp_path)
@@ -232,7 +261,8 @@ def test_reconstruction_from_evidence_alone(tmp_path):
     # judged against what the twin has otherwise (the start from the probe fit), whichever start won
     assert joint["prior"] == start and joint["errors_m"]["initial"] == tracking_errors(pushed)["initial"]
     if joint["start"] == "probe":
-        assert joint == {**adopt_push_fit(pushed, start), "start": "probe"}
+        assert joint == {**adopt_push_fit(pushed["global_params"], tracking_errors(pushed)["final"], start,
+                                          tracking_errors(pushed)["initial"]), "start": "probe"}
     chosen = {**probe_fit["global_params"], "tool_friction": prior, **choice["chosen"]}
     assert specs["full"].robot.tool_contact.friction == chosen["tool_friction"]
     assert specs["full"].sim.ground_friction == chosen["ground_friction"]

@@ -244,10 +244,11 @@ def _push_fit(run, push: Path, probe: Path, report: Path, out: Path, mesh_margin
     friction and drag where its probe fit (`report`) left them unconstrained (`push_search`), the object's
     other global values held at that fit, the tool's contact distance the twin's. Two starts: the probe fit's
     values with the task cell's tool friction (`cell`: {name: value} of PUSH_SEARCH), and the cell's values
-    (a probe fit in a corner of the ranges held the search there); the one tracking the push's fitted frames
-    best is kept. Adopted (`adopt_push_fit`) only when it tracks the push better than the first start (what
-    the twin has otherwise) on the fitted and the held-out frames; else the tool's friction alone is fitted
-    under the same rule; else the cell's is kept. Where it moves the object's values, the probe recording's
+    (a probe fit in a corner of the ranges held the search there); of the fits and the second start itself,
+    the one tracking the push's fitted frames best is kept (`best_push_point`). Adopted (`adopt_push_fit`)
+    only when it tracks the push better than the first start (what the twin has otherwise) on the fitted and
+    the held-out frames; else the tool's friction alone is fitted under the same rule; else the cell's is
+    kept. Where it moves the object's values, the probe recording's
     tracking error at them and at the probe fit's (one uniform stiffness, as the push fit) is recorded. The
     choice goes to OUT/choice.json (chosen, fitted and prior values, errors) and the log."""
     from twinbench.construct._json import write_json
@@ -270,9 +271,10 @@ def _push_fit(run, push: Path, probe: Path, report: Path, out: Path, mesh_margin
                   "--cma.budget", str(PUSH_BUDGET[len(names)]))
         runs = {label: sysid(push, out / push_fit_dir(names, label), start, *search)
                 for label, start in starts.items()}
-        best = min(runs, key=lambda label: runs[label]["evaluations"]["final"]["train_error_m"])
+        best, values, errors = best_push_point(runs, starts)
         before = tracking_errors(runs["probe"])["initial"]
-        return {**adopt_push_fit(runs[best], starts["probe"], before), "start": best}
+        what = "fitted" if best in runs else f"the {best.split()[0]} start's"
+        return {**adopt_push_fit(values, errors, starts["probe"], before, what), "start": best}
 
     names = push_search(probe_fit)
     choice = fit(names)
@@ -306,20 +308,34 @@ def _better(before: dict, after: dict) -> tuple[bool, str]:
                          for k in known)
 
 
-def adopt_push_fit(result: dict, prior: dict, before: dict | None = None) -> dict:
-    """Whether a push fit (a `twinbench sysid` report of the values `prior` names) is adopted against `prior`
-    ({name: value}, what the twin has otherwise) whose tracking errors are `before` (default: the report's
-    initial ones, a fit started from `prior`): only when its own are lower on the fitted frames and on the
+def best_push_point(runs: dict[str, dict], starts: dict[str, dict]) -> tuple[str, dict, dict]:
+    """Of push fits from several starts (`runs`: {start: `twinbench sysid` report}; `starts`: {start: {name:
+    value}}, "probe" the twin's values otherwise), the point that tracks the push's fitted frames best: each
+    fit's kept values, and each start but "probe" as it is (a fit can end tracking worse than its start: its
+    search lowers Chamfer + tracking loss, not the tracked points' mean distance). Returns its label (the
+    start's, "START (as started)" for a start itself), its values ({name: value} of the starts' names) and
+    its tracking errors (m, {"train_error_m", "val_error_m"})."""
+    points = [(label, {n: float(run["global_params"][n]) for n in starts[label]},
+               tracking_errors(run)["final"]) for label, run in runs.items()]
+    points += [(f"{label} (as started)", dict(starts[label]), tracking_errors(run)["initial"])
+               for label, run in runs.items() if label != "probe"]
+    return min(points, key=lambda p: p[2]["train_error_m"])
+
+
+def adopt_push_fit(fit: dict, after: dict, prior: dict, before: dict, what: str = "fitted") -> dict:
+    """Whether push-fitted values `fit` ({name: value}) with tracking errors `after` (m, {"train_error_m",
+    "val_error_m"}, as `tracking_errors` gives) are adopted against `prior` ({name: value}, what the twin has
+    otherwise) whose tracking errors are `before`: only when they are lower on the fitted frames and on the
     held-out ones (a lower loss alone is not enough: the Chamfer term can fall while the tracked points
-    drift). Returns the record: chosen, fitted and prior values ({name: value}), the errors (m) before and
-    of the fit, whether adopted and why."""
-    fit = {n: float(result["global_params"][n]) for n in prior}
-    errors = {**tracking_errors(result), **({} if before is None else {"initial": before})}
+    drift). `what` names the values in the reason. Returns the record: chosen, fitted and prior values
+    ({name: value}), the errors (m) before and of the fit, whether adopted and why."""
+    fit = {n: float(fit[n]) for n in prior}
+    errors = {"initial": before, "final": after}
     adopted, span = _better(errors["initial"], errors["final"])
     said = ", ".join(f"{k} {v:.3g}" for k, v in fit.items())
     was = ", ".join(f"{v:.3g}" for v in prior.values())
-    reason = (f"fitted {said} adopted: it tracks the push better than {was} ({span})" if adopted else
-              f"fitted {said} not adopted: it does not track the push better than {was} on both the "
+    reason = (f"{what} {said} adopted: it tracks the push better than {was} ({span})" if adopted else
+              f"{what} {said} not adopted: it does not track the push better than {was} on both the "
               f"fitted and the held-out frames ({span})")
     prior = {n: float(v) for n, v in prior.items()}
     return {"chosen": fit if adopted else prior, "fitted": fit, "prior": prior, "adopted": adopted,
