@@ -89,10 +89,9 @@ def test_the_push_point_kept_is_the_best_tracking_one_a_start_included():
     # where it started, which tracks best of all
     from_cell = _push_report({"tool_friction": 0.226, "ground_friction": 1.53, "drag_damping": 0.711},
                              (3.58e-3, 6.95e-3), (3.94e-3, 8.30e-3))
-    label, values, errors = best_push_point({"probe": from_probe, "cell": from_cell}, starts)
+    label, what, values, errors = best_push_point({"probe": from_probe, "cell": from_cell}, starts)
     assert (label, values, errors) == ("cell (as started)", starts["cell"], _errors(3.58e-3, 6.95e-3))
-    choice = adopt_push_fit(values, errors, starts["probe"], _errors(8.16e-3, 14.52e-3),
-                            "the cell start's")
+    choice = adopt_push_fit(values, errors, starts["probe"], _errors(8.16e-3, 14.52e-3), what)
     assert choice["adopted"] and choice["chosen"] == starts["cell"]
     assert choice["reason"].startswith("the cell start's tool_friction 0.3, ground_friction 0.5, "
                                        "drag_damping 3 adopted: it tracks the push better than 0.3, 0.95")
@@ -100,10 +99,10 @@ def test_the_push_point_kept_is_the_best_tracking_one_a_start_included():
     # what the twin has when nothing is adopted)
     better = _push_report({"tool_friction": 0.4, "ground_friction": 0.6, "drag_damping": 2.0},
                           (3.58e-3, 6.95e-3), (2.5e-3, 3.0e-3))
-    assert best_push_point({"probe": from_probe, "cell": better}, starts)[0] == "cell"
+    assert best_push_point({"probe": from_probe, "cell": better}, starts)[:2] == ("cell", "fitted")
     best = _push_report({"tool_friction": 0.4}, (2e-3, 2e-3), (3e-3, 3e-3))
-    assert best_push_point({"probe": best}, {"probe": {"tool_friction": 0.3}})[:2] == ("probe",
-                                                                                       {"tool_friction": 0.4})
+    label, _, values, _ = best_push_point({"probe": best}, {"probe": {"tool_friction": 0.3}})
+    assert (label, values) == ("probe", {"tool_friction": 0.4})
 
 
 def test_a_push_fits_the_object_values_its_probe_left_unconstrained():

@@ -248,9 +248,9 @@ def _push_fit(run, push: Path, probe: Path, report: Path, out: Path, mesh_margin
     the one tracking the push's fitted frames best is kept (`best_push_point`). Adopted (`adopt_push_fit`)
     only when it tracks the push better than the first start (what the twin has otherwise) on the fitted and
     the held-out frames; else the tool's friction alone is fitted under the same rule; else the cell's is
-    kept. Where it moves the object's values, the probe recording's
-    tracking error at them and at the probe fit's (one uniform stiffness, as the push fit) is recorded. The
-    choice goes to OUT/choice.json (chosen, fitted and prior values, errors) and the log."""
+    kept. Where it moves the object's values, the probe recording's tracking error at them and at the probe
+    fit's (one uniform stiffness, as the push fit) is recorded. The choice goes to OUT/choice.json (chosen,
+    fitted and prior values, errors) and the log."""
     from twinbench.construct._json import write_json
 
     probe_fit = json.loads(report.read_text())
@@ -271,9 +271,8 @@ def _push_fit(run, push: Path, probe: Path, report: Path, out: Path, mesh_margin
                   "--cma.budget", str(PUSH_BUDGET[len(names)]))
         runs = {label: sysid(push, out / push_fit_dir(names, label), start, *search)
                 for label, start in starts.items()}
-        best, values, errors = best_push_point(runs, starts)
+        best, what, values, errors = best_push_point(runs, starts)
         before = tracking_errors(runs["probe"])["initial"]
-        what = "fitted" if best in runs else f"the {best.split()[0]} start's"
         return {**adopt_push_fit(values, errors, starts["probe"], before, what), "start": best}
 
     names = push_search(probe_fit)
@@ -308,18 +307,19 @@ def _better(before: dict, after: dict) -> tuple[bool, str]:
                          for k in known)
 
 
-def best_push_point(runs: dict[str, dict], starts: dict[str, dict]) -> tuple[str, dict, dict]:
+def best_push_point(runs: dict[str, dict], starts: dict[str, dict]) -> tuple[str, str, dict, dict]:
     """Of push fits from several starts (`runs`: {start: `twinbench sysid` report}; `starts`: {start: {name:
     value}}, "probe" the twin's values otherwise), the point that tracks the push's fitted frames best: each
     fit's kept values, and each start but "probe" as it is (a fit can end tracking worse than its start: its
     search lowers Chamfer + tracking loss, not the tracked points' mean distance). Returns its label (the
-    start's, "START (as started)" for a start itself), its values ({name: value} of the starts' names) and
-    its tracking errors (m, {"train_error_m", "val_error_m"})."""
-    points = [(label, {n: float(run["global_params"][n]) for n in starts[label]},
+    start's, "START (as started)" for a start itself), what its values are in words (for
+    `adopt_push_fit`'s reason), its values ({name: value} of the starts' names) and its tracking errors (m,
+    {"train_error_m", "val_error_m"})."""
+    points = [(label, "fitted", {n: float(run["global_params"][n]) for n in starts[label]},
                tracking_errors(run)["final"]) for label, run in runs.items()]
-    points += [(f"{label} (as started)", dict(starts[label]), tracking_errors(run)["initial"])
-               for label, run in runs.items() if label != "probe"]
-    return min(points, key=lambda p: p[2]["train_error_m"])
+    points += [(f"{label} (as started)", f"the {label} start's", dict(starts[label]),
+                tracking_errors(run)["initial"]) for label, run in runs.items() if label != "probe"]
+    return min(points, key=lambda p: p[3]["train_error_m"])
 
 
 def adopt_push_fit(fit: dict, after: dict, prior: dict, before: dict, what: str = "fitted") -> dict:
