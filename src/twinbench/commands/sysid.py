@@ -3,14 +3,15 @@ twinbench.physics.sysid; the files are twinbench.construct.sysid_io and sysid_re
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
+from typing import Literal
 
 from twinbench.construct.sysid_io import load_input, write_object_dir
 from twinbench.construct.sysid_report import write_report
 from twinbench.errors import SimulationDiverged
 from twinbench.physics.sysid import FitConfig, identify
-from twinbench.physics.sysid_data import SysIdFormatError
+from twinbench.physics.sysid_data import SysIdFormatError, observed_masses
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -22,6 +23,10 @@ class SysIdConfig(FitConfig):
     """sysid input directory (sysid.json + npz, see twinbench.construct.sysid_io), or a PhysTwin case
     folder / its final_data.pkl (read with the restricted loader of twinbench.construct.phystwin)"""
     out_dir: Path = Path("outputs/sysid")
+    masses: Literal["data", "observed"] = "data"
+    """particle masses: "data" (the data's `masses`, else 1 each, as PhysTwin); "observed" (in proportion to
+    the share of frame 0's observed points each particle stands for, the same total: for particles that
+    sample the object unevenly, e.g. a voxel pick of a finer cloud; see sysid_data.observed_masses)"""
 
 
 def main(cfg: SysIdConfig) -> int:
@@ -35,6 +40,9 @@ def main(cfg: SysIdConfig) -> int:
 
     try:
         data = load_input(cfg.data)
+        if cfg.masses == "observed":
+            data = replace(data, masses=observed_masses(data))
+            say(f"masses by observed share: {data.masses.min():.2f}-{data.masses.max():.2f} (mean 1)")
         result = identify(data, cfg, log=say)
     except (SysIdFormatError, ValueError) as exc:
         say(f"twinbench sysid: {exc}")
