@@ -52,10 +52,6 @@ _PHYSICS = {"full": "fitted", "no-color": "fitted", "no-physics": "initial", "ne
 # the home configuration. Like the controller, the task's public cell states them (a user knows them of their
 # robot; no scan shows them): a twin built without them reads the same actions as another point's poses
 ROBOT_CONVENTIONS = ("ee_link", "contact_links", "gripper_joint", "gripper_open", "gripper_closed", "home_q")
-# every sysid run: particle masses by the share of the observed object each particle stands for (the
-# evidence's particles are a coarse voxel pick of the tracked points; unit masses put the T's centre of mass
-# about 1 cm off)
-_MASSES = ("--masses", "observed")
 _CELL_SIM = ("object_collision", "self_collision", "collision_dist", "collision_exclusion",
              "max_collision_candidates", "candidate_radius_scale", "mesh_margin")
 
@@ -261,8 +257,8 @@ def _push_fit(run, push: Path, probe: Path, report: Path, out: Path, mesh_margin
     held = {k: v for k, v in probe_fit["global_params"].items() if not k.startswith("tool_")}
 
     def sysid(data: Path, where: Path, values: dict, *flags) -> dict:
-        run("sysid", "--data", data, "--out-dir", where, "--no-progress", *_MASSES, "--no-guess",
-            "--no-stage2", "--no-stage3", "--mesh-margin", str(mesh_margin), *flags,
+        run("sysid", "--data", data, "--out-dir", where, "--no-progress", "--no-guess", "--no-stage2",
+            "--no-stage3", "--mesh-margin", str(mesh_margin), *flags,
             *[a for k, v in {**held, **values}.items() for a in (f"--initial.{k.replace('_', '-')}", str(v))])
         return json.loads((where / "sysid_report.json").read_text())
 
@@ -417,7 +413,7 @@ def reconstruct(evidence: Path, out: Path, variants=VARIANTS, log: Callable[[str
         flags = ("--no-stage1", "--no-stage2") if kind == "initial" else ()
         for o in objects:
             run("sysid", "--data", evidence / index["motion"][o], "--out-dir", work / "sysid" / kind,
-                "--no-progress", *_MASSES, *flags, *sysid_args)
+                "--no-progress", *flags, *sysid_args)
             # each object's report beside its object (the next object's run writes its own)
             shutil.copy(work / "sysid" / kind / "sysid_report.json",
                         work / "sysid" / kind / o / "report.json")
