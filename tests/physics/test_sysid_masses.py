@@ -11,21 +11,19 @@ import pytest
 
 from twinbench.cli import main as cli
 from twinbench.construct.sysid_io import save_sysid_data
+from twinbench.physics.model import lattice
 from twinbench.physics.sysid_data import MASS_FLOOR, SysIdData, observed_masses
 
 
-def _lattice(lo, hi, step):
-    axes = [np.arange(a + step / 2, b, step) for a, b in zip(lo, hi, strict=True)]
-    return np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
-
-
-def _uneven_block(frames: int = 4, seed: int = 0) -> SysIdData:
+def _uneven_block(frames: int = 4, seed: int = 0, extra=None) -> SysIdData:
     """A 12 x 6 x 4 cm block at rest, seen as a 2 mm lattice (70 % of it visible per frame), whose particles
-    lie 1 cm apart in its left half and 2 cm apart in its right half (8 times fewer per volume)."""
+    lie 1 cm apart in its left half and 2 cm apart in its right half (8 times fewer per volume); `extra`
+    particles (K, 3) after those."""
     rng = np.random.default_rng(seed)
-    dense = _lattice((-0.06, 0.0, 0.0), (0.06, 0.06, 0.04), 0.002)
-    particles = np.concatenate([_lattice((-0.06, 0.0, 0.0), (0.0, 0.06, 0.04), 0.01),
-                                _lattice((0.0, 0.0, 0.0), (0.06, 0.06, 0.04), 0.02)])
+    dense = lattice(60, 30, 20, 0.002, (-0.059, 0.001, 0.001))
+    particles = np.concatenate([lattice(6, 6, 4, 0.01, (-0.055, 0.005, 0.005)),
+                                lattice(3, 3, 2, 0.02, (0.01, 0.01, 0.01)), np.zeros((0, 3)) if extra is None
+                                else extra])
     observed = np.repeat(dense[None], frames, 0) + rng.normal(0.0, 5e-4, (frames, *dense.shape))
     tracked_indices = np.arange(0, len(particles), 3)
     return SysIdData(particles, observed, rng.random((frames, len(dense))) < 0.7, tracked_indices,
@@ -45,6 +43,16 @@ def test_observed_masses_give_each_particle_the_volume_it_stands_for():
     unit_x = data.particles[:, 0].mean()
     assert unit_x < -0.02
     assert abs(np.average(data.particles[:, 0], weights=m)) < 0.1 * abs(unit_x)
+
+
+def test_a_particle_no_observed_point_reaches_keeps_the_floor_mass():
+    # one particle 5 cm above the block: no observed point is near it, yet it may not go massless
+    data = _uneven_block(extra=np.array([[0.0, 0.03, 0.09]]))
+    m = observed_masses(data)
+    assert m.sum() == pytest.approx(data.num_particles)
+    assert m[-1] == pytest.approx(m.min())
+    # lifted to the floor, then every mass scaled (by under 1) to keep the total
+    assert 0.9 * MASS_FLOOR < m[-1] <= MASS_FLOOR
 
 
 def test_observed_masses_refuse_data_they_cannot_weigh():

@@ -301,8 +301,9 @@ def observed_masses(data: SysIdData, floor: float = MASS_FLOOR,
                     per_particle: int = POINTS_PER_PARTICLE) -> np.ndarray:
     """Per-particle masses (mean 1: PhysTwin's unit scale, the same total) in proportion to the part of the
     observed object each particle stands for: every point visible in frame 0 is shared equally by its k
-    nearest particles, k such that a particle collects about `per_particle` points on average; no mass below
-    `floor` times the mean.
+    nearest particles, k such that a particle collects about `per_particle` points on average; shares under
+    `floor` times the mean are lifted to it before every mass is scaled to the total (so the lightest ends
+    a little under `floor` where the floor binds).
 
     Unit masses put the centre of mass where the particles crowd: a 1.5 cm voxel pick of a 1 cm lattice
     (the study's push-T) moves it about 1 cm. The observed points must sample the object as its particles
