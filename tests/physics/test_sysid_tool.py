@@ -22,7 +22,7 @@ from twinbench.physics.sysid import (
     rollout,
     stage1_cma,
 )
-from twinbench.physics.sysid_data import SysIdFormatError
+from twinbench.physics.sysid_data import SysIdFormatError, tool_contact_distance
 
 TRUE_TOOL_FRICTION = 0.5
 
@@ -102,3 +102,40 @@ def test_cli_fits_and_prints_the_tool_contact(pushed, tmp_path, capsys):
     rc = cli_main(["sysid", "--data", str(tmp_path / "case"), "--out-dir", str(tmp_path / "out2"),
                    "--no-progress", "--mesh-margin", "-0.01"])
     assert rc == 2 and "--mesh-margin" in capsys.readouterr().err
+    # the contact distance measured from the push instead (the block's points stop at the case's 5 mm; the
+    # nearest noisy point a little nearer), in the report's config
+    rc = cli_main(["sysid", "--data", str(tmp_path / "case"), "--out-dir", str(tmp_path / "out3"),
+                   "--no-progress", "--no-stage1", "--no-stage2", "--no-stage3", "--measure-mesh-margin"])
+    assert rc == 0 and "tool contact distance measured from the push" in capsys.readouterr().err
+    rep = json.loads((tmp_path / "out3" / "sysid_report.json").read_text())
+    assert rep["config"]["mesh_margin"] == tool_contact_distance(data)[0]
+    assert 0.004 < rep["config"]["mesh_margin"] < 0.0052
+    # a recording without a tool has no contact distance to measure: a clear refusal
+    save_sysid_data(replace(data, tool_vertices=None, tool_faces=None, tool_poses=None), tmp_path / "still")
+    rc = cli_main(["sysid", "--data", str(tmp_path / "still"), "--out-dir", str(tmp_path / "out4"),
+                   "--no-progress", "--measure-mesh-margin"])
+    assert rc == 2 and "no tool in this recording" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("margin", [0.003, 0.010])
+def test_the_tool_contact_distance_is_measured_from_the_push(margin):
+    # the tool starts 4 mm outside its contact distance, so the block's points stop at that distance from it;
+    # the recording's noisy points (1 mm) give it back within a millimetre, a little low (the nearest of
+    # several noisy points), from the frames where the tool carries the block
+    data, truth = pushed_block_case(seed=1, mesh_margin=margin, gap=margin + 0.004)
+    distance, frames = tool_contact_distance(data)
+    assert margin - 1e-3 < distance < margin + 2e-4
+    # the frames used are the push's: the tool moves (after 0.1 s) and the block's points move with it
+    moved = np.linalg.norm(np.diff(truth["positions"].mean(axis=1), axis=0), axis=1)
+    assert len(frames) >= 10 and frames.min() >= 3 and (moved[frames - 1] > 1e-3).all()
+
+
+def test_a_recording_without_a_push_gives_no_contact_distance(pushed):
+    data, _ = pushed
+    with pytest.raises(ValueError, match="no tool in this recording"):
+        tool_contact_distance(replace(data, tool_vertices=None, tool_faces=None, tool_poses=None))
+    # the tool moves well away from the block: it never carries it
+    away = data.tool_poses.copy()
+    away[:, 0, 3] -= 0.2 + 0.2 * np.arange(data.num_frames) / data.num_frames
+    with pytest.raises(ValueError, match=r"carries the object in 0 frame\(s\).*--mesh-margin"):
+        tool_contact_distance(replace(data, tool_poses=away))

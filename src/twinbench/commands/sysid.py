@@ -11,7 +11,7 @@ from twinbench.construct.sysid_io import load_input, write_object_dir
 from twinbench.construct.sysid_report import write_report
 from twinbench.errors import SimulationDiverged
 from twinbench.physics.sysid import FitConfig, identify
-from twinbench.physics.sysid_data import SysIdFormatError, observed_masses
+from twinbench.physics.sysid_data import SysIdFormatError, observed_masses, tool_contact_distance
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -27,6 +27,10 @@ class SysIdConfig(FitConfig):
     """particle masses: "data" (the data's `masses`, else 1 each, as PhysTwin); "observed" (in proportion to
     the share of frame 0's observed points each particle stands for, the same total: for particles that
     sample the object unevenly, e.g. a voxel pick of a finer cloud; see sysid_data.observed_masses)"""
+    measure_mesh_margin: bool = False
+    """a push recording (data with a tool): fit with the tool's contact distance measured from it (the
+    nearest observed point's distance to the tool while it carries the object, see
+    sysid_data.tool_contact_distance) instead of --mesh-margin; the report's config holds the value"""
 
 
 def main(cfg: SysIdConfig) -> int:
@@ -43,6 +47,11 @@ def main(cfg: SysIdConfig) -> int:
         if cfg.masses == "observed":
             data = replace(data, masses=observed_masses(data))
             say(f"masses by observed share: {data.masses.min():.2f}-{data.masses.max():.2f} (mean 1)")
+        if cfg.measure_mesh_margin:
+            margin, frames = tool_contact_distance(data)
+            cfg = replace(cfg, mesh_margin=margin)
+            say(f"tool contact distance measured from the push: {1e3 * margin:.2f} mm (median over the "
+                f"{len(frames)} frames where the tool carries the object, {frames.min()}-{frames.max()})")
         result = identify(data, cfg, log=say)
     except (SysIdFormatError, ValueError) as exc:
         say(f"twinbench sysid: {exc}")

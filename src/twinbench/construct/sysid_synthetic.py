@@ -152,12 +152,13 @@ def phystwin_rope_case(*, seed: int = 0, nx: int = 20, frames: int = 45, validat
 
 def pushed_block_case(*, tool_friction: float = 0.5, ground_friction: float = 0.5, frames: int = 36,
                       validation_frames: int = 6, substeps: int = 40, noise: float = 1e-3,
-                      visible_fraction: float = 0.8, seed: int = 0) -> tuple[SysIdData, dict]:
+                      visible_fraction: float = 0.8, seed: int = 0, mesh_margin: float = 0.005,
+                      gap: float = 0.006) -> tuple[SysIdData, dict]:
     """A 5 x 4 x 2 block (1 cm lattice, Y 3000) on the ground, pushed 7 cm along x and 5 cm along y by a
-    1 x 2 x 3 cm box tool (``SysIdData.tool_*``) whose face meets its -x side: the tool slides along that
-    face unless its friction holds the block, so how far the block follows the tool sideways and how far it
-    turns depend on ``tool_friction``. No control points. Returns the data and the truth {"params",
-    "sim", "positions"}."""
+    1 x 2 x 3 cm box tool (``SysIdData.tool_*``, contact distance `mesh_margin`) whose face starts `gap`
+    from its -x side: the tool slides along that face unless its friction holds the block, so how far the
+    block follows the tool sideways and how far it turns depend on ``tool_friction``. No control points.
+    Returns the data and the truth {"params", "sim", "positions"}."""
     import trimesh
 
     rng = np.random.default_rng(seed)
@@ -168,13 +169,13 @@ def pushed_block_case(*, tool_friction: float = 0.5, ground_friction: float = 0.
     u = np.clip((t - 0.1) / 0.9, 0.0, 1.0)
     u = u * u * (3.0 - 2.0 * u)
     poses = np.repeat(np.eye(4)[None], frames, axis=0)
-    poses[:, 0, 3] = lo[0] - 0.011 + 0.07 * u  # the face 6 mm from the block at rest
+    poses[:, 0, 3] = lo[0] - 0.005 - gap + 0.07 * u
     poses[:, 1, 3] = 0.5 * (lo[1] + hi[1]) + 0.05 * u
     poses[:, 2, 3] = 0.016
     truth = GlobalParams(spring_Y=3000.0, spring_radius=0.02, spring_max_neighbors=30, ground_restitution=0.0,
                          ground_friction=ground_friction, drag_damping=1.0, dashpot_damping=50.0,
                          tool_friction=tool_friction, tool_restitution=0.0)
-    base = SimParams(dt=1.0 / (30.0 * substeps), substeps=substeps)
+    base = SimParams(dt=1.0 / (30.0 * substeps), substeps=substeps, mesh_margin=mesh_margin)
     tool = transform_points(poses, box.vertices)
     b = ModelBuilder(truth.sim_params(base))
     b.add_body(pts, radius=truth.spring_radius, max_neighbors=truth.spring_max_neighbors,
