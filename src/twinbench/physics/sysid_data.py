@@ -336,13 +336,13 @@ CARRY_MIN_STEP = 0.002  # m: the tool's least motion over a frame for that frame
 def tool_contact_distance(data: SysIdData, reach: float = CARRY_REACH, share: float = CARRY_SHARE,
                           min_step: float = CARRY_MIN_STEP) -> tuple[float, np.ndarray]:
     """The distance a tool keeps from the object's points while it pushes it, measured on a recording with a
-    tool (``tool_*``): in each frame where the tool carries the object (it moves at least `min_step`, its path
-    smoothed as sysid smooths it, and the
-    tracked points within `reach` of it move along its motion by at least `share` of it), the nearest visible
-    observed point's distance to the tool's mesh; the median over those frames. This is the contact distance
-    (`SimParams.mesh_margin`) at which particles placed on the observed points meet the tool where the real
-    object does. The nearest of several noisy points sits a little nearer than the surface they sample, so
-    the figure runs low by about the points' noise. Returns (distance in m, the frames used).
+    tool (``tool_*``): in each frame where the tool carries the object (its path, smoothed as sysid smooths
+    it, moves at least `min_step`, and the tracked points within `reach` of it move along its motion by at
+    least `share` of it), the nearest visible observed point's distance to the tool's mesh; the median over
+    those frames. This is the contact distance (`SimParams.mesh_margin`) at which particles placed on the
+    observed points meet the tool where the real object does. The nearest of several noisy points sits
+    nearer than the surface they sample, so the figure runs low, by up to about the points' noise. Returns
+    (distance in m, the frames used).
 
     Raises ValueError naming the recording when it has no tool, or fewer than 3 frames where the tool
     carries the object (then give the distance yourself: `twinbench sysid --mesh-margin`)."""
@@ -366,10 +366,12 @@ def tool_contact_distance(data: SysIdData, reach: float = CARRY_REACH, share: fl
         _, dist, _ = trimesh.proximity.closest_point(
             trimesh.Trimesh(tool[k - 1], data.tool_faces, process=False), before)
         near = dist < reach
-        if not near.any() or np.mean((data.tracked[k][ok][near] - before[near]) @ step) < share * length ** 2:
+        seen = data.observed[k][data.visibility[k]]
+        if (not near.any() or not len(seen)
+                or np.mean((data.tracked[k][ok][near] - before[near]) @ step) < share * length ** 2):
             continue
         _, dist, _ = trimesh.proximity.closest_point(
-            trimesh.Trimesh(tool[k], data.tool_faces, process=False), data.observed[k][data.visibility[k]])
+            trimesh.Trimesh(tool[k], data.tool_faces, process=False), seen)
         used.append(k)
         gaps.append(float(dist.min()))
     if len(used) < 3:
