@@ -22,7 +22,8 @@ from twinbench.physics.sysid import (
     rollout,
     stage1_cma,
 )
-from twinbench.physics.sysid_data import SysIdFormatError, tool_contact_distance
+from twinbench.physics.sysid_data import SysIdFormatError
+from twinbench.physics.sysid_guess import tool_contact_distance
 
 TRUE_TOOL_FRICTION = 0.5
 

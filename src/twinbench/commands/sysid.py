@@ -11,7 +11,8 @@ from twinbench.construct.sysid_io import load_input, write_object_dir
 from twinbench.construct.sysid_report import write_report
 from twinbench.errors import SimulationDiverged
 from twinbench.physics.sysid import FitConfig, identify
-from twinbench.physics.sysid_data import SysIdFormatError, observed_masses, tool_contact_distance
+from twinbench.physics.sysid_data import SysIdFormatError, observed_masses
+from twinbench.physics.sysid_guess import tool_contact_distance
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -30,7 +31,7 @@ class SysIdConfig(FitConfig):
     measure_mesh_margin: bool = False
     """a push recording (data with a tool): fit with the tool's contact distance measured from it (the
     nearest observed point's distance to the tool while it carries the object, see
-    sysid_data.tool_contact_distance) instead of --mesh-margin; the report's config holds the value"""
+    sysid_guess.tool_contact_distance) instead of --mesh-margin; the report's config holds the value"""
 
 
 def main(cfg: SysIdConfig) -> int:

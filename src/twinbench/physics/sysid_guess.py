@@ -25,7 +25,8 @@ gives about 0.55 m/s^2 per sample); every figure is a sum or median over many sa
 The measured kinematic inputs (control points' paths, the tool's poses) are smoothed before any simulation
 (:func:`smoothed_inputs`): the simulator turns their frame-to-frame noise into forces through stiff
 attachments and contacts. With the ground on, particles that the measurement's noise put below it are raised
-onto it (:func:`grounded`).
+onto it (:func:`grounded`). A push recording's tool contact distance is measured where the tool carries the
+object (:func:`tool_contact_distance`, `twinbench sysid --measure-mesh-margin`).
 """
 
 from __future__ import annotations
@@ -281,3 +282,56 @@ def physical_guesses(data: SysIdData, model: SpringMassModel, control_radius: fl
         out["ground_friction"] = friction_guess(data, control_radius)
         out["ground_restitution"] = restitution_guess(data)
     return out
+
+
+CARRY_REACH = 0.03  # m: tracked points this near the tool are the ones it would carry
+CARRY_SHARE = 0.5  # a frame is a push when those points move along the tool's motion by this share of it
+CARRY_MIN_STEP = 0.002  # m: the tool's least motion over a frame for that frame to count (tracks' noise)
+
+
+def tool_contact_distance(data: SysIdData, reach: float = CARRY_REACH, share: float = CARRY_SHARE,
+                          min_step: float = CARRY_MIN_STEP) -> tuple[float, np.ndarray]:
+    """The distance a tool keeps from the object's points while it pushes it, measured on a recording with a
+    tool (``tool_*``): in each frame where the tool carries the object (its path, smoothed as sysid smooths
+    it, moves at least `min_step`, and the tracked points within `reach` of it move along its motion by at
+    least `share` of it), the nearest visible observed point's distance to the tool's mesh; the median over
+    those frames. This is the contact distance (`SimParams.mesh_margin`) at which particles placed on the
+    observed points meet the tool where the real object does. The nearest of several noisy points sits
+    nearer than the surface they sample, so the figure runs low, by up to about the points' noise. Returns
+    (distance in m, the frames used).
+
+    Raises ValueError naming the recording when it has no tool, or fewer than 3 frames where the tool
+    carries the object (then give the distance yourself: `twinbench sysid --mesh-margin`)."""
+    import trimesh
+
+    if not data.has_tool:
+        raise ValueError(f"{data.source}: no tool in this recording (tool_vertices, tool_faces, tool_poses); "
+                         "a contact distance is measured on a push recording")
+    tool = smoothed_inputs(data)[0].tool_path()  # the tool's pose noise would pass for motion
+    centre = tool.mean(axis=1)
+    used, gaps = [], []
+    for k in range(1, data.num_frames):
+        step = centre[k] - centre[k - 1]
+        length = float(np.linalg.norm(step))
+        if length < min_step:
+            continue
+        ok = data.motion_valid[k - 1] & data.motion_valid[k]
+        before = data.tracked[k - 1][ok]
+        _, dist, _ = trimesh.proximity.closest_point(
+            trimesh.Trimesh(tool[k - 1], data.tool_faces, process=False), before)
+        near = dist < reach
+        seen = data.observed[k][data.visibility[k]]
+        if (not near.any() or not len(seen)
+                or np.mean((data.tracked[k][ok][near] - before[near]) @ step) < share * length ** 2):
+            continue
+        _, dist, _ = trimesh.proximity.closest_point(
+            trimesh.Trimesh(tool[k], data.tool_faces, process=False), seen)
+        used.append(k)
+        gaps.append(float(dist.min()))
+    if len(used) < 3:
+        raise ValueError(f"{data.source}: the tool carries the object in {len(used)} frame(s) of this "
+                         "recording (need 3: frames where the tool moves and the tracked points beside it "
+                         "move with it); no contact distance can be measured from it: give one (twinbench "
+                         "sysid --mesh-margin)")
+    return float(np.median(gaps)), np.asarray(used)
+
