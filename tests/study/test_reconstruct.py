@@ -264,18 +264,17 @@ def test_reconstruction_from_evidence_alone(tmp_path):
     # judged against what the twin has otherwise (the start from the probe fit), whichever start won
     assert joint["prior"] == start and joint["errors_m"]["initial"] == tracking_errors(pushed)["initial"]
     if joint["start"] == "probe":  # (an adopted fit also holds the probe's errors at its values)
-        assert {k: v for k, v in joint.items() if k not in ("probe_errors_m", "contact_distance_m")} == {
+        assert {k: v for k, v in joint.items() if k != "probe_errors_m"} == {
             **adopt_push_fit(pushed["global_params"], tracking_errors(pushed)["final"], start,
                              tracking_errors(pushed)["initial"]), "start": "probe"}
     chosen = {**probe_fit["global_params"], "tool_friction": prior, **choice["chosen"]}
     assert specs["full"].robot.tool_contact.friction == chosen["tool_friction"]
     assert specs["full"].sim.ground_friction == chosen["ground_friction"]
-    # the tool's contact distance measured from the push (the real T's points stop 6 mm from the tool; the
-    # nearest of several noisy points a little nearer), the cell's in the variants without the fit
-    assert choice["contact_distance_m"] == pushed["config"]["mesh_margin"]
-    assert specs["full"].sim.mesh_margin == specs["no-color"].sim.mesh_margin == choice["contact_distance_m"]
-    assert 0.004 < choice["contact_distance_m"] < 0.0065
-    assert specs["no-physics"].sim.mesh_margin == task_cell("push-t", "small").sim.mesh_margin
+    # every twin keeps the cell's contact distance, and the push is fitted at it (measured from the push
+    # instead, the fits traded ground friction further from the workcell's: docs/study.md)
+    cell_margin = task_cell("push-t", "small").sim.mesh_margin
+    assert pushed["config"]["mesh_margin"] == cell_margin
+    assert all(s.sim.mesh_margin == cell_margin for s in specs.values())
     assert specs["full"].sim.drag_damping == chosen["drag_damping"]
     assert specs["no-physics"].sim.ground_friction == specs["neither"].sim.ground_friction
     assert specs["no-color"].robot.tool_contact == specs["full"].robot.tool_contact

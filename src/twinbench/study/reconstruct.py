@@ -15,8 +15,8 @@ Between sysid and the build, the identified object (particles in the world frame
 the rest pose found by registering the task's object template to the segmented scan (`estimate_rest_pose`;
 colours tell a rope's marked end from its other end); the task's public definition supplies what the evidence
 does not hold: the object's outline and goal, the controller, the robot's control conventions (which link the
-actions command, the gripper: `ROBOT_CONVENTIONS`) and the tool's contact (its friction fitted to, and its
-contact distance measured from, the push recording in the fitted variants, when the evidence has one).
+actions command, the gripper: `ROBOT_CONVENTIONS`) and the tool's contact (its friction from the push
+recording in the fitted variants, when the evidence has one).
 
 Fixed colliders (rope-routing's clip, toy-packing's box: evidence.json `colliders`): segmented by their own
 crop box, aligned with the rest; the build config names each with the cell's mesh (written to
@@ -238,20 +238,19 @@ def push_fit_dir(names: tuple[str, ...], start: str) -> str:
     return f"{'-'.join(n.split('_')[0] for n in names)}-from-{start}"
 
 
-def _push_fit(run, push: Path, probe: Path, report: Path, out: Path, cell: dict,
+def _push_fit(run, push: Path, probe: Path, report: Path, out: Path, mesh_margin: float, cell: dict,
               log: Callable[[str], None]) -> dict:
     """`twinbench sysid` of a push recording: the tool's friction (in [0, 1.5]) and the object's ground
     friction and drag where its probe fit (`report`) left them unconstrained (`push_search`), the object's
-    other global values held at that fit, the tool's contact distance measured from the push
-    (`--measure-mesh-margin`: where the real object's points stop before the tool). Two starts: the probe
-    fit's values with the task cell's tool friction (`cell`: {name: value} of PUSH_SEARCH), and the cell's
-    values (a probe fit in a corner of the ranges held the search there); of the fits and the second start
-    itself, the one tracking the push's fitted frames best is kept (`best_push_point`). Adopted
-    (`adopt_push_fit`) only when it tracks the push better than the first start (what the twin has
-    otherwise) on the fitted and the held-out frames; else the tool's friction alone is fitted under the
-    same rule; else the cell's is kept. Where it moves the object's values, the probe recording's tracking
-    error at them and at the probe fit's (one uniform stiffness, as the push fit) is recorded. The choice
-    goes to OUT/choice.json (chosen, fitted and prior values, errors, the contact distance) and the log."""
+    other global values held at that fit, the tool's contact distance the twin's. Two starts: the probe fit's
+    values with the task cell's tool friction (`cell`: {name: value} of PUSH_SEARCH), and the cell's values
+    (a probe fit in a corner of the ranges held the search there); of the fits and the second start itself,
+    the one tracking the push's fitted frames best is kept (`best_push_point`). Adopted (`adopt_push_fit`)
+    only when it tracks the push better than the first start (what the twin has otherwise) on the fitted and
+    the held-out frames; else the tool's friction alone is fitted under the same rule; else the cell's is
+    kept. Where it moves the object's values, the probe recording's tracking error at them and at the probe
+    fit's (one uniform stiffness, as the push fit) is recorded. The choice goes to OUT/choice.json (chosen,
+    fitted and prior values, errors) and the log."""
     from twinbench.construct._json import write_json
 
     probe_fit = json.loads(report.read_text())
@@ -259,7 +258,7 @@ def _push_fit(run, push: Path, probe: Path, report: Path, out: Path, cell: dict,
 
     def sysid(data: Path, where: Path, values: dict, *flags) -> dict:
         run("sysid", "--data", data, "--out-dir", where, "--no-progress", "--no-guess", "--no-stage2",
-            "--no-stage3", "--measure-mesh-margin", *flags,
+            "--no-stage3", "--mesh-margin", str(mesh_margin), *flags,
             *[a for k, v in {**held, **values}.items() for a in (f"--initial.{k.replace('_', '-')}", str(v))])
         return json.loads((where / "sysid_report.json").read_text())
 
@@ -274,8 +273,7 @@ def _push_fit(run, push: Path, probe: Path, report: Path, out: Path, cell: dict,
                 for label, start in starts.items()}
         best, what, values, errors = best_push_point(runs, starts)
         before = tracking_errors(runs["probe"])["initial"]
-        return {**adopt_push_fit(values, errors, starts["probe"], before, what), "start": best,
-                "contact_distance_m": runs["probe"]["config"]["mesh_margin"]}
+        return {**adopt_push_fit(values, errors, starts["probe"], before, what), "start": best}
 
     names = push_search(probe_fit)
     choice = fit(names)
@@ -284,12 +282,11 @@ def _push_fit(run, push: Path, probe: Path, report: Path, out: Path, cell: dict,
     moved = {k: v for k, v in choice["chosen"].items() if k != "tool_friction" and v != held[k]}
     if moved:  # what the probe recording says of them (for the record: the probe did not constrain them)
         choice["probe_errors_m"] = {
-            name: tracking_errors(sysid(probe, out / f"probe-at-{name}", values, "--no-stage1",
-                                        "--no-measure-mesh-margin"))["final"]
+            name: tracking_errors(sysid(probe, out / f"probe-at-{name}", values, "--no-stage1"))["final"]
             for name, values in (("probe_fit", {}), ("push_fit", moved))}
     write_json(out / "choice.json", choice)
     log(f"# {push.name}: " + ", ".join(f"{k} {v:.3g}" for k, v in choice["chosen"].items())
-        + f" ({choice['reason']}); tool contact distance {1e3 * choice['contact_distance_m']:.2f} mm")
+        + f" ({choice['reason']})")
     return choice
 
 
@@ -434,13 +431,11 @@ def reconstruct(evidence: Path, out: Path, variants=VARIANTS, log: Callable[[str
                                                                           for k in PUSH_SEARCH[1:]}}
         choices = {o: _push_fit(run, evidence / rel, evidence / index["motion"][o],
                                 work / "sysid" / "fitted" / o / "report.json", work / "sysid" / "push" / o,
-                                values, log) for o, rel in pushes.items()}
+                                cell.sim.mesh_margin, values, log) for o, rel in pushes.items()}
         tool["fitted"]["friction"] = float(np.median([c["chosen"]["tool_friction"]
                                                       for c in choices.values()]))
-        # the tool's contact distance is the twin's (one for every mesh): the pushes' median
-        margin = float(np.median([c["contact_distance_m"] for c in choices.values()]))
-        from_push = {o: {**{k: v for k, v in c["chosen"].items() if k != "tool_friction"},
-                         "mesh_margin": margin} for o, c in choices.items()}
+        from_push = {o: {k: v for k, v in c["chosen"].items() if k != "tool_friction"}
+                     for o, c in choices.items()}
     write_json(work / "calibration.json", json.loads(calibration.read_text()))
     rest = {}
     for o in objects:
