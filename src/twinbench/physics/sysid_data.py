@@ -326,4 +326,3 @@ def observed_masses(data: SysIdData, floor: float = MASS_FLOOR,
     share = np.bincount(nearest.ravel(), minlength=n).astype(np.float64)
     mass = np.maximum(share / share.mean(), floor)
     return mass * (n / mass.sum())
-
