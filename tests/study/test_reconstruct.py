@@ -144,10 +144,6 @@ def test_fit_summary_reports_each_objects_fit_and_the_push_choice(tmp_path):
     assert summary["tblock"]["inputs"] == inputs
     assert "tblock: 33 of its 124 particles lay below the ground (the deepest 1.63 mm): raised" in page
     assert "control points measured with 0.48 mm of noise per axis: smoothed" in page
-    assert "contact distance" not in page  # a study from before it was measured
-    summary["tblock"]["push"]["contact_distance_m"] = 5.59e-3
-    assert "contact distance measured from the push: 5.59 mm (the fitted twins" in _sysid_section(
-        {"sysid": summary})
     assert fit_summary(tmp_path / "nothing") == {} and _sysid_section({"sysid": {}}) == ""
     # where the push moved the object's values, the page says how its probe recording tracks at them
     summary["tblock"]["push"]["probe_errors_m"] = {

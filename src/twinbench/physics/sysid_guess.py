@@ -309,6 +309,13 @@ def tool_contact_distance(data: SysIdData, reach: float = CARRY_REACH, share: fl
                          "a contact distance is measured on a push recording")
     tool = smoothed_inputs(data)[0].tool_path()  # the tool's pose noise would pass for motion
     centre = tool.mean(axis=1)
+    meshes: dict[int, trimesh.Trimesh] = {}
+
+    def distance(k: int, points: np.ndarray) -> np.ndarray:  # to the tool's mesh in frame k (built once)
+        if k not in meshes:
+            meshes[k] = trimesh.Trimesh(tool[k], data.tool_faces, process=False)
+        return trimesh.proximity.closest_point(meshes[k], points)[1]
+
     used, gaps = [], []
     for k in range(1, data.num_frames):
         step = centre[k] - centre[k - 1]
@@ -317,21 +324,16 @@ def tool_contact_distance(data: SysIdData, reach: float = CARRY_REACH, share: fl
             continue
         ok = data.motion_valid[k - 1] & data.motion_valid[k]
         before = data.tracked[k - 1][ok]
-        _, dist, _ = trimesh.proximity.closest_point(
-            trimesh.Trimesh(tool[k - 1], data.tool_faces, process=False), before)
-        near = dist < reach
+        near = distance(k - 1, before) < reach
         seen = data.observed[k][data.visibility[k]]
         if (not near.any() or not len(seen)
                 or np.mean((data.tracked[k][ok][near] - before[near]) @ step) < share * length ** 2):
             continue
-        _, dist, _ = trimesh.proximity.closest_point(
-            trimesh.Trimesh(tool[k], data.tool_faces, process=False), seen)
         used.append(k)
-        gaps.append(float(dist.min()))
+        gaps.append(float(distance(k, seen).min()))
     if len(used) < 3:
         raise ValueError(f"{data.source}: the tool carries the object in {len(used)} frame(s) of this "
                          "recording (need 3: frames where the tool moves and the tracked points beside it "
                          "move with it); no contact distance can be measured from it: give one (twinbench "
                          "sysid --mesh-margin)")
     return float(np.median(gaps)), np.asarray(used)
-

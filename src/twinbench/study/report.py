@@ -168,9 +168,6 @@ def _sysid_section(doc: dict) -> str:
                      "–" if push is None else _e(f"{_push_values(push['chosen'])} ({push['reason']})")])
         notes += [f"{name}: {n}" for n in r.get("notes", [])]
         notes += [f"{name}: {n}" for n in _input_notes(r.get("inputs", {}))]
-        if (push or {}).get("contact_distance_m") is not None:
-            notes.append(f"{name}: the tool's contact distance measured from the push: "
-                         f"{mm(push['contact_distance_m'])} mm (the fitted twins' sim.mesh_margin)")
         probe = (push or {}).get("probe_errors_m")
         if probe:  # the push moved the object's values: what its probe recording says of them
             a, b = probe["probe_fit"], probe["push_fit"]
