@@ -15,7 +15,7 @@ import pytest
 from twinbench.gaussians.colormap import map_colors
 from twinbench.gaussians.response import CameraResponse
 from twinbench.study.real import task_cell
-from twinbench.study.reconstruct import VARIANTS, adopt_push_fit, estimate_rest_pose
+from twinbench.study.reconstruct import _PHYSICS, VARIANTS, adopt_push_fit, estimate_rest_pose
 from twinbench.transforms import invert_pose, planar_pose, rotation_angle, transform_points
 from twinbench.twin.cells import push_t_cell
 
@@ -39,6 +39,60 @@ def test_estimate_rest_pose_known_answer():
     pose = estimate_rest_pose(np.concatenate([seen, floaters]), template)
     assert np.linalg.norm(pose[:2, 3] - truth[:2, 3]) < 0.002
     assert np.degrees(rotation_angle(pose[:3, :3], truth[:3, :3])) < 1.0
+
+
+def test_a_rigid_object_is_laid_on_its_template_with_the_identified_stiffness_and_mass():
+    import dataclasses
+
+    from twinbench.study.reconstruct import template_layout
+    from twinbench.twin import build_twin
+    from twinbench.twin.cells import rope_routing_cell
+
+    cell = push_t_cell("fast")
+    template = cell.objects[0]
+    rng = np.random.default_rng(0)
+    # an identified T: a coarser voxel pick with explicit springs of varying stiffness and per-particle masses
+    picked = template.particles[::2] + rng.normal(0, 0.002, (len(template.particles[::2]), 3))
+    springs = np.array([(i, i + 1) for i in range(len(picked) - 1)])
+    y = rng.uniform(1e4, 9e4, len(springs))
+    mass = rng.uniform(0.5, 2.0, len(picked))
+    identified = dataclasses.replace(template, particles=picked, springs=springs, spring_Y=y, mass=mass,
+                                     rest_lengths=None, spring_radius=0.05, max_neighbors=7)
+    fields, record = template_layout(identified, template)
+    laid = dataclasses.replace(identified, **fields)
+    assert np.array_equal(laid.particles, template.particles) and laid.springs is None
+    assert laid.spring_Y == np.median(y) and laid.spring_radius == template.spring_radius
+    assert laid.max_neighbors == template.max_neighbors
+    assert np.isclose(laid.mass * len(template.particles), mass.sum())  # the body's weight, spread evenly
+    assert record == {"layout": "template", "particles": len(template.particles), "mass": mass.sum(),
+                      "identified_particles": len(picked), "spring_Y": np.median(y),
+                      "spring_Y_from": "identified"}
+    # a stiffness the motion does not constrain (a rigid body's): the template's
+    fields, record = template_layout(identified, template, stiffness_known=False)
+    assert fields["spring_Y"] == template.spring_Y and record["spring_Y_from"] == "template"
+    assert fields["mass"] == laid.mass
+    twin, _ = build_twin(dataclasses.replace(cell, objects=(laid,)))  # it builds: springs by the radius rule
+    assert twin.model.num_particles >= len(template.particles)
+    # a deformable object (the rope: its rest shape is what the scan shows) keeps the identified layout
+    rope = rope_routing_cell("fast").objects[0]
+    assert rope.binding != "rigid"
+    assert template_layout(rope, rope)[0] == {}
+
+
+def test_values_no_recording_constrains_take_the_cells(tmp_path):
+    from twinbench.construct._json import write_json
+    from twinbench.study.reconstruct import OPEN_SIM, open_values, stiffness_known
+
+    cell = task_cell("push-t", "small").sim
+    known = {"ground_friction": False, "drag_damping": False, "dashpot_damping": True, "spring_Y": False}
+    write_json(tmp_path / "r.json", {"identifiability": {k: {"constrained": v} for k, v in known.items()}})
+    # ground friction open but chosen by the push fit's own rule; restitution not searched: left as fitted
+    report = tmp_path / "r.json"
+    assert open_values(report, cell, {"ground_friction": 0.7}) == {"drag_damping": cell.drag_damping}
+    assert set(open_values(report, cell, {})) == {"ground_friction", "drag_damping"} <= set(OPEN_SIM)
+    assert not stiffness_known(tmp_path / "r.json")
+    write_json(tmp_path / "guess.json", {"evaluations": {}})  # at the initial guess: no search, nothing open
+    assert open_values(tmp_path / "guess.json", cell, {}) == {} and stiffness_known(tmp_path / "guess.json")
 
 
 def _push_report(fitted: dict, initial: tuple, final: tuple) -> dict:
@@ -76,6 +130,14 @@ def test_a_push_fit_is_adopted_only_where_it_tracks_the_push_better():
                            _errors(6.2e-3, 4.5e-3))
     assert joint["chosen"] == found
     assert joint["prior"] == start
+    # only what the push constrains is adopted (seed 3 at c974afd: its fit constrains none of the three)
+    loose = {"tool_friction": True, "ground_friction": False, "drag_damping": False}
+    part = adopt_push_fit(found, _errors(4.5e-3, 4.4e-3), start, _errors(6.2e-3, 4.5e-3), constrained=loose)
+    assert part["adopted"] and part["chosen"] == {**start, "tool_friction": 0.356}
+    assert "ground_friction, drag_damping kept at 0.005, 19.9: the push does not constrain" in part["reason"]
+    none = adopt_push_fit(found, _errors(3.23e-3, 5.55e-3), start, _errors(6.7e-3, 8.6e-3),
+                          constrained=dict.fromkeys(start, False))
+    assert not none["adopted"] and none["chosen"] == start and "constrains none of them" in none["reason"]
 
 
 def test_the_push_point_kept_is_the_best_tracking_one_a_start_included():
@@ -242,9 +304,9 @@ def test_reconstruction_from_evidence_alone(tmp_path):
     assert not np.allclose(specs["full"].objects[0].spring_Y, 3e4)
     # the tool's friction with the object's ground friction and drag where the probe left them unconstrained,
     # fitted to the push recording in the fitted variants (adopted only where they track the push better than
-    # the probe fit's values with the cell's tool friction; else the tool's alone), the cell's tool and the
+    # the cell's values, and only those the push constrains; else the tool's alone), the cell's tool and the
     # probe fit's values in the others
-    from twinbench.study.reconstruct import push_fit_dir, push_search, tracking_errors
+    from twinbench.study.reconstruct import open_values, push_fit_dir, push_search, tracking_errors
 
     probe_fit = json.loads((work / "sysid/fitted/tblock/report.json").read_text())
     names = push_search(probe_fit)
@@ -257,13 +319,38 @@ def test_reconstruction_from_evidence_alone(tmp_path):
     choice = json.loads((work / "sysid/push/tblock/choice.json").read_text())
     print(f"push fit: {choice['reason']}")
     joint = choice.get("rejected", choice)  # the fit of `names`, adopted or not
-    # judged against what the twin has otherwise (the start from the probe fit), whichever start won
-    assert joint["prior"] == start and joint["errors_m"]["initial"] == tracking_errors(pushed)["initial"]
+    # judged against what the twin has otherwise (the cell's values: the probe left them open), whichever
+    # start won, adopting only what the winning fit constrains
+    cell = task_cell("push-t", "small")
+    values = {"tool_friction": prior, "ground_friction": cell.sim.ground_friction,
+              "drag_damping": cell.sim.drag_damping}
+    from_cell = work / "sysid/push/tblock" / push_fit_dir(names, "cell") / "sysid_report.json"
+    against = json.loads(from_cell.read_text()) if from_cell.is_file() else pushed
+    assert joint["prior"] == {n: values[n] for n in names}
+    assert joint["errors_m"]["initial"] == tracking_errors(against)["initial"]
     if joint["start"] == "probe":  # (an adopted fit also holds the probe's errors at its values)
+        known = {n: pushed["identifiability"][n]["constrained"] for n in names}
         assert {k: v for k, v in joint.items() if k != "probe_errors_m"} == {
-            **adopt_push_fit(pushed["global_params"], tracking_errors(pushed)["final"], start,
-                             tracking_errors(pushed)["initial"]), "start": "probe"}
-    chosen = {**probe_fit["global_params"], "tool_friction": prior, **choice["chosen"]}
+            **adopt_push_fit(pushed["global_params"], tracking_errors(pushed)["final"], joint["prior"],
+                             tracking_errors(against)["initial"], constrained=known), "start": "probe"}
+    # the T (rigid in the task's definition) fitted and built on the task's lattice, not the tracker's points:
+    # the push recording carried onto it, the identified mass kept (and the stiffness, where the motion
+    # constrains it)
+    template = task_cell("push-t", "small").object("tblock")
+    assert choice["layout"]["spring_radius"] == pushed["config"]["initial"]["spring_radius"] == \
+        template.spring_radius
+    laid = json.loads((work / "objects/layout.json").read_text())
+    assert laid["fitted"]["tblock"]["layout"] == laid["initial"]["tblock"]["layout"] == "template"
+    for v, spec in specs.items():
+        t = spec.objects[0]
+        assert np.allclose(t.particles, template.particles) and t.spring_radius == template.spring_radius
+        record = laid[_PHYSICS[v]]["tblock"]
+        assert t.spring_Y == record["spring_Y"] and np.isclose(t.mass * len(t.particles), record["mass"])
+    chosen = {**probe_fit["global_params"], "tool_friction": prior,
+              **open_values(work / "sysid/fitted/tblock/report.json", cell.sim, choice["chosen"]),
+              **choice["chosen"]}
+    assert laid["fitted"]["tblock"]["cell_values"] == open_values(work / "sysid/fitted/tblock/report.json",
+                                                                  cell.sim, choice["chosen"])
     assert specs["full"].robot.tool_contact.friction == chosen["tool_friction"]
     assert specs["full"].sim.ground_friction == chosen["ground_friction"]
     # every twin keeps the cell's contact distance, and the push is fitted at it (measured from the push

@@ -7,6 +7,7 @@ steps 2-5). Each module is imported on its own (this package imports nothing):
     calibration      camera calibration files -> CameraSpecs
     phystwin         PhysTwin cases: restricted loader, import as a twin object, export back
     mesh_object      a rigid spring-mass object with surface Gaussians from a closed mesh
+    rigid_layout     a rigid object's recorded motion carried onto another particle layout of it
     build_config     a TwinSpec / twin directory from a build config naming the steps' outputs
     sysid_io         system identification's input files and the identified object directory
     sysid_report     system identification's fit report (JSON + PNG)

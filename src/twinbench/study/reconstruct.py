@@ -158,9 +158,56 @@ def place_collider(scanned: np.ndarray, collider) -> np.ndarray:
     return pose
 
 
-def _place_object(identified: Path, template, rest_pose: np.ndarray, sim_over: dict, out: Path) -> Path:
+def template_layout(identified, template, stiffness_known: bool = True) -> tuple[dict, dict]:
+    """Where the task declares the object rigid (its template's `binding` "rigid": a made part whose shape is
+    public, as push-T's T), the template's particles (a lattice over its shape at the cell's spacing, springs
+    by its radius rule) with the identified object's total mass spread evenly and its median spring stiffness
+    (`stiffness_known`: its motion constrains the stiffness; else the template's, as a rigid body's motion
+    does not): the ObjectSpec fields to replace, and the record (particle counts, stiffness and where it is
+    from, mass). A voxel pick of noisy tracks puts a coarse T's centre of mass off the real one and leaves
+    parts of its outline without particles (docs/study.md). Any other object (a rope, a plush toy: its rest
+    shape is what the scan shows) keeps the identified layout: ({}, its record)."""
+    n = len(identified.particles)
+    mass = float(np.sum(np.broadcast_to(np.asarray(identified.mass, np.float64), (n,))))
+    record = {"layout": "identified", "particles": n, "mass": mass}
+    if template.binding != "rigid":
+        return {}, record
+    source = identified if stiffness_known else template
+    y = float(np.median(np.asarray(source.spring_Y, np.float64)))
+    m = len(template.particles)
+    fields = {"particles": np.asarray(template.particles, np.float64), "springs": None, "rest_lengths": None,
+              "spring_Y": y, "spring_radius": template.spring_radius, "max_neighbors": template.max_neighbors,
+              "mass": mass / m}
+    return fields, {**record, "layout": "template", "particles": m, "identified_particles": n, "spring_Y": y,
+                    "spring_Y_from": "identified" if stiffness_known else "template"}
+
+
+# the object's contact and damping values a fit can leave open: where neither its recordings constrains one
+# (sysid's identifiability), the twin takes the task cell's (the public prior; a flat fit's value is one draw
+# of many and moves with the machine's rounding)
+OPEN_SIM = ("ground_friction", "ground_restitution", "drag_damping", "dashpot_damping")
+
+
+def open_values(report: Path, cell_sim, chosen: dict) -> dict:
+    """The task cell's values (`cell_sim`, SimParams) of those OPEN_SIM values that the probe fit (REPORT, a
+    `twinbench sysid` report) leaves unconstrained, but those a push fit chose (`chosen`: {name: value}, its
+    own rule: `adopt_push_fit`); a report without identifiability (its search off): none."""
+    known = json.loads(Path(report).read_text()).get("identifiability", {})
+    return {k: float(getattr(cell_sim, k)) for k in OPEN_SIM
+            if k in known and not known[k].get("constrained", True) and k not in chosen}
+
+
+def stiffness_known(report: Path) -> bool:
+    """Whether a `twinbench sysid` report (REPORT, JSON) says its motion constrains the stiffness (its
+    identifiability's spring_Y; a fit without one, e.g. at the initial guess: True, its value is kept)."""
+    known = json.loads(Path(report).read_text()).get("identifiability", {})
+    return bool(known.get("spring_Y", {}).get("constrained", True))
+
+
+def _place_object(identified: Path, template, rest_pose: np.ndarray, sim_over: dict, out: Path) -> dict:
     """The identified object (world-frame particles, from `twinbench sysid`) in its own frame at
-    `rest_pose`, with the template's name, binding, outline and goal; its sim with `sim_over`."""
+    `rest_pose`, with the template's name, binding, outline and goal, its particles laid as
+    `template_layout` says; its sim with `sim_over`. Returns the layout's record."""
     from twinbench.transforms import invert_pose, transform_points
     from twinbench.twin import load_object, save_object
 
@@ -169,8 +216,9 @@ def _place_object(identified: Path, template, rest_pose: np.ndarray, sim_over: d
         obj, name=template.name, particles=transform_points(invert_pose(rest_pose), obj.particles),
         rest_pose=rest_pose, binding=template.binding, outline=template.outline, goal_pose=template.goal_pose,
     )
-    save_object(placed, out, sim={**sim, **sim_over})
-    return out
+    fields, record = template_layout(placed, template, stiffness_known(identified / "report.json"))
+    save_object(dataclasses.replace(placed, **fields), out, sim={**sim, **sim_over})
+    return record
 
 
 MIN_COLLIDER_GAUSSIANS = 50  # fewer scanned Gaussians of a fixed collider: the cell's declared pose
@@ -238,28 +286,58 @@ def push_fit_dir(names: tuple[str, ...], start: str) -> str:
     return f"{'-'.join(n.split('_')[0] for n in names)}-from-{start}"
 
 
+def push_layout(push: Path, identified: Path, template, out: Path) -> tuple[Path, dict] | None:
+    """For an object the task declares rigid (`template_layout`): the push recording PUSH carried onto the
+    template's layout (`construct.rigid_layout.relayout`: every particle follows the tracks' rigid motion),
+    the template registered to the push's frame-0 observed points (`estimate_rest_pose`), the identified
+    object's (IDENTIFIED, its probe fit's object directory) total mass spread evenly; written to OUT (sysid
+    format). Returns OUT and what a fit on it holds ({name: value}: the template's spring radius and
+    neighbours, the identified median stiffness), or None for any other object."""
+    from twinbench.construct.rigid_layout import relayout
+    from twinbench.construct.sysid_io import load_sysid_data, save_sysid_data
+    from twinbench.transforms import transform_points
+    from twinbench.twin import load_object
+
+    known = stiffness_known(identified / "report.json")
+    fields, _ = template_layout(load_object(identified)[0], template, known)
+    if not fields:
+        return None
+    data = load_sysid_data(push)
+    pose = estimate_rest_pose(data.observed[0][data.visibility[0]], template.gaussians.means,
+                              float(template.rest_pose[2, 3]))
+    particles = transform_points(pose, fields["particles"])
+    save_sysid_data(relayout(data, particles, np.full(len(particles), fields["mass"])), out)
+    return out, {"spring_radius": fields["spring_radius"], "spring_max_neighbors": fields["max_neighbors"],
+                 "spring_Y": fields["spring_Y"]}
+
+
 def _push_fit(run, push: Path, probe: Path, report: Path, out: Path, mesh_margin: float, cell: dict,
-              log: Callable[[str], None]) -> dict:
+              log: Callable[[str], None], layout: tuple[Path, dict] | None = None) -> dict:
     """`twinbench sysid` of a push recording: the tool's friction (in [0, 1.5]) and the object's ground
     friction and drag where its probe fit (`report`) left them unconstrained (`push_search`), the object's
     other global values held at that fit, the tool's contact distance the twin's. Two starts: the probe fit's
     values with the task cell's tool friction (`cell`: {name: value} of PUSH_SEARCH), and the cell's values
     (a probe fit in a corner of the ranges held the search there); of the fits and the second start itself,
     the one tracking the push's fitted frames best is kept (`best_push_point`). Adopted (`adopt_push_fit`)
-    only when it tracks the push better than the first start (what the twin has otherwise) on the fitted and
-    the held-out frames; else the tool's friction alone is fitted under the same rule; else the cell's is
-    kept. Where it moves the object's values, the probe recording's tracking error at them and at the probe
-    fit's (one uniform stiffness, as the push fit) is recorded. The choice goes to OUT/choice.json (chosen,
-    fitted and prior values, errors) and the log."""
+    only when it tracks the push better than the cell's values (what the twin has otherwise: values its probe
+    left open, and the cell's tool) on the fitted and the held-out frames, and then only the values that fit
+    constrains (its identifiability); else the tool's friction alone is fitted under the same rule; else the
+    cell's values are kept. `layout` (`push_layout`'s): the push fitted on that recording instead, with the
+    values it holds. Where it moves the object's values, the probe recording's tracking error at them and at
+    the probe fit's (one uniform stiffness, as the push fit) is recorded. The choice goes to OUT/choice.json
+    (chosen, fitted and prior values, errors, the layout) and the log."""
     from twinbench.construct._json import write_json
 
     probe_fit = json.loads(report.read_text())
     held = {k: v for k, v in probe_fit["global_params"].items() if not k.startswith("tool_")}
+    recording, on_layout = push, {} if layout is None else layout[1]
+    push = push if layout is None else layout[0]
 
     def sysid(data: Path, where: Path, values: dict, *flags) -> dict:
+        given = {**held, **(on_layout if data == push else {}), **values}
         run("sysid", "--data", data, "--out-dir", where, "--no-progress", "--no-guess", "--no-stage2",
             "--no-stage3", "--mesh-margin", str(mesh_margin), *flags,
-            *[a for k, v in {**held, **values}.items() for a in (f"--initial.{k.replace('_', '-')}", str(v))])
+            *[a for k, v in given.items() for a in (f"--initial.{k.replace('_', '-')}", str(v))])
         return json.loads((where / "sysid_report.json").read_text())
 
     def fit(names: tuple[str, ...]) -> dict:
@@ -272,8 +350,11 @@ def _push_fit(run, push: Path, probe: Path, report: Path, out: Path, mesh_margin
         runs = {label: sysid(push, out / push_fit_dir(names, label), start, *search)
                 for label, start in starts.items()}
         best, what, values, errors = best_push_point(runs, starts)
-        before = tracking_errors(runs["probe"])["initial"]
-        return {**adopt_push_fit(values, errors, starts["probe"], before, what), "start": best}
+        prior = "cell" if "cell" in starts else "probe"  # (the same values when the cell start was dropped)
+        known = runs[best]["identifiability"] if best in runs else {}  # a start as it is: nothing measured
+        pinned = {n: bool(known.get(n, {}).get("constrained", False)) for n in names}
+        before = tracking_errors(runs[prior])["initial"]
+        return {**adopt_push_fit(values, errors, starts[prior], before, what, pinned), "start": best}
 
     names = push_search(probe_fit)
     choice = fit(names)
@@ -284,8 +365,9 @@ def _push_fit(run, push: Path, probe: Path, report: Path, out: Path, mesh_margin
         choice["probe_errors_m"] = {
             name: tracking_errors(sysid(probe, out / f"probe-at-{name}", values, "--no-stage1"))["final"]
             for name, values in (("probe_fit", {}), ("push_fit", moved))}
+    choice["layout"] = {"data": str(push), **on_layout} if layout is not None else "identified"
     write_json(out / "choice.json", choice)
-    log(f"# {push.name}: " + ", ".join(f"{k} {v:.3g}" for k, v in choice["chosen"].items())
+    log(f"# {recording.name}: " + ", ".join(f"{k} {v:.3g}" for k, v in choice["chosen"].items())
         + f" ({choice['reason']})")
     return choice
 
@@ -309,7 +391,7 @@ def _better(before: dict, after: dict) -> tuple[bool, str]:
 
 def best_push_point(runs: dict[str, dict], starts: dict[str, dict]) -> tuple[str, str, dict, dict]:
     """Of push fits from several starts (`runs`: {start: `twinbench sysid` report}; `starts`: {start: {name:
-    value}}, "probe" the twin's values otherwise), the point that tracks the push's fitted frames best: each
+    value}}, "probe" the probe fit's values), the point that tracks the push's fitted frames best: each
     fit's kept values, and each start but "probe" as it is (a fit can end tracking worse than its start: its
     search lowers Chamfer + tracking loss, not the tracked points' mean distance). Returns its label (the
     start's, "START (as started)" for a start itself), what its values are in words (for
@@ -322,23 +404,39 @@ def best_push_point(runs: dict[str, dict], starts: dict[str, dict]) -> tuple[str
     return min(points, key=lambda p: p[3]["train_error_m"])
 
 
-def adopt_push_fit(fit: dict, after: dict, prior: dict, before: dict, what: str = "fitted") -> dict:
+def adopt_push_fit(fit: dict, after: dict, prior: dict, before: dict, what: str = "fitted",
+                   constrained: dict | None = None) -> dict:
     """Whether push-fitted values `fit` ({name: value}) with tracking errors `after` (m, {"train_error_m",
     "val_error_m"}, as `tracking_errors` gives) are adopted against `prior` ({name: value}, what the twin has
     otherwise) whose tracking errors are `before`: only when they are lower on the fitted frames and on the
     held-out ones (a lower loss alone is not enough: the Chamfer term can fall while the tracked points
-    drift). `what` names the values in the reason. Returns the record: chosen, fitted and prior values
-    ({name: value}), the errors (m) before and of the fit, whether adopted and why."""
+    drift), and then only the values the push's motion constrains (`constrained`: {name: bool}, the fit's
+    identifiability; None: all of them): a value it leaves open keeps the prior's (a flat fit's value is one
+    draw of many, and moves with the machine's rounding). None constrained: nothing adopted. `what` names the
+    values in the reason. Returns the record: chosen, fitted and prior values ({name: value}), which the
+    push constrains, the errors (m) before and of the fit, whether adopted and why."""
     fit = {n: float(fit[n]) for n in prior}
+    pinned = {n: True if constrained is None else bool(constrained.get(n, False)) for n in prior}
     errors = {"initial": before, "final": after}
-    adopted, span = _better(errors["initial"], errors["final"])
+    better, span = _better(errors["initial"], errors["final"])
+    adopted = better and any(pinned.values())
+    prior = {n: float(v) for n, v in prior.items()}
     said = ", ".join(f"{k} {v:.3g}" for k, v in fit.items())
     was = ", ".join(f"{v:.3g}" for v in prior.values())
-    reason = (f"{what} {said} adopted: it tracks the push better than {was} ({span})" if adopted else
-              f"{what} {said} not adopted: it does not track the push better than {was} on both the "
-              f"fitted and the held-out frames ({span})")
-    prior = {n: float(v) for n, v in prior.items()}
-    return {"chosen": fit if adopted else prior, "fitted": fit, "prior": prior, "adopted": adopted,
+    loose = [n for n in prior if not pinned[n]]
+    if adopted:
+        reason = f"{what} {said} adopted: it tracks the push better than {was} ({span})"
+        if loose:
+            at = ", ".join(f"{prior[n]:.3g}" for n in loose)
+            reason += f"; {', '.join(loose)} kept at {at}: the push does not constrain them"
+    elif better:
+        reason = (f"{what} {said} not adopted: it tracks the push better than {was} ({span}), but the push "
+                  "constrains none of them")
+    else:
+        reason = (f"{what} {said} not adopted: it does not track the push better than {was} on both the "
+                  f"fitted and the held-out frames ({span})")
+    chosen = {n: fit[n] if adopted and pinned[n] else prior[n] for n in prior}
+    return {"chosen": chosen, "fitted": fit, "prior": prior, "constrained": pinned, "adopted": adopted,
             "errors_m": errors, "reason": reason}
 
 
@@ -353,9 +451,11 @@ def fit_summary(twins: Path) -> dict:
     """What the reconstruction's fits reached (study.json's "sysid"), per object of TWINS/construction: the
     fitted sysid's tracking error on its fitted and held-out frames at the initial guess and at the kept
     stage, the kept stage and its notes, what it did to its measured inputs (smoothed, particles raised onto
-    the ground), and the tool friction's choice where a push was fitted. Empty
-    when TWINS holds no fitted sysid."""
+    the ground), the tool friction's choice where a push was fitted, and the twin's particle layout
+    (`template_layout`'s record). Empty when TWINS holds no fitted sysid."""
     work = Path(twins) / "construction" / "sysid"
+    layout = work.parent / "objects" / "layout.json"  # a reconstruction before it: none
+    layouts = json.loads(layout.read_text()).get("fitted", {}) if layout.is_file() else {}
     summary = {}
     for path in sorted((work / "fitted").glob("*/report.json")):
         report = json.loads(path.read_text())
@@ -364,6 +464,8 @@ def fit_summary(twins: Path) -> dict:
         choice = work / "push" / path.parent.name / "choice.json"
         if choice.is_file():
             record["push"] = json.loads(choice.read_text())
+        if path.parent.name in layouts:
+            record["layout"] = layouts[path.parent.name]
         summary[path.parent.name] = record
     return summary
 
@@ -429,15 +531,19 @@ def reconstruct(evidence: Path, out: Path, variants=VARIANTS, log: Callable[[str
     if "fitted" in physics and pushes:
         values = {"tool_friction": cell.robot.tool_contact.friction, **{k: getattr(cell.sim, k)
                                                                           for k in PUSH_SEARCH[1:]}}
-        choices = {o: _push_fit(run, evidence / rel, evidence / index["motion"][o],
-                                work / "sysid" / "fitted" / o / "report.json", work / "sysid" / "push" / o,
-                                cell.sim.mesh_margin, values, log) for o, rel in pushes.items()}
+        choices = {}
+        for o, rel in pushes.items():  # a rigid object's push fitted on its template's layout (`push_layout`)
+            fits = work / "sysid" / "push" / o
+            layout = push_layout(evidence / rel, work / "sysid" / "fitted" / o, cell.object(o), fits / "data")
+            choices[o] = _push_fit(run, evidence / rel, evidence / index["motion"][o],
+                                   work / "sysid" / "fitted" / o / "report.json", fits, cell.sim.mesh_margin,
+                                   values, log, layout)
         tool["fitted"]["friction"] = float(np.median([c["chosen"]["tool_friction"]
                                                       for c in choices.values()]))
         from_push = {o: {k: v for k, v in c["chosen"].items() if k != "tool_friction"}
                      for o, c in choices.items()}
     write_json(work / "calibration.json", json.loads(calibration.read_text()))
-    rest = {}
+    rest, layouts = {}, {}
     for o in objects:
         template = cell.object(o)
         scanned = load_gaussians(aligned / "aligned" / f"{o}.ply")
@@ -450,9 +556,24 @@ def reconstruct(evidence: Path, out: Path, variants=VARIANTS, log: Callable[[str
             substeps = max(int(sim["substeps"]), cell.sim.substeps)
             over = {k: getattr(cell.sim, k) for k in _CELL_SIM}
             over.update(substeps=substeps, dt=frame_dt / substeps)
-            over.update(from_push.get(o, {}) if kind == "fitted" else {})
+            kept = {}
+            if kind == "fitted":
+                over.update(from_push.get(o, {}))
+                kept = open_values(work / "sysid" / kind / o / "report.json", cell.sim, from_push.get(o, {}))
+                over.update(kept)
             over = {k: (list(v) if isinstance(v, tuple) else v) for k, v in over.items()}
-            _place_object(work / "sysid" / kind / o, template, rest[o], over, work / "objects" / kind / o)
+            layout = _place_object(work / "sysid" / kind / o, template, rest[o], over,
+                                   work / "objects" / kind / o)
+            layouts.setdefault(kind, {})[o] = {**layout, "cell_values": kept}
+            if layout["layout"] == "template":
+                log(f"# {o} ({kind}): the task's rigid shape laid at its lattice, {layout['particles']} "
+                    f"particles (identified {layout['identified_particles']}), spring Y "
+                    f"{layout['spring_Y']:.4g} (the {layout['spring_Y_from']}'s), total mass "
+                    f"{layout['mass']:.4g}")
+            if kept:
+                log(f"# {o} ({kind}): the motion constrains none of {', '.join(kept)}: the task cell's "
+                    + ", ".join(f"{v:.3g}" for v in kept.values()))
+    write_json(work / "objects" / "layout.json", layouts)
 
     fixed = [_collider_entry(cell, c, aligned / "aligned" / f"{c}.ply", work, log) for c in colliders]
     twins = {}
