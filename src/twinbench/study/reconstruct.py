@@ -9,14 +9,17 @@ refine-cameras` (the calibration corrected so that the scan's render lines up wi
 twins' cameras), `twinbench align-color` (the scan's colours -> the real cameras' colours), `twinbench sysid`
 (each object's physics from its tracked motion; once with the fit, once at its initial guess; with the fit,
 the tool's friction, and the object's ground friction and drag where its probe left them unconstrained, from
-a push recording, the object's other values held, adopted only where they track the push better: `_push_fit`),
-then one build config per variant and `twinbench twin build`.
+a push recording, the object's other values held, adopted only where they track the push better and the push
+constrains them, and the tool's contact distance measured from the push: `_push_fit`), then one build config
+per variant and `twinbench twin build`. A fitted value goes into the twin only where its recording constrains
+it (sysid's identifiability): elsewhere the task cell's (`open_values`, `adopt_push_fit`).
 Between sysid and the build, the identified object (particles in the world frame) is put in its own frame at
 the rest pose found by registering the task's object template to the segmented scan (`estimate_rest_pose`;
-colours tell a rope's marked end from its other end); the task's public definition supplies what the evidence
-does not hold: the object's outline and goal, the controller, the robot's control conventions (which link the
-actions command, the gripper: `ROBOT_CONVENTIONS`) and the tool's contact (its friction from the push
-recording in the fitted variants, when the evidence has one).
+colours tell a rope's marked end from its other end), an object the task declares rigid laid on its template's
+lattice (`template_layout`; its push fitted on that layout: `push_layout`); the task's public definition
+supplies what the evidence does not hold: the object's outline and goal, the controller, the robot's control
+conventions (which link the actions command, the gripper: `ROBOT_CONVENTIONS`) and the tool's contact (its
+friction from the push recording in the fitted variants, when the evidence has one).
 
 Fixed colliders (rope-routing's clip, toy-packing's box: evidence.json `colliders`): segmented by their own
 crop box, aligned with the rest; the build config names each with the cell's mesh (written to
@@ -315,7 +318,10 @@ def _push_fit(run, push: Path, probe: Path, report: Path, out: Path, mesh_margin
               log: Callable[[str], None], layout: tuple[Path, dict] | None = None) -> dict:
     """`twinbench sysid` of a push recording: the tool's friction (in [0, 1.5]) and the object's ground
     friction and drag where its probe fit (`report`) left them unconstrained (`push_search`), the object's
-    other global values held at that fit, the tool's contact distance the twin's. Two starts: the probe fit's
+    other global values held at that fit, the tool's contact distance measured from the push (`sysid
+    --measure-mesh-margin`: the nearest observed point's distance to the tool while it carries the object;
+    the fitted twins take it, a measurement, not a fit; `mesh_margin` the recordings without a tool). Two
+    starts: the probe fit's
     values with the task cell's tool friction (`cell`: {name: value} of PUSH_SEARCH), and the cell's values
     (a probe fit in a corner of the ranges held the search there); of the fits and the second start itself,
     the one tracking the push's fitted frames best is kept (`best_push_point`). Adopted (`adopt_push_fit`)
@@ -335,8 +341,9 @@ def _push_fit(run, push: Path, probe: Path, report: Path, out: Path, mesh_margin
 
     def sysid(data: Path, where: Path, values: dict, *flags) -> dict:
         given = {**held, **(on_layout if data == push else {}), **values}
+        margin = ("--measure-mesh-margin",) if data == push else ("--mesh-margin", str(mesh_margin))
         run("sysid", "--data", data, "--out-dir", where, "--no-progress", "--no-guess", "--no-stage2",
-            "--no-stage3", "--mesh-margin", str(mesh_margin), *flags,
+            "--no-stage3", *margin, *flags,
             *[a for k, v in given.items() for a in (f"--initial.{k.replace('_', '-')}", str(v))])
         return json.loads((where / "sysid_report.json").read_text())
 
@@ -354,7 +361,8 @@ def _push_fit(run, push: Path, probe: Path, report: Path, out: Path, mesh_margin
         known = runs[best]["identifiability"] if best in runs else {}  # a start as it is: nothing measured
         pinned = {n: bool(known.get(n, {}).get("constrained", False)) for n in names}
         before = tracking_errors(runs[prior])["initial"]
-        return {**adopt_push_fit(values, errors, starts[prior], before, what, pinned), "start": best}
+        return {**adopt_push_fit(values, errors, starts[prior], before, what, pinned), "start": best,
+                "contact_distance_m": float(runs[prior]["config"]["mesh_margin"])}
 
     names = push_search(probe_fit)
     choice = fit(names)
@@ -367,8 +375,9 @@ def _push_fit(run, push: Path, probe: Path, report: Path, out: Path, mesh_margin
             for name, values in (("probe_fit", {}), ("push_fit", moved))}
     choice["layout"] = {"data": str(push), **on_layout} if layout is not None else "identified"
     write_json(out / "choice.json", choice)
+    distance = f"tool contact distance {1e3 * choice['contact_distance_m']:.2f} mm (measured)"
     log(f"# {recording.name}: " + ", ".join(f"{k} {v:.3g}" for k, v in choice["chosen"].items())
-        + f" ({choice['reason']})")
+        + f", {distance} ({choice['reason']})")
     return choice
 
 
@@ -528,6 +537,7 @@ def reconstruct(evidence: Path, out: Path, variants=VARIANTS, log: Callable[[str
     tool = {kind: dataclasses.asdict(cell.robot.tool_contact) for kind in physics}
     pushes = {o: index["push"][o] for o in objects if o in index.get("push", {})}
     from_push = {}  # the object values a push fit chose, per object (the fitted variants)
+    contact = {}  # the fitted twins' tool contact distance, measured from the pushes (else the cell's)
     if "fitted" in physics and pushes:
         values = {"tool_friction": cell.robot.tool_contact.friction, **{k: getattr(cell.sim, k)
                                                                           for k in PUSH_SEARCH[1:]}}
@@ -542,6 +552,7 @@ def reconstruct(evidence: Path, out: Path, variants=VARIANTS, log: Callable[[str
                                                       for c in choices.values()]))
         from_push = {o: {k: v for k, v in c["chosen"].items() if k != "tool_friction"}
                      for o, c in choices.items()}
+        contact = {"mesh_margin": float(np.median([c["contact_distance_m"] for c in choices.values()]))}
     write_json(work / "calibration.json", json.loads(calibration.read_text()))
     rest, layouts = {}, {}
     for o in objects:
@@ -558,6 +569,7 @@ def reconstruct(evidence: Path, out: Path, variants=VARIANTS, log: Callable[[str
             over.update(substeps=substeps, dt=frame_dt / substeps)
             kept = {}
             if kind == "fitted":
+                over.update(contact)
                 over.update(from_push.get(o, {}))
                 kept = open_values(work / "sysid" / kind / o / "report.json", cell.sim, from_push.get(o, {}))
                 over.update(kept)
