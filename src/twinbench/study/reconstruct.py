@@ -321,17 +321,17 @@ def _push_fit(run, push: Path, probe: Path, report: Path, out: Path, mesh_margin
     other global values held at that fit, the tool's contact distance measured from the push (`sysid
     --measure-mesh-margin`: the nearest observed point's distance to the tool while it carries the object;
     the fitted twins take it, a measurement, not a fit; `mesh_margin` the recordings without a tool). Two
-    starts: the probe fit's
-    values with the task cell's tool friction (`cell`: {name: value} of PUSH_SEARCH), and the cell's values
-    (a probe fit in a corner of the ranges held the search there); of the fits and the second start itself,
-    the one tracking the push's fitted frames best is kept (`best_push_point`). Adopted (`adopt_push_fit`)
-    only when it tracks the push better than the cell's values (what the twin has otherwise: values its probe
-    left open, and the cell's tool) on the fitted and the held-out frames, and then only the values that fit
-    constrains (its identifiability); else the tool's friction alone is fitted under the same rule; else the
-    cell's values are kept. `layout` (`push_layout`'s): the push fitted on that recording instead, with the
-    values it holds. Where it moves the object's values, the probe recording's tracking error at them and at
-    the probe fit's (one uniform stiffness, as the push fit) is recorded. The choice goes to OUT/choice.json
-    (chosen, fitted and prior values, errors, the layout) and the log."""
+    starts: the probe fit's values with the task cell's tool friction (`cell`: {name: value} of
+    PUSH_SEARCH), and the cell's values (a probe fit in a corner of the ranges held the search there); of
+    the fits and the second start itself, the one tracking the push's fitted frames best is kept
+    (`best_push_point`). Adopted (`adopt_push_fit`) only when it tracks the push better than the cell's values
+    (what the twin has otherwise: values its probe left open, and the cell's tool) on the fitted and the
+    held-out frames, and then only the values that fit constrains (its identifiability); else the tool's
+    friction alone is fitted under the same rule; else the cell's values are kept. `layout` (`push_layout`'s):
+    the push fitted on that recording instead, with the values it holds. Where it moves the object's values,
+    the probe recording's tracking error at them and at the probe fit's (one uniform stiffness, as the push
+    fit) is recorded. The choice goes to OUT/choice.json (chosen, fitted and prior values, errors, the
+    layout) and the log."""
     from twinbench.construct._json import write_json
 
     probe_fit = json.loads(report.read_text())
