@@ -193,13 +193,20 @@ def test_fit_summary_reports_each_objects_fit_and_the_push_choice(tmp_path):
                 "inputs": inputs})
     choice = adopt_push_fit({"tool_friction": 0.86}, _errors(5.58e-3, 9.71e-3), {"tool_friction": 0.3},
                             _errors(5.34e-3, 4.91e-3))
-    write_json(sysid / "push" / "tblock" / "choice.json", choice)
+    write_json(sysid / "push" / "tblock" / "choice.json", {**choice, "contact_distance_m": 5.65e-3})
     write_json(sysid / "initial" / "tblock" / "report.json", report)  # the no-physics fit: not summarised
+    layout = {"layout": "template", "particles": 171, "mass": 124.0, "identified_particles": 124,
+              "spring_Y": 3e4, "spring_Y_from": "template", "cell_values": {"ground_friction": 0.5}}
+    write_json(tmp_path / "construction" / "objects" / "layout.json", {"fitted": {"tblock": layout}})
     summary = fit_summary(tmp_path)
     assert list(summary) == ["tblock"] and summary["tblock"]["kept"] == "stage3"
     assert summary["tblock"]["final"] == {"train_error_m": 4e-3, "val_error_m": 5e-3}
-    assert summary["tblock"]["push"] == choice
+    assert summary["tblock"]["push"] == {**choice, "contact_distance_m": 5.65e-3}
+    assert summary["tblock"]["layout"] == layout
     page = _sysid_section({"sysid": summary})
+    assert "laid on the task&#x27;s template (171 particles, the identified 124 replaced)" in page
+    assert "constrains none of ground_friction: the task cell&#x27;s 0.5" in page
+    assert "tool contact distance 5.65 mm, measured from the push" in page
     assert "9.00 → 4.00" in page and "12.00 → 5.00" in page
     assert "tool friction 0.3 (fitted tool_friction 0.86 not adopted" in page
     assert "tblock: stage 3 did not improve" in page

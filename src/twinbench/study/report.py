@@ -168,6 +168,7 @@ def _sysid_section(doc: dict) -> str:
                      "–" if push is None else _e(f"{_push_values(push['chosen'])} ({push['reason']})")])
         notes += [f"{name}: {n}" for n in r.get("notes", [])]
         notes += [f"{name}: {n}" for n in _input_notes(r.get("inputs", {}))]
+        notes += [f"{name}: {n}" for n in _layout_notes(r.get("layout"), push)]
         probe = (push or {}).get("probe_errors_m")
         if probe:  # the push moved the object's values: what its probe recording says of them
             a, b = probe["probe_fit"], probe["push_fit"]
@@ -180,6 +181,24 @@ def _sysid_section(doc: dict) -> str:
         ["object", "tracking error, fitted frames (mm): initial → fit", "held-out frames (mm)", "kept stage",
          "from the push"], rows) + "".join(_note(n) for n in notes) + _note(
         "From each object's recorded motion (the evidence): the no-physics twins keep the initial guess.")
+
+
+def _layout_notes(layout: dict | None, push: dict | None) -> list[str]:
+    """What the reconstruction put into the twin beside the fit (`reconstruct.template_layout`'s record with
+    the cell's values kept, the push's measured contact distance), in words; none for a study before them."""
+    notes = []
+    if layout and layout.get("layout") == "template":
+        notes.append(f"laid on the task's template ({layout['particles']} particles, the identified "
+                     f"{layout['identified_particles']} replaced), total mass {layout['mass']:.4g}, spring Y "
+                     f"{layout['spring_Y']:.4g} (the {layout['spring_Y_from']}'s)")
+    kept = (layout or {}).get("cell_values")
+    if kept:
+        notes.append("the motion constrains none of " + ", ".join(kept) + ": the task cell's "
+                     + ", ".join(f"{v:.3g}" for v in kept.values()))
+    if push and "contact_distance_m" in push:
+        notes.append(f"tool contact distance {1e3 * push['contact_distance_m']:.2f} mm, measured from the "
+                     "push")
+    return notes
 
 
 def _camera_section(doc: dict) -> str:
