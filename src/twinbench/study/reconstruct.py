@@ -544,10 +544,10 @@ def reconstruct(evidence: Path, out: Path, variants=VARIANTS, log: Callable[[str
         choices = {}
         for o, rel in pushes.items():  # a rigid object's push fitted on its template's layout (`push_layout`)
             fits = work / "sysid" / "push" / o
-            layout = push_layout(evidence / rel, work / "sysid" / "fitted" / o, cell.object(o), fits / "data")
+            relaid = push_layout(evidence / rel, work / "sysid" / "fitted" / o, cell.object(o), fits / "data")
             choices[o] = _push_fit(run, evidence / rel, evidence / index["motion"][o],
                                    work / "sysid" / "fitted" / o / "report.json", fits, cell.sim.mesh_margin,
-                                   values, log, layout)
+                                   values, log, relaid)
         tool["fitted"]["friction"] = float(np.median([c["chosen"]["tool_friction"]
                                                       for c in choices.values()]))
         from_push = {o: {k: v for k, v in c["chosen"].items() if k != "tool_friction"}
