@@ -54,8 +54,8 @@ def relayout(data: SysIdData, particles: np.ndarray, masses: np.ndarray | None =
     particles = np.asarray(particles, np.float64)
     if particles.ndim != 2 or particles.shape[1] != 3 or not len(particles):
         raise ValueError(f"relayout: particles must be a non-empty (P, 3) array, got {particles.shape}")
-    if data.motion_valid[0].sum() < MIN_TRACKS:
-        seen = int(data.motion_valid[0].sum())
+    seen = int(data.motion_valid[0].sum())
+    if seen < MIN_TRACKS:
         raise SysIdFormatError(f"{data.source}: motion_valid: {seen} tracks valid at frame 0; a rigid "
                                f"relayout needs at least {MIN_TRACKS}")
     poses, ok = rigid_motion(data)

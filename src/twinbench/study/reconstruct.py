@@ -191,20 +191,26 @@ def template_layout(identified, template, stiffness_known: bool = True) -> tuple
 OPEN_SIM = ("ground_friction", "ground_restitution", "drag_damping", "dashpot_damping")
 
 
+def constrains(report: dict, name: str, unknown: bool) -> bool:
+    """Whether a `twinbench sysid` report (its JSON) says its motion constrains value `name` (its
+    `identifiability`); `unknown` where it does not say (a fit without that search, a start as it is)."""
+    entry = report.get("identifiability", {}).get(name)
+    return unknown if entry is None else bool(entry.get("constrained", unknown))
+
+
 def open_values(report: Path, cell_sim, chosen: dict) -> dict:
     """The task cell's values (`cell_sim`, SimParams) of those OPEN_SIM values that the probe fit (REPORT, a
     `twinbench sysid` report) leaves unconstrained, but those a push fit chose (`chosen`: {name: value}, its
     own rule: `adopt_push_fit`); a report without identifiability (its search off): none."""
-    known = json.loads(Path(report).read_text()).get("identifiability", {})
+    probe = json.loads(Path(report).read_text())
     return {k: float(getattr(cell_sim, k)) for k in OPEN_SIM
-            if k in known and not known[k].get("constrained", True) and k not in chosen}
+            if not constrains(probe, k, True) and k not in chosen}
 
 
 def stiffness_known(report: Path) -> bool:
-    """Whether a `twinbench sysid` report (REPORT, JSON) says its motion constrains the stiffness (its
-    identifiability's spring_Y; a fit without one, e.g. at the initial guess: True, its value is kept)."""
-    known = json.loads(Path(report).read_text()).get("identifiability", {})
-    return bool(known.get("spring_Y", {}).get("constrained", True))
+    """Whether a `twinbench sysid` report (REPORT, JSON) says its motion constrains the stiffness (a fit
+    without that search, e.g. at the initial guess: True, its value is kept)."""
+    return constrains(json.loads(Path(report).read_text()), "spring_Y", True)
 
 
 def _place_object(identified: Path, template, rest_pose: np.ndarray, sim_over: dict, out: Path) -> dict:
@@ -280,8 +286,7 @@ def push_search(probe_report: dict) -> tuple[str, ...]:
     """The values a push fit searches: the tool's friction, and those of the object's ground friction and drag
     that its probe fit (`probe_report`, a `twinbench sysid` report) did not constrain (its `identifiability`:
     a value the probe's motion pins down keeps it)."""
-    known = probe_report.get("identifiability", {})
-    return ("tool_friction", *(n for n in PUSH_SEARCH[1:] if not known.get(n, {}).get("constrained", False)))
+    return ("tool_friction", *(n for n in PUSH_SEARCH[1:] if not constrains(probe_report, n, False)))
 
 
 def push_fit_dir(names: tuple[str, ...], start: str) -> str:
@@ -358,8 +363,7 @@ def _push_fit(run, push: Path, probe: Path, report: Path, out: Path, mesh_margin
                 for label, start in starts.items()}
         best, what, values, errors = best_push_point(runs, starts)
         prior = "cell" if "cell" in starts else "probe"  # (the same values when the cell start was dropped)
-        known = runs[best]["identifiability"] if best in runs else {}  # a start as it is: nothing measured
-        pinned = {n: bool(known.get(n, {}).get("constrained", False)) for n in names}
+        pinned = {n: constrains(runs.get(best, {}), n, False) for n in names}  # a start as it is: unmeasured
         before = tracking_errors(runs[prior])["initial"]
         return {**adopt_push_fit(values, errors, starts[prior], before, what, pinned), "start": best,
                 "contact_distance_m": float(runs[prior]["config"]["mesh_margin"])}
