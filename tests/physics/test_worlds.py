@@ -71,8 +71,8 @@ def test_cpu_spring_scatter_adds_each_springs_force_in_spring_order(listed):
     """The CPU scatter (batches of springs computed lane-wise) against the per-spring kernel of the gather
     path and a float32 sum in spring order: bit for bit, over several batches and a partial one, with runs of
     springs sharing their first end, unsorted ends, inactive springs (stiffness -1), a zero-length spring
-    (direction clamped), a spring from a particle to itself and, optionally, an index list read from an
-    offset."""
+    (direction clamped), a spring from a particle to itself, springs to the last particle (read from a padded
+    copy) and, optionally, an index list read from an offset."""
     rng = np.random.default_rng(3)
     n, ns = 300, 1000
     first_ends = np.sort(rng.integers(0, n, ns))  # runs of springs sharing a first end, then random jumps
@@ -81,6 +81,8 @@ def test_cpu_spring_scatter_adds_each_springs_force_in_spring_order(listed):
     springs = np.stack([first_ends, second], 1).astype(np.int32)
     springs[100:140] = springs[100:140][::-1]  # not sorted
     springs[300] = springs[300, 0]  # a spring from a particle to itself
+    springs[-3:, 0] = n - 1  # the last particle, whose 16-byte row would leave the array, as first end
+    springs[[50, 51, 500], 1] = n - 1  # ... and as second end
     x = rng.normal(0, 0.05, (n, 3)).astype(np.float32)
     x[springs[7, 1]] = x[springs[7, 0]]  # a zero-length spring
     v = rng.normal(0, 0.2, (n, 3)).astype(np.float32)

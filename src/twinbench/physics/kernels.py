@@ -110,47 +110,92 @@ def eval_spring_forces(
 
 # CPU only: object springs [first, first + count) (or listed[first + k], ascending) added to both their
 # ends in spring order. A spring's force is a chain of a dependent square root and divisions: one spring at a
-# time leaves the core waiting on that chain. So each batch of 64 springs is gathered (end differences, rest
-# length, stiffness), its forces are computed 8 springs per SIMD instruction with `spring_force_between`'s
-# expressions in the same order (IEEE lane-wise, no contraction: the same floats), then added to the ends one
-# spring after another, the first end's sum held in a register while consecutive springs share it. Loops stay
-# scalar where the compiler would use gather instructions (slower than loads on current x86). Raw element
-# pointers: the arrays must be contiguous (the solver's and model's own arrays are).
+# time leaves the core waiting on that chain. So each batch of 64 springs is computed 8 springs per SIMD
+# instruction with `spring_force_between`'s expressions in the same order (IEEE lane-wise, no contraction:
+# the same floats), then added to the ends one spring after another, the first end's sum held in a register
+# while consecutive springs share it. The gather loads each end's position and velocity as one 16-byte row
+# (x, y, z and the next float, unused), takes the 8 springs' differences row by row and transposes them
+# (8x8, shuffles) into one vector per component: about a third of the scalar loads and stores of a gather
+# component by component. A 16-byte row read past the last particle's 12 bytes would leave the array, so a
+# group of 8 springs touching the last particle reads it from a padded copy. (Loops stay scalar where the
+# compiler would use gather instructions, slower than loads on current x86.) Raw element pointers: the
+# arrays must be contiguous (the solver's and model's own arrays are).
 _SCATTER_OBJECT_SPRINGS_CPU = r"""
 #if !defined(__CUDA_ARCH__)
 {
 _Pragma("clang fp contract(off)")  // no fused multiply-adds: Warp's per-spring expressions round each step
 typedef float f8 __attribute__((ext_vector_type(8)));
+typedef float f4 __attribute__((ext_vector_type(4)));
 constexpr int B = 64;
-const wp::vec3* X = (const wp::vec3*)x.data;
-const wp::vec3* V = (const wp::vec3*)v.data;
+const float* X = (const float*)x.data;
+const float* V = (const float*)v.data;
 const wp::vec2i* S = (const wp::vec2i*)springs.data;
 const wp::vec2* R = (const wp::vec2*)ry.data;
 const int* L = listed.shape[0] > 0 ? (const int*)listed.data : nullptr;
 wp::vec3* F = (wp::vec3*)f.data;
-alignas(32) float in[8][B];
+const int last = (x.shape[0] < v.shape[0] ? x.shape[0] : v.shape[0]) - 1;
+alignas(16) const float xl[4] = {X[3 * last], X[3 * last + 1], X[3 * last + 2], 0.0f};
+alignas(16) const float vl[4] = {V[3 * last], V[3 * last + 1], V[3 * last + 2], 0.0f};
 alignas(32) float out[3][B];
 int a[B], b[B];
 for (int k = 0; k < count; k += B) {
     const int m = count - k < B ? count - k : B;
-    _Pragma("clang loop vectorize(disable) interleave(disable)")
-    for (int j = 0; j < B; ++j) {
-        int s = first + k + (j < m ? j : m - 1);
-        if (L) s = L[s];
-        const wp::vec2i e = S[s];
-        const wp::vec3 x1 = X[e[0]], x2 = X[e[1]], v1 = V[e[0]], v2 = V[e[1]];
-        const wp::vec2 r = R[s];
-        a[j] = e[0]; b[j] = e[1];
-        in[0][j] = x2[0] - x1[0]; in[1][j] = x2[1] - x1[1]; in[2][j] = x2[2] - x1[2];
-        in[3][j] = v2[0] - v1[0]; in[4][j] = v2[1] - v1[1]; in[5][j] = v2[2] - v1[2];
-        in[6][j] = r[0]; in[7][j] = r[1];
-    }
     for (int j = 0; j < B; j += 8) {
-        f8 dx, dy, dz, wx, wy, wz, rest, y;
-        __builtin_memcpy(&dx, &in[0][j], 32); __builtin_memcpy(&dy, &in[1][j], 32);
-        __builtin_memcpy(&dz, &in[2][j], 32); __builtin_memcpy(&wx, &in[3][j], 32);
-        __builtin_memcpy(&wy, &in[4][j], 32); __builtin_memcpy(&wz, &in[5][j], 32);
-        __builtin_memcpy(&rest, &in[6][j], 32); __builtin_memcpy(&y, &in[7][j], 32);
+        alignas(32) float rr[8], yy[8];
+        bool padded = false;  // a spring of the group touches the last particle
+        _Pragma("clang loop vectorize(disable) interleave(disable) unroll(full)")
+        for (int i = 0; i < 8; ++i) {
+            int s = first + k + (j + i < m ? j + i : m - 1);
+            if (L) s = L[s];
+            const wp::vec2i e = S[s];
+            const wp::vec2 r = R[s];
+            a[j + i] = e[0]; b[j + i] = e[1];
+            rr[i] = r[0]; yy[i] = r[1];
+            padded |= (e[0] == last) | (e[1] == last);
+        }
+        f8 d[8];  // per spring: x2 - x1 in lanes 0-2, v2 - v1 in lanes 4-6
+        if (!padded) {
+            _Pragma("clang loop vectorize(disable) interleave(disable) unroll(full)")
+            for (int i = 0; i < 8; ++i) {
+                f4 x1, x2, v1, v2;
+                __builtin_memcpy(&x1, X + 3 * a[j + i], 16); __builtin_memcpy(&x2, X + 3 * b[j + i], 16);
+                __builtin_memcpy(&v1, V + 3 * a[j + i], 16); __builtin_memcpy(&v2, V + 3 * b[j + i], 16);
+                d[i] = __builtin_shufflevector(x2 - x1, v2 - v1, 0, 1, 2, 3, 4, 5, 6, 7);
+            }
+        } else {
+            for (int i = 0; i < 8; ++i) {
+                const int p = a[j + i], q = b[j + i];
+                f4 x1, x2, v1, v2;
+                __builtin_memcpy(&x1, p == last ? xl : X + 3 * p, 16);
+                __builtin_memcpy(&x2, q == last ? xl : X + 3 * q, 16);
+                __builtin_memcpy(&v1, p == last ? vl : V + 3 * p, 16);
+                __builtin_memcpy(&v2, q == last ? vl : V + 3 * q, 16);
+                d[i] = __builtin_shufflevector(x2 - x1, v2 - v1, 0, 1, 2, 3, 4, 5, 6, 7);
+            }
+        }
+        // the 8x8 transpose of d, its rows 0-2 and 4-6 only
+        const f8 t0 = __builtin_shufflevector(d[0], d[1], 0, 8, 1, 9, 4, 12, 5, 13);
+        const f8 t1 = __builtin_shufflevector(d[0], d[1], 2, 10, 3, 11, 6, 14, 7, 15);
+        const f8 t2 = __builtin_shufflevector(d[2], d[3], 0, 8, 1, 9, 4, 12, 5, 13);
+        const f8 t3 = __builtin_shufflevector(d[2], d[3], 2, 10, 3, 11, 6, 14, 7, 15);
+        const f8 t4 = __builtin_shufflevector(d[4], d[5], 0, 8, 1, 9, 4, 12, 5, 13);
+        const f8 t5 = __builtin_shufflevector(d[4], d[5], 2, 10, 3, 11, 6, 14, 7, 15);
+        const f8 t6 = __builtin_shufflevector(d[6], d[7], 0, 8, 1, 9, 4, 12, 5, 13);
+        const f8 t7 = __builtin_shufflevector(d[6], d[7], 2, 10, 3, 11, 6, 14, 7, 15);
+        const f8 u0 = __builtin_shufflevector(t0, t2, 0, 1, 8, 9, 4, 5, 12, 13);
+        const f8 u1 = __builtin_shufflevector(t0, t2, 2, 3, 10, 11, 6, 7, 14, 15);
+        const f8 u2 = __builtin_shufflevector(t1, t3, 0, 1, 8, 9, 4, 5, 12, 13);
+        const f8 u4 = __builtin_shufflevector(t4, t6, 0, 1, 8, 9, 4, 5, 12, 13);
+        const f8 u5 = __builtin_shufflevector(t4, t6, 2, 3, 10, 11, 6, 7, 14, 15);
+        const f8 u6 = __builtin_shufflevector(t5, t7, 0, 1, 8, 9, 4, 5, 12, 13);
+        const f8 dx = __builtin_shufflevector(u0, u4, 0, 1, 2, 3, 8, 9, 10, 11);
+        const f8 wx = __builtin_shufflevector(u0, u4, 4, 5, 6, 7, 12, 13, 14, 15);
+        const f8 dy = __builtin_shufflevector(u1, u5, 0, 1, 2, 3, 8, 9, 10, 11);
+        const f8 wy = __builtin_shufflevector(u1, u5, 4, 5, 6, 7, 12, 13, 14, 15);
+        const f8 dz = __builtin_shufflevector(u2, u6, 0, 1, 2, 3, 8, 9, 10, 11);
+        const f8 wz = __builtin_shufflevector(u2, u6, 4, 5, 6, 7, 12, 13, 14, 15);
+        f8 rest, y;
+        __builtin_memcpy(&rest, rr, 32); __builtin_memcpy(&y, yy, 32);
         const f8 len = __builtin_elementwise_sqrt(dx * dx + dy * dy + dz * dz);
         const f8 eps = 1e-6f, zero = 0.0f;
         const f8 norm = len >= eps ? len : eps;
