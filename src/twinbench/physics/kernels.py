@@ -517,6 +517,131 @@ def compute_drag_factor(dt: float, drag: float, out: wp.array(dtype=float)):
     out[0] = drag_factor_of(dt, drag)
 
 
+# CPU only: `velocity_update` of particles [p0, p1) into v_star, 8 particles per SIMD instruction: their 24
+# force and velocity components read as three 8-float rows, masses and gravity repeated to match
+# (m0 m0 m0 m1 ..., gx gy gz gx ...), the same IEEE operations in the same order (no contraction: the same
+# floats), then the forces zeroed for the next substep's scatter. A particle's divisions by its mass were
+# most of a one-thread loop's time.
+_VELOCITIES_CPU = r"""
+#if !defined(__CUDA_ARCH__)
+{
+_Pragma("clang fp contract(off)")
+typedef float f8 __attribute__((ext_vector_type(8)));
+const float* Fr = (const float*)f_acc.data;
+float* Fw = (float*)f_acc.data;
+const float* Vr = (const float*)v.data;
+const float* M = (const float*)masses.data;
+float* VS = (float*)v_star.data;
+const float g[3] = {gravity[0], gravity[1], gravity[2]};
+const f8 ga = {g[0], g[1], g[2], g[0], g[1], g[2], g[0], g[1]};
+const f8 gb = {g[2], g[0], g[1], g[2], g[0], g[1], g[2], g[0]};
+const f8 gc = {g[1], g[2], g[0], g[1], g[2], g[0], g[1], g[2]};
+alignas(32) const float zeros[24] = {};
+int i = p0;
+for (; i + 8 <= p1; i += 8) {
+    f8 m, f[3], w[3], out[3];
+    __builtin_memcpy(&m, M + i, 32);
+    const f8 ma = __builtin_shufflevector(m, m, 0, 0, 0, 1, 1, 1, 2, 2);
+    const f8 mb = __builtin_shufflevector(m, m, 2, 3, 3, 3, 4, 4, 4, 5);
+    const f8 mc = __builtin_shufflevector(m, m, 5, 5, 6, 6, 6, 7, 7, 7);
+    __builtin_memcpy(f, Fr + 3 * i, 96);
+    __builtin_memcpy(w, Vr + 3 * i, 96);
+    out[0] = (w[0] + ((f[0] + ma * ga) / ma) * dt) * drag_factor;
+    out[1] = (w[1] + ((f[1] + mb * gb) / mb) * dt) * drag_factor;
+    out[2] = (w[2] + ((f[2] + mc * gc) / mc) * dt) * drag_factor;
+    __builtin_memcpy(VS + 3 * i, out, 96);
+    __builtin_memcpy(Fw + 3 * i, zeros, 96);
+}
+for (; i < p1; ++i) {
+    const float m = M[i];
+    for (int c = 0; c < 3; ++c) {
+        VS[3 * i + c] = (Vr[3 * i + c] + ((Fr[3 * i + c] + m * g[c]) / m) * dt) * drag_factor;
+        Fw[3 * i + c] = 0.0f;
+    }
+}
+}
+#endif
+"""
+
+
+@wp.func_native(_VELOCITIES_CPU)
+def _velocities_cpu(
+    v: wp.array(dtype=wp.vec3),
+    f_acc: wp.array(dtype=wp.vec3),
+    masses: wp.array(dtype=float),
+    gravity: wp.vec3,
+    dt: float,
+    drag_factor: float,
+    p0: int,
+    p1: int,
+    v_star: wp.array(dtype=wp.vec3),
+): ...
+
+
+# CPU only: `finish_particle` of particles [p0, p1) that are outside every mesh box of their world and do
+# not reach the ground this substep (no contact: the position moves with v_star, ground_integrate's
+# expression with toi = 0, the same floats); the others are listed in ascending order from pending[p0] on
+# (-1 after the last) for `finish_particle` itself. A one-thread Warp loop spent most of its time reading
+# the contact struct's arrays for particles far from any contact.
+_FINISH_FREE_CPU = r"""
+#if !defined(__CUDA_ARCH__)
+{
+_Pragma("clang fp contract(off)")
+const wp::vec3* X = (const wp::vec3*)x.data;
+const wp::vec3* VS = (const wp::vec3*)v_star.data;
+const int* PW = (const int*)particle_world.data;
+const int* WMS = (const int*)world_mesh_start.data;
+const wp::vec3* LO = (const wp::vec3*)mesh_lo.data;
+const wp::vec3* HI = (const wp::vec3*)mesh_hi.data;
+wp::vec3* XO = (wp::vec3*)x_out.data;
+wp::vec3* VO = (wp::vec3*)v_out.data;
+int* P = (int*)pending.data;
+int c = p0;
+for (int i = p0; i < p1; ++i) {
+    const wp::vec3 xp = X[i], vp = VS[i];
+    bool contact = false;
+    if (meshes > 0) {
+        const int w = PW[i];
+        for (int k = WMS[w]; k < WMS[w + 1]; ++k) {
+            const wp::vec3 lo = LO[k], hi = HI[k];
+            if (!(xp[0] < lo[0] || xp[1] < lo[1] || xp[2] < lo[2] || xp[0] > hi[0] || xp[1] > hi[1]
+                  || xp[2] > hi[2])) { contact = true; break; }
+        }
+    }
+    if (!contact && ground != 0) {
+        const float next_z = xp[2] + vp[2] * dt;
+        contact = next_z < 0.0f && vp[2] < -1.0e-4f;
+    }
+    if (contact) { P[c++] = i; continue; }
+    const float toi = 0.0f;
+    for (int d = 0; d < 3; ++d) XO[i][d] = xp[d] + vp[d] * toi + vp[d] * (dt - toi);
+    VO[i] = vp;
+}
+if (c < p1) P[c] = -1;
+}
+#endif
+"""
+
+
+@wp.func_native(_FINISH_FREE_CPU)
+def _finish_free_cpu(
+    x: wp.array(dtype=wp.vec3),
+    v_star: wp.array(dtype=wp.vec3),
+    dt: float,
+    meshes: int,
+    particle_world: wp.array(dtype=int),
+    world_mesh_start: wp.array(dtype=int),
+    mesh_lo: wp.array(dtype=wp.vec3),
+    mesh_hi: wp.array(dtype=wp.vec3),
+    ground: int,
+    p0: int,
+    p1: int,
+    x_out: wp.array(dtype=wp.vec3),
+    v_out: wp.array(dtype=wp.vec3),
+    pending: wp.array(dtype=int),
+): ...
+
+
 @wp.kernel(enable_backward=False)
 def integrate_scattered(
     x: wp.array(dtype=wp.vec3),
@@ -530,23 +655,26 @@ def integrate_scattered(
     cp: ContactParams,
     p0: int,
     p1: int,
+    pending: wp.array(dtype=int),
     v_star: wp.array(dtype=wp.vec3),
     x_out: wp.array(dtype=wp.vec3),
     v_out: wp.array(dtype=wp.vec3),
 ):
     """CPU only, one thread: `particle_update` of particles [p0, p1) in order, for forces scattered into
     ``f_acc`` (read, then zeroed for the next substep's scatter), with the drag factor computed once (by
-    `compute_drag_factor`: the same float) instead of per particle. (One looping thread: Warp's CPU code
-    copies a kernel's arguments, the contact struct included, for every thread.)"""
-    for tid in range(p0, p1):
-        f = f_acc[tid]
-        f_acc[tid] = wp.vec3(0.0, 0.0, 0.0)
-        m = masses[tid]
-        vs = velocity_update(v[tid], f, m, gravity, dt, drag_factor)
-        if finish != 0:
-            finish_particle(tid, x[tid], vs, m, dt, cp, x_out, v_out)
-        else:
-            v_star[tid] = vs
+    `compute_drag_factor`: the same float) instead of per particle. The velocities go to ``v_star`` (see
+    _VELOCITIES_CPU), then, with ``finish``, contacts and positions to ``x_out``/``v_out`` (``pending``, one
+    int per particle, lists those near a contact: see _FINISH_FREE_CPU). (One looping
+    thread: Warp's CPU code copies a kernel's arguments, the contact struct included, for every thread.)"""
+    _velocities_cpu(v, f_acc, masses, gravity, dt, drag_factor, p0, p1, v_star)
+    if finish != 0:
+        _finish_free_cpu(x, v_star, dt, cp.mesh_ids.shape[0], cp.particle_world, cp.world_mesh_start,
+                         cp.mesh_lo, cp.mesh_hi, cp.ground, p0, p1, x_out, v_out, pending)
+        for k in range(p0, p1):
+            tid = pending[k]
+            if tid < 0:
+                break
+            finish_particle(tid, x[tid], v_star[tid], masses[tid], dt, cp, x_out, v_out)
 
 
 @wp.func

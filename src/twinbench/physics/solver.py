@@ -59,6 +59,8 @@ class SpringMassSolver:
         n = model.num_particles
         self._spring_f = wp.zeros(model.num_springs, dtype=wp.vec3, device=dev)
         self._no_list = wp.zeros(0, dtype=int, device=dev)
+        # CPU: per particle, the particles near a contact in this process's range (see K.integrate_scattered)
+        self._pending = wp.zeros(n if str(dev).startswith("cpu") else 0, dtype=int, device=dev)
         self._f = wp.zeros(n, dtype=wp.vec3, device=dev)
         self._drag_factors: dict[tuple[float, float], float] = {}  # see _drag_factor (CPU)
         self._gravity = wp.vec3(*[float(g) for g in p.gravity])
@@ -314,7 +316,8 @@ class SpringMassSolver:
         if self._scatter and not grad:
             self._go(K.integrate_scattered, 1,
                      [state_in.x, state_in.v, f, m.masses, self._gravity, float(dt),
-                      self._drag_factor(float(dt), float(p.drag_damping)), int(not collide), cp, p0, p1],
+                      self._drag_factor(float(dt), float(p.drag_damping)), int(not collide), cp, p0, p1,
+                      self._pending],
                      [v_star, state_out.x, state_out.v], ops)
         else:
             self._go(K.particle_update, p1 - p0,
