@@ -45,25 +45,37 @@ def test_each_world_of_a_batch_is_bit_identical_to_the_same_run_alone(threads):
     assert np.abs(solver.mesh_contact_force(mids[1])).max() > 0  # a pusher really pushed
 
 
-def test_cpu_scatter_of_spring_forces_equals_the_per_particle_gather():
+@pytest.mark.parametrize("collisions", [True, False])
+def test_cpu_scatter_of_spring_forces_equals_the_per_particle_gather(collisions):
     """The CPU sums each spring into its ends in one pass; CUDA gathers per particle from per-spring forces.
     Both add in spring order: the gather path run on CPU gives the same trajectory and contact forces,
-    bit for bit (two worlds, control springs, self-collision, static and moving meshes)."""
+    bit for bit (three worlds, control springs, self-collision or none, static and moving meshes, the third
+    world falling off the box onto the ground). Without collisions the scatter path's native finish (particles
+    far from contacts moved outside Warp) meets the gather path's Warp loop; with them, the collision stage's
+    native finish runs against its Warp loop (``_pending`` empty, as on CUDA)."""
     runs = []
-    for scatter in (True, False):
-        b, mid, _ = _builder()
-        model = b.finalize(num_worlds=2)
+    for scatter, native in ((True, True), (False, True), (True, False)):
+        b, mid, _ = _builder(collisions)
+        model = b.finalize(num_worlds=3)
         solver = SpringMassSolver(model, threads=1)
-        assert solver._scatter
+        assert solver._scatter and solver._collide == collisions
         solver._scatter = scatter
+        if not native:
+            if not collisions:
+                continue  # the scatter path's integration always lists its pending particles
+            solver._pending = wp.zeros(0, dtype=int, device=solver.device)
         pusher = model.meshes[mid].vertices.astype(np.float64)
-        mids = [mid, mid + model.meshes_per_world]
-        x = _drive(model, solver, model.state(), model.control(), mids, [(0, 0, 0), (0.004, -0.01, 0.01)],
-                   pusher, 8, [0.006, 0.004])
-        runs.append((x, [solver.mesh_contact_force(k, per_face=True) for k in range(4)]))
+        mids = [mid + w * model.meshes_per_world for w in range(3)]
+        x = _drive(model, solver, model.state(), model.control(), mids,
+                   [(0, 0, 0), (0.004, -0.01, 0.01), (0.25, 0.0, 0.0)], pusher, 8, [0.006, 0.004, 0.0])
+        runs.append((x, [solver.mesh_contact_force(k, per_face=True) for k in range(6)]))
+    nw = model.particles_per_world
     assert np.abs(runs[0][0][-1] - runs[0][0][0]).max() > 0.005
-    for a, b in zip(runs[0][0] + runs[0][1], runs[1][0] + runs[1][1], strict=True):
-        np.testing.assert_array_equal(a, b)
+    assert runs[0][0][-1][2 * nw:, 2].min() < 0.01  # the third world reached the ground
+    assert max(np.abs(f).max() for f in runs[0][1]) > 0  # and the meshes felt contacts
+    for other in runs[1:]:
+        for a, b in zip(runs[0][0] + runs[0][1], other[0] + other[1], strict=True):
+            np.testing.assert_array_equal(a, b)
 
 
 @pytest.mark.parametrize("listed", [False, True])

@@ -578,11 +578,12 @@ def _velocities_cpu(
 ): ...
 
 
-# CPU only: `finish_particle` of particles [p0, p1) that are outside every mesh box of their world and do
-# not reach the ground this substep (no contact: the position moves with v_star, ground_integrate's
-# expression with toi = 0, the same floats); the others are listed in ascending order from pending[p0] on
-# (-1 after the last) for `finish_particle` itself. A one-thread Warp loop spent most of its time reading
-# the contact struct's arrays for particles far from any contact.
+# CPU only: `finish_particle` of particles [p0, p1) that have no collision candidate (with `candidates`:
+# cand_count[i] == 0), are outside every mesh box of their world and do not reach the ground this substep
+# (no contact: the position moves with v_star, ground_integrate's expression with toi = 0, the same floats);
+# the others are listed in ascending order from pending[p0] on (-1 after the last) for the Warp code. A
+# one-thread Warp loop spent most of its time reading the contact struct's arrays for particles far from
+# any contact.
 _FINISH_FREE_CPU = r"""
 #if !defined(__CUDA_ARCH__)
 {
@@ -596,11 +597,12 @@ const wp::vec3* HI = (const wp::vec3*)mesh_hi.data;
 wp::vec3* XO = (wp::vec3*)x_out.data;
 wp::vec3* VO = (wp::vec3*)v_out.data;
 int* P = (int*)pending.data;
+const int* CC = (const int*)cand_count.data;
 int c = p0;
 for (int i = p0; i < p1; ++i) {
     const wp::vec3 xp = X[i], vp = VS[i];
-    bool contact = false;
-    if (meshes > 0) {
+    bool contact = candidates != 0 && CC[i] > 0;
+    if (!contact && meshes > 0) {
         const int w = PW[i];
         for (int k = WMS[w]; k < WMS[w + 1]; ++k) {
             const wp::vec3 lo = LO[k], hi = HI[k];
@@ -628,6 +630,8 @@ def _finish_free_cpu(
     x: wp.array(dtype=wp.vec3),
     v_star: wp.array(dtype=wp.vec3),
     dt: float,
+    candidates: int,
+    cand_count: wp.array(dtype=int),
     meshes: int,
     particle_world: wp.array(dtype=int),
     world_mesh_start: wp.array(dtype=int),
@@ -668,8 +672,10 @@ def integrate_scattered(
     thread: Warp's CPU code copies a kernel's arguments, the contact struct included, for every thread.)"""
     _velocities_cpu(v, f_acc, masses, gravity, dt, drag_factor, p0, p1, v_star)
     if finish != 0:
-        _finish_free_cpu(x, v_star, dt, cp.mesh_ids.shape[0], cp.particle_world, cp.world_mesh_start,
-                         cp.mesh_lo, cp.mesh_hi, cp.ground, p0, p1, x_out, v_out, pending)
+        # no collision stage: no candidates (`pending` stands in for the unread cand_count)
+        _finish_free_cpu(x, v_star, dt, 0, pending, cp.mesh_ids.shape[0], cp.particle_world,
+                         cp.world_mesh_start, cp.mesh_lo, cp.mesh_hi, cp.ground, p0, p1, x_out, v_out,
+                         pending)
         for k in range(p0, p1):
             tid = pending[k]
             if tid < 0:
@@ -712,6 +718,28 @@ def pair_impulse(
     return hit, j_n, j_t
 
 
+@wp.func
+def collide_particle(
+    tid: int, x: wp.array(dtype=wp.vec3), v_star: wp.array(dtype=wp.vec3), masses: wp.array(dtype=float),
+    masks: wp.array(dtype=int), collision_dist: float, e: float, mu: float, cand: wp.array2d(dtype=int),
+    cand_count: wp.array(dtype=int), dt: float, cp: ContactParams, x_out: wp.array(dtype=wp.vec3),
+    v_out: wp.array(dtype=wp.vec3),
+):
+    """`collide_and_finish` of one particle."""
+    v1 = v_star[tid]
+    m1 = masses[tid]
+    valid = float(0.0)  # noqa: UP018 (Warp needs a typed dynamic variable)
+    j_sum = wp.vec3(0.0, 0.0, 0.0)
+    for k in range(cand_count[tid]):
+        hit, j_n, j_t = pair_impulse(x, v_star, masses, masks, collision_dist, e, mu, tid, cand[tid, k])
+        if hit > 0.0:
+            valid = valid + 1.0
+            j_sum = j_sum + j_n + j_t
+    if valid > 0.0:
+        v1 = v1 - (j_sum / valid) / m1
+    finish_particle(tid, x[tid], v1, m1, dt, cp, x_out, v_out)
+
+
 @wp.kernel(enable_backward=False)
 def collide_and_finish(
     x: wp.array(dtype=wp.vec3),
@@ -726,29 +754,35 @@ def collide_and_finish(
     p0: int,
     p1: int,
     per_thread: int,
+    pending: wp.array(dtype=int),
     x_out: wp.array(dtype=wp.vec3),
     v_out: wp.array(dtype=wp.vec3),
 ):
     """Particle-particle impulses averaged over the counted pairs (PhysTwin), then meshes, ground, x, for
     particles [p0, p1): thread i serves ``per_thread`` of them in order from p0 + i * per_thread (CUDA: 1;
-    CPU: all, in one thread, see `integrate_scattered`). (Not differentiable: the loop carries its sums;
-    the taped path uses `pair_impulses` + `apply_impulses`, which add in the same order.)"""
+    CPU: all, in one thread, see `integrate_scattered`, with ``pending`` one int per particle: particles
+    without a candidate or other contact are moved natively, see _FINISH_FREE_CPU; CUDA: ``pending``
+    empty).
+    (Not differentiable: the loop carries its sums; the taped path uses `pair_impulses` + `apply_impulses`,
+    which add in the same order.)"""
     i0 = p0 + wp.tid() * per_thread
+    i1 = wp.min(i0 + per_thread, p1)
     e = wp.clamp(cp.coeffs[2], 0.0, 1.0)
     mu = wp.clamp(cp.coeffs[3], 0.0, 2.0)
-    for tid in range(i0, wp.min(i0 + per_thread, p1)):
-        v1 = v_star[tid]
-        m1 = masses[tid]
-        valid = float(0.0)  # noqa: UP018 (Warp needs a typed dynamic variable)
-        j_sum = wp.vec3(0.0, 0.0, 0.0)
-        for k in range(cand_count[tid]):
-            hit, j_n, j_t = pair_impulse(x, v_star, masses, masks, collision_dist, e, mu, tid, cand[tid, k])
-            if hit > 0.0:
-                valid = valid + 1.0
-                j_sum = j_sum + j_n + j_t
-        if valid > 0.0:
-            v1 = v1 - (j_sum / valid) / m1
-        finish_particle(tid, x[tid], v1, m1, dt, cp, x_out, v_out)
+    if pending.shape[0] > 0:
+        _finish_free_cpu(x, v_star, dt, 1, cand_count, cp.mesh_ids.shape[0], cp.particle_world,
+                         cp.world_mesh_start, cp.mesh_lo, cp.mesh_hi, cp.ground, i0, i1, x_out, v_out,
+                         pending)
+        for k in range(i0, i1):
+            tid = pending[k]
+            if tid < 0:
+                break
+            collide_particle(tid, x, v_star, masses, masks, collision_dist, e, mu, cand, cand_count, dt, cp,
+                             x_out, v_out)
+    else:
+        for tid in range(i0, i1):
+            collide_particle(tid, x, v_star, masses, masks, collision_dist, e, mu, cand, cand_count, dt, cp,
+                             x_out, v_out)
 
 
 @wp.kernel

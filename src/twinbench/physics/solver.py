@@ -339,7 +339,8 @@ class SpringMassSolver:
             args = [state_in.x, v_star, m.masses, m.masks, float(p.collision_dist), buf.cand,
                     buf.cand_count, float(dt), cp]
             threads, per = (1, p1 - p0) if self._scatter else (p1 - p0, 1)  # CPU: one thread for the part
-            self._go(K.collide_and_finish, threads, [*args, p0, p1, per], [state_out.x, state_out.v], ops)
+            self._go(K.collide_and_finish, threads, [*args, p0, p1, per, self._pending],
+                     [state_out.x, state_out.v], ops)
         if sync is not None:
             ops.append(sync)  # the next substep reads every particle
 
