@@ -59,8 +59,6 @@ class SpringMassSolver:
         n = model.num_particles
         self._spring_f = wp.zeros(model.num_springs, dtype=wp.vec3, device=dev)
         self._no_list = wp.zeros(0, dtype=int, device=dev)
-        # CPU: per particle, the particles near a contact in this process's range (see K.integrate_scattered)
-        self._pending = wp.zeros(n if str(dev).startswith("cpu") else 0, dtype=int, device=dev)
         self._f = wp.zeros(n, dtype=wp.vec3, device=dev)
         self._drag_factors: dict[tuple[float, float], float] = {}  # see _drag_factor (CPU)
         self._gravity = wp.vec3(*[float(g) for g in p.gravity])
@@ -68,6 +66,8 @@ class SpringMassSolver:
         # CPU: spring forces scattered to their ends in one sequential pass per thread or process (same sums,
         # same order as the per-particle gather that the parallel CUDA launch uses)
         self._scatter = str(dev).startswith("cpu")
+        # CPU: per particle, the particles near a contact in this process's range (see K.integrate_scattered)
+        self._pending = wp.zeros(n if self._scatter else 0, dtype=int, device=dev)
         if self._scatter:  # the drag factor of the model's parameters, outside any capture
             self._drag_factor(float(p.dt), float(p.drag_damping))
         nm = len(model.meshes)
