@@ -8,11 +8,13 @@ Prints `name value unit` lines per case and the spread:
   error of the noise-free truth against the noisy tracks: what a perfect fit scores);
 - Spearman rank correlation of the stiffness with the truth, like with like: per fitted region (stage 2
   fits one value per spatial region by default), the fit's value against the truth's geometric mean
-  over the same springs (per spring when the fit is per spring); the per-spring figure is printed too,
-  and beside them the figure over the regions the motion constrains (``SysIdResult.
-  region_identifiability``: log-Y standard deviation from the tracks' Fisher information under
-  ``REGION_STD``; NaN, left out of the spread, where fewer than 3 regions are constrained or their truth
-  is one value);
+  over the same springs (per spring when the fit is per spring); the per-spring figure is printed too
+  (comparable between fits with different region counts); a fit that left the stiffness uniform ranks
+  0 (its region means differ by float rounding alone, which must not rank), and both are in the JSON
+  rows (``fit_regions``, ``truth_regions``: mean log Y per region); beside them the figure over the
+  regions the motion constrains (``SysIdResult.region_identifiability``: log-Y standard deviation from the
+  tracks' Fisher information under ``REGION_STD``; NaN, left out of the spread, where fewer than 3 regions
+  are constrained or their truth is one value);
 - ground friction error where the motion slides, restitution error where it hits the ground, how many
   within 0.15, and the same over the cases whose fit calls the value constrained by the motion
   (``SysIdResult.identifiability``: what a user's report says; elsewhere the value is a guess), and the
@@ -53,18 +55,18 @@ SHOWN_MM = 0.5
 motion by at least this RMS distance (half the tracks' per-axis noise; `contact_effect`)"""
 
 
-def _rank(fit: list[float], truth: list[float]) -> float:
-    """Spearman correlation; NaN where the truth is one value (nothing to rank), 0 where the fit is."""
+def _rank(fit, truth) -> float:
+    """Spearman correlation; NaN where the truth is one value (nothing to rank), 0 where the fit is (within
+    1e-6 in log Y: a uniform fit's region means differ by float32 rounding, which must not rank)."""
     from scipy.stats import spearmanr
 
+    fit, truth = np.asarray(fit, np.float64), np.asarray(truth, np.float64)
     if np.ptp(truth) == 0:
         return float("nan")
-    return float(spearmanr(fit, truth).statistic) if np.ptp(fit) > 0 else 0.0
+    return float(spearmanr(fit, truth).statistic) if np.ptp(fit) > 1e-6 else 0.0
 
 
 def run_case(i: int, seed: int) -> dict:
-    from scipy.stats import spearmanr
-
     from twinbench._runtime import quiet_warp
     from twinbench.construct.sysid_family import contact_effect, family_case
     from twinbench.physics.sysid import FitConfig, identify
@@ -79,8 +81,8 @@ def run_case(i: int, seed: int) -> dict:
     n = res.model.num_object_springs
     region = res.regions[:n] if res.regions is not None else np.zeros(n, np.int64)
     ids = np.unique(region)
-    fit_r = [float(np.mean(res.log_y[:n][region == r])) for r in ids]
-    truth_r = [float(np.mean(truth["log_y"][:n][region == r])) for r in ids]
+    fit_r = [float(np.mean(res.log_y[:n][region == r], dtype=np.float64)) for r in ids]
+    truth_r = [float(np.mean(truth["log_y"][:n][region == r], dtype=np.float64)) for r in ids]
     # the regions whose stiffness the fitted motion constrains (SysIdResult.region_identifiability)
     info = res.region_identifiability.get("regions", [])[: len(ids)] if res.regions is not None else []
     con = [j for j, row in enumerate(info) if row["constrained"]]
@@ -91,11 +93,12 @@ def run_case(i: int, seed: int) -> dict:
     out = {"case": data.name, "pattern": truth["pattern"], "seconds": time.perf_counter() - t0,
            "val_initial": res.evals["initial"].val_error, "val_stage1": res.evals["stage1"].val_error,
            "val_final": res.evals["final"].val_error, "floor": floor,
-           "spearman": float(spearmanr(fit_r, truth_r).statistic) if len(ids) > 2 else float("nan"),
+           "spearman": _rank(fit_r, truth_r) if len(ids) > 2 else float("nan"),
            "regions": len(ids), "constrained": len(con),
            "spearman_constrained": _rank([fit_r[j] for j in con], [truth_r[j] for j in con])
            if len(con) > 2 else float("nan"),
-           "spearman_springs": float(spearmanr(res.log_y[:n], truth["log_y"][:n]).statistic),
+           "spearman_springs": _rank(res.log_y[:n], truth["log_y"][:n]),
+           "fit_regions": fit_r, "truth_regions": truth_r,
            "slides": truth["slides"], "impacts": truth["impacts"], "notes": res.notes,
            "evaluations": len(res.stage1_history), "epochs": len(res.stage2_history) - 1,
            "kept": res.selection.get("kept", "final"),
