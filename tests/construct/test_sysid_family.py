@@ -127,9 +127,10 @@ def test_family_with_default_options():
 @pytest.mark.slow
 def test_the_second_start_rescues_the_irregular_lift():
     """Family seed 1's irregular lift (the hand holds 6 particles within 1.5 cm): from stage 1 as set, the
-    stages end attached to much of the blob and validate at ~9x the noise floor; the start that scores the
-    attachment grid in stage 1 tracks the training frames better, is kept, and validates within 3.5x of
-    the floor (2.9x measured; ~2 minutes)."""
+    stages end attached to much of the blob (training frames 7.9 mm) and validate at 17x the noise floor;
+    the start that scores the attachment grid in stage 1 tracks the training frames better (3.5 mm), is
+    kept, and validates at under half the first start's error (6.6x the floor measured with the default 4
+    stiffness regions; 2.9x with the earlier 8, whose first start was at 9x; ~2 minutes)."""
     data, truth = family_case(7, 1)
     one = identify(data, FitConfig(progress=False, attachment_starts=False), log=lambda _m: None)
     two = identify(data, FitConfig(progress=False), log=lambda _m: None)
@@ -140,7 +141,8 @@ def test_the_second_start_rescues_the_irregular_lift():
     floor = np.mean([np.linalg.norm(truth["positions"][k][m] - data.tracked[k][m], axis=1).mean()
                      for k in val for m in [data.motion_valid[k]]])
     assert one.evals["final"].val_error > 6.0 * floor
-    assert two.evals["final"].val_error < 3.5 * floor
+    assert two.evals["final"].train_error < 0.6 * one.evals["final"].train_error
+    assert two.evals["final"].val_error < 0.5 * one.evals["final"].val_error
 
 
 def test_a_drop_keeps_the_restitution_measured_from_its_bounce():
