@@ -332,6 +332,40 @@ def test_region_information_finds_every_region_of_a_two_handed_lift_constrained(
     assert sum(row["springs"] for row in info["regions"]) == model.num_springs
 
 
+def test_region_std_is_cluster_robust_where_a_track_shares_its_error():
+    """A linear model whose errors are one value per cluster of 16 rows (a track's model error drawn out
+    over its frames), rows of a cluster alike (a point's sensitivity changes slowly over the frames): the
+    estimate's spread, by Monte Carlo, is about 4x (sqrt 16) the independent-noise Fisher figure; the
+    cluster-robust figure from one draw's residual recovers it, and with independent errors both agree."""
+    from twinbench.physics.sysid import _region_std
+
+    rng = np.random.default_rng(3)
+    n_c, m = 120, 16
+    a = rng.normal(size=(n_c, 2))
+    jac = np.repeat(a, m, axis=0) + 0.1 * rng.normal(size=(n_c * m, 2))
+    clusters = np.repeat(np.arange(n_c), m)
+    pinv = np.linalg.pinv(jac)
+
+    def draw(shared: bool) -> np.ndarray:
+        e = np.repeat(rng.normal(size=n_c), m) if shared else rng.normal(size=n_c * m)
+        return e + 0.1 * rng.normal(size=n_c * m)
+
+    for shared in (True, False):
+        errors = [draw(shared) for _ in range(400)]
+        spread = np.std([pinv @ e for e in errors], axis=0)  # the estimate's true spread
+        fits = []
+        for e in errors[:50]:
+            r = e - jac @ (pinv @ e)  # the fit's residual
+            s2 = float(np.mean(r * r))
+            fits.append((_region_std(jac, s2), _region_std(jac, s2, r, clusters)))
+        white, robust = np.median([f[0] for f in fits], axis=0), np.median([f[1] for f in fits], axis=0)
+        np.testing.assert_allclose(robust, spread, rtol=0.25)
+        if shared:
+            assert np.all(white < 0.4 * spread), (white, spread)
+        else:
+            np.testing.assert_allclose(white, spread, rtol=0.2)
+
+
 def test_a_motion_that_strains_nothing_constrains_no_stiffness_region():
     """The held-out family's rope drop (it lands without deforming): at the true parameters no region's
     stiffness is constrained by the motion (the benchmark's 'constrained regions' figure leaves it out)."""

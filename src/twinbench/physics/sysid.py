@@ -880,6 +880,12 @@ def _track_vector(xs: np.ndarray, data: SysIdData, frames) -> np.ndarray:
     return np.concatenate([p.ravel() for p in parts]) if parts else np.zeros(0)
 
 
+def _track_ids(data: SysIdData, frames) -> np.ndarray:
+    """Which track each entry of :func:`_track_vector` belongs to (its index in ``data.tracked``)."""
+    parts = [np.repeat(np.flatnonzero(data.motion_valid[k]), 3) for k in frames]
+    return np.concatenate(parts) if parts else np.zeros(0, np.int64)
+
+
 def _region_jacobian(model: SpringMassModel, data: SysIdData, region: np.ndarray, frames: list[int],
                      delta: float, solver: SpringMassSolver) -> tuple[np.ndarray, np.ndarray]:
     """(J, r0): the tracking residual ``r0`` (simulated minus observed, :func:`_track_vector`) of a
@@ -917,17 +923,22 @@ def region_information(model: SpringMassModel, data: SysIdData, region: np.ndarr
     is taken by finite differences (:func:`_region_jacobian`); with the fit's own tracking residual as
     the noise (``sigma``, per coordinate), the Fisher information is ``J^T J / sigma^2`` and each region's
     standard deviation (log Y) is the square root of the diagonal of its pseudo-inverse, so a region that
-    trades off against a neighbour is as uncertain as the pair. Returns per region (the last one holds the
-    control springs when the model has them): ``std``, ``constrained`` (``std < std_limit``), ``springs``;
-    plus ``sigma`` (m). ``model``'s stiffness is left as it was. Raises SimulationDiverged if the base
-    rollout diverges."""
-    jac, r0 = _region_jacobian(model, data, region, _fitted_frames(data), delta, SpringMassSolver(model))
+    trades off against a neighbour is as uncertain as the pair. That holds for independent noise; where
+    the model cannot follow the motion (a coarser object than the real one), each track's residual is
+    one error drawn out over the frames, so the standard deviation is also taken cluster-robust with the
+    tracks as clusters (:func:`_region_std`) and the larger of the two is reported. Returns per region
+    (the last one holds the control springs when the model has them): ``std``, ``std_white`` (the
+    independent-noise figure), ``constrained`` (``std < std_limit``), ``springs``; plus ``sigma`` (m).
+    ``model``'s stiffness is left as it was. Raises SimulationDiverged if the base rollout diverges."""
+    frames = _fitted_frames(data)
+    jac, r0 = _region_jacobian(model, data, region, frames, delta, SpringMassSolver(model))
     sigma2 = max(float(np.mean(r0 * r0)) if r0.size else 0.0, 1e-12)
     n_reg = jac.shape[1]
-    std = _region_std(jac, sigma2)
+    white = _region_std(jac, sigma2)
+    std = np.maximum(white, _region_std(jac, sigma2, r0, _track_ids(data, frames)))
     counts = np.bincount(region, minlength=n_reg)
     return {"sigma": math.sqrt(sigma2), "std_limit": std_limit,
-            "regions": [{"springs": int(counts[r]), "std": float(std[r]),
+            "regions": [{"springs": int(counts[r]), "std": float(std[r]), "std_white": float(white[r]),
                          "constrained": bool(std[r] < std_limit)} for r in range(n_reg)]}
 
 
@@ -938,15 +949,27 @@ def by_region(model: SpringMassModel, region: np.ndarray) -> bool:
     return n_reg <= MAX_REGIONS and n_reg < model.num_springs
 
 
-def _region_std(jac: np.ndarray, sigma2: float) -> np.ndarray:
+def _region_std(jac: np.ndarray, sigma2: float, residual: np.ndarray | None = None,
+                clusters: np.ndarray | None = None) -> np.ndarray:
     """Per column of ``jac``: the standard deviation of its parameter from the Fisher information
     ``J^T J / sigma2`` (square root of the pseudo-inverse's diagonal; inf for a column that moves
-    nothing or whose rollout diverged)."""
+    nothing or whose rollout diverged). With ``residual`` and ``clusters`` (a label per row) instead the
+    cluster-robust ("sandwich") figure, ``B M B`` with ``B = (J^T J)^+`` and ``M`` the sum over clusters
+    of ``g g^T``, ``g = J_c^T r_c``: right when the rows of a cluster share their errors (a track's
+    model error over the frames), where the Fisher figure is too narrow by up to the square root of the
+    rows per cluster."""
     std = np.full(jac.shape[1], np.inf)
     ok = np.all(np.isfinite(jac), axis=0)
     if ok.any():
-        fisher = jac[:, ok].T @ jac[:, ok] / max(sigma2, 1e-12)
+        j = jac[:, ok]
+        fisher = j.T @ j / max(sigma2, 1e-12)
         cov = np.linalg.pinv(fisher, rcond=1e-10, hermitian=True)
+        if residual is not None and clusters is not None:
+            _, label = np.unique(clusters, return_inverse=True)
+            g = np.zeros((int(label.max()) + 1 if label.size else 0, j.shape[1]))
+            np.add.at(g, label, j * residual[:, None])
+            bread = cov / max(sigma2, 1e-12)  # (J^T J)^+
+            cov = bread @ (g.T @ g) @ bread
         std[ok] = np.where(np.diag(fisher) > 0, np.sqrt(np.maximum(np.diag(cov), 0.0)), np.inf)
     return std
 
