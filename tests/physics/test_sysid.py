@@ -332,6 +332,19 @@ def test_region_information_finds_every_region_of_a_two_handed_lift_constrained(
     assert sum(row["springs"] for row in info["regions"]) == model.num_springs
 
 
+def test_track_ids_label_each_residual_entry_with_its_track():
+    """The cluster-robust intervals group the residual by track: with every simulated point offset from
+    its observation by its track's index (in x, y and z), the residual vector equals its track labels."""
+    from twinbench.physics.sysid import _track_ids, _track_vector
+
+    data, _ = synthetic_case("rope", seed=0)
+    assert not data.motion_valid.all()  # some entries are dropped, so the labels must skip them too
+    xs = np.zeros((data.num_frames, data.num_particles, 3))
+    xs[:, data.tracked_indices] = data.tracked + np.arange(data.tracked.shape[1])[None, :, None]
+    frames = range(1, data.num_frames)
+    np.testing.assert_allclose(_track_vector(xs, data, frames), _track_ids(data, frames), atol=1e-9)
+
+
 def test_region_std_is_cluster_robust_where_a_track_shares_its_error():
     """A linear model whose errors are one value per cluster of 16 rows (a track's model error drawn out
     over its frames), rows of a cluster alike (a point's sensitivity changes slowly over the frames): the
