@@ -125,24 +125,26 @@ def test_family_with_default_options():
 
 
 @pytest.mark.slow
-def test_the_second_start_rescues_the_irregular_lift():
-    """Family seed 1's irregular lift (the hand holds 6 particles within 1.5 cm): from stage 1 as set, the
-    stages end attached to much of the blob (training frames 7.9 mm) and validate at 17x the noise floor;
-    the start that scores the attachment grid in stage 1 tracks the training frames better (3.5 mm), is
-    kept, and validates at under half the first start's error (6.6x the floor measured with the default 4
-    stiffness regions; 2.9x with the earlier 8, whose first start was at 9x; ~2 minutes)."""
+def test_the_attachment_families_find_the_hand_of_the_irregular_lift():
+    """Family seed 1's irregular lift (the hand holds the 11 particles within 1.5 cm of its two points,
+    at most 6 each): stage 1's search ends attached to other particles (training frames 6.0 mm); scored
+    among the attachment families at its end, the attachment becomes the truth's, and the fit validates
+    at 2.4x the noise floor (before the families: 6.6x after a second start that scored a grid of nine
+    attachments, 17x without it), so no second start is needed (~1 minute)."""
     data, truth = family_case(7, 1)
-    one = identify(data, FitConfig(progress=False, attachment_starts=False), log=lambda _m: None)
-    two = identify(data, FitConfig(progress=False), log=lambda _m: None)
-    starts = two.selection["starts"]
-    assert [s["kept"] for s in starts] == [False, True]
-    assert starts[0]["train_error_m"] == pytest.approx(one.evals["final"].train_error)  # the same first run
+    res = identify(data, FitConfig(progress=False), log=lambda _m: None)
+
+    def held(model) -> set:  # (control point, particle) pairs
+        return {tuple(s) for s in model.springs_np[model.num_object_springs:].tolist()}
+
+    hand = held(build_model(data, truth["params"], SimParams()))
+    assert len(hand) == 11 and held(res.model) == hand
+    assert res.selection["second_start"].startswith("not run")
+    assert res.evals["stage1"].train_error > 1.5 * res.evals["final"].train_error
     val = list(data.val_frames)
     floor = np.mean([np.linalg.norm(truth["positions"][k][m] - data.tracked[k][m], axis=1).mean()
                      for k in val for m in [data.motion_valid[k]]])
-    assert one.evals["final"].val_error > 6.0 * floor
-    assert two.evals["final"].train_error < 0.6 * one.evals["final"].train_error
-    assert two.evals["final"].val_error < 0.5 * one.evals["final"].val_error
+    assert res.evals["final"].val_error < 3.0 * floor
 
 
 def test_a_drop_keeps_the_restitution_measured_from_its_bounce():

@@ -397,48 +397,117 @@ def test_a_motion_that_strains_nothing_constrains_no_stiffness_region():
     assert np.array_equal(model.log_y_np, truth["log_y"].astype(np.float32))  # left as it was
 
 
-def test_stage3_scores_a_grid_of_control_attachments_at_its_start():
-    """The held-out family's irregular lift (the hand holds 6 particles within 1.5 cm of it): from PhysTwin's
-    default attachment (4 cm / 50 neighbours: most of the small blob), the grid of attachments is scored
-    at the start's other values before CMA-ES, each clipped to the search range, and one of them fits the
-    lift better than the start, so the search starts there."""
-    from twinbench.construct.sysid_family import family_case
-    from twinbench.physics.sysid import ATTACHMENTS, stable_substeps, stage1_cma
+def test_attachment_families_enumerate_the_distinct_held_particles():
+    """Two control points over a row of particles at known distances: the radius family has one member per
+    radius at which a control point holds one more particle (within the search range, the count at its
+    top), the count family one per count (the radius at its top); each member's setting holds exactly its
+    particles under the builder's rule, and no two members hold the same ones."""
+    from twinbench.physics.sysid import attachment_families
 
-    data, truth = family_case(7, 1)
+    pts = np.array([[0.012 * i, 0.0, 0.0] for i in range(8)])  # 1.2 cm apart along x
+    controls = np.array([[[-0.005, 0.0, 0.0], [0.089, 0.0, 0.0]]] * 3)  # 5 mm beyond each end
+    data = SysIdData(pts, np.repeat(pts[None], 3, 0), np.ones((3, 8), bool), np.arange(8),
+                     np.repeat(pts[None], 3, 0), np.ones((3, 8), bool), controls, fps=30.0,
+                     validation_frames=1)
+    ranges = parse_ranges(("control_radius=0.01:0.03", "control_max_neighbors=1:4"))
+    by_radius, by_count = attachment_families(data, ranges)
+    # each end holds its particles at 5, 17, 29 mm (ties, as the builder takes them, though the two ends'
+    # distances differ by float rounding): within 1 cm one each, then a second each, a third
+    assert [held for _, held in by_radius] == [2, 4, 6]
+    assert [held for _, held in by_count] == [2, 4, 6]  # 3 cm holds 3 each: counts 3 and 4 hold the same
+    for family in (by_radius, by_count):
+        for setting, held in family:
+            model = build_model(data, replace(GlobalParams(), **setting), SimParams())
+            assert model.num_springs - model.num_object_springs == held
+            assert 0.01 <= setting["control_radius"] <= 0.03 and 1 <= setting["control_max_neighbors"] <= 4
+    assert all(s["control_max_neighbors"] == 4 for s, _ in by_radius)
+    assert all(s["control_radius"] == 0.03 for s, _ in by_count)
+    assert attachment_families(replace(data, controls=np.zeros((3, 0, 3))), ranges) == ()
+
+
+def test_stage3_finds_the_held_particles_among_the_attachment_families():
+    """The held-out family's irregular lift (the hand holds the 7 particles within 1.5 cm of it), the
+    truth's stiffness and contact held, from PhysTwin's default attachment (4 cm / 50 neighbours: most of
+    the small blob, 43x the truth's loss): the families are scored before CMA-ES, which then leaves the
+    attachment alone, and the best member holds the truth's particles or as good a set, at the truth's
+    loss."""
+    from twinbench.construct.sysid_family import family_case
+    from twinbench.physics.sysid import attachment_families, stable_substeps, stage1_cma, stage1_loss
+
+    data, truth = family_case(7, 0)
     assert truth["interaction"] == "lift" and data.num_controls
-    start = replace(truth["params"], spring_Y=float(np.exp(np.median(truth["log_y"]))), control_radius=0.04,
-                    control_max_neighbors=50)
-    n_sub = stable_substeps(build_model(data, start, SimParams()), start.spring_Y, start.dashpot_damping,
-                            data.fps)
+    ly, n_obj = truth["log_y"], len(truth["springs"])
+    hold = (ly[:n_obj], float(ly[n_obj:].mean()))
+    start = replace(truth["params"], control_radius=0.04, control_max_neighbors=50)
+    n_sub = stable_substeps(build_model(data, start, SimParams()), float(np.exp(ly.max())),
+                            start.dashpot_damping, data.fps)
     base = SimParams(dt=1.0 / (data.fps * n_sub), substeps=n_sub)
     search = ("control_radius", "control_max_neighbors", "drag_damping")
-    cfg = CMAConfig(budget=len(ATTACHMENTS), search=search, ranges=("control_max_neighbors=12:80",))
-    best, history = stage1_cma(data, base, start, cfg, log=lambda _m: None, variants=ATTACHMENTS,
+    families = attachment_families(data, parse_ranges(()))
+    cfg = CMAConfig(budget=60, search=search)
+    best, history = stage1_cma(data, base, start, cfg, log=lambda _m: None, attachments=families, hold=hold,
                                stage="stage 3")
-    scored = [(r["params"]["control_radius"], r["params"]["control_max_neighbors"]) for r in history[1:]]
-    grid = [(a["control_radius"], max(a["control_max_neighbors"], 12)) for a in ATTACHMENTS]
-    assert scored == [a for a in grid if a != (0.04, 50)]  # the start itself is not scored again
-    assert all(row["params"]["drag_damping"] == start.drag_damping for row in history)  # only the attachment
-    assert history[-1]["best"] < 0.5 * history[0]["loss"]
-    assert best.control_max_neighbors < 50 and best.control_radius < 0.04
+    tried = {(r["params"]["control_radius"], r["params"]["control_max_neighbors"]) for r in history}
+    settings = {(s["control_radius"], s["control_max_neighbors"]) for f in families for s, _ in f}
+    assert len(tried - settings) == 1  # the start; CMA-ES searched the drag alone
+
+    def held(p: GlobalParams) -> set:  # (control point, particle) pairs
+        m = build_model(data, p, base)
+        return {tuple(s) for s in m.springs_np[m.num_object_springs:].tolist()}
+
+    assert len(held(start)) == 40 and len(held(truth["params"])) == 7
+    truth_loss = stage1_loss(data, truth["params"], base, SequenceLoss(data), hold=hold)
+    assert truth_loss < 0.05 * history[0]["loss"]
+    # the truth's 7 particles or the 8 nearest (4 a point), which fits the noisy tracks as well (6.34e-6
+    # against 6.63e-6); no other attachment of the families comes within 2.5x of the truth's loss
+    assert history[-1]["best"] <= 1.05 * truth_loss and len(held(best)) in (7, 8)
+
+
+def test_attachment_families_walk_from_the_best_coarse_member_to_the_minimum(monkeypatch):
+    """A loss with its minimum between the coarse (log-spaced) members of the radius family: the scoring
+    walks from the best coarse member to it, one member at a time, and stops where the loss rises; with
+    only the attachment searched no CMA-ES follows."""
+    import twinbench.physics.sysid as sysid_module
+    from twinbench.construct.sysid_family import family_case
+
+    data, truth = family_case(7, 0)
+    by_radius, by_count = sysid_module.attachment_families(data, parse_ranges(()))
+    index = {(s["control_radius"], s["control_max_neighbors"]): j for j, (s, _) in enumerate(by_radius)}
+    assert len(by_radius) == 119
+    target = 10  # the 11 coarse members: 0, 1, 3, 5, 8, 13, 20, 31, 49, 76, 118
+
+    def fake_loss(_data, params, *_a, **_k) -> float:
+        j = index.get((params.control_radius, params.control_max_neighbors))
+        return 1.0 + (100.0 if j is None else (j - target) ** 2)
+
+    monkeypatch.setattr(sysid_module, "stage1_loss", fake_loss)
+    start = replace(truth["params"], control_radius=0.04, control_max_neighbors=50)
+    cfg = CMAConfig(budget=100, search=("control_radius", "control_max_neighbors"))
+    best, history = sysid_module.stage1_cma(data, SimParams(), start, cfg, log=lambda _m: None,
+                                            attachments=(by_radius,))
+    assert index[(best.control_radius, best.control_max_neighbors)] == target
+    walked = [index[(r["params"]["control_radius"], r["params"]["control_max_neighbors"])]
+              for r in history[12:]]
+    assert walked == [7, 9, 10, 11]  # down from 8: 7 rises; up: 9, 10, then 11 rises
+    assert len(history) == 1 + 11 + 4
 
 
 @pytest.mark.parametrize("two, over_floor", [(True, 0.0), (False, 0.0), (True, 100.0)])
 def test_stages_run_from_two_starts_and_keep_the_better_tracking(monkeypatch, two, over_floor):
-    """With control points whose attachment is searched, the stages run twice, stage 1 scoring the grid of
-    attachments the second time; the run whose result tracks the training frames best is kept and both
-    are recorded. Off, or when the first run already tracks within `over_floor` x the tracks' noise floor:
-    one run (the record says why)."""
+    """With control points whose attachment is searched, the stages run twice, stage 1 scoring the
+    attachment families after its search the first time and before it the second; the run whose result
+    tracks the training frames best is kept and both are recorded. Off, or when the first run already
+    tracks within `over_floor` x the tracks' noise floor: one run (the record says why)."""
     import twinbench.physics.sysid as sysid_module
-    from twinbench.physics.sysid import ATTACHMENTS
+    from twinbench.physics.sysid import attachment_families
 
     data, _ = synthetic_case("rope", frames=12, validation_frames=3, seed=4)
+    families = attachment_families(data, parse_ranges(()))
     calls: list[tuple] = []
     real = sysid_module.stage1_cma
 
     def spy(*args, **kw):
-        calls.append((kw.get("stage", "stage 1"), kw.get("variants", ())))
+        calls.append((kw.get("stage", "stage 1"), kw.get("attachments", ()), kw.get("then_cma", True)))
         return real(*args, **kw)
 
     monkeypatch.setattr(sysid_module, "stage1_cma", spy)
@@ -447,10 +516,13 @@ def test_stages_run_from_two_starts_and_keep_the_better_tracking(monkeypatch, tw
                   adam=AdamConfig(epochs=2, lr=0.02, y_min=50.0, y_max=1e4))
     res = identify(data, cfg, log=_quiet)
     if not two or over_floor:
-        assert calls == [("stage 1", ())] and "starts" not in res.selection
+        # stage 1's search, then its end point's attachment chosen among the families
+        assert calls == [("stage 1", (), True), ("stage 1", families, False)]
+        assert "starts" not in res.selection
         assert ("within 100x the tracks' noise floor" in res.selection.get("second_start", "")) == two
         return
-    assert calls == [("stage 1", ()), ("stage 1", ATTACHMENTS)]
+    # the second start: the families first, then the search
+    assert calls == [("stage 1", (), True), ("stage 1", families, False), ("stage 1", families, True)]
     assert res.selection["second_start"].startswith("run: ")
     starts = res.selection["starts"]
     assert [s["stage1"] for s in starts] == ["as set", "control attachment grid scored"]
@@ -461,7 +533,7 @@ def test_stages_run_from_two_starts_and_keep_the_better_tracking(monkeypatch, tw
     # the kept run's own records: its stage-1 history, and a note when the second start is kept
     scored = {(r["params"]["control_radius"], r["params"]["control_max_neighbors"])
               for r in res.stage1_history}
-    grid = {(a["control_radius"], a["control_max_neighbors"]) for a in ATTACHMENTS}
+    grid = {(a["control_radius"], a["control_max_neighbors"]) for f in families for a, _ in f}
     assert bool(scored & grid) or kept[0]
     assert any("second start is kept" in n for n in res.notes) == kept[1]
 

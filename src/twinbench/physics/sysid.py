@@ -24,8 +24,8 @@ Stages (DESIGN section 4), each switchable for the ablation "without physics opt
 
 With control points whose attachment is searched, and a first run that tracks the training frames worse
 than ``FitConfig.second_start_over_floor`` times the tracks' noise floor, stages 1-3 run from a second start
-(stage 1 also scoring a grid of attachments) and the run that tracks the training frames best is kept
-(``FitConfig.attachment_starts``). With stages 1 and 2 off, the ``initial`` (hand-set) values are used as
+(stage 1 scoring the attachments before its search) and the run that tracks the training frames best is
+kept (``FitConfig.attachment_starts``). With stages 1 and 2 off, the ``initial`` (hand-set) values are used as
 they are and only evaluated.
 
 Loss of frame ``k`` (PhysTwin's terms and weights 1, 1, 0.01):
@@ -58,7 +58,7 @@ import numpy as np
 import warp as wp
 from scipy.spatial import cKDTree
 
-from .model import ModelBuilder, SpringMassModel, radius_springs
+from .model import RADIUS_SLACK, TIE_DECIMALS, ModelBuilder, SpringMassModel, radius_springs
 from .params import SimParams
 from .solver import SimulationDiverged, SpringMassSolver, check_divergence
 from .sysid_data import SysIdData, SysIdFormatError
@@ -129,7 +129,7 @@ DEFAULT_RANGES: dict[str, SearchRange] = {
     "spring_radius": SearchRange(0.01, 0.05),
     "spring_max_neighbors": SearchRange(10, 50, integer=True),
     "control_radius": SearchRange(0.01, 0.08),
-    "control_max_neighbors": SearchRange(10, 80, integer=True),
+    "control_max_neighbors": SearchRange(1, 80, integer=True),
     "ground_restitution": SearchRange(0.0, 1.0),
     "ground_friction": SearchRange(0.0, 2.0),
     "object_restitution": SearchRange(0.0, 1.0),
@@ -298,9 +298,9 @@ class FitConfig:
     come slowly there, so ``cma.patience`` stopped it too early on the held-out family)"""
     attachment_starts: bool = True
     """with control points whose attachment stage 1 searches, run the stages a second time where the first
-    run tracks poorly (``second_start_over_floor``), stage 1 then also scoring the control attachments
-    :data:`ATTACHMENTS` before its CMA-ES; keep the run whose
-    result tracks the training frames best (the attachment changes the motion in steps: either start can
+    run tracks poorly (``second_start_over_floor``), stage 1 then scoring the control attachments
+    (:func:`attachment_families`) before its CMA-ES rather than after; keep the run whose result tracks
+    the training frames best (the attachment changes the motion in steps: either start can
     lead a later stage into the better basin, and on the held-out family neither is better on every case;
     the training tracking error picked the one with the lower validation error in each case where they
     differed). Off: one run (half the time)"""
@@ -642,12 +642,48 @@ PENALTY = 1e6  # loss of a candidate whose simulation diverged or whose model ca
 
 
 SCAN_POINTS = 9  # stage 1's stiffness scan (log-spaced over the spring_Y range) before CMA-ES
-ATTACHMENTS = tuple({"control_radius": r, "control_max_neighbors": n} for r in (0.01, 0.02, 0.04)
-                    for n in (10, 25, 50))
-"""control attachments stage 3 scores (clipped to the search ranges) before its CMA-ES: which particles the
-hand holds changes the motion in steps, which a CMA-ES step of a quarter of the range does not explore
-(stage 1 left the held-out family's irregular lifts attached to most of the blob, 5.6 cm / 68 neighbours,
-against the truth's 1.5 cm / 6)"""
+ATTACHMENT_NAMES = ("control_radius", "control_max_neighbors")
+ATTACHMENT_COARSE = 12
+"""members of each attachment family scored before the walk (:func:`attachment_families`)"""
+
+
+def attachment_families(data: SysIdData,
+                        ranges: dict[str, SearchRange]) -> tuple[tuple[tuple[dict, int], ...], ...]:
+    """The control attachments within the search ranges, as two nested families ordered from the fewest
+    held particles to the most, each member one (``control_radius``, ``control_max_neighbors``): by radius
+    (a member for every radius in the range at which some control point holds one more particle, the
+    count at its top) and by count (one to the top count, the radius at its top). Empty without control
+    points.
+
+    Which particles a control point holds (those within the radius, nearest first, at most the count)
+    changes the motion in steps that CMA-ES does not cross, and only the right particles fit: on the
+    held-out family's irregular lift, the truth's attachment (7 particles) with one uniform stiffness
+    scores 8x lower than stage 1's best, one particle more 4x higher than the truth's. So the stages score
+    each family at their current point (:func:`stage1_cma`): ``ATTACHMENT_COARSE`` members log-spaced
+    along it, then the neighbouring members of the best one while the loss falls (stage 1 at its end, or
+    on the second start before its CMA-ES; stage 3 before its CMA-ES)."""
+    if not data.num_controls:
+        return ()
+    rr, nr = ranges["control_radius"], ranges["control_max_neighbors"]
+    pts = np.asarray(data.particles, np.float64)
+    ctl = np.asarray(data.controls[0], np.float64)
+    top = int(nr.hi)
+    k = min(top, len(pts))
+    dist = np.round(cKDTree(pts).query(ctl, k=k)[0].reshape(len(ctl), k), TIE_DECIMALS)  # as the builder
+
+    def family(settings) -> tuple[tuple[dict, int], ...]:
+        seen: dict[tuple, dict] = {}
+        for r, n in settings:
+            held = tuple(np.minimum(np.sum(dist <= r * (1.0 + RADIUS_SLACK), axis=1), n).tolist())
+            if sum(held) and held not in seen:
+                seen[held] = {"control_radius": float(r), "control_max_neighbors": int(n)}
+        return tuple((seen[h], sum(h)) for h in sorted(seen, key=lambda h: (sum(h), h)))
+
+    grow = np.unique(dist[(dist >= rr.lo) & (dist <= rr.hi)])  # radii at which a set grows
+    grow = grow[np.r_[True, grow[1:] > grow[:-1] * (1.0 + 10 * RADIUS_SLACK)]]  # within the slack: one
+    radii = [rr.lo, *(0.5 * (grow[:-1] + grow[1:])), rr.hi]  # between them: no distance ties
+    counts = range(max(int(math.ceil(nr.lo)), 1), top + 1)
+    return tuple(f for f in (family((r, top) for r in radii), family((rr.hi, n) for n in counts)) if f)
 
 
 def stage1_loss(data: SysIdData, params: GlobalParams, base: SimParams, loss: SequenceLoss,
@@ -671,7 +707,8 @@ def stage1_cma(data: SysIdData, base: SimParams, initial: GlobalParams, cfg: CMA
                candidates: tuple[GlobalParams, ...] = (),
                hold: tuple[np.ndarray, float] | None = None,
                stage: str = "stage 1",
-               variants: tuple[dict, ...] = ()) -> tuple[GlobalParams, list[dict]]:
+               attachments: tuple[tuple[tuple[dict, int], ...], ...] = (),
+               scan_stiffness: bool = True, then_cma: bool = True) -> tuple[GlobalParams, list[dict]]:
     """CMA-ES over the searched global parameters (normalised to [0, 1], stiffness in log space).
 
     When stiffness is searched, a scan of ``SCAN_POINTS`` log-spaced stiffness values (the other
@@ -681,8 +718,14 @@ def stage1_cma(data: SysIdData, base: SimParams, initial: GlobalParams, cfg: CMA
     bracketed); with ``walk`` (``initial.spring_Y`` is a guess from the data) the scan instead steps from
     it by half a decade towards the lower loss until the loss rises (a bracket around the guess). The
     ``candidates`` (e.g. the hand-set values a guess replaced) are scored too, so a guess never leaves the
-    search worse off than its own start. CMA-ES then starts from the best of these and stops after
-    ``cfg.patience`` generations without a 1 % improvement, or at the budget. Each
+    search worse off than its own start (``scan_stiffness=False`` skips the scan). Where the control
+    attachment is searched, each family of ``attachments`` (:func:`attachment_families`) is scored next at
+    the best point so far: its log-spaced coarse members, then the neighbours of the best member while the
+    loss falls; where the stiffness is searched too, each member also at the stiffness that holds the
+    object as firmly (the control springs' total stiffness kept). CMA-ES then starts from the best of
+    these (with the families scored, the attachment stays the chosen one and CMA-ES searches the rest;
+    ``then_cma=False``: no CMA-ES) and stops after ``cfg.patience`` generations without a 1 %
+    improvement, or at the budget. Each
     evaluation simulates the training frames (with ``base_of(candidate)`` when given: substeps stable for
     the candidate's stiffness) and scores Chamfer + tracking (the acceleration term regularises stage 2's
     per-spring fit; in a global search it only favours the most damped candidate). With ``hold`` (stage
@@ -704,9 +747,6 @@ def stage1_cma(data: SysIdData, base: SimParams, initial: GlobalParams, cfg: CMA
     history: list[dict] = []
     best = (math.inf, initial)
 
-    def decode(u) -> GlobalParams:
-        return replace(initial, **{n: ranges[n].decode(ui) for n, ui in zip(names, u, strict=True)})
-
     def objective(params: GlobalParams) -> float:
         nonlocal best
         value = stage1_loss(data, params, base_of(params) if base_of else base, loss, device, hold)
@@ -720,7 +760,7 @@ def stage1_cma(data: SysIdData, base: SimParams, initial: GlobalParams, cfg: CMA
         task = bar.add_task(f"{stage} (CMA-ES)", total=cfg.budget, info="")
         objective(initial)
         bar.advance(task)
-        if "spring_Y" in names and cfg.budget > 2 * SCAN_POINTS and walk:
+        if scan_stiffness and "spring_Y" in names and cfg.budget > 2 * SCAN_POINTS and walk:
             r = ranges["spring_Y"]
             here, f_here = initial.spring_Y, best[0]
             for factor in (10 ** -0.5, 10 ** 0.5):  # downhill from the guess, half a decade a step
@@ -735,7 +775,7 @@ def stage1_cma(data: SysIdData, base: SimParams, initial: GlobalParams, cfg: CMA
                     steps += 1
                 if steps or f_nxt < f_here:
                     break  # went downhill this way: the other side is uphill from here
-        elif "spring_Y" in names and cfg.budget > 2 * SCAN_POINTS:
+        elif scan_stiffness and "spring_Y" in names and cfg.budget > 2 * SCAN_POINTS:
             scan: list[float] = []
             for u in np.linspace(0.0, 1.0, SCAN_POINTS):  # stiff candidates cost most: stop once bracketed
                 scan.append(objective(replace(initial, spring_Y=ranges["spring_Y"].decode(u))))
@@ -746,18 +786,50 @@ def stage1_cma(data: SysIdData, base: SimParams, initial: GlobalParams, cfg: CMA
             objective(c)
             bar.advance(task)
         here = best[1]
-        for change in (c for c in variants if set(c) <= set(names)):
-            moved = replace(here, **{n: ranges[n].decode(ranges[n].encode(v)) for n, v in change.items()})
-            if moved != here:
-                objective(moved)
-                bar.advance(task)
-        x0 = [ranges[n].encode(getattr(best[1], n)) for n in names]
+        attach = bool(attachments) and set(ATTACHMENT_NAMES) <= set(names)
+        if attach:
+            m = build_model(data, here, base_of(here) if base_of else base, device)
+            held_here = max(m.num_springs - m.num_object_springs, 1)
+
+        def score(setting: dict, held: int) -> float:
+            """``here`` with the attachment ``setting``; where the stiffness is searched, also at the
+            stiffness that holds the object as firmly as ``here`` (its control springs' total stiffness)."""
+            tries = [replace(here, **setting)]
+            if "spring_Y" in names and held != held_here:
+                r = ranges["spring_Y"]
+                firm = min(max(here.spring_Y * held_here / held, r.lo), r.hi)
+                tries.append(replace(tries[0], spring_Y=firm))
+            out = min(objective(p) if len(history) < cfg.budget else math.inf for p in tries)
+            bar.advance(task)
+            return out
+
+        for members in attachments if attach else ():
+            scores: dict[int, float] = {}
+            for j in np.unique(np.round(np.geomspace(1, len(members), ATTACHMENT_COARSE))).astype(int) - 1:
+                scores[int(j)] = score(*members[j])
+            j = min(scores, key=scores.__getitem__)
+            for step in (-1, 1):  # downhill along the family from its best coarse member
+                while 0 <= j + step < len(members):
+                    if j + step not in scores:
+                        scores[j + step] = score(*members[j + step])
+                    if scores[j + step] >= scores[j]:
+                        break
+                    j += step
+        # with the attachment chosen among the families, CMA-ES searches the rest (its steps would leave
+        # the chosen particles for a neighbouring set at once)
+        free = tuple(n for n in names if not (attach and n in ATTACHMENT_NAMES)) if then_cma else ()
+        anchor = best[1]
+
+        def decode(u) -> GlobalParams:  # CMA-ES's coordinates: the free parameters, from the anchor
+            return replace(anchor, **{n: ranges[n].decode(ui) for n, ui in zip(free, u, strict=True)})
+
+        x0 = [ranges[n].encode(getattr(anchor, n)) for n in free]
         opts = {"bounds": [0.0, 1.0], "maxfevals": max(cfg.budget - len(history), 1), "seed": cfg.seed + 1,
                 "verbose": -9, "verb_log": 0, "verb_disp": 0}
         if cfg.popsize:
             opts["popsize"] = cfg.popsize
-        es = cma.CMAEvolutionStrategy(x0, cfg.sigma0, opts) if len(names) > 1 else None
-        if es is None:  # cma needs >= 2 dimensions: a 1-D search samples the normalised line instead
+        es = cma.CMAEvolutionStrategy(x0, cfg.sigma0, opts) if len(free) > 1 else None
+        if es is None and free:  # cma needs >= 2 dimensions: a 1-D search samples the normalised line instead
             for u in np.linspace(0.0, 1.0, max(cfg.budget - len(history), 1)):
                 objective(decode([u]))
                 bar.update(task, advance=1, info=f"best {best[0]:.3e}")
@@ -1240,11 +1312,13 @@ def identify(data: SysIdData, cfg: FitConfig, *, base: SimParams | None = None,
     Stage 1: CMA-ES over the global parameters (one stiffness for every spring), from the guesses measured
     in the motion. Stage 2: Adam on per-region (or per-spring) stiffness and the contact values. Stage 3:
     CMA-ES again over the global parameters other than the spring rule, with stage 2's stiffness held
-    (stage 1 chose them under a uniform stiffness they partly stood in for), after scoring the grid of
-    control attachments :data:`ATTACHMENTS` at stage 2's point. With ``cfg.attachment_starts`` and control
-    points, when the result's training tracking error is over ``cfg.second_start_over_floor`` times the
-    tracks' noise floor, the three stages run a second time with stage 1 also scoring that grid, and the
-    run with the lower training tracking error is kept (``SysIdResult.selection["starts"]``).
+    (stage 1 chose them under a uniform stiffness they partly stood in for), after scoring the control
+    attachments (:func:`attachment_families`) at stage 2's point. With control points, stage 1's end
+    point also has its attachment scored among the families before stage 2. With
+    ``cfg.attachment_starts`` and control points, when the result's training tracking error is over
+    ``cfg.second_start_over_floor`` times the tracks' noise floor, the three stages run a second time with
+    stage 1 scoring the families before its CMA-ES, and the run with the lower training tracking error is
+    kept (``SysIdResult.selection["starts"]``).
 
     With automatic substeps (``cfg.dt == cfg.substeps == 0``, the default), every simulation runs at the
     fewest substeps stable for its stiffness and dashpot (``stable_substeps``): stage 1's candidates
@@ -1304,11 +1378,13 @@ def identify(data: SysIdData, cfg: FitConfig, *, base: SimParams | None = None,
     searched = tuple(cfg.cma.search) or applicable_parameters(data, base)
 
     runs: list[dict] = []
+    grid = attachment_families(data, parse_ranges(cfg.cma.ranges))
 
     def stages(attach_grid: bool) -> dict | None:
-        """Stages 1-3 from the initial values; ``attach_grid``: stage 1 also scores :data:`ATTACHMENTS`
-        before its CMA-ES. Returns the run's state (kept stage, its params and model, histories, notes);
-        None when ``attach_grid``'s stage 1 ends where the first run's did (the rest would repeat it)."""
+        """Stages 1-3 from the initial values; ``attach_grid``: stage 1 scores the attachment families
+        before its CMA-ES (otherwise after it). Returns the run's state (kept stage, its params and model,
+        histories, notes); None when ``attach_grid``'s stage 1 ends where the first run's did (the rest
+        would repeat it)."""
         notes: list[str] = []
         seconds: dict[str, float] = {}
         params = cfg.initial
@@ -1340,7 +1416,7 @@ def identify(data: SysIdData, cfg: FitConfig, *, base: SimParams | None = None,
                                           base_of=base_of if topo is not None else None,
                                           walk=bool(guesses.get("spring_Y", {}).get("used")),
                                           candidates=() if start == params else (params,),
-                                          variants=ATTACHMENTS if attach_grid else ())
+                                          attachments=grid if attach_grid else ())
             ident = identifiability(history1, parse_ranges(cfg.cma.ranges))
             found = params
             if cfg.keep_guess > 0:
@@ -1349,6 +1425,15 @@ def identify(data: SysIdData, cfg: FitConfig, *, base: SimParams | None = None,
 
                 params = keep_unconstrained_guesses(params, start, guesses, ident, history1, cfg.keep_guess,
                                                     score, notes)
+            if grid and not attach_grid and set(ATTACHMENT_NAMES) <= set(searched):
+                # CMA-ES moved the attachment in steps of a quarter range: the families' sets, scored at its
+                # end, are the attachment stage 2 fits the stiffness under
+                names1 = tuple(n for n in searched if n in ATTACHMENT_NAMES
+                               or (n == "spring_Y" and not ident.get(n, {}).get("guess_kept")))
+                params, _ = stage1_cma(fit, base, params, replace(cfg.cma, search=names1), cfg.weights,
+                                       cfg.device, False, lambda _m: None,
+                                       base_of=base_of if topo is not None else None, attachments=grid,
+                                       scan_stiffness=False, then_cma=False)
             seconds["stage1"] = time.perf_counter() - t0
             models["stage1"] = build_model(data, params, base_of(params), cfg.device)
             evals["stage1"] = evaluate(models["stage1"], data, loss)
@@ -1405,7 +1490,7 @@ def identify(data: SysIdData, cfg: FitConfig, *, base: SimParams | None = None,
             cma3 = replace(cfg.cma, search=names3, budget=cfg.stage3_budget, patience=0)
             params3, history3 = stage1_cma(fit, base, stage_params["stage2"], cma3, cfg.weights, cfg.device,
                                            cfg.progress, log, base_of=base3, hold=hold, stage="stage 3",
-                                           variants=ATTACHMENTS if data.num_controls else ())
+                                           attachments=grid)
             ident.update(identifiability(history3, parse_ranges(cfg.cma.ranges)))
             seconds["stage3"] = time.perf_counter() - t0
             if params3 == stage_params["stage2"]:
