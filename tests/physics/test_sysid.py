@@ -525,7 +525,7 @@ def test_stages_run_from_two_starts_and_keep_the_better_tracking(monkeypatch, tw
     assert calls == [("stage 1", (), True), ("stage 1", families, False), ("stage 1", families, True)]
     assert res.selection["second_start"].startswith("run: ")
     starts = res.selection["starts"]
-    assert [s["stage1"] for s in starts] == ["as set", "control attachment grid scored"]
+    assert [s["stage1"] for s in starts] == ["search, then attachments", "attachments, then search"]
     errors = [s["train_error_m"] for s in starts]
     kept = [s["kept"] for s in starts]
     assert kept.count(True) == 1 and errors[kept.index(True)] == min(errors)

@@ -68,7 +68,7 @@ def main(cfg: SysIdConfig) -> int:
     if result.selection:
         say(f"kept: {result.selection['kept']} ({result.selection['rule']})")
         if "second_start" in result.selection:
-            say("second start (stage 1 scoring the control attachment grid): "
+            say("second start (stage 1 scoring the control attachments before its search): "
                 f"{result.selection['second_start']}")
         for start in result.selection.get("starts", []):
             say(f"start (stage 1 {start['stage1']}): training tracking error "

@@ -1511,17 +1511,17 @@ def identify(data: SysIdData, cfg: FitConfig, *, base: SimParams | None = None,
     if cfg.stage1 and cfg.attachment_starts and data.num_controls and \
             {"control_radius", "control_max_neighbors"} <= set(searched):
         if not first_error <= cfg.second_start_over_floor * floor:  # NaN / inf included
-            log("start 2 of 2: the stages again, stage 1 also scoring the control attachment grid (training "
-                f"tracking error {1e3 * first_error:.2f} mm, over {cfg.second_start_over_floor:g}x the "
-                f"tracks' noise floor {1e3 * floor:.2f} mm)")
+            log("start 2 of 2: the stages again, stage 1 scoring the control attachments before its "
+                f"search (training tracking error {1e3 * first_error:.2f} mm, over "
+                f"{cfg.second_start_over_floor:g}x the tracks' noise floor {1e3 * floor:.2f} mm)")
             t0 = time.perf_counter()
             second = stages(True)
             if second is None:
                 runs[0]["seconds"]["other_start"] = time.perf_counter() - t0
                 log("start 2 of 2: stage 1 ended where the first run's did; the first run stands")
                 runs[0]["selection"]["second_start"] = (
-                    "run to the end of stage 1, which ended where the first run's did (no attachment of the "
-                    f"grid scored better): the first run's training tracking error {1e3 * first_error:.2f} "
+                    "run to the end of stage 1, which ended where the first run's did (no attachment scored "
+                    f"first led elsewhere): the first run's training tracking error {1e3 * first_error:.2f} "
                     f"mm is over {cfg.second_start_over_floor:g}x the tracks' noise floor "
                     f"{1e3 * floor:.2f} mm")
             else:
@@ -1541,14 +1541,14 @@ def identify(data: SysIdData, cfg: FitConfig, *, base: SimParams | None = None,
         selection["second_start"] = (f"run: the first run's training tracking error {1e3 * first_error:.2f} "
                                      f"mm is over {cfg.second_start_over_floor:g}x the tracks' noise floor "
                                      f"{1e3 * floor:.2f} mm")
-        starts = ("as set", "control attachment grid scored")
+        starts = ("search, then attachments", "attachments, then search")
         selection["starts"] = [{"stage1": what, "train_error_m": e, "kept": r is run}
                                for what, e, r in zip(starts, errors, runs, strict=True)]
         other = runs[1 - runs.index(run)]
         seconds["other_start"] = float(sum(other["seconds"].values()))
         if run is runs[1]:
-            notes.append(f"the second start is kept: with stage 1 scoring the control attachment grid the "
-                         f"fit tracks the training frames to {1e3 * errors[1]:.2f} mm against "
+            notes.append(f"the second start is kept: with stage 1 scoring the control attachments before its "
+                         f"search the fit tracks the training frames to {1e3 * errors[1]:.2f} mm against "
                          f"{1e3 * errors[0]:.2f} mm (the attachment changes the motion in steps that one "
                          "search does not cross)")
     region_info: dict = {}
