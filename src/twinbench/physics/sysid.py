@@ -1509,7 +1509,7 @@ def identify(data: SysIdData, cfg: FitConfig, *, base: SimParams | None = None,
     floor = CHI3_MEAN * track_noise(fit)
     first_error = runs[0]["evals"][runs[0]["kept"]].train_error
     if cfg.stage1 and cfg.attachment_starts and data.num_controls and \
-            {"control_radius", "control_max_neighbors"} <= set(searched):
+            set(ATTACHMENT_NAMES) <= set(searched):
         if not first_error <= cfg.second_start_over_floor * floor:  # NaN / inf included
             log("start 2 of 2: the stages again, stage 1 scoring the control attachments before its "
                 f"search (training tracking error {1e3 * first_error:.2f} mm, over "
