@@ -8,7 +8,13 @@ import math
 import numpy as np
 import pytest
 
-from twinbench.construct.sysid_family import INTERACTIONS, LAYOUTS, contact_effect, family_case
+from twinbench.construct.sysid_family import (
+    INTERACTIONS,
+    LAYOUTS,
+    contact_effect,
+    family_case,
+    step_effect,
+)
 from twinbench.physics import SimParams
 from twinbench.physics.sysid import (
     AdamConfig,
@@ -58,6 +64,22 @@ def test_contact_effect_says_which_motions_show_friction_and_restitution(family)
     assert on_drag["friction"] > 1e-3 and on_drag["restitution"] < 0.1e-3
     assert on_drop["friction"] < 1e-5 and on_drop["restitution"] > 0.1e-3
     assert contact_effect(*drag, delta=0.03)["friction"] < 0.5 * on_drag["friction"]
+
+
+def test_step_effect_tells_a_converged_motion_from_a_chaotic_one(family):
+    """The truth's own values at 1.5x / 2x its substeps: a rope drag tracks at the noise floor whatever the
+    step (it converged); seed 3's irregular lift (measured: 2.9x and 6.9x the floor) depends on the step,
+    and at the truth's own step the error is the floor itself."""
+    def floor(data, t):
+        xt = t["positions"][:, data.tracked_indices]
+        return np.mean([np.mean(np.linalg.norm(xt[k][m] - data.tracked[k][m], axis=1))
+                        for k in data.val_frames for m in [data.motion_valid[k]]])
+
+    drag = family[4]
+    assert step_effect(*drag) < 1.2 * floor(*drag)
+    chaotic = family_case(7, seed=3)
+    assert step_effect(*chaotic) > 2.0 * floor(*chaotic)
+    assert step_effect(*chaotic, factors=(1.0,)) == pytest.approx(floor(*chaotic), rel=0.02)
 
 
 def test_stable_substeps_scale_with_stiffness_and_keep_the_truth_finite():

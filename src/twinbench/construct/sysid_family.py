@@ -120,6 +120,26 @@ def contact_effect(data: SysIdData, truth: dict, delta: float = 0.15) -> dict[st
     return out
 
 
+def step_effect(data: SysIdData, truth: dict, factors: tuple[float, ...] = (1.5, 2.0)) -> float:
+    """How much a family case's motion depends on the time step, from the hidden truth: the validation
+    tracking error (m, against the noisy tracks, as a fit's is measured) of the truth's own values simulated
+    with each of ``factors`` times its substeps, the largest. Near the noise floor where the motion is
+    converged in the time step; well above it where the motion is chaotic (a slip or a contact that a
+    slightly other step resolves otherwise): there not even the truth's values track at the floor unless
+    simulated at exactly the truth's step."""
+    sim, errors = truth["sim"], []
+    val = list(data.val_frames)
+    for f in factors:
+        substeps = max(1, round(f * sim.substeps))
+        step = replace(sim, substeps=substeps, dt=sim.dt * sim.substeps / substeps)
+        model = _truth_model(data.particles, data.controls, truth["params"], step, truth["log_y"])
+        xs = rollout(model, data.controls, len(data.controls) - 1)[0]
+        xt = xs[:, data.tracked_indices]
+        errors.append(float(np.mean([np.mean(np.linalg.norm(xt[k][m] - data.tracked[k][m], axis=1))
+                                     for k in val for m in [data.motion_valid[k]] if m.any()])))
+    return max(errors)
+
+
 def family_case(i: int, seed: int = 0, *, frames: int = 30, validation_frames: int = 6, noise: float = 1e-3,
                 visible_fraction: float = 0.8) -> tuple[SysIdData, dict]:
     """Held-out case ``i`` of the family ``seed``. Returns (data, truth): truth holds "params"
