@@ -98,7 +98,7 @@ def test_outputs_object_directory_and_report(identified, tmp_path):
     # every stage-1 evaluation (CMA-ES stops after 3 generations without a 1 % better loss, at most 80)
     assert rep["stage1_history"] == json.loads(json.dumps(result.stage1_history))
     assert 20 <= len(rep["stage1_history"]) <= 80
-    assert rep["stages"] == {"stage1": True, "stage2": True, "stage3": True}
+    assert rep["stages"] == {"stage1": True, "stage2": True, "stage3": True, "stage4": False}
     assert rep["stage3_history"] == json.loads(json.dumps(result.stage3_history)) and rep["stage3_history"]
     assert rep["stiffness_fit"]["per"] == "region" and sum(rep["stiffness_fit"]["springs"]) == n
     assert rep["global_params"]["spring_Y"] == pytest.approx(result.params.spring_Y)
@@ -128,13 +128,18 @@ def test_cli_help_and_end_to_end(sysid_small, tmp_path, capsys):
     rc = cli_main(["sysid", "--data", str(tmp_path / "case"), "--out-dir", str(tmp_path / "out"),
                    "--substeps", str(SUBSTEPS), "--dt", str(1.0 / (30 * SUBSTEPS)), "--no-progress",
                    "--initial.spring-Y", "1000", "--cma.budget", "8", "--cma.ranges", "spring_Y=100:10000",
-                   "--adam.epochs", "1", "--adam.y-min", "50", "--adam.y-max", "1e4"])
+                   "--adam.epochs", "1", "--adam.y-min", "50", "--adam.y-max", "1e4", "--stage4",
+                   "--stage4-budget", "6"])
     assert rc == 0
     assert "stiffness regions constrained by the motion" in capsys.readouterr().err
     rep = json.loads((tmp_path / "out" / "sysid_report.json").read_text())
     rows = rep["region_identifiability"]["regions"]  # per stiffness region; an unbounded std is null
     assert rows and all(r["std"] is None or r["std"] > 0 for r in rows)
     assert len(rep["stage1_history"]) == 8 and len(rep["stage2_history"]) == 2
+    # stage 4 (opt-in) ran its whole budget after stage 3 and, as the last stage, is the one kept
+    assert rep["stages"]["stage4"] and len(rep["stage4_history"]) == 6
+    assert rep["selection"]["kept"] == "stage4" and "stage4" in rep["evaluations"]
+    assert rep["stage4_history"][-1]["best"] <= rep["stage4_history"][0]["loss"]
     assert set(rep["config"]["cma"]) >= {"budget", "search", "ranges"}
     assert (tmp_path / "out" / "rope" / "object.json").is_file()
     assert (tmp_path / "out" / "sysid_report.png").is_file()

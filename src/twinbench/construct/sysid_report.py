@@ -31,7 +31,7 @@ def report_dict(result: SysIdResult, data: SysIdData) -> dict:
         "frames": {"total": data.num_frames, "train": [data.train_frames.start, data.train_frames.stop - 1],
                    "validation": data.validation_frames},
         "stages": {"stage1": bool(cfg and cfg.stage1), "stage2": bool(cfg and cfg.stage2),
-                   "stage3": bool(result.stage3_history)},
+                   "stage3": bool(result.stage3_history), "stage4": bool(result.stage4_history)},
         "global_params": asdict(result.params),
         "sim": sim_dict(result.sim),
         "spring_Y": {"count": int(ys.size), "min": _finite(ys.min()) if ys.size else None,
@@ -46,8 +46,9 @@ def report_dict(result: SysIdResult, data: SysIdData) -> dict:
                            for row in result.stage1_history],
         "stage2_history": [{k: _finite(v) if isinstance(v, float) else v for k, v in row.items()}
                            for row in result.stage2_history],
-        "stage3_history": [{k: _finite(v) if isinstance(v, float) else v for k, v in row.items()}
-                           for row in result.stage3_history],
+        **{f"stage{k}_history": [{kk: _finite(v) if isinstance(v, float) else v for kk, v in row.items()}
+                                 for row in h]
+           for k, h in ((3, result.stage3_history), (4, result.stage4_history))},
         "stiffness_fit": _stiffness_fit(result),
         "region_identifiability": _jsonable(result.region_identifiability),
         "guesses": _jsonable(result.guesses),
@@ -130,18 +131,20 @@ def write_report(result: SysIdResult, data: SysIdData, directory: str | Path) ->
     fig, ax = plt.subplots(2, 3, figsize=(16, 7.5))
     a = ax[0, 0]
     if result.stage1_history:
-        for stage, h in (("stage 1", result.stage1_history), ("stage 3", result.stage3_history)):
+        start = 0
+        for stage, h in (("stage 1", result.stage1_history), ("stage 3", result.stage3_history),
+                         ("stage 4", result.stage4_history)):
             if not h:
                 continue
-            start = 0 if stage == "stage 1" else len(result.stage1_history)
             a.semilogy([start + r["evaluation"] for r in h], [r["best"] for r in h],
                        label=f"{stage}: best so far")
             a.semilogy([start + r["evaluation"] for r in h], [r["loss"] for r in h], ".", ms=3, alpha=0.5,
                        label=f"{stage}: candidate")
+            start += len(h)
         a.legend()
     else:
         a.text(0.5, 0.5, "stage 1 off", ha="center", va="center", transform=a.transAxes)
-    a.set(title="CMA-ES (stages 1, 3): Chamfer + tracking loss", xlabel="evaluation")
+    a.set(title="CMA-ES (stages 1, 3, 4): Chamfer + tracking loss", xlabel="evaluation")
     a = ax[0, 1]
     rows = [r for r in result.stage2_history if "train_loss" in r]
     if rows:

@@ -296,6 +296,14 @@ class FitConfig:
     stage3_budget: int = 150
     """stage 3's evaluations, all used (its CMA-ES otherwise as ``cma``: step size, seed; the gains
     come slowly there, so ``cma.patience`` stopped it too early on the held-out family)"""
+    stage4: bool = False
+    """after stage 3 (or 2), CMA-ES over the stiffness regions' values (each within a factor
+    ``STAGE4_SPAN`` of its fitted value, the control springs one more) and the contact and damping
+    values together, the attachment held: stages 2 and 3 each fit their part with the other held, and
+    where the two are coupled (a softer object held by more particles, or more damped) neither moves
+    alone (:func:`stage4_cma`)"""
+    stage4_budget: int = 200
+    """stage 4's evaluations, all used"""
     attachment_starts: bool = True
     """with control points whose attachment stage 1 searches, run the stages a second time where the first
     run tracks poorly (``second_start_over_floor``), stage 1 then scoring the control attachments
@@ -346,6 +354,7 @@ class FitConfig:
         c, a, w, i = self.cma, self.adam, self.weights, self.initial
         need("cma.budget", c.budget, 1, 100_000, integer=True)
         need("stage3_budget", self.stage3_budget, 1, 100_000, integer=True)
+        need("stage4_budget", self.stage4_budget, 1, 100_000, integer=True)
         need("cma.popsize", c.popsize, 0, 1_000, integer=True)
         need("cma.sigma0", c.sigma0, 0.0, 1.0, lo_open=True)
         need("cma.patience", c.patience, 0, 100_000, integer=True)
@@ -699,6 +708,35 @@ def stage1_loss(data: SysIdData, params: GlobalParams, base: SimParams, loss: Se
         return PENALTY
 
 
+def cma_search(f: Callable[[list[float]], float], x0: list[float], cfg: CMAConfig, budget: int,
+               best: float = math.inf, sigma0: float | None = None) -> None:
+    """CMA-ES on ``f`` over [0, 1]^n from ``x0`` (``cfg``: step ``sigma0`` unless given, population, seed,
+    patience): at most ``budget`` evaluations; stops after ``cfg.patience`` generations without a 1 %
+    improvement on the best value (``best``: the best before the search). The caller keeps the best."""
+    import cma
+
+    opts = {"bounds": [0.0, 1.0], "maxfevals": max(budget, 1), "seed": cfg.seed + 1, "verbose": -9,
+            "verb_log": 0, "verb_disp": 0}
+    if cfg.popsize:
+        opts["popsize"] = cfg.popsize
+    es = cma.CMAEvolutionStrategy(list(x0), cfg.sigma0 if sigma0 is None else sigma0, opts)
+    used, stalled, last_best = 0, 0, best
+    while not es.stop() and used < budget:
+        xs = es.ask()[: budget - used]
+        vals = [f(u) for u in xs]
+        used += len(vals)
+        best = min([best, *vals])
+        if len(vals) < es.popsize:
+            break
+        es.tell(xs, vals)
+        if best < 0.99 * last_best:
+            stalled, last_best = 0, best
+        else:
+            stalled += 1
+        if cfg.patience and stalled >= cfg.patience:
+            break
+
+
 def stage1_cma(data: SysIdData, base: SimParams, initial: GlobalParams, cfg: CMAConfig,
                weights: LossWeights = LossWeights(), device: str = "cpu", progress: bool = False,
                log: Callable[[str], None] = print,
@@ -732,7 +770,6 @@ def stage1_cma(data: SysIdData, base: SimParams, initial: GlobalParams, cfg: CMA
     3) every candidate keeps that stiffness pattern (:func:`build_model`). Returns the best parameters
     and the history (one row per evaluation: index, loss, best-so-far, the candidate's searched
     values)."""
-    import cma
 
     ranges = parse_ranges(cfg.ranges)
     allowed = applicable_parameters(data, base)
@@ -824,37 +861,82 @@ def stage1_cma(data: SysIdData, base: SimParams, initial: GlobalParams, cfg: CMA
             return replace(anchor, **{n: ranges[n].decode(ui) for n, ui in zip(free, u, strict=True)})
 
         x0 = [ranges[n].encode(getattr(anchor, n)) for n in free]
-        opts = {"bounds": [0.0, 1.0], "maxfevals": max(cfg.budget - len(history), 1), "seed": cfg.seed + 1,
-                "verbose": -9, "verb_log": 0, "verb_disp": 0}
-        if cfg.popsize:
-            opts["popsize"] = cfg.popsize
-        es = cma.CMAEvolutionStrategy(x0, cfg.sigma0, opts) if len(free) > 1 else None
-        if es is None and free:  # cma needs >= 2 dimensions: a 1-D search samples the normalised line instead
+
+        def step(u) -> float:
+            value = objective(decode(u))
+            bar.update(task, advance=1, info=f"best {best[0]:.3e}")
+            return value
+
+        if len(free) == 1:  # cma needs >= 2 dimensions: a 1-D search samples the normalised line instead
             for u in np.linspace(0.0, 1.0, max(cfg.budget - len(history), 1)):
-                objective(decode([u]))
-                bar.update(task, advance=1, info=f"best {best[0]:.3e}")
-        stalled, last_best = 0, best[0]
-        while es is not None and not es.stop() and len(history) < cfg.budget:
-            xs = es.ask()
-            xs = xs[: cfg.budget - len(history)]
-            vals = []
-            for u in xs:
-                vals.append(objective(decode(u)))
-                bar.update(task, advance=1, info=f"best {best[0]:.3e}")
-            if len(vals) < es.popsize:
-                break
-            es.tell(xs, vals)
-            if best[0] < 0.99 * last_best:
-                stalled, last_best = 0, best[0]
-            else:
-                stalled += 1
-            if cfg.patience and stalled >= cfg.patience:
-                break
+                step([u])
+        elif free:
+            cma_search(step, x0, cfg, cfg.budget - len(history), best[0])
     if best[0] >= PENALTY:
         raise ValueError(f"{stage}: every candidate diverged; lower the spring_Y range (cma.ranges) or raise "
                          "the substeps")
     log(f"{stage}: {len(history)} evaluations, best training loss {best[0]:.4e}")
     return best[1], history
+
+
+STAGE4_SPAN = 3.0
+"""stage 4 moves each stiffness region within this factor of stage 2's (or 3's) value"""
+STAGE4_SIGMA = 0.15
+"""stage 4's initial CMA-ES step (normalised units): a refinement around the fitted point"""
+
+
+def stage4_cma(data: SysIdData, params: GlobalParams, hold: tuple[np.ndarray, float], region: np.ndarray,
+               names: tuple[str, ...], cfg: CMAConfig, budget: int,
+               base_of: Callable[[GlobalParams, float], SimParams], weights: LossWeights = LossWeights(),
+               device: str = "cpu", *, hold_scale: bool = False, y_bounds: tuple[float, float] = (1.0, 1e5),
+               progress: bool = False, log: Callable[[str], None] = print,
+               ) -> tuple[GlobalParams, tuple[np.ndarray, float], list[dict]]:
+    """Stage 4: CMA-ES (``STAGE4_SIGMA``, ``budget`` evaluations) over the object springs' log Y per
+    ``region`` (one index per object spring; each region shifted by at most a factor ``STAGE4_SPAN``, kept
+    in ``y_bounds``), the control springs' log Y (with control points) and the global parameters ``names``,
+    from ``params`` and ``hold`` (object springs' log Y, control springs' log Y); ``hold_scale`` keeps the
+    object springs' mean log Y (the measured stiffness that was kept). Scored as stage 1 (Chamfer +
+    tracking over the training frames) with ``base_of(candidate, stiffest Y)``. Returns the best
+    parameters, stiffness and the history."""
+    ranges = parse_ranges(cfg.ranges)
+    obj_y, ctl_y = np.asarray(hold[0], np.float64), float(hold[1])
+    _, inv = np.unique(region, return_inverse=True)
+    counts = np.bincount(inv).astype(np.float64)
+    n_y = len(counts) + (1 if data.num_controls else 0)
+    span = math.log(STAGE4_SPAN)
+    lo, hi = math.log(y_bounds[0]), math.log(y_bounds[1])
+    loss = SequenceLoss(data, weights)
+    history: list[dict] = []
+    best: list = [math.inf, params, (obj_y, ctl_y)]
+
+    def decode(u) -> tuple[GlobalParams, tuple[np.ndarray, float]]:
+        shift = (np.clip(np.asarray(u[:n_y], np.float64), 0.0, 1.0) - 0.5) * 2.0 * span
+        obj = shift[: len(counts)]
+        if hold_scale:
+            obj = obj - np.average(obj, weights=counts)
+        y = (np.clip(obj_y + obj[inv], lo, hi), float(np.clip(ctl_y + shift[-1], lo, hi)) if data.num_controls
+             else ctl_y)
+        return replace(params, **{n: ranges[n].decode(x) for n, x in zip(names, u[n_y:], strict=True)}), y
+
+    with _progress(progress) as bar:
+        task = bar.add_task("stage 4 (CMA-ES)", total=budget, info="")
+
+        def objective(u) -> float:
+            p, y = decode(u)
+            value = stage1_loss(data, p, base_of(p, float(np.exp(max(y[0].max(), y[1])))), loss, device, y)
+            if value < best[0]:
+                best[:] = [value, p, y]
+            history.append({"evaluation": len(history), "loss": value, "best": best[0],
+                            "params": {n: float(getattr(p, n)) for n in names}})
+            bar.update(task, advance=1, info=f"best {best[0]:.3e}")
+            return value
+
+        x0 = [0.5] * n_y + [ranges[n].encode(getattr(params, n)) for n in names]
+        objective(x0)
+        if len(x0) > 1:  # cma needs >= 2 dimensions
+            cma_search(objective, x0, replace(cfg, patience=0), budget - 1, best[0], sigma0=STAGE4_SIGMA)
+    log(f"stage 4: {len(history)} evaluations, best training loss {best[0]:.4e}")
+    return best[1], best[2], history
 
 
 # ----------------------------------------------------------------------------------------------
@@ -1216,6 +1298,9 @@ class SysIdResult:
     tool_translation, tool_rotation) its estimated noise, whether it was smoothed and by how much it moved
     (``sysid_guess.smoothed_inputs``); "particles_below_ground" with the ground on
     (``sysid_guess.grounded``)"""
+    stage4_history: list[dict] = field(default_factory=list)
+    """stage 4's evaluations (as ``stage1_history``: its global parameters; the region values are not
+    listed)"""
 
     @property
     def object_spring_Y(self) -> np.ndarray:
@@ -1499,9 +1584,34 @@ def identify(data: SysIdData, cfg: FitConfig, *, base: SimParams | None = None,
             models["stage3"] = build_model(data, params3, base3(params3), cfg.device, hold=hold)
             evals["stage3"] = evaluate(models["stage3"], data, loss)
             stage_params["stage3"] = params3
+        history4: list[dict] = []
+        last = "stage3" if "stage3" in models else "stage2"
+        if cfg.stage2 and cfg.stage4 and regions is not None and by_region(models["stage2"], regions):
+            ly = models[last].log_y_np.astype(np.float64)
+            n_obj = models[last].num_object_springs
+            hold4 = (ly[:n_obj], float(ly[n_obj:].mean() if len(ly) > n_obj else 0.0))
+
+            def base4(p: GlobalParams, y_top: float) -> SimParams:
+                return base_of(p, y_top) if topo is not None else base
+
+            t0 = time.perf_counter()
+            names4 = tuple(n for n in names3 if n not in ATTACHMENT_NAMES)
+            params4, hold4, history4 = stage4_cma(
+                fit, stage_params[last], hold4, regions[:n_obj], names4, cfg.cma, cfg.stage4_budget, base4,
+                cfg.weights, cfg.device, hold_scale=bool(ident.get("spring_Y", {}).get("guess_kept")),
+                y_bounds=(adam.y_min, adam.y_max), progress=cfg.progress, log=log)
+            seconds["stage4"] = time.perf_counter() - t0
+            if len(history4) < 2 or min(r["loss"] for r in history4[1:]) >= history4[0]["loss"]:
+                notes.append(f"stage 4 did not improve on {last.replace('stage', 'stage ')}'s values "
+                             f"({len(history4) - 1} candidates)")
+            y_top = float(np.exp(max(hold4[0].max(), hold4[1])))
+            models["stage4"] = build_model(data, params4, base4(params4, y_top), cfg.device, hold=hold4)
+            evals["stage4"] = evaluate(models["stage4"], data, loss)
+            stage_params["stage4"] = params4
         kept, selection = _choose_stage(evals, sel, notes)
         return {"kept": kept, "selection": selection, "params": stage_params[kept], "model": models[kept],
                 "evals": evals, "history1": history1, "history2": history2, "history3": history3,
+                "history4": history4,
                 "seconds": seconds, "notes": notes, "ident": ident, "regions": regions, "guesses": guesses,
                 "stage1": stage_params.get("stage1")}
 
@@ -1535,7 +1645,7 @@ def identify(data: SysIdData, cfg: FitConfig, *, base: SimParams | None = None,
     run = runs[int(np.argmin(errors))]
     kept, selection, params, model = run["kept"], run["selection"], run["params"], run["model"]
     evals, notes, seconds, regions = run["evals"], run["notes"], run["seconds"], run["regions"]
-    history1, history2, history3 = run["history1"], run["history2"], run["history3"]
+    history1, history2, history3, history4 = (run[f"history{k}"] for k in range(1, 5))
     ident, guesses = run["ident"], run["guesses"]
     if len(runs) > 1:
         selection["second_start"] = (f"run: the first run's training tracking error {1e3 * first_error:.2f} "
@@ -1552,11 +1662,11 @@ def identify(data: SysIdData, cfg: FitConfig, *, base: SimParams | None = None,
                          f"{1e3 * errors[0]:.2f} mm (the attachment changes the motion in steps that one "
                          "search does not cross)")
     region_info: dict = {}
-    if kept == "stage3":  # stage 2's regions over stage 3's springs (its own control springs: one region)
+    if kept in ("stage3", "stage4"):  # stage 2's regions over its springs (own control springs: one region)
         n_obj, n3 = model.num_object_springs, model.num_springs
         regions = np.arange(n3) if len(np.unique(regions)) == len(regions) else \
             np.concatenate([regions[:n_obj], np.full(n3 - n_obj, regions[:n_obj].max() + 1)])
-    if kept not in ("stage2", "stage3"):
+    if kept not in ("stage2", "stage3", "stage4"):
         regions = None
     elif by_region(model, regions):  # measured only for the kept stage 2 (one rollout per region)
         try:
@@ -1568,7 +1678,7 @@ def identify(data: SysIdData, cfg: FitConfig, *, base: SimParams | None = None,
         log(f"note: {note}")
     return SysIdResult(params, params.sim_params(model.params), model.log_y_np.copy(), model, evals, history1,
                        history2, seconds, cfg, notes, ident, regions, guesses, selection, region_info,
-                       history3, inputs)
+                       history3, inputs, history4)
 
 
 CHI3_MEAN = 2.0 * math.sqrt(2.0 / math.pi)
