@@ -21,6 +21,8 @@ Stages (DESIGN section 4), each switchable for the ablation "without physics opt
    motion constrains (:func:`region_information`, ``SysIdResult.region_identifiability``).
 3. **Stage 3** (``stage3=True``): CMA-ES again over the global parameters other than the spring rule,
    with stage 2's stiffness held.
+4. **Stage 4** (``stage4=True``, off by default): CMA-ES over the stiffness regions' values and the contact
+   and damping values together, the attachment held (:func:`stage4_cma`).
 
 With control points whose attachment is searched, and a first run that tracks the training frames worse
 than ``FitConfig.second_start_over_floor`` times the tracks' noise floor, stages 1-3 run from a second start
@@ -1258,8 +1260,8 @@ def stage2_adam(model: SpringMassModel, data: SysIdData, cfg: AdamConfig,
 @dataclass
 class SysIdResult:
     """What :func:`identify` found: final global parameters, per-spring log Y (object springs first,
-    then control springs), the model, evaluations ('initial', 'stage1', 'stage2', 'stage3' as run, and
-    'final') and histories."""
+    then control springs), the model, evaluations ('initial', 'stage1', 'stage2', 'stage3', 'stage4' as
+    run, and 'final') and histories."""
 
     params: GlobalParams
     sim: SimParams
@@ -1398,10 +1400,12 @@ def identify(data: SysIdData, cfg: FitConfig, *, base: SimParams | None = None,
     in the motion. Stage 2: Adam on per-region (or per-spring) stiffness and the contact values. Stage 3:
     CMA-ES again over the global parameters other than the spring rule, with stage 2's stiffness held
     (stage 1 chose them under a uniform stiffness they partly stood in for), after scoring the control
-    attachments (:func:`attachment_families`) at stage 2's point. With control points, stage 1's end
-    point also has its attachment scored among the families before stage 2. With
+    attachments (:func:`attachment_families`) at stage 2's point. With ``cfg.stage4``, stage 4 then
+    searches the stiffness regions and the contact and damping values together (:func:`stage4_cma`).
+    With control points, stage 1's end point also has its attachment scored among the families before
+    stage 2. With
     ``cfg.attachment_starts`` and control points, when the result's training tracking error is over
-    ``cfg.second_start_over_floor`` times the tracks' noise floor, the three stages run a second time with
+    ``cfg.second_start_over_floor`` times the tracks' noise floor, the stages run a second time with
     stage 1 scoring the families before its CMA-ES, and the run with the lower training tracking error is
     kept (``SysIdResult.selection["starts"]``).
 
