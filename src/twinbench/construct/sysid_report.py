@@ -176,9 +176,9 @@ def write_report(result: SysIdResult, data: SysIdData, directory: str | Path) ->
     a.set_title("notes")
     a.text(0.0, 1.0, "\n\n".join(textwrap.fill(n, 60) for n in result.notes) or "none", va="top", fontsize=9,
            transform=a.transAxes)
-    kept = result.selection.get("kept")
-    fig.suptitle(f"system identification: {data.name}" + (f" (kept: {kept}, by the selection frames "
-                                                           f"{result.selection['frames']})" if kept else ""))
+    kept, frames = result.selection.get("kept"), result.selection.get("frames")
+    why = f"by the selection frames {frames[0]}-{frames[1]}" if frames else "the last stage run"
+    fig.suptitle(f"system identification: {data.name}" + (f" (kept: {kept}, {why})" if kept else ""))
     fig.tight_layout()
     ppath = directory / "sysid_report.png"
     fig.savefig(ppath, dpi=90)
