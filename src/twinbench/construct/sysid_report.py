@@ -42,13 +42,10 @@ def report_dict(result: SysIdResult, data: SysIdData) -> dict:
                                "per_frame_error_m": [_finite(v) for v in e.track_error],
                                "per_frame_loss": [_finite(v) for v in e.loss]}
                         for name, e in result.evals.items()},
-        "stage1_history": [{k: _finite(v) if isinstance(v, float) else v for k, v in row.items()}
-                           for row in result.stage1_history],
-        "stage2_history": [{k: _finite(v) if isinstance(v, float) else v for k, v in row.items()}
-                           for row in result.stage2_history],
-        **{f"stage{k}_history": [{kk: _finite(v) if isinstance(v, float) else v for kk, v in row.items()}
+        **{f"stage{k}_history": [{name: _finite(v) if isinstance(v, float) else v for name, v in row.items()}
                                  for row in h]
-           for k, h in ((3, result.stage3_history), (4, result.stage4_history))},
+           for k, h in enumerate((result.stage1_history, result.stage2_history, result.stage3_history,
+                                  result.stage4_history), start=1)},
         "stiffness_fit": _stiffness_fit(result),
         "region_identifiability": _jsonable(result.region_identifiability),
         "guesses": _jsonable(result.guesses),

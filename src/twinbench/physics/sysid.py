@@ -441,6 +441,14 @@ def build_model(data: SysIdData, params: GlobalParams, base: SimParams, device: 
     return model
 
 
+def held_stiffness(model: SpringMassModel) -> tuple[np.ndarray, float]:
+    """``model``'s stiffness as :func:`build_model`'s ``hold``: the object springs' log Y and the control
+    springs' mean log Y (0 without control springs)."""
+    ly = model.log_y_np.astype(np.float64)
+    n = model.num_object_springs
+    return ly[:n], float(ly[n:].mean() if len(ly) > n else 0.0)
+
+
 def stability_rates(model: SpringMassModel, y_max: float, dashpot: float) -> tuple[float, float]:
     """Bounds (1/s) on the fastest stiffness and dashpot rates of ``model`` with every spring at stiffness
     ``y_max`` and the dashpot at ``dashpot``: per particle (Gershgorin) omega^2 <= 2 sum(Y / L) / m and
@@ -772,7 +780,6 @@ def stage1_cma(data: SysIdData, base: SimParams, initial: GlobalParams, cfg: CMA
     3) every candidate keeps that stiffness pattern (:func:`build_model`). Returns the best parameters
     and the history (one row per evaluation: index, loss, best-so-far, the candidate's searched
     values)."""
-
     ranges = parse_ranges(cfg.ranges)
     allowed = applicable_parameters(data, base)
     names = tuple(cfg.search) or allowed
@@ -1452,7 +1459,7 @@ def identify(data: SysIdData, cfg: FitConfig, *, base: SimParams | None = None,
         dash = max(params.dashpot_damping, cfg.initial.dashpot_damping)
         return cfg.base_params(data.fps, stable_substeps(topo, y_top or params.spring_Y, dash, data.fps))
 
-    base = base_of(cfg.initial)
+    base = base_of(cfg.initial)  # without automatic substeps, base_of gives this one from here on
     frame_dt = base.dt * base.substeps
     if abs(frame_dt * data.fps - 1.0) > 0.05:
         raise SysIdFormatError(f"{data.source}: field 'fps' is {data.fps} (frame {1 / data.fps:.5f} s) but "
@@ -1567,13 +1574,11 @@ def identify(data: SysIdData, cfg: FitConfig, *, base: SimParams | None = None,
                        and (n in cfg.cma.search or not cfg.cma.search)
                        and not ident.get(n, {}).get("guess_kept"))
         if cfg.stage2 and cfg.stage3 and names3:
-            ly = models["stage2"].log_y_np.astype(np.float64)
-            n_obj = models["stage2"].num_object_springs
-            hold = (ly[:n_obj], float(ly[n_obj:].mean() if len(ly) > n_obj else 0.0))
-            y_top = float(np.exp(ly.max()))
+            hold = held_stiffness(models["stage2"])
+            y_top = float(np.exp(models["stage2"].log_y_np.astype(np.float64).max()))
 
             def base3(p: GlobalParams) -> SimParams:
-                return base_of(p, y_top) if topo is not None else base
+                return base_of(p, y_top)
 
             t0 = time.perf_counter()
             cma3 = replace(cfg.cma, search=names3, budget=cfg.stage3_budget, patience=0)
@@ -1591,17 +1596,12 @@ def identify(data: SysIdData, cfg: FitConfig, *, base: SimParams | None = None,
         history4: list[dict] = []
         last = "stage3" if "stage3" in models else "stage2"
         if cfg.stage2 and cfg.stage4 and regions is not None and by_region(models["stage2"], regions):
-            ly = models[last].log_y_np.astype(np.float64)
-            n_obj = models[last].num_object_springs
-            hold4 = (ly[:n_obj], float(ly[n_obj:].mean() if len(ly) > n_obj else 0.0))
-
-            def base4(p: GlobalParams, y_top: float) -> SimParams:
-                return base_of(p, y_top) if topo is not None else base
-
+            hold4 = held_stiffness(models[last])
             t0 = time.perf_counter()
             names4 = tuple(n for n in names3 if n not in ATTACHMENT_NAMES)
             params4, hold4, history4 = stage4_cma(
-                fit, stage_params[last], hold4, regions[:n_obj], names4, cfg.cma, cfg.stage4_budget, base4,
+                fit, stage_params[last], hold4, regions[:len(hold4[0])], names4, cfg.cma, cfg.stage4_budget,
+                base_of,
                 cfg.weights, cfg.device, hold_scale=bool(ident.get("spring_Y", {}).get("guess_kept")),
                 y_bounds=(adam.y_min, adam.y_max), progress=cfg.progress, log=log)
             seconds["stage4"] = time.perf_counter() - t0
@@ -1609,7 +1609,7 @@ def identify(data: SysIdData, cfg: FitConfig, *, base: SimParams | None = None,
                 notes.append(f"stage 4 did not improve on {last.replace('stage', 'stage ')}'s values "
                              f"({len(history4) - 1} candidates)")
             y_top = float(np.exp(max(hold4[0].max(), hold4[1])))
-            models["stage4"] = build_model(data, params4, base4(params4, y_top), cfg.device, hold=hold4)
+            models["stage4"] = build_model(data, params4, base_of(params4, y_top), cfg.device, hold=hold4)
             evals["stage4"] = evaluate(models["stage4"], data, loss)
             stage_params["stage4"] = params4
         kept, selection = _choose_stage(evals, sel, notes)
