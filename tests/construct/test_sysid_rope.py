@@ -55,14 +55,14 @@ def test_guesses_scale_the_stiffness_and_bound_the_friction(rope):
 
 
 def test_track_noise_is_read_from_the_tracks(rope):
-    """The tracks' per-axis noise, estimated from their second differences alone: the rope's 1 mm (the
-    motion's own curvature adds a little), and 0 on noise-free tracks of a uniform motion."""
+    """The tracks' per-axis noise, estimated from the tracks alone: the rope's 1 mm, and 0 on noise-free
+    tracks of a uniform motion."""
     from dataclasses import replace
 
     from twinbench.physics.sysid_guess import track_noise
 
     data, truth = rope
-    assert track_noise(data) == pytest.approx(1.1e-3, abs=1e-4)  # 1.0-1.2 mm
+    assert track_noise(data) == pytest.approx(1e-3, rel=0.1)
     t = np.arange(data.num_frames)[:, None, None] * np.array([0.002, 0.0, 0.0])
     still = replace(data, tracked=data.tracked[:1] * 0 + data.tracked[0] + t)
     assert track_noise(still) < 1e-9

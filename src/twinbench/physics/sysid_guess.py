@@ -36,6 +36,7 @@ from dataclasses import replace
 
 import numpy as np
 from scipy.interpolate import make_smoothing_spline
+from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
 from .model import SpringMassModel
@@ -89,9 +90,18 @@ def difference_noise(x: np.ndarray, order: int = 2) -> float:
 
 
 def track_noise(data: SysIdData) -> float:
-    """Per-axis standard deviation (m) of the tracks' noise in the fitted frames (second differences:
-    :func:`difference_noise`). 0 without enough samples."""
-    return difference_noise(_tracks(data)[0], 2)
+    """Per-axis standard deviation (m) of the tracks' noise in the fitted frames: the second differences
+    (:func:`difference_noise`) of each track's offset from its nearest tracked neighbour (at rest), over
+    sqrt 2. The motion two neighbours share cancels (an object that swings or rings faster than the frame
+    rate resolves: a track's own differences took it for noise, up to 1.6x the truth on the held-out
+    family's lifts), their independent noise adds. With one track, its own second differences. 0 without
+    enough samples."""
+    x = _tracks(data)[0]
+    if x.shape[1] < 2:
+        return difference_noise(x, 2)
+    rest = data.particles[data.tracked_indices]
+    nearest = cKDTree(rest).query(rest, k=2)[1][:, 1]
+    return difference_noise(x - x[:, nearest], 2) / math.sqrt(2.0)
 
 
 def grounded(data: SysIdData) -> tuple[SysIdData, dict]:
