@@ -29,6 +29,11 @@ Prints `name value unit` lines per case and the spread:
   (``FitConfig.attachment_starts``), and the stiffness guess over the truth's geometric mean;
 - median and worst of each over the family, and the count of diverged cases.
 
+With ``--json``, each row also holds the fit itself (``fit_params``, per-spring ``fit_log_y``, its substeps
+and dt: `build_model(data, GlobalParams(**fit_params), SimParams(dt=fit_dt, substeps=fit_substeps),
+log_y=fit_log_y)`), so a case can be scored again without refitting (e.g. with one value set to the
+truth's).
+
 With ``--oracle truth|uniform``, instead of fitting: what the tracks support. Per case, the region
 stiffness is fitted with the TRUE global parameters (contact, damping, control attachment) by
 Levenberg-Marquardt on whole-sequence rollouts (finite-difference Jacobian over the regions, the stage-2
@@ -50,6 +55,7 @@ import math
 import statistics
 import time
 from concurrent.futures import ProcessPoolExecutor, as_completed
+from dataclasses import asdict
 from pathlib import Path
 
 import numpy as np
@@ -111,7 +117,10 @@ def run_case(i: int, seed: int) -> dict:
            "starts": len(res.selection.get("starts", [])) or 1,  # 2: the second start ran (FitConfig)
            "guess_Y_ratio": (res.guesses.get("spring_Y", {}).get("value") or math.nan)
            / math.exp(float(np.mean(truth["log_y"][:n]))),
-           "diverged": any(e.diverged for e in res.evals.values())}
+           "diverged": any(e.diverged for e in res.evals.values()),
+           # the fit itself, to score it again without refitting (e.g. with one value set to the truth's)
+           "fit_params": asdict(res.params), "fit_log_y": res.log_y.tolist(),
+           "fit_substeps": int(res.model.params.substeps), "fit_dt": float(res.model.params.dt)}
     for name in ("ground_friction", "ground_restitution"):  # whether the fit calls it constrained
         out[f"{name}_constrained"] = bool(res.identifiability.get(name, {}).get("constrained"))
     effect = contact_effect(data, truth, 0.15)  # how far +-0.15 of each contact value moves the true motion
