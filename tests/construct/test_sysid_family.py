@@ -3,6 +3,7 @@ and partly visible; the fit with default options handles a few of its cases with
 
 from __future__ import annotations
 
+import json
 import math
 from dataclasses import replace
 
@@ -24,6 +25,7 @@ from twinbench.physics.sysid import (
     GlobalParams,
     SequenceLoss,
     build_model,
+    evaluate,
     identify,
     spring_regions,
     stable_substeps,
@@ -193,6 +195,13 @@ def test_family_with_default_options():
     rows = [bench.run_case(i, 0) for i in range(12)]
     assert all("error" not in r and not r["diverged"] for r in rows)
     assert np.median([r["val_final"] / r["floor"] for r in rows]) <= 2.0
+    # each row holds the fit itself: rebuilt from the (JSON) row, it scores the fit's validation error again
+    row = json.loads(json.dumps(rows[7]))
+    data, _ = family_case(7, 0)
+    model = build_model(data, GlobalParams(**row["fit_params"]),
+                        SimParams(dt=row["fit_dt"], substeps=row["fit_substeps"]),
+                        log_y=np.array(row["fit_log_y"], np.float32))
+    assert evaluate(model, data, SequenceLoss(data)).val_error == pytest.approx(row["val_final"], rel=1e-5)
 
 
 @pytest.mark.slow
