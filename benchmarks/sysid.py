@@ -29,8 +29,8 @@ Prints `name value unit` lines per case and the spread:
   (``FitConfig.attachment_starts``), and the stiffness guess over the truth's geometric mean;
 - median and worst of each over the family, and the count of diverged cases.
 
-With ``--json``, each row also holds the fit itself (``fit_params``, per-spring ``fit_log_y``, its substeps
-and dt: `build_model(data, GlobalParams(**fit_params), SimParams(dt=fit_dt, substeps=fit_substeps),
+With ``--json``, each row also holds the fit itself (``fit_params``, its simulation settings ``fit_sim`` and
+per-spring ``fit_log_y``: `build_model(data, GlobalParams(**fit_params), SimParams(**fit_sim),
 log_y=fit_log_y)`), so a case can be scored again without refitting (e.g. with one value set to the
 truth's).
 
@@ -79,6 +79,7 @@ def _rank(fit, truth) -> float:
 def run_case(i: int, seed: int) -> dict:
     from twinbench._runtime import quiet_warp
     from twinbench.construct.sysid_family import contact_effect, family_case, step_effect
+    from twinbench.construct.sysid_io import sim_dict
     from twinbench.physics.sysid import FitConfig, identify
 
     quiet_warp()
@@ -119,8 +120,7 @@ def run_case(i: int, seed: int) -> dict:
            / math.exp(float(np.mean(truth["log_y"][:n]))),
            "diverged": any(e.diverged for e in res.evals.values()),
            # the fit itself, to score it again without refitting (e.g. with one value set to the truth's)
-           "fit_params": asdict(res.params), "fit_log_y": res.log_y.tolist(),
-           "fit_substeps": int(res.model.params.substeps), "fit_dt": float(res.model.params.dt)}
+           "fit_params": asdict(res.params), "fit_sim": sim_dict(res.sim), "fit_log_y": res.log_y.tolist()}
     for name in ("ground_friction", "ground_restitution"):  # whether the fit calls it constrained
         out[f"{name}_constrained"] = bool(res.identifiability.get(name, {}).get("constrained"))
     effect = contact_effect(data, truth, 0.15)  # how far +-0.15 of each contact value moves the true motion

@@ -198,8 +198,7 @@ def test_family_with_default_options():
     # each row holds the fit itself: rebuilt from the (JSON) row, it scores the fit's validation error again
     row = json.loads(json.dumps(rows[7]))
     data, _ = family_case(7, 0)
-    model = build_model(data, GlobalParams(**row["fit_params"]),
-                        SimParams(dt=row["fit_dt"], substeps=row["fit_substeps"]),
+    model = build_model(data, GlobalParams(**row["fit_params"]), SimParams(**row["fit_sim"]),
                         log_y=np.array(row["fit_log_y"], np.float32))
     assert evaluate(model, data, SequenceLoss(data)).val_error == pytest.approx(row["val_final"], rel=1e-5)
 
