@@ -182,6 +182,7 @@ def test_default_fit_on_family_cases_improves_and_reports(i):
 
 
 @pytest.mark.slow
+@pytest.mark.timeout(1800)  # 12 fits one after another: about 9 minutes alone on 2 cores, more on busy ones
 def test_family_with_default_options():
     """The benchmark's family (12 cases, default options): no divergence, validation error within 2x the
     noise floor for the median case (the figures are printed by benchmarks/sysid.py)."""
