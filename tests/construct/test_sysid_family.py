@@ -181,11 +181,7 @@ def test_default_fit_on_family_cases_improves_and_reports(i):
                for r in rows)
 
 
-@pytest.mark.slow
-@pytest.mark.timeout(1800)  # 12 fits one after another: about 9 minutes alone on 2 cores, more on busy ones
-def test_family_with_default_options():
-    """The benchmark's family (12 cases, default options): no divergence, validation error within 2x the
-    noise floor for the median case (the figures are printed by benchmarks/sysid.py)."""
+def _bench():
     import importlib.util
     import pathlib
 
@@ -193,6 +189,40 @@ def test_family_with_default_options():
     spec = importlib.util.spec_from_file_location("bench_sysid", path)
     bench = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(bench)
+    return bench
+
+
+def test_withheld_springs_rank_against_the_true_springs_nearest_each_fit_region():
+    """With the springs withheld the fit's own springs (another radius rule) differ from the truth's: each
+    fit region is compared with the true springs whose midpoints lie nearest its springs. A rope soft on
+    its left half and stiff on its right, fitted springs in two regions by halves: the truth's two values
+    come back per region, in the fit's region order (within a few springs at the boundary, whose nearest
+    fit spring is a tie)."""
+    from types import SimpleNamespace
+
+    from twinbench.physics.model import lattice, radius_springs
+
+    pts = lattice(12, 2, 1, 0.01)
+    true_sp = radius_springs(pts, 0.021, 30)  # with the diagonals and the 2 cm springs
+    fit_sp = radius_springs(pts, 0.0105, 30)  # the ladder alone
+    assert len(true_sp) > len(fit_sp)
+    true_mid = 0.5 * (pts[true_sp[:, 0], 0] + pts[true_sp[:, 1], 0])
+    log_y = np.where(true_mid < 0.055, math.log(300.0), math.log(3000.0))
+    fit_mid = 0.5 * (pts[fit_sp[:, 0], 0] + pts[fit_sp[:, 1], 0])
+    region = np.where(fit_mid < 0.055, 1, 0)  # k-means labels need not follow x
+    res = SimpleNamespace(model=SimpleNamespace(num_object_springs=len(fit_sp), springs_np=fit_sp, x0_np=pts))
+    truth = {"springs": true_sp, "log_y": np.concatenate([log_y, [0.0, 0.0]])}  # 2 control springs after
+    got = _bench()._truth_by_fit_region(res, truth, pts, region)
+    assert got == pytest.approx([math.log(3000.0), math.log(300.0)], abs=0.15)
+    assert _bench()._rank([1.0, 2.0, 3.0], [0.5, math.nan, 0.7]) == pytest.approx(1.0)  # NaN truth left out
+
+
+@pytest.mark.slow
+@pytest.mark.timeout(1800)  # 12 fits one after another: about 9 minutes alone on 2 cores, more on busy ones
+def test_family_with_default_options():
+    """The benchmark's family (12 cases, default options): no divergence, validation error within 2x the
+    noise floor for the median case (the figures are printed by benchmarks/sysid.py)."""
+    bench = _bench()
     rows = [bench.run_case(i, 0) for i in range(12)]
     assert all("error" not in r and not r["diverged"] for r in rows)
     assert np.median([r["val_final"] / r["floor"] for r in rows]) <= 2.0

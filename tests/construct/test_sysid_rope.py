@@ -84,9 +84,10 @@ def test_default_fit_lowers_validation_error(rope, fitted):
 
 
 @pytest.mark.slow
-@pytest.mark.xfail(strict=True, reason="not met yet (issue 29): the fit's own radius rule keeps 58 of the "
-                   "132 springs and the held region comes out stiffest (medians 44k / 41k / 30k for 8k / "
-                   "60k / 25k, measured with --select-frames 0.2)")
+@pytest.mark.xfail(strict=True, reason="not met yet (issue 29): stage 1's CMA-ES ends on a 1.39 cm "
+                   "spring rule (the ladder: 58 springs, no diagonals; the truth's 2 cm rule makes 132), "
+                   "the thirds come out 20k / 28k / 46k for 8k / 60k / 25k (2026-12-07); with the true "
+                   "springs given, 7.5k / 42k / 7.7k (BENCHMARKS.md)")
 def test_default_fit_separates_the_stiff_region(rope, fitted):
     data, _ = rope
     res = fitted
