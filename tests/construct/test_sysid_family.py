@@ -212,9 +212,10 @@ def test_withheld_springs_rank_against_the_true_springs_nearest_each_fit_region(
     region = np.where(fit_mid < 0.055, 1, 0)  # k-means labels need not follow x
     res = SimpleNamespace(model=SimpleNamespace(num_object_springs=len(fit_sp), springs_np=fit_sp, x0_np=pts))
     truth = {"springs": true_sp, "log_y": np.concatenate([log_y, [0.0, 0.0]])}  # 2 control springs after
-    got = _bench()._truth_by_fit_region(res, truth, pts, region)
+    bench = _bench()
+    got = bench._truth_by_fit_region(res, truth, pts, region)
     assert got == pytest.approx([math.log(3000.0), math.log(300.0)], abs=0.15)
-    assert _bench()._rank([1.0, 2.0, 3.0], [0.5, math.nan, 0.7]) == pytest.approx(1.0)  # NaN truth left out
+    assert bench._rank([1.0, 2.0, 3.0], [0.5, math.nan, 0.7]) == pytest.approx(1.0)  # NaN truth left out
 
 
 @pytest.mark.slow
