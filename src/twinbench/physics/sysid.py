@@ -571,12 +571,19 @@ def set_frame_inputs(model: SpringMassModel, ctl, controls: np.ndarray, tool: np
         ctl.set_kinematic_mesh(mesh, tool[k - 1], tool[k])
 
 
+SPLIT_PAYBACK_FRAMES = 250
+"""a rollout shorter than this runs on one core: a solver that splits its frames over two processes
+(physics.split) starts its helper on its first frame, about 2-2.7 s, and saves about 9 ms a frame after
+(a 1,014-particle toy at 300 substeps), so a sysid candidate's 30-90 frames took 3x as long split"""
+
+
 def rollout(model: SpringMassModel, controls: np.ndarray, frames: int, solver: SpringMassSolver | None = None,
             tool: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Simulate frames 1..``frames`` (fast path) with the control points moving from ``controls[k-1]``
     to ``controls[k]`` and the tool (``SysIdData.tool_path()``, if any) from its frame k-1 to frame k
-    vertices in frame k; returns positions and velocities (frames + 1, P, 3). Raises SimulationDiverged."""
-    solver = solver or SpringMassSolver(model)
+    vertices in frame k; returns positions and velocities (frames + 1, P, 3). Raises SimulationDiverged.
+    Without ``solver``, a new one (on one core under ``SPLIT_PAYBACK_FRAMES`` frames)."""
+    solver = solver or SpringMassSolver(model, threads=1 if frames < SPLIT_PAYBACK_FRAMES else None)
     state, ctl = model.state(requires_grad=False), model.control()
     xs = np.empty((frames + 1, model.num_particles, 3), np.float32)
     vs = np.empty_like(xs)
