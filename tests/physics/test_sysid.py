@@ -777,3 +777,51 @@ def test_stable_substeps_step_a_damped_spring_inside_its_exact_stability_limit(y
         assert not np.all(np.isfinite(gap)) or abs(gap[-1] - rest) > 10 * abs(gap[0] - rest)
     except SimulationDiverged:
         pass
+
+
+# ------------------------------------------------------------------------------ candidates in processes
+def _pool_fit_config(workers: int) -> FitConfig:
+    return _config(stage3=True, stage3_budget=16, adam=AdamConfig(epochs=2, lr=0.02, y_min=50.0, y_max=1e4),
+                   cma=CMAConfig(budget=30, search=SEARCH, ranges=("spring_Y=100:10000",), seed=0,
+                                 workers=workers))
+
+
+def test_candidates_scored_in_worker_processes_give_the_same_fit(monkeypatch):
+    """Stages 1 and 3 with each generation (and the attachment families' coarse members) scored in two
+    spawned processes: every candidate's score, the histories and the fitted values are those of the fit
+    that scores them one after another in this process."""
+    from twinbench.physics.sysid import CandidatePool
+
+    data, _ = synthetic_case("rope", seed=0)
+    one = identify(data, _pool_fit_config(1), log=_quiet)
+    batches, scores = [], CandidatePool.losses
+    monkeypatch.setattr(CandidatePool, "losses",
+                        lambda self, jobs: batches.append(len(jobs)) or scores(self, jobs))
+    two = identify(data, _pool_fit_config(2), log=_quiet)
+    assert max(batches) >= 6  # whole generations went to the processes
+    for h in ("stage1_history", "stage3_history"):
+        assert [r["loss"] for r in getattr(two, h)] == [r["loss"] for r in getattr(one, h)], h
+        assert len(getattr(one, h)) > 10
+    assert two.params == one.params
+    np.testing.assert_array_equal(two.log_y, one.log_y)
+
+
+def test_a_killed_candidate_process_leaves_the_scores_to_this_process():
+    """A pool process killed (SIGKILL, as by the OOM killer) between generations: the next batch is scored in
+    this process, with a warning, to the same values."""
+    import os
+    import signal
+
+    from twinbench.physics.sysid import CandidatePool, stage1_loss
+
+    data, truth = synthetic_case("rope", seed=0)
+    base = SimParams(dt=1.0 / (30 * SUBSTEPS), substeps=SUBSTEPS)
+    jobs = [(replace(truth["params"], spring_Y=y), base, None) for y in (300.0, 1000.0, 3000.0)]
+    loss = SequenceLoss(data, LossWeights())
+    want = [stage1_loss(data, p, b, loss) for p, b, _ in jobs]
+    with CandidatePool(data, LossWeights(), "cpu", 2) as pool:
+        assert pool.losses(jobs) == want
+        os.kill(next(iter(pool._pool._processes)), signal.SIGKILL)
+        with pytest.warns(UserWarning, match="candidate processes stopped"):
+            assert pool.losses(jobs) == want
+        assert pool.losses(jobs[:2]) == want[:2]  # from now on in this process

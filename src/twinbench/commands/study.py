@@ -55,6 +55,9 @@ class ReconstructConfig:
     evidence: tyro.conf.Positional[Path]
     out: Path
     variants: tuple[str, ...] = VARIANTS
+    workers: int = 1
+    """processes that score each `twinbench sysid` run's candidates (its --cma.workers: the same fit,
+    sooner), e.g. the machine's cores"""
 
 
 @dataclass(frozen=True)
@@ -103,7 +106,8 @@ class RunConfig:
     reference cell, every grid state, the task's episode length"""
     seed: int = 0
     workers: int = 1
-    """evaluation worker processes"""
+    """evaluation worker processes, and the processes that score the reconstruction's `twinbench sysid`
+    candidates (--cma.workers)"""
     device: str = "cpu"
     """Warp device of the evaluations' physics and rendering: cpu | cuda | cuda:N (the twins are built on
     CPU either way); a study's runs resume on the device they began on"""
@@ -205,7 +209,7 @@ def main(cfg) -> int:
     elif isinstance(cfg, ReconstructConfig):
         from twinbench.study.reconstruct import reconstruct
 
-        for variant, path in reconstruct(cfg.evidence, cfg.out, cfg.variants).items():
+        for variant, path in reconstruct(cfg.evidence, cfg.out, cfg.variants, workers=cfg.workers).items():
             print(f"{variant}: {path}")
     elif isinstance(cfg, EvaluateConfig):
         return _evaluate(cfg)

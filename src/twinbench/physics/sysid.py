@@ -51,14 +51,22 @@ act (``AdamConfig.fit_contact``), in logit space.
 
 from __future__ import annotations
 
+import contextlib
 import math
+import multiprocessing as mp
+import os
 import time
+import warnings
 from collections.abc import Callable
+from concurrent.futures import ProcessPoolExecutor
+from concurrent.futures.process import BrokenProcessPool
 from dataclasses import dataclass, field, replace
 
 import numpy as np
 import warp as wp
 from scipy.spatial import cKDTree
+
+from twinbench._runtime import CPU_THREADS_ENV, quiet_warp, watch_parent
 
 from .model import RADIUS_SLACK, TIE_DECIMALS, ModelBuilder, SpringMassModel, radius_springs
 from .params import SimParams
@@ -215,6 +223,10 @@ class CMAConfig:
     patience: int = 3
     """stop after this many CMA-ES generations without a 1 % improvement of the best loss (0 = use the
     whole budget)"""
+    workers: int = 1
+    """processes that score a generation's candidates at once (spawned, each simulating on one core:
+    CandidatePool), e.g. the machine's cores, at most the population; it serves stages 1, 3 and 4.
+    1 = one after another in this process. The fit is the same either way"""
 
 
 @dataclass(frozen=True)
@@ -362,6 +374,7 @@ class FitConfig:
         need("cma.sigma0", c.sigma0, 0.0, 1.0, lo_open=True)
         need("cma.patience", c.patience, 0, 100_000, integer=True)
         need("cma.seed", c.seed, 0, 2**31 - 2, integer=True)
+        need("cma.workers", c.workers, 1, 1_000, integer=True)
         need("adam.epochs", a.epochs, 0, 100_000, integer=True)
         need("adam.lr", a.lr, 0.0, 10.0)
         need("adam.contact_lr", a.contact_lr, 0.0, 10.0)
@@ -726,11 +739,74 @@ def stage1_loss(data: SysIdData, params: GlobalParams, base: SimParams, loss: Se
         return PENALTY
 
 
-def cma_search(f: Callable[[list[float]], float], x0: list[float], cfg: CMAConfig, budget: int,
+# ----------------------------------------------------------------------------------------------
+# many candidates at once: a CMA-ES generation's candidates are independent simulations of a few dozen
+# frames each. Threads do not help (a frame is thousands of short kernel launches from Python, which the
+# GIL serialises) and splitting one short rollout over two processes costs more to start than it saves
+# (SPLIT_PAYBACK_FRAMES); a pool of processes, one candidate each, does.
+
+_POOL_WORKER: dict = {}  # in a CandidatePool process: its data, loss and device
+
+
+def _pool_start(data: SysIdData, weights: LossWeights, device: str) -> None:
+    os.environ[CPU_THREADS_ENV] = "1"  # the pool is the parallelism: each rollout on one core
+    quiet_warp()
+    watch_parent()  # a parent killed by SIGKILL leaves no process waiting on its queue
+    _POOL_WORKER.update(data=data, loss=SequenceLoss(data, weights), device=device)
+
+
+def _pool_score(job: tuple) -> float:
+    params, base, hold = job
+    return stage1_loss(_POOL_WORKER["data"], params, base, _POOL_WORKER["loss"], _POOL_WORKER["device"], hold)
+
+
+class CandidatePool:
+    """Scores (`sysid.stage1_loss`) of candidates on ``data`` in ``workers`` spawned processes (CMAConfig's
+    ``workers``): ``losses`` takes jobs (GlobalParams, SimParams, held stiffness or None) and returns their
+    scores in order. Where the processes cannot run (one was killed, or a script without an
+    ``if __name__ == "__main__":`` guard spawned them), that batch and the rest are scored in this process,
+    with a warning, and the values are the same."""
+
+    def __init__(self, data: SysIdData, weights: LossWeights, device: str, workers: int):
+        if workers < 2:
+            raise ValueError(f"a candidate pool needs at least 2 workers, got {workers}")
+        self.data, self.weights, self.device, self.workers = data, weights, device, int(workers)
+        self._pool: ProcessPoolExecutor | None = ProcessPoolExecutor(
+            self.workers, mp_context=mp.get_context("spawn"), initializer=_pool_start,
+            initargs=(data, weights, device))
+        self._loss = None
+
+    def losses(self, jobs: list[tuple]) -> list[float]:
+        if self._pool is not None and len(jobs) > 1:
+            try:
+                return list(self._pool.map(_pool_score, jobs))
+            except BrokenProcessPool as err:
+                warnings.warn(f"sysid: the candidate processes stopped ({err or 'a process died'}); the "
+                              "candidates are scored in this process from now on", stacklevel=2)
+                self.close()
+        if self._loss is None:
+            self._loss = SequenceLoss(self.data, self.weights)
+        return [stage1_loss(self.data, p, base, self._loss, self.device, hold) for p, base, hold in jobs]
+
+    def close(self) -> None:
+        """Stop the processes (a ``with`` block does it; a pool left open is stopped at exit)."""
+        if self._pool is not None:
+            self._pool.shutdown(wait=True, cancel_futures=True)
+            self._pool = None
+
+    def __enter__(self) -> CandidatePool:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+
+def cma_search(f: Callable[[list[list[float]]], list[float]], x0: list[float], cfg: CMAConfig, budget: int,
                best: float = math.inf, sigma0: float | None = None) -> None:
     """CMA-ES on ``f`` over [0, 1]^n from ``x0`` (``cfg``: step ``sigma0`` unless given, population, seed,
     patience): at most ``budget`` evaluations; stops after ``cfg.patience`` generations without a 1 %
-    improvement on the best value (``best``: the best before the search). The caller keeps the best."""
+    improvement on the best value (``best``: the best before the search). ``f`` scores a generation's
+    points at once (a list of values, in order). The caller keeps the best."""
     import cma
 
     opts = {"bounds": [0.0, 1.0], "maxfevals": max(budget, 1), "seed": cfg.seed + 1, "verbose": -9,
@@ -741,7 +817,7 @@ def cma_search(f: Callable[[list[float]], float], x0: list[float], cfg: CMAConfi
     used, stalled, last_best = 0, 0, best
     while not es.stop() and used < budget:
         xs = es.ask()[: budget - used]
-        vals = [f(u) for u in xs]
+        vals = list(f(xs))
         used += len(vals)
         best = min([best, *vals])
         if len(vals) < es.popsize:
@@ -764,7 +840,8 @@ def stage1_cma(data: SysIdData, base: SimParams, initial: GlobalParams, cfg: CMA
                hold: tuple[np.ndarray, float] | None = None,
                stage: str = "stage 1",
                attachments: tuple[tuple[tuple[dict, int], ...], ...] = (),
-               scan_stiffness: bool = True, then_cma: bool = True) -> tuple[GlobalParams, list[dict]]:
+               scan_stiffness: bool = True, then_cma: bool = True,
+               pool: CandidatePool | None = None) -> tuple[GlobalParams, list[dict]]:
     """CMA-ES over the searched global parameters (normalised to [0, 1], stiffness in log space).
 
     When stiffness is searched, a scan of ``SCAN_POINTS`` log-spaced stiffness values (the other
@@ -785,9 +862,11 @@ def stage1_cma(data: SysIdData, base: SimParams, initial: GlobalParams, cfg: CMA
     evaluation simulates the training frames (with ``base_of(candidate)`` when given: substeps stable for
     the candidate's stiffness) and scores Chamfer + tracking (the acceleration term regularises stage 2's
     per-spring fit; in a global search it only favours the most damped candidate). With ``hold`` (stage
-    3) every candidate keeps that stiffness pattern (:func:`build_model`). Returns the best parameters
-    and the history (one row per evaluation: index, loss, best-so-far, the candidate's searched
-    values)."""
+    3) every candidate keeps that stiffness pattern (:func:`build_model`). With ``pool`` (on ``data``
+    and ``weights``), the candidates that do not depend on each other's scores (a generation, the
+    attachment families' coarse members, the given candidates) are scored at once in its processes, with
+    the same values and history as one at a time. Returns the best parameters and the history (one row per
+    evaluation: index, loss, best-so-far, the candidate's searched values)."""
     ranges = parse_ranges(cfg.ranges)
     allowed = applicable_parameters(data, base)
     names = tuple(cfg.search) or allowed
@@ -801,14 +880,21 @@ def stage1_cma(data: SysIdData, base: SimParams, initial: GlobalParams, cfg: CMA
     history: list[dict] = []
     best = (math.inf, initial)
 
-    def objective(params: GlobalParams) -> float:
+    def objectives(cands: list[GlobalParams]) -> list[float]:
+        """The scores of ``cands`` (at once in ``pool``), recorded in their order."""
         nonlocal best
-        value = stage1_loss(data, params, base_of(params) if base_of else base, loss, device, hold)
-        if value < best[0]:
-            best = (value, params)
-        history.append({"evaluation": len(history), "loss": value, "best": best[0],
-                        "params": {n: float(getattr(params, n)) for n in names}})
-        return value
+        jobs = [(p, base_of(p) if base_of else base, hold) for p in cands]
+        values = pool.losses(jobs) if pool is not None else \
+            [stage1_loss(data, p, b, loss, device, h) for p, b, h in jobs]
+        for params, value in zip(cands, values, strict=True):
+            if value < best[0]:
+                best = (value, params)
+            history.append({"evaluation": len(history), "loss": value, "best": best[0],
+                            "params": {n: float(getattr(params, n)) for n in names}})
+        return values
+
+    def objective(params: GlobalParams) -> float:
+        return objectives([params])[0]
 
     with _progress(progress) as bar:
         task = bar.add_task(f"{stage} (CMA-ES)", total=cfg.budget, info="")
@@ -836,36 +922,41 @@ def stage1_cma(data: SysIdData, base: SimParams, initial: GlobalParams, cfg: CMA
                 bar.update(task, advance=1, info=f"best {best[0]:.3e}")
                 if len(scan) >= 3 and scan[-1] > scan[-2] > min(scan) and min(scan) < PENALTY:
                     break
-        for c in candidates:
-            objective(c)
-            bar.advance(task)
+        if candidates:
+            objectives(list(candidates))
+            bar.advance(task, len(candidates))
         here = best[1]
         attach = bool(attachments) and set(ATTACHMENT_NAMES) <= set(names)
         if attach:
             m = build_model(data, here, base_of(here) if base_of else base, device)
             held_here = max(m.num_springs - m.num_object_springs, 1)
 
-        def score(setting: dict, held: int) -> float:
-            """``here`` with the attachment ``setting``; where the stiffness is searched, also at the
-            stiffness that holds the object as firmly as ``here`` (its control springs' total stiffness)."""
-            tries = [replace(here, **setting)]
-            if "spring_Y" in names and held != held_here:
-                r = ranges["spring_Y"]
-                firm = min(max(here.spring_Y * held_here / held, r.lo), r.hi)
-                tries.append(replace(tries[0], spring_Y=firm))
-            out = min(objective(p) if len(history) < cfg.budget else math.inf for p in tries)
-            bar.advance(task)
+        def score(settings: list[tuple[dict, int]]) -> list[float]:
+            """``here`` with each attachment (setting, control springs); where the stiffness is searched,
+            also at the stiffness that holds the object as firmly as ``here`` (its control springs' total
+            stiffness). Candidates past the budget score inf."""
+            tries = []
+            for i, (setting, held) in enumerate(settings):
+                tries.append((i, replace(here, **setting)))
+                if "spring_Y" in names and held != held_here:
+                    r = ranges["spring_Y"]
+                    firm = min(max(here.spring_Y * held_here / held, r.lo), r.hi)
+                    tries.append((i, replace(tries[-1][1], spring_Y=firm)))
+            tries = tries[: max(cfg.budget - len(history), 0)]
+            out = [math.inf] * len(settings)
+            for (i, _), value in zip(tries, objectives([p for _, p in tries]) if tries else [], strict=True):
+                out[i] = min(out[i], value)
+            bar.advance(task, len(settings))
             return out
 
         for members in attachments if attach else ():
-            scores: dict[int, float] = {}
-            for j in np.unique(np.round(np.geomspace(1, len(members), ATTACHMENT_COARSE))).astype(int) - 1:
-                scores[int(j)] = score(*members[j])
+            coarse = np.unique(np.round(np.geomspace(1, len(members), ATTACHMENT_COARSE))).astype(int) - 1
+            scores = dict(zip(coarse.tolist(), score([members[j] for j in coarse]), strict=True))
             j = min(scores, key=scores.__getitem__)
             for step in (-1, 1):  # downhill along the family from its best coarse member
                 while 0 <= j + step < len(members):
                     if j + step not in scores:
-                        scores[j + step] = score(*members[j + step])
+                        scores[j + step] = score([members[j + step]])[0]
                     if scores[j + step] >= scores[j]:
                         break
                     j += step
@@ -879,16 +970,15 @@ def stage1_cma(data: SysIdData, base: SimParams, initial: GlobalParams, cfg: CMA
 
         x0 = [ranges[n].encode(getattr(anchor, n)) for n in free]
 
-        def step(u) -> float:
-            value = objective(decode(u))
-            bar.update(task, advance=1, info=f"best {best[0]:.3e}")
-            return value
+        def steps(us) -> list[float]:
+            values = objectives([decode(u) for u in us])
+            bar.update(task, advance=len(us), info=f"best {best[0]:.3e}")
+            return values
 
         if len(free) == 1:  # cma needs >= 2 dimensions: a 1-D search samples the normalised line instead
-            for u in np.linspace(0.0, 1.0, max(cfg.budget - len(history), 1)):
-                step([u])
+            steps([[u] for u in np.linspace(0.0, 1.0, max(cfg.budget - len(history), 1))])
         elif free:
-            cma_search(step, x0, cfg, cfg.budget - len(history), best[0])
+            cma_search(steps, x0, cfg, cfg.budget - len(history), best[0])
     if best[0] >= PENALTY:
         raise ValueError(f"{stage}: every candidate diverged; lower the spring_Y range (cma.ranges) or raise "
                          "the substeps")
@@ -907,14 +997,15 @@ def stage4_cma(data: SysIdData, params: GlobalParams, hold: tuple[np.ndarray, fl
                base_of: Callable[[GlobalParams, float], SimParams], weights: LossWeights = LossWeights(),
                device: str = "cpu", *, hold_scale: bool = False, y_bounds: tuple[float, float] = (1.0, 1e5),
                progress: bool = False, log: Callable[[str], None] = print,
+               pool: CandidatePool | None = None,
                ) -> tuple[GlobalParams, tuple[np.ndarray, float], list[dict]]:
     """Stage 4: CMA-ES (``STAGE4_SIGMA``, ``budget`` evaluations) over the object springs' log Y per
     ``region`` (one index per object spring; each region shifted by at most a factor ``STAGE4_SPAN``, kept
     in ``y_bounds``), the control springs' log Y (with control points) and the global parameters ``names``,
     from ``params`` and ``hold`` (object springs' log Y, control springs' log Y); ``hold_scale`` keeps the
     object springs' mean log Y (the measured stiffness that was kept). Scored as stage 1 (Chamfer +
-    tracking over the training frames) with ``base_of(candidate, stiffest Y)``. Returns the best
-    parameters, stiffness and the history."""
+    tracking over the training frames) with ``base_of(candidate, stiffest Y)``, a generation at once in
+    ``pool`` when given. Returns the best parameters, stiffness and the history."""
     ranges = parse_ranges(cfg.ranges)
     obj_y, ctl_y = np.asarray(hold[0], np.float64), float(hold[1])
     _, inv = np.unique(region, return_inverse=True)
@@ -938,20 +1029,23 @@ def stage4_cma(data: SysIdData, params: GlobalParams, hold: tuple[np.ndarray, fl
     with _progress(progress) as bar:
         task = bar.add_task("stage 4 (CMA-ES)", total=budget, info="")
 
-        def objective(u) -> float:
-            p, y = decode(u)
-            value = stage1_loss(data, p, base_of(p, float(np.exp(max(y[0].max(), y[1])))), loss, device, y)
-            if value < best[0]:
-                best[:] = [value, p, y]
-            history.append({"evaluation": len(history), "loss": value, "best": best[0],
-                            "params": {n: float(getattr(p, n)) for n in names}})
-            bar.update(task, advance=1, info=f"best {best[0]:.3e}")
-            return value
+        def objectives(us) -> list[float]:
+            cands = [decode(u) for u in us]
+            jobs = [(p, base_of(p, float(np.exp(max(y[0].max(), y[1])))), y) for p, y in cands]
+            values = pool.losses(jobs) if pool is not None else \
+                [stage1_loss(data, p, b, loss, device, y) for p, b, y in jobs]
+            for (p, y), value in zip(cands, values, strict=True):
+                if value < best[0]:
+                    best[:] = [value, p, y]
+                history.append({"evaluation": len(history), "loss": value, "best": best[0],
+                                "params": {n: float(getattr(p, n)) for n in names}})
+            bar.update(task, advance=len(us), info=f"best {best[0]:.3e}")
+            return values
 
         x0 = [0.5] * n_y + [ranges[n].encode(getattr(params, n)) for n in names]
-        objective(x0)
+        objectives([x0])
         if len(x0) > 1:  # cma needs >= 2 dimensions
-            cma_search(objective, x0, replace(cfg, patience=0), budget - 1, best[0], sigma0=STAGE4_SIGMA)
+            cma_search(objectives, x0, replace(cfg, patience=0), budget - 1, best[0], sigma0=STAGE4_SIGMA)
     log(f"stage 4: {len(history)} evaluations, best training loss {best[0]:.4e}")
     return best[1], best[2], history
 
@@ -1520,7 +1614,7 @@ def identify(data: SysIdData, cfg: FitConfig, *, base: SimParams | None = None,
                                           base_of=base_of if topo is not None else None,
                                           walk=bool(guesses.get("spring_Y", {}).get("used")),
                                           candidates=() if start == params else (params,),
-                                          attachments=grid if attach_grid else ())
+                                          attachments=grid if attach_grid else (), pool=pool)
             ident = identifiability(history1, parse_ranges(cfg.cma.ranges))
             found = params
             if cfg.keep_guess > 0:
@@ -1537,7 +1631,7 @@ def identify(data: SysIdData, cfg: FitConfig, *, base: SimParams | None = None,
                 params, _ = stage1_cma(fit, base, params, replace(cfg.cma, search=names1), cfg.weights,
                                        cfg.device, False, lambda _m: None,
                                        base_of=base_of if topo is not None else None, attachments=grid,
-                                       scan_stiffness=False, then_cma=False)
+                                       scan_stiffness=False, then_cma=False, pool=pool)
             seconds["stage1"] = time.perf_counter() - t0
             models["stage1"] = build_model(data, params, base_of(params), cfg.device)
             evals["stage1"] = evaluate(models["stage1"], data, loss)
@@ -1592,7 +1686,7 @@ def identify(data: SysIdData, cfg: FitConfig, *, base: SimParams | None = None,
             cma3 = replace(cfg.cma, search=names3, budget=cfg.stage3_budget, patience=0)
             params3, history3 = stage1_cma(fit, base, stage_params["stage2"], cma3, cfg.weights, cfg.device,
                                            cfg.progress, log, base_of=base3, hold=hold, stage="stage 3",
-                                           attachments=grid)
+                                           attachments=grid, pool=pool)
             ident.update(identifiability(history3, parse_ranges(cfg.cma.ranges)))
             seconds["stage3"] = time.perf_counter() - t0
             if params3 == stage_params["stage2"]:
@@ -1611,7 +1705,7 @@ def identify(data: SysIdData, cfg: FitConfig, *, base: SimParams | None = None,
                 fit, stage_params[last], hold4, regions[:len(hold4[0])], names4, cfg.cma, cfg.stage4_budget,
                 base_of,
                 cfg.weights, cfg.device, hold_scale=bool(ident.get("spring_Y", {}).get("guess_kept")),
-                y_bounds=(adam.y_min, adam.y_max), progress=cfg.progress, log=log)
+                y_bounds=(adam.y_min, adam.y_max), progress=cfg.progress, log=log, pool=pool)
             seconds["stage4"] = time.perf_counter() - t0
             if len(history4) < 2 or min(r["loss"] for r in history4[1:]) >= history4[0]["loss"]:
                 notes.append(f"stage 4 did not improve on {last.replace('stage', 'stage ')}'s values "
@@ -1627,31 +1721,35 @@ def identify(data: SysIdData, cfg: FitConfig, *, base: SimParams | None = None,
                 "seconds": seconds, "notes": notes, "ident": ident, "regions": regions, "guesses": guesses,
                 "stage1": stage_params.get("stage1")}
 
-    runs.append(stages(False))
-    floor = CHI3_MEAN * track_noise(fit)
-    first_error = runs[0]["evals"][runs[0]["kept"]].train_error
-    if cfg.stage1 and cfg.attachment_starts and data.num_controls and \
-            set(ATTACHMENT_NAMES) <= set(searched):
-        if not first_error <= cfg.second_start_over_floor * floor:  # NaN / inf included
-            log("start 2 of 2: the stages again, stage 1 scoring the control attachments before its "
-                f"search (training tracking error {1e3 * first_error:.2f} mm, over "
-                f"{cfg.second_start_over_floor:g}x the tracks' noise floor {1e3 * floor:.2f} mm)")
-            t0 = time.perf_counter()
-            second = stages(True)
-            if second is None:
-                runs[0]["seconds"]["other_start"] = time.perf_counter() - t0
-                log("start 2 of 2: stage 1 ended where the first run's did; the first run stands")
-                runs[0]["selection"]["second_start"] = (
-                    "run to the end of stage 1, which ended where the first run's did (no attachment scored "
-                    f"first led elsewhere): the first run's training tracking error {1e3 * first_error:.2f} "
-                    f"mm is over {cfg.second_start_over_floor:g}x the tracks' noise floor "
-                    f"{1e3 * floor:.2f} mm")
+    # a generation's candidates at once in worker processes (stages 1, 3 and 4 of both starts)
+    pools = CandidatePool(fit, cfg.weights, cfg.device, cfg.cma.workers) if cfg.cma.workers > 1 else \
+        contextlib.nullcontext()  # (its processes start at its first batch: none when no stage searches)
+    with pools as pool:
+        runs.append(stages(False))
+        floor = CHI3_MEAN * track_noise(fit)
+        first_error = runs[0]["evals"][runs[0]["kept"]].train_error
+        if cfg.stage1 and cfg.attachment_starts and data.num_controls and \
+                set(ATTACHMENT_NAMES) <= set(searched):
+            if not first_error <= cfg.second_start_over_floor * floor:  # NaN / inf included
+                log("start 2 of 2: the stages again, stage 1 scoring the control attachments before its "
+                    f"search (training tracking error {1e3 * first_error:.2f} mm, over "
+                    f"{cfg.second_start_over_floor:g}x the tracks' noise floor {1e3 * floor:.2f} mm)")
+                t0 = time.perf_counter()
+                second = stages(True)
+                if second is None:
+                    runs[0]["seconds"]["other_start"] = time.perf_counter() - t0
+                    log("start 2 of 2: stage 1 ended where the first run's did; the first run stands")
+                    runs[0]["selection"]["second_start"] = (
+                        "run to the end of stage 1, which ended where the first run's did (no attachment "
+                        "scored first led elsewhere): the first run's training tracking error "
+                        f"{1e3 * first_error:.2f} mm is over {cfg.second_start_over_floor:g}x the tracks' "
+                        f"noise floor {1e3 * floor:.2f} mm")
+                else:
+                    runs.append(second)
             else:
-                runs.append(second)
-        else:
-            runs[0]["selection"]["second_start"] = (
-                f"not run: the training tracking error {1e3 * first_error:.2f} mm is within "
-                f"{cfg.second_start_over_floor:g}x the tracks' noise floor {1e3 * floor:.2f} mm")
+                runs[0]["selection"]["second_start"] = (
+                    f"not run: the training tracking error {1e3 * first_error:.2f} mm is within "
+                    f"{cfg.second_start_over_floor:g}x the tracks' noise floor {1e3 * floor:.2f} mm")
     errors = [r["evals"][r["kept"]].train_error for r in runs]
     errors = [e if math.isfinite(e) else math.inf for e in errors]
     run = runs[int(np.argmin(errors))]

@@ -320,7 +320,8 @@ def push_layout(push: Path, identified: Path, template, out: Path) -> tuple[Path
 
 
 def _push_fit(run, push: Path, probe: Path, report: Path, out: Path, mesh_margin: float, cell: dict,
-              log: Callable[[str], None], layout: tuple[Path, dict] | None = None) -> dict:
+              log: Callable[[str], None], layout: tuple[Path, dict] | None = None,
+              sysid_flags: tuple[str, ...] = ()) -> dict:
     """`twinbench sysid` of a push recording: the tool's friction (in [0, 1.5]) and the object's ground
     friction and drag where its probe fit (`report`) left them unconstrained (`push_search`), the object's
     other global values held at that fit, the tool's contact distance measured from the push (`sysid
@@ -336,7 +337,7 @@ def _push_fit(run, push: Path, probe: Path, report: Path, out: Path, mesh_margin
     the push fitted on that recording instead, with the values it holds. Where it moves the object's values,
     the probe recording's tracking error at them and at the probe fit's (one uniform stiffness, as the push
     fit) is recorded. The choice goes to OUT/choice.json (chosen, fitted and prior values, errors, the
-    layout) and the log."""
+    layout) and the log. `sysid_flags`: more options of every `twinbench sysid` run (e.g. --cma.workers)."""
     from twinbench.construct._json import write_json
 
     probe_fit = json.loads(report.read_text())
@@ -348,7 +349,7 @@ def _push_fit(run, push: Path, probe: Path, report: Path, out: Path, mesh_margin
         given = {**held, **(on_layout if data == push else {}), **values}
         margin = ("--measure-mesh-margin",) if data == push else ("--mesh-margin", str(mesh_margin))
         run("sysid", "--data", data, "--out-dir", where, "--no-progress", "--no-guess", "--no-stage2",
-            "--no-stage3", *margin, *flags,
+            "--no-stage3", *margin, *flags, *sysid_flags,
             *[a for k, v in given.items() for a in (f"--initial.{k.replace('_', '-')}", str(v))])
         return json.loads((where / "sysid_report.json").read_text())
 
@@ -484,9 +485,11 @@ def fit_summary(twins: Path) -> dict:
 
 
 def reconstruct(evidence: Path, out: Path, variants=VARIANTS, log: Callable[[str], None] = print,
-                sysid_args: tuple[str, ...] = ()) -> dict[str, Path]:
+                sysid_args: tuple[str, ...] = (), workers: int = 1) -> dict[str, Path]:
     """Rebuild the workcell of EVIDENCE (made by `make_evidence`) into OUT/<variant>/ twin directories,
-    through the CLI; `sysid_args` are extra `twinbench sysid` options (default: none, its defaults)."""
+    through the CLI; `sysid_args` are extra `twinbench sysid` options (default: none, its defaults);
+    `workers` > 1: every `twinbench sysid` scores its candidates in that many processes (`--cma.workers`,
+    the same fit, sooner)."""
     from twinbench.construct._json import write_json
     from twinbench.errors import InputError
     from twinbench.gaussians.io import load_gaussians
@@ -524,11 +527,12 @@ def reconstruct(evidence: Path, out: Path, variants=VARIANTS, log: Callable[[str
         run("align-color", "--scan", *parts, "--calibration", calibration, "--real",
             evidence / index["real_images"], "--out", color)
     physics = sorted({_PHYSICS[v] for v in variants})
+    pool = ("--cma.workers", str(workers)) if workers > 1 else ()
     for kind in physics:
         flags = ("--no-stage1", "--no-stage2") if kind == "initial" else ()
         for o in objects:
             run("sysid", "--data", evidence / index["motion"][o], "--out-dir", work / "sysid" / kind,
-                "--no-progress", *flags, *sysid_args)
+                "--no-progress", *flags, *pool, *sysid_args)
             # each object's report beside its object (the next object's run writes its own)
             shutil.copy(work / "sysid" / kind / "sysid_report.json",
                         work / "sysid" / kind / o / "report.json")
@@ -551,7 +555,7 @@ def reconstruct(evidence: Path, out: Path, variants=VARIANTS, log: Callable[[str
             relaid = push_layout(evidence / rel, work / "sysid" / "fitted" / o, cell.object(o), fits / "data")
             choices[o] = _push_fit(run, evidence / rel, evidence / index["motion"][o],
                                    work / "sysid" / "fitted" / o / "report.json", fits, cell.sim.mesh_margin,
-                                   values, log, relaid)
+                                   values, log, relaid, pool)
         tool["fitted"]["friction"] = float(np.median([c["chosen"]["tool_friction"]
                                                       for c in choices.values()]))
         from_push = {o: {k: v for k, v in c["chosen"].items() if k != "tool_friction"}

@@ -163,7 +163,7 @@ def run_study(task: str, out: Path, size: str = "small", seed: int = 0, workers:
     timer = _Timer(log, out / "stages.json", args)
     real = timer("make-real", make_real, task, seed, out / "real", size)
     evidence = timer("evidence", make_evidence, real, out / "evidence", seed, size)
-    twins = timer("reconstruct", reconstruct, evidence, out / "twins", variants, log=log)
+    twins = timer("reconstruct", reconstruct, evidence, out / "twins", variants, log=log, workers=workers)
     world = real / "world"
     policies = timer("policies", make_policies, task, world, out / "policies", size,
                      user_calibration(evidence), log)
