@@ -79,7 +79,11 @@ def test_tiny_study_end_to_end(tmp_path, monkeypatch):
 def test_a_study_run_started_again_keeps_the_stages_it_finished(tmp_path, monkeypatch):
     """`study run` stopped in a stage and started again with the same arguments runs only from that stage
     (stand-in stages: the order and the record are what is tested); other arguments are refused; a
-    finished stage whose files are gone runs again, and so do the stages after it."""
+    finished stage whose files are gone runs again, and so do the stages after it. The policies stage and
+    the real rollouts run on a thread beside the reconstruction (here it waits for them, so the order is
+    fixed), and the evaluate stage runs every evaluation after it."""
+    import threading
+
     from twinbench.errors import InputError
     from twinbench.study import evaluate as E
     from twinbench.study import evidence, real, reconstruct, report
@@ -87,9 +91,17 @@ def test_a_study_run_started_again_keeps_the_stages_it_finished(tmp_path, monkey
 
     calls: list[str] = []
     stop = {"reconstruct"}
+    ahead = threading.Event()  # the real rollouts beside the reconstruction are done
 
     def stage(name, result):
         def fn(*args, **kwargs):
+            if name == "reconstruct":
+                assert ahead.wait(30)
+                ahead.clear()
+            if name == "evaluate" and kwargs.get("real_only"):
+                calls.append("real-rollouts")
+                ahead.set()
+                return {}
             calls.append(name)
             if name in stop:
                 stop.discard(name)
@@ -116,11 +128,12 @@ def test_a_study_run_started_again_keeps_the_stages_it_finished(tmp_path, monkey
     out = tmp_path / "study"
     with pytest.raises(KeyboardInterrupt):
         run_study("push-t", out, "small", seed=3, log=lambda line: None)
-    assert calls == ["make-real", "evidence", "reconstruct"]
+    assert calls == ["make-real", "evidence", "policies", "real-rollouts", "reconstruct"]
     calls.clear()
     lines: list[str] = []
     doc = run_study("push-t", out, "small", seed=3, log=lines.append)
-    assert calls == ["reconstruct", "policies", "evaluate", "report"]
+    # the reconstruction runs again, and with it the stages after it
+    assert calls == ["policies", "real-rollouts", "reconstruct", "evaluate", "report"]
     assert "== make-real: finished by an earlier run" in lines[0] and "kept" in lines[0]
     assert doc["twins"] == ["full"] and doc["policies"] == ["p0=perceive:x.json"]
     assert set(doc["seconds"]) == {"make-real", "evidence", "reconstruct", "policies", "evaluate", "report"}
@@ -131,9 +144,9 @@ def test_a_study_run_started_again_keeps_the_stages_it_finished(tmp_path, monkey
 
     shutil.rmtree(tmp_path / "evidence")
     doc = run_study("push-t", out, "small", seed=3, log=lambda line: None)
-    assert calls == ["evidence", "reconstruct", "policies", "evaluate", "report"]
+    assert calls == ["evidence", "policies", "real-rollouts", "reconstruct", "evaluate", "report"]
     record = json.loads((out / "stages.json").read_text())
-    assert list(record["done"]) == ["make-real", "evidence", "reconstruct", "policies"]
+    assert sorted(record["done"]) == ["evidence", "make-real", "policies", "reconstruct"]
     assert record["done"]["reconstruct"]["result"] == {"full": str(tmp_path / "twins" / "full")}
     # the user's own policies join the evaluation, also in a run started again (not a stage argument)
     evaluated = []

@@ -161,12 +161,13 @@ def _real_records(store: ResultsStore, task: str, recs) -> None:
 def run_evaluations(task: str, real_world: Path, twins: dict[str, Path], policies: list[str], out: Path,
                     size: str | StudySize = "small", workers: int = 1, log=print,
                     retry_errors: bool = False, real_again: bool | None = None,
-                    device: str = "cpu") -> dict[str, float]:
+                    device: str = "cpu", real_only: bool = False) -> dict[str, float]:
     """Every policy on the real workcell (a second time with other episode seeds where `real_again`, by
     default the size's) and on each twin (resumable: the runner skips finished episodes, and those that
     ended in an error unless `retry_errors`), then the real rollouts replayed in each twin, all with
     physics and rendering on Warp device `device` (every run resumes on the device it began on). Returns
-    the wall time (s) of each evaluation, over every session that ran some of its episodes."""
+    the wall time (s) of each evaluation, over every session that ran some of its episodes. `real_only`:
+    the real rollouts alone (no second real evaluation, twins or replays)."""
     from twinbench.physics import check_device
 
     sz = study_size(size)
@@ -177,6 +178,8 @@ def run_evaluations(task: str, real_world: Path, twins: dict[str, Path], policie
         real_again = sz.real_again
     again = [(REAL_AGAIN, real_world, AGAIN_SEED)] if real_again else []
     runs = [(REAL_ROLLOUTS, real_world, 0), *again, *((twin_run_id(v), p, 0) for v, p in twins.items())]
+    if real_only:
+        runs, twins = runs[:1], {}
     check_run_devices(store, [r for r, _, _ in runs] + [replay_run_id(v) for v in twins], device)
     for run_id, world, seed in runs:
         t0 = time.perf_counter()

@@ -299,6 +299,9 @@ def write_study_report(out: Path, doc: dict, frames: bool = True,
         body.append(_frames_section(doc["task"], out / "real" / "world", twins))
     device = _e(doc.get("device", "cpu"))  # (studies from before --device ran on CPU)
     body.append(f"<h2>Stage wall times (evaluations on {device})</h2><table><tbody>{stages}</tbody></table>")
+    if doc.get("beside_reconstruct"):
+        body.append(f"<p>{_e(' and '.join(doc['beside_reconstruct']))} ran beside the reconstruction: their "
+                    "seconds (the real rollouts' in evaluate's) overlap its.</p>")
     page = ("<!DOCTYPE html>\n<html lang=\"en\"><head><meta charset=\"utf-8\">"
             f"<title>twinbench study — {_e(doc['task'])}</title><link rel=\"icon\" href=\"data:,\">"
             f"<style>{_CSS}</style></head><body>\n" + "\n".join(body) + "\n</body></html>\n")

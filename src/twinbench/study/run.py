@@ -9,6 +9,10 @@
     DIR/study.json the table and the stage times;  DIR/report.html the study page
     DIR/stages.json the run's arguments and each finished stage's result and time
 
+The policies stage and the real rollouts (the evaluate stage's first run, which then finds them finished)
+run on a thread beside the reconstruction, whose fits hold one core for long stretches; study.json's
+`beside_reconstruct` says so when they did (the stage times overlap).
+
 Started again with the same arguments (after Ctrl-C or a killed machine), a run keeps the stages it
 finished (their results recorded in DIR/stages.json and their files still there) and goes on from the first
 one that did not finish; the evaluation resumes by itself (finished episodes are kept). Other arguments
@@ -19,6 +23,7 @@ paths are read under the folder's new place).
 from __future__ import annotations
 
 import json
+import threading
 import time
 from pathlib import Path
 
@@ -40,6 +45,7 @@ class _Timer:
     earlier run with the same `args` is kept (its result and seconds from the record)."""
 
     def __init__(self, log, record: Path, args: dict):
+        self._lock = threading.Lock()  # a stage may run beside another (run_study's real rollouts)
         self.seconds: dict[str, float] = {}
         self.log = log
         self.record, self.args = record, args
@@ -62,27 +68,29 @@ class _Timer:
                                  + "); give another --out, or remove that folder to start again")
 
     def __call__(self, stage: str, fn, *args, **kwargs):
-        kept = self.done.get(stage)
-        if kept is not None and all(p.exists() for p in _paths(kept["result"])):
-            self.seconds[stage] = float(kept["seconds"])
-            self.log(f"== {stage}: finished by an earlier run ({self.seconds[stage]:.0f} s then), kept")
-            result = kept["result"]
-            return {k: Path(v) for k, v in result.items()} if isinstance(result, dict) else (
-                Path(result) if isinstance(result, str) else result)
-        if any(STAGES.index(k) >= STAGES.index(stage) for k in self.done):
-            # this stage runs again, so every later one does too: forget them before anything changes
-            self.done = {k: v for k, v in self.done.items() if STAGES.index(k) < STAGES.index(stage)}
-            self._save()
+        with self._lock:
+            kept = self.done.get(stage)
+            if kept is not None and all(p.exists() for p in _paths(kept["result"])):
+                self.seconds[stage] = float(kept["seconds"])
+                self.log(f"== {stage}: finished by an earlier run ({self.seconds[stage]:.0f} s then), kept")
+                result = kept["result"]
+                return {k: Path(v) for k, v in result.items()} if isinstance(result, dict) else (
+                    Path(result) if isinstance(result, str) else result)
+            if any(STAGES.index(k) >= STAGES.index(stage) for k in self.done):
+                # this stage runs again, so every later one does too: forget them before anything changes
+                self.done = {k: v for k, v in self.done.items() if STAGES.index(k) < STAGES.index(stage)}
+                self._save()
         self.log(f"== {stage}")
         t0 = time.perf_counter()
         out = fn(*args, **kwargs)
-        self.seconds[stage] = time.perf_counter() - t0
-        self.log(f"== {stage}: {self.seconds[stage]:.0f} s")
-        if stage in KEPT:
-            result = {k: str(v) for k, v in out.items()} if isinstance(out, dict) else (
-                str(out) if isinstance(out, Path) else out)
-            self.done[stage] = {"result": result, "seconds": self.seconds[stage]}
-            self._save()
+        with self._lock:
+            self.seconds[stage] = time.perf_counter() - t0
+            self.log(f"== {stage}: {self.seconds[stage]:.0f} s")
+            if stage in KEPT:
+                result = {k: str(v) for k, v in out.items()} if isinstance(out, dict) else (
+                    str(out) if isinstance(out, Path) else out)
+                self.done[stage] = {"result": result, "seconds": self.seconds[stage]}
+                self._save()
         return out
 
     def _save(self) -> None:
@@ -90,6 +98,29 @@ class _Timer:
         doc = {"args": self.args, "root": str(self.record.parent.resolve()), "done": self.done}
         tmp.write_text(json.dumps(doc, indent=1) + "\n")
         tmp.replace(self.record)
+
+
+class _Beside:
+    """``fn()`` on a daemon thread (a Ctrl-C or an error of the main thread does not wait for it: what it
+    finished is recorded, e.g. episode by episode); ``result()`` waits for it and returns its result or
+    raises its error."""
+
+    def __init__(self, fn):
+        self._out: dict = {}
+        self._thread = threading.Thread(target=self._run, args=(fn,), daemon=True, name="twinbench-beside")
+        self._thread.start()
+
+    def _run(self, fn) -> None:
+        try:
+            self._out["value"] = fn()
+        except BaseException as err:  # handed to result()
+            self._out["error"] = err
+
+    def result(self):
+        self._thread.join()
+        if "error" in self._out:
+            raise self._out["error"]
+        return self._out.get("value")
 
 
 def _recorded_root(doc: dict) -> str | None:
@@ -163,10 +194,29 @@ def run_study(task: str, out: Path, size: str = "small", seed: int = 0, workers:
     timer = _Timer(log, out / "stages.json", args)
     real = timer("make-real", make_real, task, seed, out / "real", size)
     evidence = timer("evidence", make_evidence, real, out / "evidence", seed, size)
-    twins = timer("reconstruct", reconstruct, evidence, out / "twins", variants, log=log, workers=workers)
     world = real / "world"
+
+    def real_rollouts() -> None:  # the policies and the real rollouts need neither the twins nor their cores
+        found = timer("policies", make_policies, task, world, out / "policies", size,
+                      user_calibration(evidence), log)
+        run_evaluations(task, world, {}, with_user_policies(task, found, user), out, size, workers, log,
+                        device=device, real_only=True)
+
+    beside: list[_Beside] = []
+
+    def reconstruct_beside(*a, **kw) -> dict[str, Path]:
+        """The reconstruction, with the policies stage and the real rollouts on a thread beside it: much of a
+        reconstruction holds one core (sysid's stage 2), and the rollouts are the evaluate stage's first
+        run, which later finds them finished (the same episodes, seeds and results as run after it)."""
+        beside.append(_Beside(real_rollouts))
+        return reconstruct(*a, **kw)
+
+    twins = timer("reconstruct", reconstruct_beside, evidence, out / "twins", variants, log=log,
+                  workers=workers)
+    for job in beside:
+        job.result()
     policies = timer("policies", make_policies, task, world, out / "policies", size,
-                     user_calibration(evidence), log)
+                     user_calibration(evidence), log)  # kept when it ran beside the reconstruction
     if bc or bc_act or bc_dp:
         from twinbench.study.bc import make_bc_policies
 
@@ -177,6 +227,7 @@ def run_study(task: str, out: Path, size: str = "small", seed: int = 0, workers:
                        real_again=real_again, device=device)
     timer.seconds["evaluate"] = max(timer.seconds["evaluate"], sum(eval_times.values()))  # all sessions'
     extra = {"evaluation_seconds": eval_times, "policies": policies, "user_policies": user, "seed": seed,
+             "beside_reconstruct": ["policies", "real rollouts"] if beside else [],
              "training": training_records(policies), "device": device}
     doc = write_study_json(out, task, size, list(twins), timer.seconds, extra)
     timer("report", write_study_report, out, doc)
