@@ -134,7 +134,7 @@ def test_a_study_run_started_again_keeps_the_stages_it_finished(tmp_path, monkey
     doc = run_study("push-t", out, "small", seed=3, log=lines.append)
     # the reconstruction runs again, and with it the stages after it
     assert calls == ["policies", "real-rollouts", "reconstruct", "evaluate", "report"]
-    assert "== make-real: finished by an earlier run" in lines[0] and "kept" in lines[0]
+    assert "== make-real: finished earlier (" in lines[0] and "kept" in lines[0]
     assert doc["twins"] == ["full"] and doc["policies"] == ["p0=perceive:x.json"]
     assert set(doc["seconds"]) == {"make-real", "evidence", "reconstruct", "policies", "evaluate", "report"}
     with pytest.raises(InputError, match=r"holds a study run with other arguments \(seed: 3 there, 4 now\)"):

@@ -72,7 +72,7 @@ class _Timer:
             kept = self.done.get(stage)
             if kept is not None and all(p.exists() for p in _paths(kept["result"])):
                 self.seconds[stage] = float(kept["seconds"])
-                self.log(f"== {stage}: finished by an earlier run ({self.seconds[stage]:.0f} s then), kept")
+                self.log(f"== {stage}: finished earlier ({self.seconds[stage]:.0f} s then), kept")
                 result = kept["result"]
                 return {k: Path(v) for k, v in result.items()} if isinstance(result, dict) else (
                     Path(result) if isinstance(result, str) else result)
