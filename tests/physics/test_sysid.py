@@ -825,3 +825,23 @@ def test_a_killed_candidate_process_leaves_the_scores_to_this_process():
         with pytest.warns(UserWarning, match="candidate processes stopped"):
             assert pool.losses(jobs) == want
         assert pool.losses(jobs[:2]) == want[:2]  # from now on in this process
+
+
+def test_a_short_rollout_runs_on_one_core(monkeypatch):
+    """A sysid candidate's rollout (under SPLIT_PAYBACK_FRAMES) gets a one-core solver: a split frame's
+    helper process costs seconds to start, more than a few dozen frames save (the toy's candidates took 3x
+    as long split)."""
+    from twinbench.physics import sysid as S
+
+    threads = []
+
+    class Spy(S.SpringMassSolver):
+        def __init__(self, model, *args, **kw):
+            threads.append(kw.get("threads"))
+            super().__init__(model, *args, **kw)
+
+    data, truth = synthetic_case("rope", seed=0)
+    model = build_model(data, truth["params"], SimParams(dt=1.0 / (30 * SUBSTEPS), substeps=SUBSTEPS))
+    monkeypatch.setattr(S, "SpringMassSolver", Spy)
+    xs, _ = S.rollout(model, data.controls, 3)
+    assert threads == [1] and xs.shape[0] == 4 and 3 < S.SPLIT_PAYBACK_FRAMES
