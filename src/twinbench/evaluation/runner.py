@@ -321,12 +321,14 @@ def evaluate(task: str, policies: Sequence[str], episodes: str | int = "grid", w
                     run_local(batches, int(workers), on_done)
         except KeyboardInterrupt as err:
             _remove_partial_videos(todo)  # the episodes in flight: their workers were killed mid-video
-            left = len(jobs) - done_count[0]
+            # what the store holds (the signal can land between an episode's record and its count)
+            held = sum((r.policy, r.checkpoint, r.init_state, r.seed) in jobs for r in store.episodes(run_id))
+            left = len(jobs) - held
             what, exc = ("terminated (SIGTERM)", EvaluationTerminated) if isinstance(err, SigTerm) else (
                 "interrupted", EvaluationInterrupted)
-            msg = (f"{what}: {done_count[0]} of {len(jobs)} episodes of run {run_id!r} are in "
+            msg = (f"{what}: {held} of {len(jobs)} episodes of run {run_id!r} are in "
                    f"{store.path}; re-run the same command (same --run-id) to resume the remaining {left}")
-            raise exc(msg, done_count[0], len(jobs)) from None
+            raise exc(msg, held, len(jobs)) from None
         finally:
             if todo:
                 add_run_seconds_quietly(store, run_id, time.perf_counter() - t0)
