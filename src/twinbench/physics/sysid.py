@@ -786,7 +786,7 @@ class CandidatePool:
                 self.close()
         if self._loss is None:
             self._loss = SequenceLoss(self.data, self.weights)
-        return [stage1_loss(self.data, p, base, self._loss, self.device, hold) for p, base, hold in jobs]
+        return candidate_losses(self.data, self._loss, self.device, jobs)
 
     def close(self) -> None:
         """Stop the processes (a ``with`` block does it; a pool left open is stopped at exit)."""
@@ -799,6 +799,15 @@ class CandidatePool:
 
     def __exit__(self, *exc) -> None:
         self.close()
+
+
+def candidate_losses(data: SysIdData, loss: SequenceLoss, device: str, jobs: list[tuple],
+                     pool: CandidatePool | None = None) -> list[float]:
+    """``stage1_loss`` of each job (GlobalParams, SimParams, held stiffness or None), in order: at once in
+    ``pool`` (on ``data``) when given, else one after another here."""
+    if pool is not None:
+        return pool.losses(jobs)
+    return [stage1_loss(data, p, base, loss, device, hold) for p, base, hold in jobs]
 
 
 def cma_search(f: Callable[[list[list[float]]], list[float]], x0: list[float], cfg: CMAConfig, budget: int,
@@ -884,8 +893,7 @@ def stage1_cma(data: SysIdData, base: SimParams, initial: GlobalParams, cfg: CMA
         """The scores of ``cands`` (at once in ``pool``), recorded in their order."""
         nonlocal best
         jobs = [(p, base_of(p) if base_of else base, hold) for p in cands]
-        values = pool.losses(jobs) if pool is not None else \
-            [stage1_loss(data, p, b, loss, device, h) for p, b, h in jobs]
+        values = candidate_losses(data, loss, device, jobs, pool)
         for params, value in zip(cands, values, strict=True):
             if value < best[0]:
                 best = (value, params)
@@ -1032,8 +1040,7 @@ def stage4_cma(data: SysIdData, params: GlobalParams, hold: tuple[np.ndarray, fl
         def objectives(us) -> list[float]:
             cands = [decode(u) for u in us]
             jobs = [(p, base_of(p, float(np.exp(max(y[0].max(), y[1])))), y) for p, y in cands]
-            values = pool.losses(jobs) if pool is not None else \
-                [stage1_loss(data, p, b, loss, device, y) for p, b, y in jobs]
+            values = candidate_losses(data, loss, device, jobs, pool)
             for (p, y), value in zip(cands, values, strict=True):
                 if value < best[0]:
                     best[:] = [value, p, y]
