@@ -807,7 +807,8 @@ def test_candidates_scored_in_worker_processes_give_the_same_fit(monkeypatch):
 
 
 def test_a_killed_candidate_process_leaves_the_scores_to_this_process():
-    """A pool process killed (SIGKILL, as by the OOM killer) between generations: the next batch is scored in
+    """A pool process ignores SIGINT (Ctrl-C reaches the whole process group; the parent stops the search).
+    A pool process killed (SIGKILL, as by the OOM killer) between generations: the next batch is scored in
     this process, with a warning, to the same values."""
     import os
     import signal
@@ -820,6 +821,9 @@ def test_a_killed_candidate_process_leaves_the_scores_to_this_process():
     loss = SequenceLoss(data, LossWeights())
     want = [stage1_loss(data, p, b, loss) for p, b, _ in jobs]
     with CandidatePool(data, LossWeights(), "cpu", 2) as pool:
+        assert pool.losses(jobs) == want
+        for pid in pool._pool._processes:  # Ctrl-C reaches the process group: the parent handles it
+            os.kill(pid, signal.SIGINT)
         assert pool.losses(jobs) == want
         os.kill(next(iter(pool._pool._processes)), signal.SIGKILL)
         with pytest.warns(UserWarning, match="candidate processes stopped"):

@@ -55,6 +55,7 @@ import contextlib
 import math
 import multiprocessing as mp
 import os
+import signal
 import time
 import warnings
 from collections.abc import Callable
@@ -749,6 +750,9 @@ _POOL_WORKER: dict = {}  # in a CandidatePool process: its data, loss and device
 
 
 def _pool_start(data: SysIdData, weights: LossWeights, device: str) -> None:
+    # Ctrl-C reaches the whole process group: the parent stops the search (and this pool); a process here
+    # would print its own KeyboardInterrupt traceback from its queue
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
     os.environ[CPU_THREADS_ENV] = "1"  # the pool is the parallelism: each rollout on one core
     quiet_warp()
     watch_parent()  # a parent killed by SIGKILL leaves no process waiting on its queue
