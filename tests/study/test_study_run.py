@@ -161,6 +161,56 @@ def test_a_study_run_started_again_keeps_the_stages_it_finished(tmp_path, monkey
         run_study("push-t", out, "small", seed=3, log=lambda line: None, policies=["p0=expert"])
 
 
+@pytest.mark.timeout(300)
+def test_ctrl_c_in_the_reconstruction_stops_the_real_rollouts_beside_it(tmp_path, monkeypatch):
+    """A Ctrl-C reaches the main thread only: the real rollouts evaluated on the thread beside the
+    reconstruction stop as an interrupted `eval` does (finished episodes kept, workers killed), so that
+    `study run` exits at once instead of waiting for them to end (stand-in stages; the rollouts are a real
+    evaluation in worker processes: point-reach, each episode >= 6 s)."""
+    import multiprocessing as mp
+    import threading
+    import time
+
+    from twinbench.evaluation.runner import evaluate
+    from twinbench.evaluation.store import ResultsStore
+    from twinbench.study import evaluate as E
+    from twinbench.study import evidence, real, reconstruct
+    from twinbench.study.run import run_study
+
+    store = ResultsStore(tmp_path / "r.sqlite")
+    jobs, interrupted = 8, []
+
+    def rollouts(*args, real_only=False, **kwargs):
+        assert real_only
+        evaluate("point-reach", ["expert"], jobs, 2, "real-rollouts", store, output_dir=tmp_path,
+                 env_kwargs={"step_delay_s": 0.5})
+
+    def reconstruction(*args, **kwargs):  # interrupted once an episode beside it is in the store
+        deadline = time.monotonic() + 120
+        while not store.episodes("real-rollouts") and time.monotonic() < deadline:
+            time.sleep(0.05)
+        assert store.episodes("real-rollouts"), "no episode finished within 120 s"
+        interrupted.append(time.monotonic())
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(real, "make_real", lambda *a, **k: tmp_path)
+    monkeypatch.setattr(evidence, "make_evidence", lambda *a, **k: tmp_path)
+    monkeypatch.setattr(E, "make_policies", lambda *a, **k: ["expert"])
+    monkeypatch.setattr(E, "user_calibration", lambda ev: None)
+    monkeypatch.setattr(E, "run_evaluations", rollouts)
+    monkeypatch.setattr(reconstruct, "reconstruct", reconstruction)
+    lines: list[str] = []
+    with pytest.raises(KeyboardInterrupt):
+        run_study("push-t", tmp_path / "study", "small", log=lines.append)
+    assert time.monotonic() - interrupted[0] < 5  # the rollouts left would take >= 12 s
+    kept = len(store.episodes("real-rollouts"))
+    assert 1 <= kept < jobs
+    assert any(f"beside the reconstruction: interrupted: {kept} of {jobs} episodes of run 'real-rollouts'"
+               in line for line in lines), lines
+    assert not [t for t in threading.enumerate() if t.name == "twinbench-beside"]  # waited for
+    assert not [p for p in mp.active_children() if p.name == "twinbench-worker"]  # killed, not left running
+
+
 def test_user_policies_are_checked_before_a_study_runs():
     from twinbench.errors import InputError
     from twinbench.study.evaluate import with_user_policies

@@ -5,13 +5,16 @@ Worker processes (spawn context; `workers=0` runs the batches in the calling pro
 SIGTERM (the parent decides), exit as soon as their parent dies however it dies, and each runs one batch
 at a time: a process that dies inside a batch (segfault, os._exit, OOM kill) has its episodes recorded
 as sim_error with the reason, and a fresh process takes its place. `sigterm_as_interrupt` makes SIGTERM
-take Ctrl-C's path in the parent (it raises `SigTerm`, a KeyboardInterrupt).
+take Ctrl-C's path in the parent (it raises `SigTerm`, a KeyboardInterrupt). A run on a thread other than
+the main one, which no signal reaches, takes the same path when the event given to `stop_requests` is set.
 """
 
 from __future__ import annotations
 
+import contextlib
 import os
 import signal
+import threading
 
 from twinbench._runtime import quiet_warp, share_cores, watch_parent
 from twinbench.errors import InputError
@@ -42,6 +45,34 @@ class sigterm_as_interrupt:
     def __exit__(self, *exc) -> None:
         if self._old is not None:
             signal.signal(signal.SIGTERM, self._old)
+
+
+_STOPS: dict[int, threading.Event] = {}  # thread id -> the event that stops its runs (stop_requests)
+STOP_POLL_S = 0.2
+"""how often a run under `stop_requests` looks at its event while its workers are busy"""
+
+
+@contextlib.contextmanager
+def stop_requests(event: threading.Event):
+    """While active, the runs of this thread (`run_local`, `run_ray`) stop as after Ctrl-C once ``event``
+    is set: a KeyboardInterrupt raised here, the finished episodes kept, the workers killed. For a run on a
+    thread beside the main one, which a signal does not reach (`twinbench study run`'s real rollouts
+    beside the reconstruction)."""
+    key = threading.get_ident()
+    _STOPS[key] = event
+    try:
+        yield event
+    finally:
+        _STOPS.pop(key, None)
+
+
+def _stop_event() -> threading.Event | None:
+    return _STOPS.get(threading.get_ident())
+
+
+def _check_stop(event: threading.Event | None) -> None:
+    if event is not None and event.is_set():
+        raise KeyboardInterrupt("stop requested")
 
 
 def refuse_in_worker_import(what: str) -> None:
@@ -139,8 +170,10 @@ def _run_pool(jobs: list[EpisodeBatch], workers: int, on_done) -> None:
     todo = deque(jobs)
     pool: list[_Worker] = []
     ok = False
+    stop = _stop_event()
     try:
         while todo or any(w.job is not None for w in pool):
+            _check_stop(stop)
             pool = [w for w in pool if w.job is not None or w.process.is_alive()]
             while todo and len(pool) < workers and sum(w.job is None for w in pool) < len(todo):
                 pool.append(_Worker(ctx, cores))
@@ -149,7 +182,8 @@ def _run_pool(jobs: list[EpisodeBatch], workers: int, on_done) -> None:
                     w.job = todo.popleft()
                     w.conn.send(w.job)
             busy = [w for w in pool if w.job is not None]
-            ready = set(wait([w.conn for w in busy] + [w.process.sentinel for w in busy]))
+            ready = set(wait([w.conn for w in busy] + [w.process.sentinel for w in busy],
+                             timeout=None if stop is None else STOP_POLL_S))
             for w in pool:
                 if w.job is None or not (w.conn in ready or w.process.sentinel in ready):
                     continue
@@ -192,8 +226,10 @@ def _run_pool(jobs: list[EpisodeBatch], workers: int, on_done) -> None:
 def run_local(batches: list[EpisodeBatch], workers: int, on_done) -> None:
     """Run `batches` in `workers` worker processes (0: in this process), `on_done(record)` for each."""
     if workers == 0:
+        stop = _stop_event()
         try:
-            for batch in batches:
+            for batch in batches:  # an episode here runs to its end: the event is looked at between batches
+                _check_stop(stop)
                 for rec in run_batch(batch):
                     on_done(rec)
         finally:
@@ -221,9 +257,13 @@ def run_ray(batches: list[EpisodeBatch], workers: int, on_done) -> None:
     remote_batch = ray.remote(num_cpus=1, max_retries=0, runtime_env={"env_vars": env_vars})(run_batch)
     by_ref = {remote_batch.remote(batch): batch for batch in batches}
     pending = list(by_ref)
+    stop = _stop_event()
     try:
         while pending:
-            done, pending = ray.wait(pending, num_returns=1)
+            _check_stop(stop)
+            done, pending = ray.wait(pending, num_returns=1, timeout=None if stop is None else STOP_POLL_S)
+            if not done:
+                continue
             try:
                 recs = ray.get(done[0])
             except (ray.exceptions.WorkerCrashedError, ray.exceptions.NodeDiedError) as err:

@@ -101,18 +101,24 @@ class _Timer:
 
 
 class _Beside:
-    """``fn()`` on a daemon thread (a Ctrl-C or an error of the main thread does not wait for it: what it
-    finished is recorded, e.g. episode by episode); ``result()`` waits for it and returns its result or
-    raises its error."""
+    """``fn()`` on a thread beside the main one; ``result()`` waits for it and returns its result or raises
+    its error. ``stop()`` (the main thread interrupted or failed) makes its evaluation runs stop as after
+    Ctrl-C (`evaluation.backends.stop_requests`: the finished episodes kept, the workers killed) and waits
+    for it: a signal reaches the main thread only, and a run left going would hold the process (Python's
+    exit waits for the worker processes, which ignore SIGTERM) while it went on to its end."""
 
     def __init__(self, fn):
         self._out: dict = {}
+        self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, args=(fn,), daemon=True, name="twinbench-beside")
         self._thread.start()
 
     def _run(self, fn) -> None:
+        from twinbench.evaluation.backends import stop_requests
+
         try:
-            self._out["value"] = fn()
+            with stop_requests(self._stop):
+                self._out["value"] = fn()
         except BaseException as err:  # handed to result()
             self._out["error"] = err
 
@@ -121,6 +127,14 @@ class _Beside:
         if "error" in self._out:
             raise self._out["error"]
         return self._out.get("value")
+
+    def stop(self, log) -> None:
+        """Stop it and wait; log what its interrupted evaluation kept (its message)."""
+        self._stop.set()
+        self._thread.join()
+        err = self._out.get("error")
+        if isinstance(err, KeyboardInterrupt) and str(err):
+            log(f"beside the reconstruction: {err}")
 
 
 def _recorded_root(doc: dict) -> str | None:
@@ -211,8 +225,13 @@ def run_study(task: str, out: Path, size: str = "small", seed: int = 0, workers:
         beside.append(_Beside(real_rollouts))
         return reconstruct(*a, **kw)
 
-    twins = timer("reconstruct", reconstruct_beside, evidence, out / "twins", variants, log=log,
-                  workers=workers)
+    try:
+        twins = timer("reconstruct", reconstruct_beside, evidence, out / "twins", variants, log=log,
+                      workers=workers)
+    except BaseException:  # Ctrl-C (or an error) in the reconstruction: the real rollouts stop too
+        for job in beside:
+            job.stop(log)
+        raise
     for job in beside:
         job.result()
     policies = timer("policies", make_policies, task, world, out / "policies", size,
