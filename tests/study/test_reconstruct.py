@@ -403,3 +403,47 @@ def test_camera_summary_and_its_section(tmp_path):
     page = _camera_section({"cameras": summary})
     assert "Camera refinement" in page and "15.60 → 7.40" in page and "4.30" in page and "8.32" in page
     assert camera_summary(tmp_path / "nothing") == {} and _camera_section({}) == ""
+
+
+def test_a_command_of_the_reconstruction_ends_with_the_study(tmp_path):
+    """Each public CLI command a reconstruction runs has a process of its own; it ends when the study's
+    process dies, SIGKILL too (left running, a fit would write for minutes into the folder that the study,
+    started again, writes to)."""
+    import os
+    import signal
+    import subprocess
+    import sys
+    import time
+    from pathlib import Path
+
+    def running(pid: int) -> bool:  # a zombie waiting for its reaper has ended
+        try:
+            return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0] not in ("Z", "X")
+        except OSError:
+            return False
+
+    rope = Path(__file__).resolve().parents[1] / "data" / "sysid_rope"
+    log = tmp_path / "child.log"
+    study = ("import subprocess, sys\nfrom twinbench.study.reconstruct import _CLI\n"
+             f"subprocess.run([sys.executable, '-c', _CLI, 'sysid', '--data', {str(rope)!r}, '--out-dir', "
+             f"{str(tmp_path / 'fit')!r}, '--no-progress'], stdout=open({str(log)!r}, 'w'), "
+             "stderr=subprocess.STDOUT)")
+    parent = subprocess.Popen([sys.executable, "-c", study], env={**os.environ, "PYTHONUNBUFFERED": "1"})
+    child = None
+    try:
+        deadline = time.monotonic() + 120
+        while "guess" not in (log.read_text() if log.exists() else "") and time.monotonic() < deadline:
+            time.sleep(0.1)  # the fit has started (its first lines are printed)
+        (child,) = [int(c) for t in Path(f"/proc/{parent.pid}/task").iterdir()
+                    for c in (t / "children").read_text().split()]
+        parent.kill()
+        parent.wait(timeout=10)
+        deadline = time.monotonic() + 5
+        while running(child) and time.monotonic() < deadline:
+            time.sleep(0.05)
+        assert not running(child), "the command outlived the study's process"
+    finally:
+        if parent.poll() is None:
+            parent.kill()
+        if child is not None and running(child):
+            os.kill(child, signal.SIGKILL)

@@ -46,7 +46,10 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial import cKDTree
 
-_CLI = "import sys\nfrom twinbench.cli import main\nsys.exit(main(sys.argv[1:]))"
+# the public CLI in a process of its own, which ends when the study's does (however it ends: a study killed
+# outright would leave a fit running for minutes, writing into the folder a run started again writes to)
+_CLI = ("import sys\nfrom twinbench._runtime import watch_parent\nwatch_parent()\n"
+        "from twinbench.cli import main\nsys.exit(main(sys.argv[1:]))")
 VARIANTS = ("full", "no-color", "no-physics", "neither")
 _COLOR = {"full": True, "no-color": False, "no-physics": True, "neither": False}
 _PHYSICS = {"full": "fitted", "no-color": "fitted", "no-physics": "initial", "neither": "initial"}
