@@ -590,6 +590,28 @@ def test_ablation_paths_hand_set_and_stage1_only():
     assert res.evals["stage1"].train_loss < res.evals["initial"].train_loss
 
 
+def test_values_at_an_end_of_their_search_range_are_named():
+    """A searched value pressed against its range is named in the notes (not a measurement), but not at a
+    physical limit (0 friction or damping), nor the control attachment (its families cover every one)."""
+    from twinbench.physics.sysid import DEFAULT_RANGES, range_edge_notes
+
+    p = GlobalParams(spring_Y=8e4, ground_friction=0.0, drag_damping=19.5, dashpot_damping=100.0,
+                     control_radius=0.01, control_max_neighbors=80)
+    names = ("spring_Y", "ground_friction", "drag_damping", "dashpot_damping", "control_radius",
+             "control_max_neighbors")
+    (note,) = range_edge_notes(p, names, DEFAULT_RANGES)
+    assert "spring_Y 8e+04 (top of [10, 100000])" in note and "drag_damping 19.5 (top of [0, 20])" in note
+    assert "friction" not in note and "dashpot" not in note and "control" not in note
+    assert range_edge_notes(replace(p, spring_Y=500.0, drag_damping=3.0), names, DEFAULT_RANGES) == []
+    assert range_edge_notes(replace(p, spring_Y=500.0, drag_damping=19.0), names, DEFAULT_RANGES) == []
+    # a fit whose range holds the truth's value out: its value ends at the top and the note says so
+    data, _ = synthetic_case("rope", frames=12, validation_frames=3, seed=4)
+    cfg = _config(stage2=False, cma=replace(_config().cma, budget=12, ranges=("spring_Y=100:300",)))
+    res = identify(data, cfg, log=_quiet)
+    assert res.params.spring_Y >= 299.0
+    assert any("spring_Y" in n and "(top of [100, 300])" in n for n in res.notes)
+
+
 def test_stage2_holding_the_scale_fits_the_pattern_only():
     """Stage 2 from a uniform stiffness 3x too stiff: free, it lowers the object's mean log Y; with
     ``hold_scale`` that mean stays where it started while the regions still spread apart (the pattern)."""

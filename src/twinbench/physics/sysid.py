@@ -1795,11 +1795,41 @@ def identify(data: SysIdData, cfg: FitConfig, *, base: SimParams | None = None,
         except SimulationDiverged:
             region_info = {}
     evals["final"] = evals[kept]
+    if cfg.stage1 or (cfg.stage2 and cfg.stage3):
+        notes += range_edge_notes(params, [n for n in searched if n in applicable_parameters(data, base)],
+                                  parse_ranges(cfg.cma.ranges))
     for note in notes:
         log(f"note: {note}")
     return SysIdResult(params, params.sim_params(model.params), model.log_y_np.copy(), model, evals, history1,
                        history2, seconds, cfg, notes, ident, regions, guesses, selection, region_info,
                        history3, inputs, history4)
+
+
+RANGE_EDGE = 0.03
+"""a searched value within this share of its range (normalised: log scale for stiffness) from an end is at
+that end"""
+
+
+def range_edge_notes(params: GlobalParams, names, ranges: dict[str, SearchRange]) -> list[str]:
+    """A note naming the searched values of ``params`` that ended at an end of their search range, but for
+    the ends that are physical limits (0 for friction, restitution and damping), the spring rule's
+    neighbour count (at its top it limits nothing unless the radius holds more particles) and the control
+    attachment (its families hold every attachment in the ranges, :func:`attachment_families`: a radius
+    at its top goes with the count that binds, and the other way round)."""
+    edges = []
+    for name in names:
+        if name in ATTACHMENT_NAMES or name == "spring_max_neighbors":
+            continue
+        r, value = ranges[name], float(getattr(params, name))
+        u = r.encode(value)
+        if u >= 1.0 - RANGE_EDGE or (u <= RANGE_EDGE and r.lo > 0.0):
+            edges.append(f"{name} {value:.4g} ({'top' if u > 0.5 else 'bottom'} of [{r.lo:g}, {r.hi:g}])")
+    if not edges:
+        return []
+    return [f"at an end of its search range: {', '.join(edges)}. A value pressed against its range "
+            "either wants one past it (widen the range, --cma.ranges NAME=LO:HI, and see whether the fit "
+            "improves) or stands in for something the model lacks (e.g. heavy drag damping hiding a wrong "
+            "stiffness pattern); either way the value is not a measurement of it"]
 
 
 CHI3_MEAN = 2.0 * math.sqrt(2.0 / math.pi)
