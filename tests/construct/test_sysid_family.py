@@ -281,5 +281,6 @@ def test_a_drop_keeps_the_restitution_measured_from_its_bounce():
 
     off = identify(data, FitConfig(progress=False, stage2=False, keep_guess=0.0), log=lambda _m: None)
     assert off.params.ground_restitution == pytest.approx(ident["best"])
-    assert not any("guess_kept" in r for r in off.stage1_history) and not off.notes
+    assert not any("guess_kept" in r for r in off.stage1_history)
+    assert [n for n in off.notes if "end of its search range" not in n] == []  # (a soft spring_Y: at 13)
     assert replace(off.params, ground_restitution=res.params.ground_restitution) == res.params

@@ -604,12 +604,15 @@ def test_values_at_an_end_of_their_search_range_are_named():
     assert "friction" not in note and "dashpot" not in note and "control" not in note
     assert range_edge_notes(replace(p, spring_Y=500.0, drag_damping=3.0), names, DEFAULT_RANGES) == []
     assert range_edge_notes(replace(p, spring_Y=500.0, drag_damping=19.0), names, DEFAULT_RANGES) == []
-    # a fit whose range holds the truth's value out: its value ends at the top and the note says so
-    data, _ = synthetic_case("rope", frames=12, validation_frames=3, seed=4)
-    cfg = _config(stage2=False, cma=replace(_config().cma, budget=12, ranges=("spring_Y=100:300",)))
+    # a fit whose range holds the truth's value out, from a hand-set start outside it (1000): its value
+    # ends at the range's top, not at the start, and the note says so
+    data, truth = synthetic_case("rope", frames=12, validation_frames=3, seed=4)
+    cfg = _config(stage2=False, cma=replace(_config().cma, budget=12, ranges=("spring_Y=10:20",)))
+    assert cfg.initial.spring_Y == 1000.0 and np.exp(np.median(truth["log_y"])) > 100.0
     res = identify(data, cfg, log=_quiet)
-    assert res.params.spring_Y >= 299.0
-    assert any("spring_Y" in n and "(top of [100, 300])" in n for n in res.notes)
+    assert 19.0 <= res.params.spring_Y <= 20.0
+    assert all(10.0 <= r["params"]["spring_Y"] <= 20.0 for r in res.stage1_history)
+    assert any("spring_Y" in n and "(top of [10, 20])" in n for n in res.notes)
 
 
 def test_stage2_holding_the_scale_fits_the_pattern_only():

@@ -153,6 +153,14 @@ DEFAULT_RANGES: dict[str, SearchRange] = {
 }
 
 
+def within_ranges(params: GlobalParams, names, ranges: dict[str, SearchRange]) -> GlobalParams:
+    """``params`` with each of ``names`` that lies outside its search range moved to the range's nearest
+    end (a hand-set start outside a range the user narrowed: the search must not return it)."""
+    out = {n: min(max(getattr(params, n), ranges[n].lo), ranges[n].hi) for n in names
+           if not ranges[n].lo <= getattr(params, n) <= ranges[n].hi}
+    return replace(params, **out) if out else params
+
+
 def applicable_parameters(data: SysIdData, base: SimParams) -> tuple[str, ...]:
     """The global parameters that change the simulation of ``data``: topology rules only without
     explicit springs, control rules only with control points, self-contact only with self-collision,
@@ -889,6 +897,8 @@ def stage1_cma(data: SysIdData, base: SimParams, initial: GlobalParams, cfg: CMA
                          "explicit springs fix the spring rule, self-contact needs self_collision)")
     if cfg.budget < 1:
         raise ValueError(f"cma.budget must be >= 1, got {cfg.budget}")
+    initial = within_ranges(initial, names, ranges)
+    candidates = tuple(within_ranges(c, names, ranges) for c in candidates)
     loss = SequenceLoss(data, weights)
     history: list[dict] = []
     best = (math.inf, initial)
@@ -1604,9 +1614,10 @@ def identify(data: SysIdData, cfg: FitConfig, *, base: SimParams | None = None,
         ident: dict[str, dict] = {}
         guesses: dict[str, dict] = {}
         if cfg.stage1:
+            ranges = parse_ranges(cfg.cma.ranges)
+            params = within_ranges(params, searched, ranges)  # the hand-set values, inside the ranges
             start = params
             if cfg.guess:
-                ranges = parse_ranges(cfg.cma.ranges)
                 guesses = physical_guesses(fit, topo or models["initial"], params.control_radius)
                 for name, g in guesses.items():
                     value = g["value"]
@@ -1647,7 +1658,7 @@ def identify(data: SysIdData, cfg: FitConfig, *, base: SimParams | None = None,
             models["stage1"] = build_model(data, params, base_of(params), cfg.device)
             evals["stage1"] = evaluate(models["stage1"], data, loss)
             stage_params["stage1"] = params
-            if found in (start, cfg.initial):
+            if found in (start, within_ranges(cfg.initial, searched, ranges)):
                 notes.append(f"stage 1 did not improve on its start: none of {len(history1) - 1} candidates "
                              "beat the starting values (widen cma.ranges or check the data)")
         if attach_grid and cfg.stage1 and params == runs[0]["stage1"]:
