@@ -711,6 +711,15 @@ def test_bad_configuration_is_refused(sysid_small):
         parse_ranges(("spring_Y=0:10",))
     assert parse_ranges(("drag_damping=1:2",))["drag_damping"].decode(0.5) == pytest.approx(1.5)
     assert parse_ranges(())["spring_Y"].decode(0.5) == pytest.approx(1e3)  # log scale midpoint of 10..1e5
+    # a range past what the parameter can be: the kernels clamp friction to [0, 2], restitution to [0, 1]
+    with pytest.raises(ValueError, match=r"'ground_friction=0:5': ground_friction must lie in \[0, 2\] \(the "
+                                         r"contact kernels clamp it there\)"):
+        parse_ranges(("ground_friction=0:5",))
+    for bad in ("tool_restitution=0:1.2", "drag_damping=-1:3", "spring_radius=0:0.05",
+                "control_max_neighbors=0:8"):
+        with pytest.raises(ValueError, match="must lie in"):
+            parse_ranges((bad,))
+    assert parse_ranges(("ground_friction=0:2", "ground_restitution=0:1"))["ground_friction"].hi == 2.0
 
 
 @pytest.mark.slow

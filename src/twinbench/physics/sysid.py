@@ -179,8 +179,22 @@ def applicable_parameters(data: SysIdData, base: SimParams) -> tuple[str, ...]:
     return tuple(names + ["drag_damping", "dashpot_damping"])
 
 
+PARAM_LIMITS: dict[str, tuple[float, float, bool]] = {
+    "spring_Y": (0.0, 1e12, True), "spring_radius": (0.0, 10.0, True), "control_radius": (0.0, 10.0, True),
+    "spring_max_neighbors": (1, 1_000, False), "control_max_neighbors": (1, 1_000, False),
+    **{f"{k}_restitution": (0.0, 1.0, False) for k in ("ground", "object", "tool")},
+    **{f"{k}_friction": (0.0, 2.0, False) for k in ("ground", "object", "tool")},
+    "collision_dist": (0.0, 1.0, False), "drag_damping": (0.0, 1e4, False),
+    "dashpot_damping": (0.0, 1e6, False),
+}
+"""what each global parameter can be, (low, high, low excluded): the bounds of ``--initial.*`` values and of
+``--cma.ranges`` (the contact kernels clamp restitution to [0, 1] and friction to [0, 2], so a value past
+those would be reported but never simulated)"""
+
+
 def parse_ranges(overrides: tuple[str, ...] | list[str]) -> dict[str, SearchRange]:
-    """DEFAULT_RANGES updated by ``"name=lo:hi"`` strings (the scale, log or integer, is kept)."""
+    """DEFAULT_RANGES updated by ``"name=lo:hi"`` strings (the scale, log or integer, is kept), each within
+    the parameter's ``PARAM_LIMITS``."""
     ranges = dict(DEFAULT_RANGES)
     for item in overrides:
         name, sep, rest = item.partition("=")
@@ -196,6 +210,12 @@ def parse_ranges(overrides: tuple[str, ...] | list[str]) -> dict[str, SearchRang
         if not (math.isfinite(lo_f) and math.isfinite(hi_f) and hi_f > lo_f) or (old.log and lo_f <= 0):
             need = " and LO > 0 (log scale)" if old.log else ""
             raise ValueError(f"range override {item!r}: need finite LO < HI{need}")
+        low, high, open_ = PARAM_LIMITS[name]
+        if lo_f < low or (open_ and lo_f == low) or hi_f > high:
+            bound = f"({low:g}, {high:g}]" if open_ else f"[{low:g}, {high:g}]"
+            contact = name.endswith(("friction", "restitution"))
+            why = " (the contact kernels clamp it there)" if contact else ""
+            raise ValueError(f"range override {item!r}: {name} must lie in {bound}{why}")
         ranges[name] = SearchRange(lo_f, hi_f, old.log, old.integer)
     return ranges
 
@@ -400,19 +420,9 @@ class FitConfig:
         for name in ("chamfer", "track", "acc"):
             need(f"weights.{name}", getattr(w, name), 0.0, 1e6)
         need("weights.beta", w.beta, 0.0, 1e3, lo_open=True)
-        need("initial.spring_Y", i.spring_Y, 0.0, 1e12, lo_open=True)
-        need("initial.spring_radius", i.spring_radius, 0.0, 10.0, lo_open=True)
-        need("initial.control_radius", i.control_radius, 0.0, 10.0, lo_open=True)
-        need("initial.spring_max_neighbors", i.spring_max_neighbors, 1, 1_000, integer=True)
-        need("initial.control_max_neighbors", i.control_max_neighbors, 1, 1_000, integer=True)
-        for name in ("ground_restitution", "object_restitution", "tool_restitution"):
-            need(f"initial.{name}", getattr(i, name), 0.0, 1.0)
-        for name in ("ground_friction", "object_friction", "tool_friction"):
-            need(f"initial.{name}", getattr(i, name), 0.0, 2.0)
-        need("initial.collision_dist", i.collision_dist, 0.0, 1.0)
+        for name, (lo, hi, lo_open) in PARAM_LIMITS.items():
+            need(f"initial.{name}", getattr(i, name), lo, hi, integer=isinstance(lo, int), lo_open=lo_open)
         need("mesh_margin", self.mesh_margin, 0.0, 1.0)
-        need("initial.drag_damping", i.drag_damping, 0.0, 1e4)
-        need("initial.dashpot_damping", i.dashpot_damping, 0.0, 1e6)
 
     def base_params(self, fps: float, substeps: int = 0) -> SimParams:
         """The simulation settings; with automatic substeps, ``substeps`` (else PhysTwin's 667)."""
