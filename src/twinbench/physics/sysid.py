@@ -1816,9 +1816,10 @@ def identify(data: SysIdData, cfg: FitConfig, *, base: SimParams | None = None,
         except SimulationDiverged:
             region_info = {}
     evals["final"] = evals[kept]
-    if cfg.stage1 or (cfg.stage2 and cfg.stage3):
-        notes += range_edge_notes(params, [n for n in searched if n in applicable_parameters(data, base)],
-                                  parse_ranges(cfg.cma.ranges))
+    if cfg.stage1 or (cfg.stage2 and cfg.stage3):  # the values a search chose (stage 3 keeps the spring rule)
+        rule = () if cfg.stage1 else ("spring_Y", "spring_radius", "spring_max_neighbors")
+        notes += range_edge_notes(params, [n for n in searched if n in applicable_parameters(data, base)
+                                           and n not in rule], parse_ranges(cfg.cma.ranges))
     for note in notes:
         log(f"note: {note}")
     return SysIdResult(params, params.sim_params(model.params), model.log_y_np.copy(), model, evals, history1,
