@@ -256,3 +256,36 @@ def test_progress_lines_for_logs_print_at_most_once_a_minute_with_an_eta():
     short = ProgressLines(quiet.append, "eval s", total=3, clock=lambda: 0.0)
     short.update(3)  # a run shorter than a minute prints nothing
     assert quiet == []
+
+
+@pytest.mark.parametrize("workers", [0, 1])
+def test_a_run_beside_the_main_thread_stops_on_its_event(tmp_path, workers):
+    """No signal reaches a thread other than the main one: a run under `stop_requests` stops as after
+    Ctrl-C once its event is set (in this process between batches; with workers, while they are busy),
+    the finished episodes kept."""
+    import threading
+
+    from twinbench.evaluation.backends import stop_requests
+    from twinbench.evaluation.runner import EvaluationInterrupted
+
+    store = ResultsStore(tmp_path / "r.sqlite")
+    event, out = threading.Event(), {}
+
+    def run():
+        with stop_requests(event):
+            try:
+                evaluate("point-reach", ["expert"], 6, workers, "beside", store, output_dir=tmp_path,
+                         env_kwargs={"step_delay_s": 0.1})
+            except EvaluationInterrupted as err:
+                out["err"] = err
+
+    thread = threading.Thread(target=run)
+    thread.start()
+    deadline = time.monotonic() + 120
+    while not store.episodes("beside") and time.monotonic() < deadline:
+        time.sleep(0.02)
+    event.set()
+    thread.join(timeout=30)
+    assert not thread.is_alive()
+    kept = len(store.episodes("beside"))
+    assert 1 <= kept < 6 and out["err"].done == kept and out["err"].total == 6
