@@ -204,7 +204,7 @@ def test_ctrl_c_in_the_reconstruction_stops_the_real_rollouts_beside_it(tmp_path
         run_study("push-t", tmp_path / "study", "small", log=lines.append)
     assert time.monotonic() - interrupted[0] < 5  # the rollouts left would take >= 12 s
     kept = len(store.episodes("real-rollouts"))
-    assert 1 <= kept < jobs
+    assert 0 < kept < jobs
     assert any(f"beside the reconstruction: interrupted: {kept} of {jobs} episodes of run 'real-rollouts'"
                in line for line in lines), lines
     assert not [t for t in threading.enumerate() if t.name == "twinbench-beside"]  # waited for
