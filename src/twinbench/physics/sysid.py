@@ -1634,8 +1634,8 @@ def identify(data: SysIdData, cfg: FitConfig, *, base: SimParams | None = None,
                     use = value is not None and name in searched and not (g.get("lower_bound")
                                                                            and value <= getattr(start, name))
                     if use:
-                        value = min(max(value, ranges[name].lo), ranges[name].hi)
-                        start = replace(start, **{name: value})
+                        start = within_ranges(replace(start, **{name: value}), (name,), ranges)
+                        value = getattr(start, name)
                     g["used"] = bool(use)
                     log(f"guess {name}: {'-' if g['value'] is None else f'{value:.4g}'}"
                         f"{'' if use else ' (not used)'}: {g['from']}")
