@@ -263,3 +263,73 @@ def test_a_moved_study_folder_keeps_its_stages_read_from_where_it_is_now(tmp_pat
 
 def _never():
     raise AssertionError("a kept stage ran again")
+
+
+@pytest.mark.timeout(300)
+def test_sigterm_stops_a_study_run_and_what_it_started(tmp_path):
+    """SIGTERM (a scheduler's stop) to `twinbench study run` during the reconstruction takes Ctrl-C's path:
+    the command it is running and the real rollouts beside it stop, it exits 143 saying how to resume, and
+    no process it started is left."""
+    import os
+    import signal
+    import subprocess
+    import sys
+    import time
+    from pathlib import Path
+
+    def tree(pid: int) -> list[int]:  # every process under pid
+        try:
+            kids = [int(c) for t in Path(f"/proc/{pid}/task").iterdir()
+                    for c in (t / "children").read_text().split()]
+        except OSError:
+            return []
+        return kids + [g for k in kids for g in tree(k)]
+
+    def cli_command_runs(pid: int) -> bool:  # one of the reconstruction's `twinbench ...` commands
+        for p in tree(pid):
+            try:
+                if "twinbench.cli" in Path(f"/proc/{p}/cmdline").read_text(errors="replace"):
+                    return True
+            except OSError:
+                pass
+        return False
+
+    def stages_done() -> set[str]:
+        record = out / "stages.json"
+        return set(json.loads(record.read_text())["done"]) if record.exists() else set()
+
+    def running(pid: int) -> bool:
+        try:
+            return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0] not in ("Z", "X")
+        except OSError:
+            return False
+
+    out = tmp_path / "study"
+    proc = subprocess.Popen([sys.executable, "-m", "twinbench.cli", "study", "run", "--task", "push-t",
+                             "--out", str(out), "--workers", "1"], stdout=subprocess.PIPE,
+                            stderr=subprocess.STDOUT, text=True, env={**os.environ, "PYTHONUNBUFFERED": "1"})
+    pids: list[int] = []
+    try:
+        deadline = time.monotonic() + 240
+        while time.monotonic() < deadline and proc.poll() is None:  # the reconstruction's first command runs
+            if "evidence" in stages_done() and cli_command_runs(proc.pid):
+                break
+            time.sleep(0.2)
+        pids = tree(proc.pid)
+        assert pids, "the study started no process within 240 s"
+        proc.send_signal(signal.SIGTERM)
+        text, _ = proc.communicate(timeout=60)
+        assert proc.returncode == 143, text
+        assert "twinbench study: terminated (SIGTERM); the same command started again keeps" in text
+        assert "Traceback" not in text
+        deadline = time.monotonic() + 5
+        while any(running(p) for p in pids) and time.monotonic() < deadline:
+            time.sleep(0.05)
+        assert not [p for p in pids if running(p)]
+        assert "evidence" in stages_done()  # kept for the next run
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+        for p in pids:
+            if running(p):
+                os.kill(p, signal.SIGKILL)

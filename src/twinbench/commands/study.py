@@ -232,12 +232,24 @@ def main(cfg) -> int:
             page = write_combined_report(cfg.out / "combined.html", tasks)
             print(f"wrote {cfg.out / 'combined.json'} and {page}")
     else:
+        import sys
+
+        from twinbench.evaluation.backends import SigTerm, sigterm_as_interrupt
+        from twinbench.evaluation.runner import EvaluationTerminated
         from twinbench.study.evaluate import format_table
         from twinbench.study.run import run_study
 
-        doc = run_study(cfg.task, cfg.out, cfg.size, cfg.seed, cfg.workers, bc=cfg.bc, bc_act=cfg.bc_act,
-                        bc_dp=cfg.bc_dp, real_again=cfg.real_again or None, policies=cfg.policy,
-                        device=cfg.device)
+        try:  # SIGTERM (a scheduler's stop) takes Ctrl-C's path: the stages stop, what they finished is kept
+            with sigterm_as_interrupt():
+                doc = run_study(cfg.task, cfg.out, cfg.size, cfg.seed, cfg.workers, bc=cfg.bc,
+                                bc_act=cfg.bc_act, bc_dp=cfg.bc_dp, real_again=cfg.real_again or None,
+                                policies=cfg.policy, device=cfg.device)
+        except (SigTerm, EvaluationTerminated) as err:
+            if isinstance(err, EvaluationTerminated):
+                print(err.message, file=sys.stderr)  # what the evaluation kept
+            print(f"twinbench study: terminated (SIGTERM); the same command started again keeps the finished "
+                  f"stages and episodes of {cfg.out}", file=sys.stderr)
+            return 143
         print(format_table(doc))
         print("stage wall times: " + ", ".join(f"{k} {v:.0f} s" for k, v in doc["stage_seconds"].items()))
         print(f"wrote {cfg.out / 'study.json'} and {cfg.out / 'report.html'}")
