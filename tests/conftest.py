@@ -10,6 +10,53 @@ import pytest
 DATA = Path(__file__).resolve().parent / "data"
 
 
+class Processes:
+    """Linux /proc views of the processes a test started (tests of killed and interrupted runs)."""
+
+    @staticmethod
+    def children(pid: int) -> list[int]:
+        try:
+            return [int(c) for t in Path(f"/proc/{pid}/task").iterdir()
+                    for c in (t / "children").read_text().split()]
+        except OSError:
+            return []
+
+    @classmethod
+    def descendants(cls, pid: int) -> list[int]:
+        kids = cls.children(pid)
+        return kids + [g for k in kids for g in cls.descendants(k)]
+
+    @staticmethod
+    def cmdline(pid: int) -> str:
+        try:
+            return Path(f"/proc/{pid}/cmdline").read_bytes().replace(b"\0", b" ").decode(errors="replace")
+        except OSError:
+            return ""
+
+    @staticmethod
+    def alive(pid: int) -> bool:
+        """Running (a zombie waiting for a reaper counts as ended)."""
+        try:
+            return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0] not in ("Z", "X")
+        except OSError:
+            return False
+
+    @classmethod
+    def wait_ended(cls, pids, seconds: float) -> list[int]:
+        """Wait up to `seconds` for `pids` to end; returns those still running."""
+        import time
+
+        deadline = time.monotonic() + seconds
+        while any(cls.alive(p) for p in pids) and time.monotonic() < deadline:
+            time.sleep(0.05)
+        return [p for p in pids if cls.alive(p)]
+
+
+@pytest.fixture
+def processes() -> type[Processes]:
+    return Processes
+
+
 @pytest.fixture(scope="session")
 def phystwin_reference() -> Path:
     """Folder with PhysTwin's golden trajectories: the repository's copy (tests/data/phystwin, every frame

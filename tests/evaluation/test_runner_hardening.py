@@ -29,33 +29,10 @@ def _eval_cmd(tmp_path, run_id, *extra):
             "--db", str(tmp_path / "r.sqlite"), "--output-dir", str(tmp_path), "--no-progress", *extra]
 
 
-def _children(pid: int) -> list[int]:
-    out = []
-    for task in Path(f"/proc/{pid}/task").iterdir():
-        out += [int(c) for c in (task / "children").read_text().split()]
-    return out
-
-
-def _cmdline(pid: int) -> str:
-    try:
-        return Path(f"/proc/{pid}/cmdline").read_bytes().replace(b"\0", b" ").decode()
-    except OSError:
-        return ""
-
-
-def _alive(pid: int) -> bool:
-    """Running (a zombie waiting for a reaper counts as dead)."""
-    try:
-        stat = Path(f"/proc/{pid}/stat").read_text()
-    except OSError:
-        return False
-    return stat.rsplit(")", 1)[1].split()[0] not in ("Z", "X")
-
-
-def _worker_pids(parent: int, n: int, timeout_s: float = 30) -> list[int]:
+def _worker_pids(processes, parent: int, n: int, timeout_s: float = 30) -> list[int]:
     deadline = time.monotonic() + timeout_s
     while time.monotonic() < deadline:
-        pids = [c for c in _children(parent) if "spawn_main" in _cmdline(c)]
+        pids = [c for c in processes.children(parent) if "spawn_main" in processes.cmdline(c)]
         if len(pids) >= n:
             return pids
         time.sleep(0.05)
@@ -114,13 +91,13 @@ def test_a_bad_env_kwarg_is_one_input_error_not_a_crash(tmp_path):
                  env_kwargs={"no_such_option": 1})
 
 
-def test_parent_sigkill_takes_the_workers_with_it(tmp_path):
+def test_parent_sigkill_takes_the_workers_with_it(tmp_path, processes):
     # each episode takes >= 12 s (12 steps of 1 s): the workers are inside one when the parent dies
     proc = subprocess.Popen(_eval_cmd(tmp_path, "kill", "--policy", "expert", "--episodes", "8", "--workers",
                                       "2", "--env-kwargs", '{"step_delay_s": 1.0}'),
                             stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, env=ENV)
     try:
-        workers = _worker_pids(proc.pid, 2)
+        workers = _worker_pids(processes, proc.pid, 2)
         # kill a second after an episode is stored: both workers are then past their start-up (a busy
         # machine can take longer than any fixed sleep to import) and inside their next episodes, which
         # run >= 11 s more, so within the 3 s below only their watch on the parent can end them
@@ -131,22 +108,19 @@ def test_parent_sigkill_takes_the_workers_with_it(tmp_path):
         time.sleep(1.0)
         proc.kill()
         proc.wait(timeout=10)
-        deadline = time.monotonic() + 3
-        while any(_alive(p) for p in workers) and time.monotonic() < deadline:
-            time.sleep(0.05)
-        assert not any(_alive(p) for p in workers)
+        assert processes.wait_ended(workers, 3) == []
     finally:
         for p in workers if "workers" in locals() else []:
-            if _alive(p):
+            if processes.alive(p):
                 os.kill(p, signal.SIGKILL)
 
 
-def test_sigterm_is_handled_like_ctrl_c(tmp_path):
+def test_sigterm_is_handled_like_ctrl_c(tmp_path, processes):
     proc = subprocess.Popen(_eval_cmd(tmp_path, "term", "--policy", "expert", "--episodes", "8", "--workers",
                                       "2", "--env-kwargs", '{"step_delay_s": 0.03}'),
                             stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=ENV)
     store = ResultsStore(tmp_path / "r.sqlite")
-    workers = _worker_pids(proc.pid, 2)
+    workers = _worker_pids(processes, proc.pid, 2)
     deadline = time.monotonic() + 60
     while len(store.episodes("term")) < 2 and time.monotonic() < deadline:
         time.sleep(0.05)
@@ -156,7 +130,7 @@ def test_sigterm_is_handled_like_ctrl_c(tmp_path):
     assert proc.returncode == 143, out
     assert 2 <= kept < 8
     assert f"terminated (SIGTERM): {kept} of 8 episodes of run 'term'" in out and "Traceback" not in out
-    assert not any(_alive(p) for p in workers)
+    assert not any(processes.alive(p) for p in workers)
 
 
 def test_huge_episode_count_is_refused_up_front(tmp_path, capsys):

@@ -405,7 +405,7 @@ def test_camera_summary_and_its_section(tmp_path):
     assert camera_summary(tmp_path / "nothing") == {} and _camera_section({}) == ""
 
 
-def test_a_command_of_the_reconstruction_ends_with_the_study(tmp_path):
+def test_a_command_of_the_reconstruction_ends_with_the_study(tmp_path, processes):
     """Each public CLI command a reconstruction runs has a process of its own; it ends when the study's
     process dies, SIGKILL too (left running, a fit would write for minutes into the folder that the study,
     started again, writes to)."""
@@ -415,12 +415,6 @@ def test_a_command_of_the_reconstruction_ends_with_the_study(tmp_path):
     import sys
     import time
     from pathlib import Path
-
-    def running(pid: int) -> bool:  # a zombie waiting for its reaper has ended
-        try:
-            return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0] not in ("Z", "X")
-        except OSError:
-            return False
 
     rope = Path(__file__).resolve().parents[1] / "data" / "sysid_rope"
     log = tmp_path / "child.log"
@@ -434,16 +428,12 @@ def test_a_command_of_the_reconstruction_ends_with_the_study(tmp_path):
         deadline = time.monotonic() + 120
         while "guess" not in (log.read_text() if log.exists() else "") and time.monotonic() < deadline:
             time.sleep(0.1)  # the fit has started (its first lines are printed)
-        (child,) = [int(c) for t in Path(f"/proc/{parent.pid}/task").iterdir()
-                    for c in (t / "children").read_text().split()]
+        (child,) = processes.children(parent.pid)
         parent.kill()
         parent.wait(timeout=10)
-        deadline = time.monotonic() + 5
-        while running(child) and time.monotonic() < deadline:
-            time.sleep(0.05)
-        assert not running(child), "the command outlived the study's process"
+        assert processes.wait_ended([child], 5) == [], "the command outlived the study's process"
     finally:
         if parent.poll() is None:
             parent.kill()
-        if child is not None and running(child):
+        if child is not None and processes.alive(child):
             os.kill(child, signal.SIGKILL)

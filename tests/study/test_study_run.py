@@ -266,7 +266,7 @@ def _never():
 
 
 @pytest.mark.timeout(300)
-def test_sigterm_stops_a_study_run_and_what_it_started(tmp_path):
+def test_sigterm_stops_a_study_run_and_what_it_started(tmp_path, processes):
     """SIGTERM (a scheduler's stop) to `twinbench study run` during the reconstruction takes Ctrl-C's path:
     the command it is running and the real rollouts beside it stop, it exits 143 saying how to resume, and
     no process it started is left."""
@@ -275,34 +275,13 @@ def test_sigterm_stops_a_study_run_and_what_it_started(tmp_path):
     import subprocess
     import sys
     import time
-    from pathlib import Path
-
-    def tree(pid: int) -> list[int]:  # every process under pid
-        try:
-            kids = [int(c) for t in Path(f"/proc/{pid}/task").iterdir()
-                    for c in (t / "children").read_text().split()]
-        except OSError:
-            return []
-        return kids + [g for k in kids for g in tree(k)]
 
     def cli_command_runs(pid: int) -> bool:  # one of the reconstruction's `twinbench ...` commands
-        for p in tree(pid):
-            try:
-                if "twinbench.cli" in Path(f"/proc/{p}/cmdline").read_text(errors="replace"):
-                    return True
-            except OSError:
-                pass
-        return False
+        return any("twinbench.cli" in processes.cmdline(p) for p in processes.descendants(pid))
 
     def stages_done() -> set[str]:
         record = out / "stages.json"
         return set(json.loads(record.read_text())["done"]) if record.exists() else set()
-
-    def running(pid: int) -> bool:
-        try:
-            return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0] not in ("Z", "X")
-        except OSError:
-            return False
 
     out = tmp_path / "study"
     proc = subprocess.Popen([sys.executable, "-m", "twinbench.cli", "study", "run", "--task", "push-t",
@@ -315,21 +294,18 @@ def test_sigterm_stops_a_study_run_and_what_it_started(tmp_path):
             if "evidence" in stages_done() and cli_command_runs(proc.pid):
                 break
             time.sleep(0.2)
-        pids = tree(proc.pid)
+        pids = processes.descendants(proc.pid)
         assert pids, "the study started no process within 240 s"
         proc.send_signal(signal.SIGTERM)
         text, _ = proc.communicate(timeout=60)
         assert proc.returncode == 143, text
         assert "twinbench study: terminated (SIGTERM); the same command started again keeps" in text
         assert "Traceback" not in text
-        deadline = time.monotonic() + 5
-        while any(running(p) for p in pids) and time.monotonic() < deadline:
-            time.sleep(0.05)
-        assert not [p for p in pids if running(p)]
+        assert processes.wait_ended(pids, 5) == []
         assert "evidence" in stages_done()  # kept for the next run
     finally:
         if proc.poll() is None:
             proc.kill()
         for p in pids:
-            if running(p):
+            if processes.alive(p):
                 os.kill(p, signal.SIGKILL)
