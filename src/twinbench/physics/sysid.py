@@ -1625,7 +1625,7 @@ def identify(data: SysIdData, cfg: FitConfig, *, base: SimParams | None = None,
         guesses: dict[str, dict] = {}
         if cfg.stage1:
             ranges = parse_ranges(cfg.cma.ranges)
-            params = within_ranges(params, searched, ranges)  # the hand-set values, inside the ranges
+            hand = params = within_ranges(params, searched, ranges)  # the hand-set values, inside the ranges
             start = params
             if cfg.guess:
                 guesses = physical_guesses(fit, topo or models["initial"], params.control_radius)
@@ -1645,9 +1645,9 @@ def identify(data: SysIdData, cfg: FitConfig, *, base: SimParams | None = None,
                                           log,
                                           base_of=base_of if topo is not None else None,
                                           walk=bool(guesses.get("spring_Y", {}).get("used")),
-                                          candidates=() if start == params else (params,),
+                                          candidates=() if start == hand else (hand,),
                                           attachments=grid if attach_grid else (), pool=pool)
-            ident = identifiability(history1, parse_ranges(cfg.cma.ranges))
+            ident = identifiability(history1, ranges)
             found = params
             if cfg.keep_guess > 0:
                 def score(p: GlobalParams) -> float:
@@ -1668,7 +1668,7 @@ def identify(data: SysIdData, cfg: FitConfig, *, base: SimParams | None = None,
             models["stage1"] = build_model(data, params, base_of(params), cfg.device)
             evals["stage1"] = evaluate(models["stage1"], data, loss)
             stage_params["stage1"] = params
-            if found in (start, within_ranges(cfg.initial, searched, ranges)):
+            if found in (start, hand):
                 notes.append(f"stage 1 did not improve on its start: none of {len(history1) - 1} candidates "
                              "beat the starting values (widen cma.ranges or check the data)")
         if attach_grid and cfg.stage1 and params == runs[0]["stage1"]:
