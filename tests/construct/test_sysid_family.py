@@ -170,6 +170,14 @@ def test_default_fit_on_family_cases_improves_and_reports(i):
     assert res.stage3_history and "spring_Y" not in res.stage3_history[0]["params"]
     assert fitted["stage3"] <= fitted["stage2"] * 1.001  # by its objective (no acceleration term)
     assert res.selection["frames"] == [] and "last stage" in res.selection["rule"]
+    # stages 2 and 3 ran twice (``rounds``), the second round's stage 2 from the first's stage 3 end point
+    assert [k for k in res.evals if "stage" in k] == ["stage1", "stage2_round1", "stage3_round1", "stage2",
+                                                       "stage3"]
+    end3 = min((r for r in res.stage3_history if r["round"] == 1), key=lambda r: r["loss"])["params"]
+    start2 = next(r for r in res.stage2_history if r["round"] == 2)
+    assert {"ground_friction", "ground_restitution"} <= set(start2)
+    assert all(start2[k] == pytest.approx(end3[k], abs=1e-3)
+               for k in ("ground_friction", "ground_restitution"))
     assert set(res.identifiability) >= {"spring_Y", "ground_friction", "dashpot_damping"}
     sy = res.identifiability["spring_Y"]
     assert sy["low"] <= sy["best"] <= sy["high"] and sy["samples"] >= 1

@@ -106,7 +106,8 @@ def test_outputs_object_directory_and_report(identified, tmp_path):
     assert set(rep["guesses"]) == {"spring_Y", "ground_friction", "ground_restitution"}
     assert all(isinstance(g["from"], str) and isinstance(g["used"], bool) for g in rep["guesses"].values())
     sel = rep["selection"]
-    errs, order = sel["errors_m"], ["initial", "stage1", "stage2", "stage3"]
+    # stages 2 and 3 ran twice (``rounds``), the first round's under their round's name
+    errs, order = sel["errors_m"], ["initial", "stage1", "stage2_round1", "stage3_round1", "stage2", "stage3"]
     assert sel["frames"] == [7, 8] and list(errs) == order
     # the kept stage beats every later one by 2 % on the selection frames and is within 2 % of the best
     assert all(errs[sel["kept"]] < 0.98 * errs[s] for s in order[order.index(sel["kept"]) + 1:])
@@ -135,7 +136,11 @@ def test_cli_help_and_end_to_end(sysid_small, tmp_path, capsys):
     rep = json.loads((tmp_path / "out" / "sysid_report.json").read_text())
     rows = rep["region_identifiability"]["regions"]  # per stiffness region; an unbounded std is null
     assert rows and all(r["std"] is None or r["std"] > 0 for r in rows)
-    assert len(rep["stage1_history"]) == 8 and len(rep["stage2_history"]) == 2
+    assert len(rep["stage1_history"]) == 8
+    # two rounds of stages 2 and 3 (the default), their rows numbered on from one round to the next
+    assert [(r["round"], r["epoch"]) for r in rep["stage2_history"]] == [(1, 0), (1, 1), (2, 2), (2, 3)]
+    evals = [r["evaluation"] for r in rep["stage3_history"]]
+    assert evals == list(range(len(evals))) and {r["round"] for r in rep["stage3_history"]} == {1, 2}
     # stage 4 (opt-in) ran its whole budget after stage 3 and, as the last stage, is the one kept
     assert rep["stages"]["stage4"] and len(rep["stage4_history"]) == 6
     assert rep["selection"]["kept"] == "stage4" and "stage4" in rep["evaluations"]

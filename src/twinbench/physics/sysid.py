@@ -347,6 +347,10 @@ class FitConfig:
     alone (:func:`stage4_cma`)"""
     stage4_budget: int = 200
     """stage 4's evaluations, all used"""
+    rounds: int = 2
+    """times stages 2 and 3 run, each round from the last one's stiffness pattern and global values:
+    each stage fits its part with the other held, and the parts are coupled (1 = once; the earlier
+    rounds' stages are kept as ``stage2_round1``, ...)"""
     attachment_starts: bool = True
     """with control points whose attachment stage 1 searches, run the stages a second time where the first
     run tracks poorly (``second_start_over_floor``), stage 1 then scoring the control attachments
@@ -399,6 +403,7 @@ class FitConfig:
         need("cma.budget", c.budget, 1, 100_000, integer=True)
         need("stage3_budget", self.stage3_budget, 1, 100_000, integer=True)
         need("stage4_budget", self.stage4_budget, 1, 100_000, integer=True)
+        need("rounds", self.rounds, 1, 20, integer=True)
         need("cma.popsize", c.popsize, 0, 1_000, integer=True)
         need("cma.sigma0", c.sigma0, 0.0, 1.0, lo_open=True)
         need("cma.patience", c.patience, 0, 100_000, integer=True)
@@ -1540,7 +1545,8 @@ def identify(data: SysIdData, cfg: FitConfig, *, base: SimParams | None = None,
     in the motion. Stage 2: Adam on per-region (or per-spring) stiffness and the contact values. Stage 3:
     CMA-ES again over the global parameters other than the spring rule, with stage 2's stiffness held
     (stage 1 chose them under a uniform stiffness they partly stood in for), after scoring the control
-    attachments (:func:`attachment_families`) at stage 2's point. With ``cfg.stage4``, stage 4 then
+    attachments (:func:`attachment_families`) at stage 2's point. Stages 2 and 3 run ``cfg.rounds`` times,
+    each round from the last one's stiffness pattern and global values. With ``cfg.stage4``, stage 4 then
     searches the stiffness regions and the contact and damping values together (:func:`stage4_cma`).
     With control points, stage 1's end point also has its attachment scored among the families before
     stage 2. With
@@ -1678,52 +1684,69 @@ def identify(data: SysIdData, cfg: FitConfig, *, base: SimParams | None = None,
             adam = replace(adam, y_min=max(adam.y_min, params.spring_Y / adam.window),
                            y_max=min(adam.y_max, params.spring_Y * adam.window))
         history2: list[dict] = []
-        regions = None
-        if cfg.stage2:
-            base2 = base_of(params, adam.y_max) if topo is not None else base
-            model = build_model(data, params, base2, cfg.device, requires_grad=True)
-            regions = spring_regions(model, adam.regions)  # as stage2_adam groups them (seeded k-means)
-            weights = balanced_weights(cfg.weights, evals["stage1" if cfg.stage1 else "initial"].terms,
-                                       adam.acc_share, log)
-            t0 = time.perf_counter()
-            hold = bool(ident.get("spring_Y", {}).get("guess_kept"))
-            if hold:
-                notes.append("stage 2 fits the stiffness pattern around the kept measured stiffness: the "
-                             "object springs' mean log Y is held (the motion does not constrain its scale)")
-            _, history2 = stage2_adam(model, data, adam, weights, cfg.progress, log, select=n_sel,
-                                      hold_scale=hold)
-            first = history2[0]["train_loss"]
-            if len(history2) > 1 and not any(r.get("train_loss", math.inf) < first for r in history2[1:]):
-                notes.append("stage 2 did not improve on its start's fitted loss")
-            seconds["stage2"] = time.perf_counter() - t0
-            c = model.contact_coeffs.numpy().astype(np.float64)
-            fitted = fitted_contacts(model) if cfg.adam.fit_contact else []
-            stage_params["stage2"] = replace(params, **{CONTACT_NAMES[i]: float(c[i]) for i in fitted})
-            models["stage2"] = model
-            evals["stage2"] = evaluate(model, data, loss)
         history3: list[dict] = []
+        regions = None
         rule = ("spring_Y", "spring_radius", "spring_max_neighbors")
         # the global parameters other than the spring rule, but a measured value that was kept stays
         names3 = tuple(n for n in applicable_parameters(data, base) if n not in rule
                        and (n in cfg.cma.search or not cfg.cma.search)
                        and not ident.get(n, {}).get("guess_kept"))
-        if cfg.stage2 and cfg.stage3 and names3:
+        hold_scale = bool(ident.get("spring_Y", {}).get("guess_kept"))
+        if hold_scale and cfg.stage2:
+            notes.append("stage 2 fits the stiffness pattern around the kept measured stiffness: the "
+                         "object springs' mean log Y is held (the motion does not constrain its scale)")
+        weights = cfg.weights
+        for rnd in range(1, cfg.rounds + 1) if cfg.stage2 else ():
+            what = "" if cfg.rounds == 1 else f" (round {rnd})"
+            hold = None
+            if rnd > 1:  # from the last round's stage 3: its stiffness pattern and global values
+                if "stage3" not in models:
+                    break
+                hold = held_stiffness(models["stage3"])
+                for k in ("stage2", "stage3"):  # the earlier rounds' stages stay, under their round's name
+                    for d in (models, evals, stage_params):
+                        d[f"{k}_round{rnd - 1}"] = d.pop(k)
+            start2 = params if rnd == 1 else stage_params[f"stage3_round{rnd - 1}"]
+            base2 = base_of(start2, adam.y_max) if topo is not None else base
+            model = build_model(data, start2, base2, cfg.device, requires_grad=True, hold=hold)
+            regions = spring_regions(model, adam.regions)  # as stage2_adam groups them (seeded k-means)
+            if rnd == 1:
+                weights = balanced_weights(cfg.weights, evals["stage1" if cfg.stage1 else "initial"].terms,
+                                           adam.acc_share, log)
+            t0 = time.perf_counter()
+            _, rows = stage2_adam(model, data, adam, weights, cfg.progress, log, select=n_sel,
+                                  hold_scale=hold_scale)
+            first = rows[0]["train_loss"]
+            if len(rows) > 1 and not any(r.get("train_loss", math.inf) < first for r in rows[1:]):
+                notes.append(f"stage 2{what} did not improve on its start's fitted loss")
+            seconds["stage2"] = seconds.get("stage2", 0.0) + time.perf_counter() - t0
+            epoch0 = history2[-1]["epoch"] + 1 if history2 else 0
+            history2 += [r | {"round": rnd, "epoch": epoch0 + r["epoch"]} for r in rows]
+            c = model.contact_coeffs.numpy().astype(np.float64)
+            fitted = fitted_contacts(model) if cfg.adam.fit_contact else []
+            stage_params["stage2"] = replace(start2, **{CONTACT_NAMES[i]: float(c[i]) for i in fitted})
+            models["stage2"] = model
+            evals["stage2"] = evaluate(model, data, loss)
+            if not (cfg.stage3 and names3):
+                break
             hold = held_stiffness(models["stage2"])
             y_top = float(np.exp(models["stage2"].log_y_np.astype(np.float64).max()))
 
-            def base3(p: GlobalParams) -> SimParams:
+            def base3(p: GlobalParams, y_top: float = y_top) -> SimParams:
                 return base_of(p, y_top)
 
             t0 = time.perf_counter()
             cma3 = replace(cfg.cma, search=names3, budget=cfg.stage3_budget, patience=0)
-            params3, history3 = stage1_cma(fit, base, stage_params["stage2"], cma3, cfg.weights, cfg.device,
-                                           cfg.progress, log, base_of=base3, hold=hold, stage="stage 3",
-                                           attachments=grid, pool=pool)
-            ident.update(identifiability(history3, parse_ranges(cfg.cma.ranges)))
-            seconds["stage3"] = time.perf_counter() - t0
+            params3, rows = stage1_cma(fit, base, stage_params["stage2"], cma3, cfg.weights, cfg.device,
+                                       cfg.progress, log, base_of=base3, hold=hold, stage=f"stage 3{what}",
+                                       attachments=grid, pool=pool)
+            ident.update(identifiability(rows, parse_ranges(cfg.cma.ranges)))  # the last round's
+            seconds["stage3"] = seconds.get("stage3", 0.0) + time.perf_counter() - t0
             if params3 == stage_params["stage2"]:
-                notes.append(f"stage 3 did not improve on stage 2's global parameters ({len(history3) - 1} "
+                notes.append(f"stage 3{what} did not improve on stage 2's global parameters ({len(rows) - 1} "
                              "candidates)")
+            count0 = history3[-1]["evaluation"] + 1 if history3 else 0
+            history3 += [r | {"round": rnd, "evaluation": count0 + r["evaluation"]} for r in rows]
             models["stage3"] = build_model(data, params3, base3(params3), cfg.device, hold=hold)
             evals["stage3"] = evaluate(models["stage3"], data, loss)
             stage_params["stage3"] = params3
@@ -1804,13 +1827,13 @@ def identify(data: SysIdData, cfg: FitConfig, *, base: SimParams | None = None,
                          f"{1e3 * errors[0]:.2f} mm (the attachment changes the motion in steps that one "
                          "search does not cross)")
     region_info: dict = {}
-    if kept in ("stage3", "stage4"):  # stage 2's regions over its springs (own control springs: one region)
+    if kept.split("_round")[0] not in ("stage2", "stage3", "stage4"):
+        regions = None
+    else:  # stage 2's regions over the kept model's springs (its own control springs: one region)
         n_obj, n3 = model.num_object_springs, model.num_springs
         regions = np.arange(n3) if len(np.unique(regions)) == len(regions) else \
             np.concatenate([regions[:n_obj], np.full(n3 - n_obj, regions[:n_obj].max() + 1)])
-    if kept not in ("stage2", "stage3", "stage4"):
-        regions = None
-    elif by_region(model, regions):  # measured only for the kept stage 2 (one rollout per region)
+    if regions is not None and by_region(model, regions):  # for the kept stage only: one rollout a region
         try:
             region_info = region_information(model, fit, regions)
         except SimulationDiverged:
