@@ -106,8 +106,7 @@ def test_outputs_object_directory_and_report(identified, tmp_path):
     assert set(rep["guesses"]) == {"spring_Y", "ground_friction", "ground_restitution"}
     assert all(isinstance(g["from"], str) and isinstance(g["used"], bool) for g in rep["guesses"].values())
     sel = rep["selection"]
-    # stages 2 and 3 ran twice (``rounds``), the first round's under their round's name
-    errs, order = sel["errors_m"], ["initial", "stage1", "stage2_round1", "stage3_round1", "stage2", "stage3"]
+    errs, order = sel["errors_m"], ["initial", "stage1", "stage2", "stage3"]
     assert sel["frames"] == [7, 8] and list(errs) == order
     # the kept stage beats every later one by 2 % on the selection frames and is within 2 % of the best
     assert all(errs[sel["kept"]] < 0.98 * errs[s] for s in order[order.index(sel["kept"]) + 1:])
@@ -130,14 +129,14 @@ def test_cli_help_and_end_to_end(sysid_small, tmp_path, capsys):
                    "--substeps", str(SUBSTEPS), "--dt", str(1.0 / (30 * SUBSTEPS)), "--no-progress",
                    "--initial.spring-Y", "1000", "--cma.budget", "8", "--cma.ranges", "spring_Y=100:10000",
                    "--adam.epochs", "1", "--adam.y-min", "50", "--adam.y-max", "1e4", "--stage4",
-                   "--stage4-budget", "6"])
+                   "--stage4-budget", "6", "--rounds", "2"])
     assert rc == 0
     assert "stiffness regions constrained by the motion" in capsys.readouterr().err
     rep = json.loads((tmp_path / "out" / "sysid_report.json").read_text())
     rows = rep["region_identifiability"]["regions"]  # per stiffness region; an unbounded std is null
     assert rows and all(r["std"] is None or r["std"] > 0 for r in rows)
     assert len(rep["stage1_history"]) == 8
-    # two rounds of stages 2 and 3 (the default), their rows numbered on from one round to the next
+    # two rounds of stages 2 and 3 (--rounds 2), their rows numbered on from one round to the next
     assert [(r["round"], r["epoch"]) for r in rep["stage2_history"]] == [(1, 0), (1, 1), (2, 2), (2, 3)]
     evals = [r["evaluation"] for r in rep["stage3_history"]]
     assert evals == list(range(len(evals))) and {r["round"] for r in rep["stage3_history"]} == {1, 2}

@@ -260,8 +260,7 @@ def test_stage3_searches_contact_again_with_stage2_stiffness_held():
     data = SysIdData(pts, xs + rng.normal(0, 3e-4, xs.shape), np.ones((frames, n), bool), np.arange(n),
                      xs + rng.normal(0, 3e-4, xs.shape), np.ones((frames, n), bool), ctl, fps=30.0,
                      validation_frames=4, name="drag")
-    cfg = _config(stage1=False, stage3=True, stage3_budget=40, rounds=1,
-                  initial=replace(truth, ground_friction=0.3),
+    cfg = _config(stage1=False, stage3=True, stage3_budget=40, initial=replace(truth, ground_friction=0.3),
                   cma=CMAConfig(search=("ground_restitution", "ground_friction"), seed=0),
                   adam=AdamConfig(epochs=2, lr=0.0, y_min=50.0, y_max=1e4, fit_contact=False))
     res = identify(data, cfg, log=_quiet)

@@ -347,10 +347,11 @@ class FitConfig:
     alone (:func:`stage4_cma`)"""
     stage4_budget: int = 200
     """stage 4's evaluations, all used"""
-    rounds: int = 2
+    rounds: int = 1
     """times stages 2 and 3 run, each round from the last one's stiffness pattern and global values:
-    each stage fits its part with the other held, and the parts are coupled (1 = once; the earlier
-    rounds' stages are kept as ``stage2_round1``, ...)"""
+    each stage fits its part with the other held, and the parts are coupled (the earlier rounds' stages
+    are kept as ``stage2_round1``, ...; 2 ranked the family's stiffness better at 2.3x the time, but not
+    every case: see BENCHMARKS.md)"""
     attachment_starts: bool = True
     """with control points whose attachment stage 1 searches, run the stages a second time where the first
     run tracks poorly (``second_start_over_floor``), stage 1 then scoring the control attachments
