@@ -1394,7 +1394,7 @@ def stage2_adam(model: SpringMassModel, data: SysIdData, cfg: AdamConfig,
     if fit:
         set_contacts(best[2])
     what = f"best selection-frame error {1e3 * best[0]:.3f} mm" if by_sel else \
-        f"best training loss {best[0]:.4e}"
+        f"best training loss {best[0]:.4e} (its acceleration term included, which stages 1 and 3 leave out)"
     log(f"stage 2: {len(history) - 1} epochs, {what}")
     return best[1].astype(np.float32), history
 
