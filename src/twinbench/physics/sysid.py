@@ -1614,7 +1614,8 @@ def identify(data: SysIdData, cfg: FitConfig, *, base: SimParams | None = None,
     searched = tuple(cfg.cma.search) or applicable_parameters(data, base)
 
     runs: list[dict] = []
-    grid = attachment_families(data, parse_ranges(cfg.cma.ranges))
+    ranges = parse_ranges(cfg.cma.ranges)
+    grid = attachment_families(data, ranges)
 
     def stages(attach_grid: bool) -> dict | None:
         """Stages 1-3 from the initial values; ``attach_grid``: stage 1 scores the attachment families
@@ -1631,7 +1632,6 @@ def identify(data: SysIdData, cfg: FitConfig, *, base: SimParams | None = None,
         ident: dict[str, dict] = {}
         guesses: dict[str, dict] = {}
         if cfg.stage1:
-            ranges = parse_ranges(cfg.cma.ranges)
             hand = params = within_ranges(params, searched, ranges)  # the hand-set values, inside the ranges
             start = params
             if cfg.guess:
@@ -1741,7 +1741,7 @@ def identify(data: SysIdData, cfg: FitConfig, *, base: SimParams | None = None,
             params3, rows = stage1_cma(fit, base, stage_params["stage2"], cma3, cfg.weights, cfg.device,
                                        cfg.progress, log, base_of=base3, hold=hold, stage=f"stage 3{what}",
                                        attachments=grid, pool=pool)
-            ident.update(identifiability(rows, parse_ranges(cfg.cma.ranges)))  # the last round's
+            ident.update(identifiability(rows, ranges))  # the last round's
             seconds["stage3"] = seconds.get("stage3", 0.0) + time.perf_counter() - t0
             if params3 == stage_params["stage2"]:
                 notes.append(f"stage 3{what} did not improve on stage 2's global parameters ({len(rows) - 1} "
@@ -1760,7 +1760,7 @@ def identify(data: SysIdData, cfg: FitConfig, *, base: SimParams | None = None,
             params4, hold4, history4 = stage4_cma(
                 fit, stage_params[last], hold4, regions[:len(hold4[0])], names4, cfg.cma, cfg.stage4_budget,
                 base_of,
-                cfg.weights, cfg.device, hold_scale=bool(ident.get("spring_Y", {}).get("guess_kept")),
+                cfg.weights, cfg.device, hold_scale=hold_scale,
                 y_bounds=(adam.y_min, adam.y_max), progress=cfg.progress, log=log, pool=pool)
             seconds["stage4"] = time.perf_counter() - t0
             if len(history4) < 2 or min(r["loss"] for r in history4[1:]) >= history4[0]["loss"]:
@@ -1843,7 +1843,7 @@ def identify(data: SysIdData, cfg: FitConfig, *, base: SimParams | None = None,
     if cfg.stage1 or (cfg.stage2 and cfg.stage3):  # the values a search chose (stage 3 keeps the spring rule)
         rule = () if cfg.stage1 else ("spring_Y", "spring_radius", "spring_max_neighbors")
         notes += range_edge_notes(params, [n for n in searched if n in applicable_parameters(data, base)
-                                           and n not in rule], parse_ranges(cfg.cma.ranges))
+                                           and n not in rule], ranges)
     for note in notes:
         log(f"note: {note}")
     return SysIdResult(params, params.sim_params(model.params), model.log_y_np.copy(), model, evals, history1,
