@@ -431,6 +431,70 @@ def test_attachment_families_enumerate_the_distinct_held_particles():
     assert attachment_families(replace(data, controls=np.zeros((3, 0, 3))), ranges) == ()
 
 
+def test_rule_topologies_are_the_distinct_spring_sets_of_the_radius_rule():
+    """A 20 x 2 ladder 1 cm apart (the PhysTwin-like rope's layout): the rule's set changes only where a
+    neighbour shell joins, at 1, sqrt 2, 2, sqrt 5, 3, sqrt 10, 4, sqrt 17 and 5 cm, each adding 2 (20 - d)
+    pairs (d the shell's offset along the ladder) or the 20 rungs, so over 1-5 cm there are nine sets with
+    58, 96, 132, 168, 202, 236, 268, 300 and 330 springs; each radius returned makes its set by the rule.
+    Fewer asked for: one near each of as many counts, log-spaced from the fewest to the most springs (the
+    widest interval near each); a neighbour cap bounds the sets."""
+    from twinbench.physics.model import lattice, radius_springs
+    from twinbench.physics.sysid import rule_topologies
+
+    pts = lattice(20, 2, 1, spacing=0.01)
+    radii = parse_ranges(())["spring_radius"]  # 1-5 cm
+    sets = rule_topologies(pts, radii, 30, 20)
+    assert [n for _, n in sets] == [58, 96, 132, 168, 202, 236, 268, 300, 330]
+    for r, n in sets:
+        assert 0.01 <= r <= 0.05 and len(radius_springs(pts, r, 30)) == n
+    shells = np.sqrt([1, 2, 4, 5, 9, 10, 16, 17, 25]) * 0.01 * (1 - 1e-5)  # joins just below (the slack)
+    assert all(lo <= r < hi for (r, _), lo, hi in zip(sets, shells, [*shells[1:], 0.0501], strict=True))
+    three = rule_topologies(pts, radii, 30, 3)
+    assert [n for _, n in three] == [58, 96, 236]  # near 58, 138 and 330 springs: the widest intervals
+    # at most 3 neighbours a particle: the 1 cm ones fill every cap but the 4 end particles' (2 each), which
+    # take one diagonal each at sqrt 2 cm; then every cap is full
+    capped = rule_topologies(pts, radii, 3, 20)
+    assert [n for _, n in capped] == [58, 62] and len(radius_springs(pts, capped[1][0], 3)) == 62
+    assert rule_topologies(pts[:1], radii, 30, 8) == [] and rule_topologies(pts * 10, radii, 30, 8) == []
+
+
+def test_stage1_finds_the_truths_spring_set_from_another():
+    """The cloth (8 x 4, 1 cm apart, springs by the truth's 2 cm rule: 134) fitted without its springs from
+    a 1.19 cm radius (the 52 springs of the nearest neighbours): stage 1 scores each of the rule's sets and
+    searches the rest on each, and ends on the truth's set, its stiffness within 10 %; every set's
+    candidates are in the history with their radius."""
+    data, truth = synthetic_case("cloth", soft_Y=1000.0, stiff_Y=1000.0, frames=30, validation_frames=6)
+    data = replace(data, springs=None)
+    names = ("spring_Y", "spring_radius", "spring_max_neighbors", "drag_damping", "dashpot_damping")
+    cfg = _config(stage2=False, guess=False, initial=replace(_config().initial, spring_Y=300.0,
+                                                               spring_radius=0.012),
+                  cma=CMAConfig(budget=20, search=names, ranges=("spring_Y=100:10000",)))
+    res = identify(data, cfg, log=_quiet)
+    n = res.model.num_object_springs
+    assert np.array_equal(res.model.springs_np[:n], truth["springs"])  # the truth's rule, its topology
+    assert res.params.spring_Y == pytest.approx(1000.0, rel=0.1)
+    from twinbench.physics.sysid import rule_topologies
+
+    sets = rule_topologies(data.particles, parse_ranges(())["spring_radius"], 30, cfg.cma.topologies)
+    radii = {r["params"]["spring_radius"] for r in res.stage1_history}
+    assert radii == {0.012, *(r for r, _ in sets)}
+    assert all(set(r["params"]) == set(names) for r in res.stage1_history)
+    ladder = min(r["loss"] for r in res.stage1_history if r["params"]["spring_radius"] < 0.014)
+    assert min(r["loss"] for r in res.stage1_history) < 0.5 * ladder  # the start's set fits far worse
+    # with the control attachment scored among its families first (the second start), the searches hold
+    # it: every row still carries every searched value, as the identifiability report reads them
+    from twinbench.physics.sysid import attachment_families, identifiability, stage1_topologies
+
+    every = (*names, "control_radius", "control_max_neighbors")
+    ranges = parse_ranges(("spring_Y=100:10000",))
+    base = SimParams(dt=1.0 / (30 * SUBSTEPS), substeps=SUBSTEPS)
+    _, rows = stage1_topologies(data, base, cfg.initial, CMAConfig(budget=6, search=every, topologies=2,
+                                                                   ranges=("spring_Y=100:10000",)),
+                                log=_quiet, attachments=attachment_families(data, ranges))
+    assert all(set(r["params"]) == set(every) for r in rows)
+    assert set(identifiability(rows, ranges)) == set(every)
+
+
 def test_stage3_finds_the_held_particles_among_the_attachment_families():
     """The held-out family's irregular lift (the hand holds the 7 particles within 1.5 cm of it), the
     truth's stiffness and contact held, from PhysTwin's default attachment (4 cm / 50 neighbours: most of

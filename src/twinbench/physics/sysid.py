@@ -69,7 +69,7 @@ from scipy.spatial import cKDTree
 
 from twinbench._runtime import CPU_THREADS_ENV, quiet_warp, watch_parent
 
-from .model import RADIUS_SLACK, TIE_DECIMALS, ModelBuilder, SpringMassModel, radius_springs
+from .model import MIN_REST_LENGTH, RADIUS_SLACK, TIE_DECIMALS, ModelBuilder, SpringMassModel, radius_springs
 from .params import SimParams
 from .solver import SimulationDiverged, SpringMassSolver, check_divergence
 from .sysid_data import SysIdData, SysIdFormatError
@@ -238,7 +238,8 @@ class CMAConfig:
     """Stage 1 (CMA-ES) settings."""
 
     budget: int = 150
-    """maximum number of evaluations (each simulates every training frame)"""
+    """maximum number of evaluations (each simulates every training frame) of one search; with the spring
+    rule's ``topologies``, of each set's start and of its search"""
     popsize: int = 0
     """population per generation; 0 = cma's default 4 + 3 ln(n)"""
     sigma0: float = 0.25
@@ -252,6 +253,19 @@ class CMAConfig:
     patience: int = 3
     """stop after this many CMA-ES generations without a 1 % improvement of the best loss (0 = use the
     whole budget)"""
+    topologies: int = 8
+    """where the spring rule is searched (no explicit springs): the distinct spring sets that its radius
+    makes over the radius range (at the start's neighbour cap, :func:`rule_topologies`), at most this many,
+    spread over their spring counts, each scored from the start (its stiffness scan and attachments); then
+    CMA-ES searches the other parameters on the best ``finalists`` of them with the rule held, and the best
+    is kept (:func:`stage1_topologies`). The loss is flat in the radius between the radii where a
+    neighbour shell joins, so a search that moves the radius with the rest stops on the first set that it
+    meets (the PhysTwin-like rope: a 1.39 cm ladder, 58 springs; BENCHMARKS.md). 0 = the radius and the
+    cap searched by CMA-ES with the rest"""
+    finalists: int = 8
+    """of the spring rule's ``topologies``, how many CMA-ES searches (the best by their starts' loss; on the
+    PhysTwin-like rope the start's loss ranked the set that the searches find best fifth of seven, so by
+    default every one is searched)"""
     workers: int = 1
     """processes that score a generation's candidates at once (spawned, each simulating on one core:
     CandidatePool), e.g. the machine's cores, at most the population; it serves stages 1, 3 and 4.
@@ -410,6 +424,8 @@ class FitConfig:
         need("cma.patience", c.patience, 0, 100_000, integer=True)
         need("cma.seed", c.seed, 0, 2**31 - 2, integer=True)
         need("cma.workers", c.workers, 1, 1_000, integer=True)
+        need("cma.topologies", c.topologies, 0, 1_000, integer=True)
+        need("cma.finalists", c.finalists, 1, 1_000, integer=True)
         need("adam.epochs", a.epochs, 0, 100_000, integer=True)
         need("adam.lr", a.lr, 0.0, 10.0)
         need("adam.contact_lr", a.contact_lr, 0.0, 10.0)
@@ -1024,6 +1040,125 @@ def stage1_cma(data: SysIdData, base: SimParams, initial: GlobalParams, cfg: CMA
     return best[1], history
 
 
+RULE_NAMES = ("spring_radius", "spring_max_neighbors")
+
+
+def rule_topologies(particles: np.ndarray, radii: SearchRange, max_neighbors: int,
+                    count: int) -> list[tuple[float, int]]:
+    """The distinct spring sets of the radius rule (:func:`radius_springs` at ``max_neighbors``) over the
+    radius range ``radii``: at most ``count`` of them, spread evenly over the log of their spring counts
+    (all of them where there are no more). Each is given by a radius inside its interval, the widest
+    interval near its count (on a lattice the set changes only where a neighbour shell joins; on an
+    irregular cloud at every pair distance). Returns (radius, springs) pairs, fewest springs first; empty
+    where no radius in the range joins two particles."""
+    pts = np.asarray(particles, np.float64)
+    n = len(pts)
+    if n < 2 or count < 1:
+        return []
+    k = min(int(max_neighbors) + 1, n)
+    dist, idx = cKDTree(pts).query(pts, k=k, distance_upper_bound=radii.hi * (1.0 + RADIUS_SLACK))
+    dist, idx = np.asarray(dist).reshape(n, k), np.asarray(idx).reshape(n, k)
+    own = np.arange(n)[:, None]
+    keep = np.isfinite(dist) & (idx != own)
+    keep &= np.cumsum(keep, axis=1) <= max_neighbors  # the nearest max_neighbors others
+    i, j = np.broadcast_to(own, idx.shape)[keep], idx[keep]
+    d = dist[keep]
+    far = d > MIN_REST_LENGTH
+    pairs = np.unique(np.stack([np.minimum(i, j), np.maximum(i, j)], 1)[far], axis=0, return_index=True)[1]
+    # the radius at which each pair joins the set (the rule takes distances up to its radius and a slack)
+    joins = np.sort(np.round(d[far][pairs], TIE_DECIMALS)) / (1.0 + RADIUS_SLACK)
+    inside = np.unique(joins[(joins > radii.lo) & (joins < radii.hi)])
+    edges = np.concatenate([[radii.lo], inside, [radii.hi]])
+    mids = np.sqrt(edges[:-1] * edges[1:])  # one radius inside each interval of one set
+    counts = np.searchsorted(joins, mids, side="right")
+    width = np.log(edges[1:] / edges[:-1])
+    ok = counts > 0
+    mids, counts, width = mids[ok], counts[ok], width[ok]
+    if len(mids) == 0:
+        return []
+    if len(mids) > count:  # the widest interval near each of `count` spring counts, log-spaced
+        chosen = set()
+        for target in np.geomspace(counts[0], counts[-1], count):
+            near = np.abs(np.log(counts / target)) <= 0.5 * np.log(counts[-1] / counts[0]) / max(count - 1, 1)
+            cand = np.flatnonzero(near) if near.any() else [int(np.argmin(np.abs(np.log(counts / target))))]
+            chosen.add(int(max(cand, key=lambda c: width[c])))
+        pick = sorted(chosen)
+    else:
+        pick = range(len(mids))
+    return [(float(mids[c]), len(radius_springs(pts, float(mids[c]), max_neighbors))) for c in pick]
+
+
+def stage1_topologies(data: SysIdData, base: SimParams, initial: GlobalParams, cfg: CMAConfig,
+                      weights: LossWeights = LossWeights(), device: str = "cpu", progress: bool = False,
+                      log: Callable[[str], None] = print,
+                      base_of: Callable[[GlobalParams], SimParams] | None = None, walk: bool = False,
+                      candidates: tuple[GlobalParams, ...] = (),
+                      attachments: tuple[tuple[tuple[dict, int], ...], ...] = (),
+                      pool: CandidatePool | None = None) -> tuple[GlobalParams, list[dict]]:
+    """Stage 1 where the spring rule is searched (``CMAConfig.topologies``): ``initial`` and
+    ``candidates`` as they are; then each of the rule's :func:`rule_topologies` (at ``initial``'s
+    neighbour cap) from ``initial`` with its radius, by :func:`stage1_cma`'s stiffness scan and attachment
+    families without CMA-ES; then CMA-ES on the ``cfg.finalists`` whose start scored best, over the other
+    searched parameters with the rule held. Returns the best parameters over all of it and one history
+    (each row with every searched value, the rule's included)."""
+    ranges = parse_ranges(cfg.ranges)
+    names = tuple(cfg.search) or applicable_parameters(data, base)
+    rest = tuple(n for n in names if n not in RULE_NAMES)
+    start = within_ranges(initial, names, ranges)
+    cap = int(start.spring_max_neighbors)
+    history: list[dict] = []
+
+    def add(rows: list[dict], held: GlobalParams) -> None:
+        """``rows`` of one search, numbered on, each with every searched value (``held``'s where the search
+        held it: the rule, an attachment chosen before)."""
+        for r in rows:
+            best = min(r["loss"], history[-1]["best"]) if history else r["loss"]
+            values = {n: float(getattr(held, n)) for n in names} | r["params"]
+            history.append(r | {"evaluation": len(history), "best": best, "params": values})
+
+    def quiet(_message: str) -> None:  # one line a searched set below instead
+        pass
+
+    best, rows = stage1_cma(data, base, start, replace(cfg, budget=1 + len(candidates)), weights, device,
+                            False, quiet, base_of=base_of, candidates=candidates, scan_stiffness=False,
+                            then_cma=False, pool=pool)
+    add(rows, start)
+    found = [(min(r["loss"] for r in rows), best)]
+    tops = rule_topologies(data.particles, ranges["spring_radius"], cap, cfg.topologies)
+    starts = []
+    for radius, springs in tops:
+        at = replace(start, spring_radius=radius)
+        try:
+            p, rows = stage1_cma(data, base, at, replace(cfg, search=rest),
+                                 weights, device, progress, quiet, base_of=base_of, walk=walk,
+                                 attachments=attachments, then_cma=False, pool=pool,
+                                 stage=f"stage 1, radius {100 * radius:.2f} cm")
+        except ValueError:  # every candidate of this set diverged
+            continue
+        add(rows, at)
+        starts.append((min(r["loss"] for r in rows), radius, springs, p))
+    starts.sort(key=lambda t: t[0])
+    attached = bool(attachments) and set(ATTACHMENT_NAMES) <= set(rest)
+    search = tuple(n for n in rest if not (attached and n in ATTACHMENT_NAMES))
+    for f_start, radius, springs, p0 in starts[: cfg.finalists]:
+        p, rows = stage1_cma(data, base, p0, replace(cfg, search=search), weights, device, progress, quiet,
+                             base_of=base_of, scan_stiffness=False, pool=pool,
+                             stage=f"stage 1, radius {100 * radius:.2f} cm")
+        add(rows, p0)
+        found.append((min(r["loss"] for r in rows), p))
+        log(f"stage 1: spring radius {100 * radius:.2f} cm ({springs} springs): start {f_start:.4e}, "
+            f"searched {found[-1][0]:.4e}")
+    if not starts:
+        raise ValueError("stage 1: every candidate diverged; lower the spring_Y range (cma.ranges) or raise "
+                         "the substeps")
+    loss, params = min(found, key=lambda t: t[0])
+    log(f"stage 1: {len(history)} evaluations over {len(tops)} spring sets of the radius rule "
+        f"({', '.join(f'{100 * r:.2f} cm: {c}' for r, c in tops)} springs), the best "
+        f"{min(cfg.finalists, len(starts))} searched; best training loss {loss:.4e} at radius "
+        f"{100 * params.spring_radius:.2f} cm")
+    return params, history
+
+
 STAGE4_SPAN = 3.0
 """stage 4 moves each stiffness region within this factor of stage 2's (or 3's) value"""
 STAGE4_SIGMA = 0.15
@@ -1592,12 +1727,27 @@ def identify(data: SysIdData, cfg: FitConfig, *, base: SimParams | None = None,
                     f"(rms change {k * r['rms_change']:.3g} {unit})")
     topo = build_model(data, cfg.initial, SimParams(), cfg.device) if base is None and cfg.auto_substeps \
         else None
+    rules: dict[tuple[float, int], SpringMassModel] = {}
+
+    def topo_of(params: GlobalParams) -> SpringMassModel:
+        """The springs that ``params`` simulate with (its radius rule's, where the springs are not given),
+        for their stability bound: a denser set needs more substeps at the same stiffness."""
+        key = (float(params.spring_radius), int(params.spring_max_neighbors))
+        if data.springs is not None or key == (cfg.initial.spring_radius, cfg.initial.spring_max_neighbors):
+            return topo
+        if key not in rules:
+            if len(rules) >= 64:  # a search that moves the radius makes a new rule each candidate
+                rules.clear()
+            rule = replace(cfg.initial, spring_radius=key[0], spring_max_neighbors=key[1])
+            rules[key] = build_model(data, rule, SimParams(), cfg.device)
+        return rules[key]
 
     def base_of(params: GlobalParams, y_top: float | None = None) -> SimParams:
         if topo is None:
             return base or cfg.base_params(data.fps)
         dash = max(params.dashpot_damping, cfg.initial.dashpot_damping)
-        return cfg.base_params(data.fps, stable_substeps(topo, y_top or params.spring_Y, dash, data.fps))
+        return cfg.base_params(data.fps, stable_substeps(topo_of(params), y_top or params.spring_Y, dash,
+                                                         data.fps))
 
     base = base_of(cfg.initial)  # without automatic substeps, base_of gives this one from here on
     frame_dt = base.dt * base.substeps
@@ -1648,12 +1798,13 @@ def identify(data: SysIdData, cfg: FitConfig, *, base: SimParams | None = None,
                         f"{'' if use else ' (not used)'}: {g['from']}")
             fit_loss = SequenceLoss(fit, cfg.weights)
             t0 = time.perf_counter()
-            params, history1 = stage1_cma(fit, base, start, cfg.cma, cfg.weights, cfg.device, cfg.progress,
-                                          log,
-                                          base_of=base_of if topo is not None else None,
-                                          walk=bool(guesses.get("spring_Y", {}).get("used")),
-                                          candidates=() if start == hand else (hand,),
-                                          attachments=grid if attach_grid else (), pool=pool)
+            by_rule = cfg.cma.topologies > 0 and "spring_radius" in searched  # the rule's sets, one by one
+            params, history1 = (stage1_topologies if by_rule else stage1_cma)(
+                fit, base, start, cfg.cma, cfg.weights, cfg.device, cfg.progress, log,
+                base_of=base_of if topo is not None else None,
+                walk=bool(guesses.get("spring_Y", {}).get("used")),
+                candidates=() if start == hand else (hand,), attachments=grid if attach_grid else (),
+                pool=pool)
             ident = identifiability(history1, ranges)
             found = params
             if cfg.keep_guess > 0:
