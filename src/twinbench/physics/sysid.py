@@ -884,6 +884,14 @@ def cma_search(f: Callable[[list[list[float]]], list[float]], x0: list[float], c
             break
 
 
+class AllDiverged(ValueError):
+    """Every candidate of a search diverged."""
+
+    def __init__(self, stage: str):
+        super().__init__(f"{stage}: every candidate diverged; lower the spring_Y range (cma.ranges) or raise "
+                         "the substeps")
+
+
 def stage1_cma(data: SysIdData, base: SimParams, initial: GlobalParams, cfg: CMAConfig,
                weights: LossWeights = LossWeights(), device: str = "cpu", progress: bool = False,
                log: Callable[[str], None] = print,
@@ -1034,8 +1042,7 @@ def stage1_cma(data: SysIdData, base: SimParams, initial: GlobalParams, cfg: CMA
         elif free:
             cma_search(steps, x0, cfg, cfg.budget - len(history), best[0])
     if best[0] >= PENALTY:
-        raise ValueError(f"{stage}: every candidate diverged; lower the spring_Y range (cma.ranges) or raise "
-                         "the substeps")
+        raise AllDiverged(stage)
     log(f"{stage}: {len(history)} evaluations, best training loss {best[0]:.4e}")
     return best[1], history
 
@@ -1133,7 +1140,7 @@ def stage1_topologies(data: SysIdData, base: SimParams, initial: GlobalParams, c
                                  weights, device, progress, quiet, base_of=base_of, walk=walk,
                                  attachments=attachments, then_cma=False, pool=pool,
                                  stage=f"stage 1, radius {100 * radius:.2f} cm")
-        except ValueError:  # every candidate of this set diverged
+        except AllDiverged:  # every candidate of this set diverged
             continue
         add(rows, at)
         starts.append((min(r["loss"] for r in rows), radius, springs, p))
@@ -1149,8 +1156,7 @@ def stage1_topologies(data: SysIdData, base: SimParams, initial: GlobalParams, c
         log(f"stage 1: spring radius {100 * radius:.2f} cm ({springs} springs): start {f_start:.4e}, "
             f"searched {found[-1][0]:.4e}")
     if not starts:
-        raise ValueError("stage 1: every candidate diverged; lower the spring_Y range (cma.ranges) or raise "
-                         "the substeps")
+        raise AllDiverged("stage 1")
     loss, params = min(found, key=lambda t: t[0])
     log(f"stage 1: {len(history)} evaluations over {len(tops)} spring sets of the radius rule "
         f"({', '.join(f'{100 * r:.2f} cm: {c}' for r, c in tops)} springs), the best "
