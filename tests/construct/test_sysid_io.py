@@ -136,9 +136,13 @@ def test_cli_help_and_end_to_end(sysid_small, tmp_path, capsys):
     rows = rep["region_identifiability"]["regions"]  # per stiffness region; an unbounded std is null
     assert rows and all(r["std"] is None or r["std"] > 0 for r in rows)
     # stage 1 searched each spring set of the radius rule (--cma.topologies), each within the budget
+    from twinbench.physics.sysid import parse_ranges, rule_topologies
+
     h1 = rep["stage1_history"]
     sets = {r["params"]["spring_radius"] for r in h1[1:]}
     assert [r["evaluation"] for r in h1] == list(range(len(h1))) and len(sets) > 1
+    assert sets == {r for r, _ in rule_topologies(sysid_small.particles, parse_ranges(())["spring_radius"],
+                                                  30, 8)}  # exactly the rule's sets, not a continuous search
     assert all(sum(r["params"]["spring_radius"] == s for r in h1) <= 2 * 8 for s in sets)
     # two rounds of stages 2 and 3 (--rounds 2), their rows numbered on from one round to the next
     assert [(r["round"], r["epoch"]) for r in rep["stage2_history"]] == [(1, 0), (1, 1), (2, 2), (2, 3)]

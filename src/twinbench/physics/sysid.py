@@ -161,13 +161,17 @@ def within_ranges(params: GlobalParams, names, ranges: dict[str, SearchRange]) -
     return replace(params, **out) if out else params
 
 
+RULE_NAMES = ("spring_radius", "spring_max_neighbors")
+"""the object-spring rule's parameters (searched only without explicit springs)"""
+
+
 def applicable_parameters(data: SysIdData, base: SimParams) -> tuple[str, ...]:
     """The global parameters that change the simulation of ``data``: topology rules only without
     explicit springs, control rules only with control points, self-contact only with self-collision,
     ground contact only with the ground on, the tool's contact only with a tool."""
     names = ["spring_Y"]
     if data.springs is None:
-        names += ["spring_radius", "spring_max_neighbors"]
+        names += RULE_NAMES
     if data.num_controls:
         names += ["control_radius", "control_max_neighbors"]
     if base.ground:
@@ -1047,9 +1051,6 @@ def stage1_cma(data: SysIdData, base: SimParams, initial: GlobalParams, cfg: CMA
     return best[1], history
 
 
-RULE_NAMES = ("spring_radius", "spring_max_neighbors")
-
-
 def rule_topologies(particles: np.ndarray, radii: SearchRange, max_neighbors: int,
                     count: int) -> list[tuple[float, int]]:
     """The distinct spring sets of the radius rule (:func:`radius_springs` at ``max_neighbors``) over the
@@ -1844,7 +1845,7 @@ def identify(data: SysIdData, cfg: FitConfig, *, base: SimParams | None = None,
         history2: list[dict] = []
         history3: list[dict] = []
         regions = None
-        rule = ("spring_Y", "spring_radius", "spring_max_neighbors")
+        rule = ("spring_Y", *RULE_NAMES)
         # the global parameters other than the spring rule, but a measured value that was kept stays
         names3 = tuple(n for n in applicable_parameters(data, base) if n not in rule
                        and (n in cfg.cma.search or not cfg.cma.search)
@@ -1998,7 +1999,7 @@ def identify(data: SysIdData, cfg: FitConfig, *, base: SimParams | None = None,
             region_info = {}
     evals["final"] = evals[kept]
     if cfg.stage1 or (cfg.stage2 and cfg.stage3):  # the values a search chose (stage 3 keeps the spring rule)
-        rule = () if cfg.stage1 else ("spring_Y", "spring_radius", "spring_max_neighbors")
+        rule = () if cfg.stage1 else ("spring_Y", *RULE_NAMES)
         notes += range_edge_notes(params, [n for n in searched if n in applicable_parameters(data, base)
                                            and n not in rule], ranges)
     for note in notes:
